@@ -1,0 +1,154 @@
+"""The node's parameters: one typed, range-checked table (no ROS import).
+
+The node declares exactly these (with descriptors built from this table), `config/dpv_sensor.yaml` documents
+them with the same defaults (a test keeps the two in step), and `validate()` rejects bad values at start with a
+message naming the parameter, the value and the allowed range.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any, Sequence
+
+
+@dataclass(frozen=True)
+class ParamSpec:
+    name: str
+    default: Any
+    description: str
+    choices: Sequence[Any] | None = None
+    min_value: float | None = None
+    max_value: float | None = None
+    length: int | None = None  # fixed length of an array parameter
+
+    @property
+    def kind(self) -> type:
+        return type(self.default)
+
+
+IDENTITY_POSE = [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0]
+
+SPECS: tuple[ParamSpec, ...] = (
+    # --- model --------------------------------------------------------------------------------------------
+    ParamSpec('preset', 'lite', 'Network preset: lite (2-core CPU) or paper (the appendix tables).',
+              choices=('lite', 'paper')),
+    ParamSpec('weights', '', 'Checkpoint (.safetensors). Empty: the packaged weights of the preset. '
+              'When no weights load, the node warns and falls back to the classical (NCC) model.'),
+    ParamSpec('measurement', 'auto', 'Measurement model: auto (network, classical fallback), network or classical.',
+              choices=('auto', 'network', 'classical')),
+    ParamSpec('device', 'cpu', 'Torch device: cpu, cuda or cuda:N.'),
+    ParamSpec('processing_width', 320, 'Width the images are resized to for estimation (pixels).',
+              min_value=32, max_value=4096),
+    ParamSpec('processing_height', 256, 'Height the images are resized to for estimation (pixels).',
+              min_value=32, max_value=4096),
+    ParamSpec('d_min', 0.3, 'Nearest depth plane (m), used by the classical model; networks use their checkpoint.',
+              min_value=0.01, max_value=100.0),
+    ParamSpec('d_max', 8.0, 'Farthest depth plane (m), used by the classical model.', min_value=0.1, max_value=1000.0),
+    ParamSpec('num_planes', 64, 'Depth planes of the classical model.', min_value=4, max_value=256),
+    # --- filter -------------------------------------------------------------------------------------------
+    ParamSpec('filter_mode', 'knet', 'DPV filter update: none, bayes, global or knet '
+              '(knet needs network weights; falls back to global).', choices=('none', 'bayes', 'global', 'knet')),
+    ParamSpec('damping', 0.8, 'Global damping lambda of the prediction energy (paper eq. 8).',
+              min_value=0.0, max_value=1.0),
+    ParamSpec('reset_time_gap', 1.0, 'Reset the filter when keyframes are further apart than this (s).',
+              min_value=0.0, max_value=3600.0),
+    ParamSpec('reset_translation', 1.0, 'Reset the filter when the camera jumps further than this between '
+              'keyframes (m).', min_value=0.0, max_value=1000.0),
+    ParamSpec('reset_rotation_deg', 45.0, 'Reset the filter when the camera turns more than this between '
+              'keyframes (deg).', min_value=0.0, max_value=180.0),
+    # --- keyframes and window -----------------------------------------------------------------------------
+    ParamSpec('window_mode', 'causal', 'causal: past keyframes only (no latency); centered: the paper window, two '
+              'keyframes of latency.', choices=('causal', 'centered')),
+    ParamSpec('keyframe_translation', 0.05, 'New keyframe after this baseline since the last one (m).',
+              min_value=0.0, max_value=100.0),
+    ParamSpec('keyframe_rotation_deg', 5.0, 'New keyframe after this rotation since the last one (deg).',
+              min_value=0.0, max_value=180.0),
+    ParamSpec('keyframe_max_interval', 5, 'New keyframe at the latest every this many frames (paper: 5).',
+              min_value=1, max_value=1000),
+    ParamSpec('publish_between_keyframes', False, 'Also publish a cheap depth for frames between keyframes, from '
+              'the predicted DPV.'),
+    # --- poses --------------------------------------------------------------------------------------------
+    ParamSpec('odometry', 'topic', 'Pose source: topic (nav_msgs/Odometry on `odom`) or none (visual alignment).',
+              choices=('topic', 'none')),
+    ParamSpec('T_base_camera', list(IDENTITY_POSE), 'Static camera pose in the odometry child frame: '
+              '[x, y, z, qx, qy, qz, qw] (identity: odometry already tracks the optical frame).', length=7),
+    ParamSpec('odom_wait_timeout', 0.5, 'How long an image waits for odometry that brackets its stamp (s).',
+              min_value=0.0, max_value=60.0),
+    ParamSpec('max_odom_gap', 0.5, 'Largest gap between the two odometry messages an image pose is '
+              'interpolated from (s).', min_value=0.0, max_value=60.0),
+    ParamSpec('pose_refinement', 'off', 'Sliding-window pose refinement with gtsam: off or window.',
+              choices=('off', 'window')),
+    # --- camera -------------------------------------------------------------------------------------------
+    ParamSpec('camera_info_source', 'topic', 'Intrinsics from the camera_info topic or from the fx/fy/cx/cy '
+              'parameters.', choices=('topic', 'parameters')),
+    ParamSpec('fx', 0.0, 'Focal length x (px) when camera_info_source is parameters.', min_value=0.0),
+    ParamSpec('fy', 0.0, 'Focal length y (px).', min_value=0.0),
+    ParamSpec('cx', 0.0, 'Principal point x (px).', min_value=0.0),
+    ParamSpec('cy', 0.0, 'Principal point y (px).', min_value=0.0),
+    # --- output -------------------------------------------------------------------------------------------
+    ParamSpec('depth_encoding', '32FC1', 'depth/image encoding: 32FC1 metres (NaN = none) or 16UC1 millimetres '
+              '(0 = none), REP 118.', choices=('32FC1', '16UC1')),
+    ParamSpec('output_resolution', 'input', 'Output image size: input (the camera\'s) or processing.',
+              choices=('input', 'processing')),
+    ParamSpec('min_confidence', 0.0, 'Depth with lower confidence is published as no estimate.',
+              min_value=0.0, max_value=1.0),
+    # --- transport ----------------------------------------------------------------------------------------
+    ParamSpec('input_reliability', 'best_effort', 'QoS reliability of the subscriptions (sensor data default).',
+              choices=('best_effort', 'reliable')),
+    ParamSpec('input_depth', 5, 'QoS history depth of the subscriptions.', min_value=1, max_value=1000),
+    ParamSpec('output_reliability', 'reliable', 'QoS reliability of the publishers.',
+              choices=('best_effort', 'reliable')),
+    ParamSpec('output_depth', 5, 'QoS history depth of the publishers.', min_value=1, max_value=1000),
+    ParamSpec('diagnostics_period', 1.0, 'Seconds between /diagnostics messages.', min_value=0.05, max_value=60.0),
+)
+
+SPEC_BY_NAME = {s.name: s for s in SPECS}
+
+
+class ParameterError(ValueError):
+    """A parameter value outside its type, choices or range."""
+
+
+def defaults() -> dict[str, Any]:
+    return {s.name: (list(s.default) if isinstance(s.default, list) else s.default) for s in SPECS}
+
+
+def validate(values: dict[str, Any]) -> dict[str, Any]:
+    """Check every known parameter; return the values with ints promoted where a float is expected.
+
+    Raises ParameterError naming the first offending parameter.
+    """
+    out = dict(values)
+    for spec in SPECS:
+        if spec.name not in values:
+            raise ParameterError(f"parameter '{spec.name}' is missing")
+        value = values[spec.name]
+        kind = spec.kind
+        if kind is float and isinstance(value, int) and not isinstance(value, bool):
+            value = float(value)
+        if kind is list:
+            if not isinstance(value, (list, tuple)) or (spec.length and len(value) != spec.length):
+                raise ParameterError(f"parameter '{spec.name}' must be a list of {spec.length} numbers, got {value!r}")
+            value = [float(v) for v in value]
+            if not all(math.isfinite(v) for v in value):
+                raise ParameterError(f"parameter '{spec.name}' has a non-finite entry: {value!r}")
+        elif not isinstance(value, kind) or (kind is int and isinstance(value, bool)):
+            raise ParameterError(f"parameter '{spec.name}' must be {kind.__name__}, got {value!r}")
+        if spec.choices is not None and value not in spec.choices:
+            raise ParameterError(f"parameter '{spec.name}' = {value!r} is not one of {list(spec.choices)}")
+        if kind in (int, float):
+            if not math.isfinite(value):
+                raise ParameterError(f"parameter '{spec.name}' = {value!r} is not finite")
+            if spec.min_value is not None and value < spec.min_value:
+                raise ParameterError(f"parameter '{spec.name}' = {value!r} is below its minimum {spec.min_value}")
+            if spec.max_value is not None and value > spec.max_value:
+                raise ParameterError(f"parameter '{spec.name}' = {value!r} is above its maximum {spec.max_value}")
+        out[spec.name] = value
+    if out['d_min'] >= out['d_max']:
+        raise ParameterError(f"d_min ({out['d_min']}) must be below d_max ({out['d_max']})")
+    if out['camera_info_source'] == 'parameters' and min(out['fx'], out['fy']) <= 0.0:
+        raise ParameterError("camera_info_source is 'parameters' but fx/fy are not set (> 0)")
+    q = out['T_base_camera'][3:]
+    if abs(math.sqrt(sum(c * c for c in q)) - 1.0) > 1e-3:
+        raise ParameterError(f"T_base_camera quaternion {q} is not unit length")
+    return out

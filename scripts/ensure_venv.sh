@@ -1,0 +1,42 @@
+#!/usr/bin/env bash
+# Make ./.venv point at a Python 3.11 virtual environment holding exactly requirements.txt.
+# The environment itself lives under ${DPV_VENV_CACHE:-~/.cache/dpv_sensor}/venv-<hash of
+# requirements.txt>, so every clone (and every CI run on the same machine) reuses one install of
+# the ~6 GB of wheels; a changed requirements file gets a fresh environment.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+req=requirements.txt
+hash=$(sha256sum "$req" | cut -c1-12)
+cache=${DPV_VENV_CACHE:-$HOME/.cache/dpv_sensor}
+target="$cache/venv-$hash"
+
+if [ -f "$target/.complete" ]; then
+  if [ "$(readlink .venv 2>/dev/null)" != "$target" ]; then
+    rm -rf .venv && ln -s "$target" .venv
+  fi
+  exit 0
+fi
+
+python=""
+for cand in python3.11 python3; do
+  if command -v "$cand" >/dev/null 2>&1 && "$cand" -c 'import sys; sys.exit(sys.version_info[:2] != (3, 11))'; then
+    python=$(command -v "$cand"); break
+  fi
+done
+if [ -z "$python" ]; then
+  echo "ensure_venv: Python 3.11 is required (the ROS 2 Jazzy wheels are built for cp311)" >&2
+  exit 1
+fi
+
+echo "ensure_venv: creating $target (first run: downloads ~3 GB of wheels)"
+mkdir -p "$cache"
+rm -rf "$target"
+"$python" -m venv "$target"
+"$target/bin/pip" install --quiet --upgrade pip
+"$target/bin/pip" install --quiet -r "$req"
+# torch from PyPI drags in triton (~1 GB) which only serves CUDA kernels compiled at run time.
+"$target/bin/pip" uninstall --quiet -y triton || true
+touch "$target/.complete"
+rm -rf .venv && ln -s "$target" .venv
+echo "ensure_venv: ready"

@@ -1,0 +1,44 @@
+"""Shared pytest set-up: ROS logging into a temp dir, an isolated DDS domain per run, data paths."""
+from __future__ import annotations
+
+import os
+import pathlib
+import random
+import sys
+
+import pytest
+
+REPO = pathlib.Path(__file__).resolve().parents[1]
+SHARED_DATA = REPO.parent / 'shared' / 'data'
+
+# rclpy writes logs under ROS_LOG_DIR; keep them out of $HOME and out of the repo.
+os.environ.setdefault('ROS_LOG_DIR', str(REPO / 'log' / 'ros-test'))
+# A DDS domain of our own so tests never talk to another ROS graph on the machine (or a parallel run).
+os.environ.setdefault('ROS_DOMAIN_ID', str(random.Random(os.getpid()).randint(100, 200)))
+os.environ.setdefault('ROS_LOCALHOST_ONLY', '1')
+if str(REPO) not in sys.path:
+    sys.path.insert(0, str(REPO))
+os.environ['PYTHONPATH'] = os.pathsep.join([str(REPO)] + [p for p in os.environ.get('PYTHONPATH', '').split(os.pathsep) if p])
+
+
+def shared_sequence(name: str) -> pathlib.Path:
+    """Path of a sequence in ../shared/data, or skip the test when the folder is absent."""
+    path = SHARED_DATA / name
+    if not (path / 'poses.txt').is_file():
+        pytest.skip(f'{path} is absent (../shared/data is only on development machines)')
+    return path
+
+
+@pytest.fixture
+def sun3d_frag1() -> pathlib.Path:
+    return shared_sequence('sun3d_3dmatch_frag1')
+
+
+@pytest.fixture
+def sun3d_frag2() -> pathlib.Path:
+    return shared_sequence('sun3d_3dmatch_frag2')
+
+
+@pytest.fixture
+def tartanair_hospital() -> pathlib.Path:
+    return shared_sequence('tartanair_hospital')

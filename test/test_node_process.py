@@ -1,0 +1,55 @@
+"""The node runs as its own process, shows up in the ROS graph and stops cleanly on SIGINT and SIGTERM."""
+import signal
+
+import pytest
+import rclpy
+
+from ros_helpers import start_node, stop_process, wait_for
+from dpv_sensor.node import NODE_NAME
+
+
+@pytest.fixture
+def observer():
+    context = rclpy.context.Context()
+    rclpy.init(context=context)
+    node = rclpy.create_node('test_observer', context=context)
+    executor = rclpy.executors.SingleThreadedExecutor(context=context)
+    executor.add_node(node)
+    yield node, executor
+    executor.shutdown()
+    node.destroy_node()
+    rclpy.shutdown(context=context)
+
+
+def _visible(node) -> bool:
+    return any(name == NODE_NAME for name, _ns in node.get_node_names_and_namespaces())
+
+
+@pytest.mark.parametrize('sig', [signal.SIGINT, signal.SIGTERM], ids=['SIGINT', 'SIGTERM'])
+def test_node_joins_graph_and_stops_cleanly(observer, sig):
+    node, executor = observer
+    proc = start_node()
+    try:
+        seen = wait_for(lambda: _visible(node), timeout=20.0, spin=lambda t: executor.spin_once(timeout_sec=t))
+        assert proc.poll() is None, 'node exited early:\n' + stop_process(proc)[1]
+        assert seen, 'node never appeared in the ROS graph'
+    finally:
+        code, out = stop_process(proc, sig)
+    assert code == 0, out
+    assert 'ready' in out
+    assert 'Traceback' not in out, out
+    gone = wait_for(lambda: not _visible(node), timeout=15.0, spin=lambda t: executor.spin_once(timeout_sec=t))
+    assert gone, 'node still listed in the graph after it stopped'
+
+
+@pytest.mark.parametrize('override,message', [
+    ('damping:=3.0', "parameter 'damping' rejected"),
+    ('filter_mode:=kalman', "parameter 'filter_mode' = 'kalman' is not one of"),
+    ('d_min:=9.0', 'd_min (9.0) must be below d_max (8.0)'),
+])
+def test_invalid_parameter_is_refused_with_a_reason(override, message):
+    proc = start_node(['--ros-args', '-p', override])
+    out, _ = proc.communicate(timeout=60.0)
+    assert proc.returncode == 2, out
+    assert message in out
+    assert 'Traceback' not in out

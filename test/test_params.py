@@ -1,0 +1,41 @@
+"""The parameter table, the documented YAML and validation agree."""
+import pathlib
+
+import pytest
+import yaml
+
+from dpv_sensor import params as P
+
+CONFIG = pathlib.Path(__file__).resolve().parents[1] / 'config' / 'dpv_sensor.yaml'
+
+
+def test_yaml_documents_every_parameter_with_its_default():
+    doc = yaml.safe_load(CONFIG.read_text())
+    values = doc['dpv_sensor']['ros__parameters']
+    assert set(values) == {s.name for s in P.SPECS}
+    for spec in P.SPECS:
+        assert values[spec.name] == spec.default, spec.name
+        assert type(values[spec.name]) is type(spec.default), spec.name
+    P.validate(values)
+
+
+@pytest.mark.parametrize('name,value,message', [
+    ('damping', 1.5, "'damping' = 1.5 is above its maximum"),
+    ('filter_mode', 'kalman', "'filter_mode' = 'kalman' is not one of"),
+    ('keyframe_max_interval', 0, "'keyframe_max_interval' = 0 is below its minimum"),
+    ('T_base_camera', [0.0, 0.0, 0.0, 0.0, 0.0, 0.0], 'must be a list of 7 numbers'),
+    ('T_base_camera', [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 2.0], 'is not unit length'),
+    ('processing_width', 'wide', "'processing_width' must be int"),
+    ('d_min', 9.0, 'must be below d_max'),
+])
+def test_validation_names_the_parameter_and_the_problem(name, value, message):
+    values = P.defaults()
+    values[name] = value
+    with pytest.raises(P.ParameterError, match=message.replace('(', r'\(').replace('[', r'\[')):
+        P.validate(values)
+
+
+def test_ints_are_accepted_for_floats():
+    values = P.defaults()
+    values['damping'] = 1
+    assert P.validate(values)['damping'] == 1.0
