@@ -1,0 +1,178 @@
+"""Depth probability volumes (DPVs): planes, normalisation, depth, confidence, NLL.
+
+A DPV ``p(d; u, v)`` is carried as log-probabilities ``logp_bdhw`` of shape (B, D, H, W): a
+log-softmax over dim 1 across D fronto-parallel planes uniform in inverse depth, ordered by
+ascending depth (index 0 = d_min, index D-1 = d_max). Everything is torch, batched and
+differentiable, dtype/device agnostic.
+"""
+from __future__ import annotations
+
+import math
+from typing import Optional
+
+import torch
+
+from .geometry import inverse_depth_index
+
+__all__ = [
+    'LOG_FLOOR', 'depth_planes', 'depth_to_index', 'index_to_depth', 'normalize_log', 'clamp_log',
+    'uniform_log', 'expected_depth', 'expected_index', 'argmax_depth', 'confidence', 'entropy',
+    'nll', 'valid_depth_mask', 'one_hot_log',
+]
+
+# Lowest log-probability we keep anywhere in the filter (e^-30 ~ 1e-13): a zero-probability
+# prediction can then be overturned by a few measurements instead of locking a voxel forever.
+LOG_FLOOR = -30.0
+
+
+def depth_planes(d_min: float, d_max: float, D: int, dtype=torch.float32, device=None) -> torch.Tensor:
+    """D plane depths (metres) uniform in inverse depth from d_min (index 0) to d_max (index D-1)."""
+    if not (0 < d_min < d_max):
+        raise ValueError(f'need 0 < d_min < d_max, got d_min={d_min}, d_max={d_max}')
+    if D < 2:
+        raise ValueError(f'need at least 2 planes, got D={D}')
+    inv = torch.linspace(1.0 / d_min, 1.0 / d_max, D, dtype=torch.float64)
+    depths = 1.0 / inv
+    depths[0], depths[-1] = d_min, d_max
+    return depths.to(dtype=dtype, device=device)
+
+
+def depth_to_index(depth, d_min: float, d_max: float, D: int) -> torch.Tensor:
+    """Fractional plane index of a depth (same shape): 0 at d_min, D-1 at d_max, linear in 1/depth.
+
+    Depths outside [d_min, d_max] give indices outside [0, D-1]; non-positive depths give NaN.
+    """
+    depth = torch.as_tensor(depth)
+    if not depth.is_floating_point():
+        depth = depth.to(torch.get_default_dtype())
+    return inverse_depth_index(depth, d_min, d_max, D)
+
+
+def index_to_depth(index, d_min: float, d_max: float, D: int) -> torch.Tensor:
+    """Depth of a (fractional) plane index: the inverse of :func:`depth_to_index`."""
+    index = torch.as_tensor(index)
+    if not index.is_floating_point():
+        index = index.to(torch.get_default_dtype())
+    inv = 1.0 / d_min + (1.0 / d_max - 1.0 / d_min) * index / (D - 1)
+    return 1.0 / inv
+
+
+def normalize_log(logits_bdhw: torch.Tensor) -> torch.Tensor:
+    """Log-probabilities from unnormalised log-values (log-softmax over the plane dim 1)."""
+    return torch.log_softmax(logits_bdhw, dim=1)
+
+
+def clamp_log(logp_bdhw: torch.Tensor, floor: float = LOG_FLOOR) -> torch.Tensor:
+    """Clamp log-probabilities at ``floor`` and renormalise (keeps energies finite and bounded)."""
+    return normalize_log(logp_bdhw.clamp_min(floor))
+
+
+def uniform_log(B: int, D: int, H: int, W: int, dtype=torch.float32, device=None) -> torch.Tensor:
+    """The uniform DPV, log(1/D) everywhere."""
+    return torch.full((B, D, H, W), -math.log(D), dtype=dtype, device=device)
+
+
+def one_hot_log(index_bhw: torch.Tensor, D: int, peak: float = 0.0, floor: float = LOG_FLOOR) -> torch.Tensor:
+    """A (numerically) one-hot DPV at integer plane indices: logits ``peak`` at the index, ``floor``
+    elsewhere, normalised."""
+    idx = index_bhw.long().clamp(0, D - 1)
+    dtype = index_bhw.dtype if index_bhw.is_floating_point() else torch.get_default_dtype()
+    logits = torch.full((idx.shape[0], D, *idx.shape[1:]), floor, dtype=dtype, device=idx.device)
+    logits.scatter_(1, idx[:, None], peak)
+    return normalize_log(logits)
+
+
+def _view_d(depths_d: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
+    d = torch.as_tensor(depths_d, dtype=like.dtype, device=like.device)
+    return d.reshape(1, -1, 1, 1) if d.dim() == 1 else d[:, :, None, None]
+
+
+def expected_depth(logp_bdhw: torch.Tensor, depths_d: torch.Tensor) -> torch.Tensor:
+    """Paper eq. 1: ``d_hat(u, v) = sum_k p_k(u, v) * d_k``; shape (B, H, W)."""
+    return (torch.exp(logp_bdhw) * _view_d(depths_d, logp_bdhw)).sum(1)
+
+
+def expected_index(logp_bdhw: torch.Tensor, depths_d: torch.Tensor) -> torch.Tensor:
+    """Fractional plane index of the expected depth (planes uniform in inverse depth)."""
+    d = torch.as_tensor(depths_d, dtype=logp_bdhw.dtype, device=logp_bdhw.device)
+    D = logp_bdhw.shape[1]
+    return inverse_depth_index(expected_depth(logp_bdhw, d), d[0], d[-1], D)
+
+
+def argmax_depth(logp_bdhw: torch.Tensor, depths_d: torch.Tensor) -> torch.Tensor:
+    """Depth of the most probable plane (MAP over the discrete planes); shape (B, H, W)."""
+    d = torch.as_tensor(depths_d, dtype=logp_bdhw.dtype, device=logp_bdhw.device)
+    return d[logp_bdhw.argmax(1)]
+
+
+def confidence(logp_bdhw: torch.Tensor, depths_d: torch.Tensor) -> torch.Tensor:
+    """Paper eq. 2 made comparable across planes: probability mass within +-1 bin of the estimate.
+
+    With ``f`` the fractional plane index of the expected depth (eq. 1) and plane k taken to cover
+    the index interval ``[k - 0.5, k + 0.5]`` with its mass spread uniformly, the confidence is the
+    mass of the DPV inside the index window ``[f - 1, f + 1]`` (one plane spacing, in inverse depth,
+    either side of the estimate):
+
+        C = sum_k p_k * |[k - 0.5, k + 0.5] ∩ [f - 1, f + 1]|.
+
+    So C lies in [0, 1]; a one-hot DPV gives 1, mass split between two neighbouring planes gives
+    (nearly) 1 (exactly when the estimate falls at their midpoint in index); the uniform DPV gives
+    2/D away from the ends (less near the ends, where the window is cut).
+    Unlike the raw ``p(d_hat)`` of a single bin, it does not drop just because the estimate sits
+    between two planes. Shape (B, H, W); differentiable in the probabilities.
+    """
+    B, D, H, W = logp_bdhw.shape
+    f = expected_index(logp_bdhw, depths_d)[:, None]                       # B,1,H,W
+    k = torch.arange(D, dtype=logp_bdhw.dtype, device=logp_bdhw.device).reshape(1, D, 1, 1)
+    overlap = (torch.minimum(k + 0.5, f + 1.0) - torch.maximum(k - 0.5, f - 1.0)).clamp(0.0, 1.0)
+    return (torch.exp(logp_bdhw) * overlap).sum(1).clamp(0.0, 1.0)
+
+
+def entropy(logp_bdhw: torch.Tensor) -> torch.Tensor:
+    """Shannon entropy (nats) of every ray, shape (B, H, W)."""
+    return -(torch.exp(logp_bdhw) * logp_bdhw).sum(1)
+
+
+def valid_depth_mask(gt_bhw: torch.Tensor, d_min: float, d_max: float) -> torch.Tensor:
+    """True where the GT depth is finite and inside [d_min, d_max] (0 = invalid is excluded)."""
+    return torch.isfinite(gt_bhw) & (gt_bhw >= d_min) & (gt_bhw <= d_max)
+
+
+def nll(logp_bdhw: torch.Tensor, depths_d: torch.Tensor, gt_bhw: torch.Tensor,
+        mask_bhw: Optional[torch.Tensor] = None, reduction: str = 'mean') -> torch.Tensor:
+    """Negative log-likelihood of the GT depth, interpolated between the two nearest planes.
+
+    With GT fractional plane index ``f = i + w`` (i = floor(f), 0 <= w < 1) the per-pixel loss is
+
+        nll = -((1 - w) * logp[i] + w * logp[i + 1]),
+
+    i.e. the cross-entropy against the two-hot target that puts (1 - w, w) on the two planes that
+    bracket the GT (its minimiser has expected index exactly f). A GT exactly on plane k gives
+    ``-logp[k]``. Pixels whose GT is not valid (see :func:`valid_depth_mask` with the first/last
+    plane as range) or where ``mask_bhw`` is False are excluded.
+
+    reduction: 'mean' (over valid pixels; 0 when there are none), 'sum', or 'none' ((B, H, W),
+    zero at excluded pixels).
+    """
+    B, D, H, W = logp_bdhw.shape
+    d = torch.as_tensor(depths_d, dtype=logp_bdhw.dtype, device=logp_bdhw.device)
+    gt = gt_bhw.to(logp_bdhw.dtype)
+    valid = valid_depth_mask(gt, float(d[0]), float(d[-1]))
+    if mask_bhw is not None:
+        valid = valid & mask_bhw.bool()
+    f = inverse_depth_index(torch.where(valid, gt, d[0].expand_as(gt)), d[0], d[-1], D)
+    f = f.clamp(0.0, D - 1.0)
+    i0 = f.floor().clamp(max=D - 2)
+    w = (f - i0)[:, None]
+    i0 = i0.long()[:, None]
+    lp0 = torch.gather(logp_bdhw, 1, i0)
+    lp1 = torch.gather(logp_bdhw, 1, i0 + 1)
+    per_pixel = -((1.0 - w) * lp0 + w * lp1)[:, 0]
+    per_pixel = torch.where(valid, per_pixel, torch.zeros_like(per_pixel))
+    if reduction == 'none':
+        return per_pixel
+    if reduction == 'sum':
+        return per_pixel.sum()
+    if reduction == 'mean':
+        return per_pixel.sum() / valid.sum().clamp_min(1).to(per_pixel.dtype)
+    raise ValueError(f"reduction must be 'mean', 'sum' or 'none', got {reduction!r}")

@@ -1,0 +1,152 @@
+"""Tests of dpv_sensor.dpv, with values computed by hand.
+
+Hand example used throughout: d_min = 1, d_max = 4, D = 3 -> inverse depths 1, 0.625, 0.25,
+i.e. planes at 1, 1.6 and 4 m.
+"""
+import math
+
+import pytest
+import torch
+
+from dpv_sensor import dpv
+
+DT = torch.float64
+
+
+def _logp(probs_d, h=1, w=1):
+    p = torch.tensor(probs_d, dtype=DT).reshape(1, -1, 1, 1).expand(1, -1, h, w)
+    return torch.log(p.clamp_min(1e-300))
+
+
+def test_depth_planes_by_hand():
+    planes = dpv.depth_planes(1.0, 4.0, 3, dtype=DT)
+    assert torch.allclose(planes, torch.tensor([1.0, 1.6, 4.0], dtype=DT))
+    p = dpv.depth_planes(0.3, 8.0, 64)
+    assert p.dtype == torch.float32 and p[0].item() == pytest.approx(0.3) and p[-1].item() == pytest.approx(8.0)
+    assert (p[1:] > p[:-1]).all()
+    inv = 1.0 / p.double()
+    assert torch.allclose(inv[1:] - inv[:-1], (inv[1] - inv[0]).expand(63), rtol=1e-5)
+    with pytest.raises(ValueError):
+        dpv.depth_planes(2.0, 1.0, 8)
+
+
+def test_depth_to_index_by_hand():
+    idx = dpv.depth_to_index(torch.tensor([1.0, 1.6, 4.0, 2.0, 0.5, 8.0], dtype=DT), 1.0, 4.0, 3)
+    # 2 m: (1 - 0.5) / 0.75 * 2 = 4/3 ; 0.5 m: (1 - 2)/0.75*2 = -8/3 ; 8 m: (1 - 0.125)/0.75*2 = 7/3
+    assert torch.allclose(idx, torch.tensor([0.0, 1.0, 2.0, 4 / 3, -8 / 3, 7 / 3], dtype=DT))
+    assert torch.isnan(dpv.depth_to_index(torch.tensor([0.0]), 1.0, 4.0, 3)).all()
+    assert torch.allclose(dpv.index_to_depth(idx[:4], 1.0, 4.0, 3), torch.tensor([1.0, 1.6, 4.0, 2.0], dtype=DT))
+
+
+def test_normalize_and_uniform():
+    x = torch.randn(2, 5, 3, 4, dtype=DT)
+    lp = dpv.normalize_log(x)
+    assert torch.allclose(lp.exp().sum(1), torch.ones(2, 3, 4, dtype=DT))
+    assert torch.allclose(dpv.uniform_log(1, 5, 2, 2, dtype=DT), torch.full((1, 5, 2, 2), -math.log(5), dtype=DT))
+    c = dpv.clamp_log(torch.tensor([0.0, -1000.0], dtype=DT).reshape(1, 2, 1, 1))
+    assert c.min().item() >= dpv.LOG_FLOOR - 1e-9 and torch.allclose(c.exp().sum(1), torch.ones(1, 1, 1, dtype=DT))
+
+
+def test_expected_depth_by_hand():
+    planes = dpv.depth_planes(1.0, 4.0, 3, dtype=DT)
+    assert dpv.expected_depth(_logp([0, 1, 0]), planes).item() == pytest.approx(1.6)
+    assert dpv.expected_depth(_logp([1, 0, 0]), planes).item() == pytest.approx(1.0)
+    assert dpv.expected_depth(_logp([0.5, 0, 0.5]), planes).item() == pytest.approx(2.5)
+    assert dpv.expected_depth(_logp([0.2, 0.3, 0.5]), planes).item() == pytest.approx(0.2 + 0.48 + 2.0)
+    # one-hot helper
+    oh = dpv.one_hot_log(torch.tensor([[[2, 0]]]), 3)
+    assert torch.allclose(dpv.expected_depth(oh, planes.float()), torch.tensor([[[4.0, 1.0]]]), atol=1e-6)
+    assert torch.allclose(dpv.argmax_depth(oh, planes.float()), torch.tensor([[[4.0, 1.0]]]))
+
+
+def test_confidence_by_hand():
+    planes = dpv.depth_planes(1.0, 10.0, 10, dtype=DT)
+    # uniform: the +-1 bin window lies inside the volume -> mass 2/D
+    uni = _logp([0.1] * 10)
+    f = dpv.expected_index(uni, planes).item()
+    assert 1.0 < f < 8.0
+    assert dpv.confidence(uni, planes).item() == pytest.approx(0.2)
+    # one-hot anywhere (also at the ends) -> 1
+    for k in (0, 4, 9):
+        p = [0.0] * 10
+        p[k] = 1.0
+        assert dpv.confidence(_logp(p), planes).item() == pytest.approx(1.0)
+    # split between two neighbouring planes: the estimate f lies between them (a little beyond 3.5,
+    # since the mean of depth exceeds the mean of inverse depth); the window [f-1, f+1] covers all of
+    # plane 4 and plane 3 but for f - 3.5
+    lp = _logp([0, 0, 0, 0.5, 0.5, 0, 0, 0, 0, 0])
+    f = dpv.expected_index(lp, planes).item()
+    assert 3.5 < f < 3.6
+    assert dpv.confidence(lp, planes).item() == pytest.approx(0.5 * (1 - (f - 3.5)) + 0.5)
+    assert dpv.confidence(lp, planes).item() > 0.95
+    # split between planes 3 and 5: estimate f = 4 + delta, window covers 0.5 -+ delta of each -> 0.5
+    assert dpv.confidence(_logp([0, 0, 0, 0.5, 0, 0.5, 0, 0, 0, 0]), planes).item() == pytest.approx(0.5)
+    # 0.8 at plane 4 (1.667 m) and 0.2 at plane 0 (1 m): d_hat = 1.5333 m, f = 3.478; the window
+    # [2.478, 4.478] holds 0.978 of plane 4 and nothing of plane 0
+    lp = _logp([0.2, 0, 0, 0, 0.8, 0, 0, 0, 0, 0])
+    assert dpv.expected_depth(lp, planes).item() == pytest.approx(0.2 + 0.8 / 0.6)
+    f = dpv.expected_index(lp, planes).item()
+    assert f == pytest.approx((1.0 - 1.0 / (0.2 + 0.8 / 0.6)) / 0.9 * 9)
+    assert dpv.confidence(lp, planes).item() == pytest.approx(0.8 * (f + 1.0 - 3.5))
+
+
+def test_confidence_peaked_beats_flat_and_batched():
+    planes = dpv.depth_planes(0.5, 5.0, 16, dtype=DT)
+    logits = torch.zeros(2, 16, 3, 4, dtype=DT)
+    logits[1, 7] = 10.0
+    c = dpv.confidence(dpv.normalize_log(logits), planes)
+    assert c.shape == (2, 3, 4)
+    assert (c[0] < 0.2).all() and (c[1] > 0.99).all()
+    assert ((c >= 0) & (c <= 1)).all()
+
+
+def test_nll_by_hand():
+    planes = dpv.depth_planes(1.0, 4.0, 3, dtype=DT)
+    lp = _logp([0.2, 0.3, 0.5])
+    # GT exactly on plane 1
+    assert dpv.nll(lp, planes, torch.tensor([[[1.6]]], dtype=DT)).item() == pytest.approx(-math.log(0.3))
+    # GT at fractional index 1.25: inverse depth 1 - 0.75*1.25/2 = 0.53125 -> 1.882352... m
+    gt = torch.tensor([[[1.0 / 0.53125]]], dtype=DT)
+    expect = -(0.75 * math.log(0.3) + 0.25 * math.log(0.5))
+    assert dpv.nll(lp, planes, gt).item() == pytest.approx(expect)
+    # GT on the last plane (upper end) and on the first plane
+    assert dpv.nll(lp, planes, torch.tensor([[[4.0]]], dtype=DT)).item() == pytest.approx(-math.log(0.5))
+    assert dpv.nll(lp, planes, torch.tensor([[[1.0]]], dtype=DT)).item() == pytest.approx(-math.log(0.2))
+
+
+def test_nll_masks_and_reductions():
+    planes = dpv.depth_planes(1.0, 4.0, 3, dtype=DT)
+    lp = _logp([0.2, 0.3, 0.5], 1, 4)
+    gt = torch.tensor([[[1.6, 0.0, 9.0, 1.0]]], dtype=DT)           # valid, invalid 0, beyond d_max, valid
+    per = dpv.nll(lp, planes, gt, reduction='none')
+    assert torch.allclose(per, torch.tensor([[[-math.log(0.3), 0.0, 0.0, -math.log(0.2)]]], dtype=DT))
+    mean = dpv.nll(lp, planes, gt)
+    assert mean.item() == pytest.approx((-math.log(0.3) - math.log(0.2)) / 2)
+    assert dpv.nll(lp, planes, gt, reduction='sum').item() == pytest.approx(-math.log(0.3) - math.log(0.2))
+    mask = torch.tensor([[[False, True, True, True]]])
+    assert dpv.nll(lp, planes, gt, mask).item() == pytest.approx(-math.log(0.2))
+    # nothing valid -> 0, still differentiable
+    lpg = lp.clone().requires_grad_(True)
+    z = dpv.nll(lpg, planes, torch.zeros(1, 1, 4, dtype=DT))
+    z.backward()
+    assert z.item() == 0.0 and torch.equal(lpg.grad, torch.zeros_like(lpg))
+    with pytest.raises(ValueError):
+        dpv.nll(lp, planes, gt, reduction='max')
+    vm = dpv.valid_depth_mask(torch.tensor([0.0, 0.99, 1.0, 4.0, 4.01, float('nan')]), 1.0, 4.0)
+    assert vm.tolist() == [False, False, True, True, False, False]
+
+
+def test_nll_gradient_is_softmax_minus_two_hot_target():
+    planes = dpv.depth_planes(1.0, 4.0, 3, dtype=DT)
+    logits = torch.tensor([0.1, -0.4, 0.7], dtype=DT).reshape(1, 3, 1, 1).requires_grad_(True)
+    gt = torch.tensor([[[1.0 / 0.53125]]], dtype=DT)                  # index 1.25
+    dpv.nll(dpv.normalize_log(logits), planes, gt).backward()
+    target = torch.tensor([0.0, 0.75, 0.25], dtype=DT)
+    assert torch.allclose(logits.grad.reshape(3), torch.softmax(logits.detach().reshape(3), 0) - target)
+
+
+def test_gradcheck_depth_and_confidence():
+    planes = dpv.depth_planes(0.5, 4.0, 6, dtype=DT)
+    x = torch.randn(1, 6, 2, 3, dtype=DT, requires_grad=True)
+    assert torch.autograd.gradcheck(lambda t: dpv.expected_depth(dpv.normalize_log(t), planes), (x,))
+    assert torch.autograd.gradcheck(lambda t: dpv.confidence(dpv.normalize_log(t), planes), (x,), atol=1e-5)

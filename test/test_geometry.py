@@ -1,0 +1,325 @@
+"""Tests of dpv_sensor.geometry: intrinsics, SE(3), projection and the warps (tiny analytic scenes)."""
+import math
+import os
+import sys
+
+import pytest
+import torch
+
+sys.path.insert(0, os.path.dirname(__file__))
+from synthetic_planes import DT, intrinsics, render_plane_pair, rot_x, rot_y, rot_z, se3  # noqa: E402
+
+from dpv_sensor import geometry as G  # noqa: E402
+from dpv_sensor.dpv import depth_planes, depth_to_index  # noqa: E402
+
+
+# ------------------------------------------------------------------ intrinsics, SE(3)
+
+def test_scale_intrinsics_pixel_centres():
+    K = intrinsics(64, 48, 50.0)            # cx = 31.5, cy = 23.5: the centre of a 64x48 image
+    K2 = G.scale_intrinsics(K, 0.5, 0.25)   # -> 32x12 image
+    assert K2[0, 0, 0].item() == pytest.approx(25.0)
+    assert K2[0, 1, 1].item() == pytest.approx(12.5)
+    assert K2[0, 0, 2].item() == pytest.approx(15.5)   # centre of 32 pixels
+    assert K2[0, 1, 2].item() == pytest.approx(5.5)    # centre of 12 pixels
+    assert torch.equal(K, intrinsics(64, 48, 50.0))    # input untouched
+
+
+def test_invert_and_compose():
+    T = se3(rot_z(0.4) @ rot_x(-0.3), (0.5, -1.0, 2.0))
+    Ti = G.invert_se3(T)
+    eye = torch.eye(4, dtype=DT)[None]
+    assert torch.allclose(G.compose_se3(T, Ti), eye, atol=1e-12)
+    assert torch.allclose(Ti @ T, eye, atol=1e-12)
+    # by hand: inverse of a pure translation is the negative translation
+    assert torch.allclose(G.invert_se3(se3(t=(1.0, 2.0, 3.0))), se3(t=(-1.0, -2.0, -3.0)))
+    # composing two rotations about z adds the angles; T_a_c = T_a_b T_b_c on points
+    Tab, Tbc = se3(rot_z(0.3), (1.0, 0.0, 0.0)), se3(rot_z(0.5), (0.0, 2.0, 0.0))
+    Tac = G.compose_se3(Tab, Tbc)
+    assert torch.allclose(Tac[0, :3, :3], rot_z(0.8), atol=1e-12)
+    X_c = torch.tensor([[[0.3], [0.2], [1.0]]], dtype=DT)
+    assert torch.allclose(G.transform_points(Tac, X_c), G.transform_points(Tab, G.transform_points(Tbc, X_c)))
+    # relative pose: T_b_a maps points of a into b
+    Twa, Twb = se3(rot_y(0.2), (0.1, 0.2, 0.3)), se3(rot_x(0.1), (-0.4, 0.0, 1.0))
+    Tba = G.relative_se3(Twa, Twb)
+    assert torch.allclose(Twb @ Tba, Twa, atol=1e-12)
+
+
+def test_interpolate_translation_endpoints_and_midpoint():
+    T0, T1 = se3(t=(0.0, 0.0, 0.0)), se3(t=(2.0, -4.0, 1.0))
+    assert torch.allclose(G.interpolate_se3(T0, T1, torch.tensor([0.0], dtype=DT)), T0)
+    assert torch.allclose(G.interpolate_se3(T0, T1, torch.tensor([1.0], dtype=DT)), T1)
+    mid = G.interpolate_se3(T0, T1, torch.tensor([0.5], dtype=DT))
+    assert torch.allclose(mid, se3(t=(1.0, -2.0, 0.5)), atol=1e-12)
+
+
+def test_interpolate_rotation_about_z():
+    T0 = se3(rot_z(0.0), (0.0, 0.0, 0.0))
+    T1 = se3(rot_z(math.radians(60)), (1.0, 0.0, 0.0))
+    for a, deg in [(0.0, 0.0), (0.25, 15.0), (0.5, 30.0), (1.0, 60.0)]:
+        T = G.interpolate_se3(T0, T1, a)
+        assert torch.allclose(T[0, :3, :3], rot_z(math.radians(deg)), atol=1e-9), a
+        assert torch.allclose(T[0, :3, 3], torch.tensor([a, 0.0, 0.0], dtype=DT), atol=1e-12)
+    # shortest arc across +-180 deg: 170 deg -> -170 deg passes through 180, not 0
+    mid = G.interpolate_se3(se3(rot_z(math.radians(170))), se3(rot_z(math.radians(-170))), 0.5)
+    assert torch.allclose(mid[0, :3, :3], rot_z(math.pi), atol=1e-9)
+    # at a timestamp
+    Tt = G.interpolate_se3_at_time(10.0, T0, 12.0, T1, 11.5)
+    assert torch.allclose(Tt[0, :3, :3], rot_z(math.radians(45)), atol=1e-9)
+    # batched alpha
+    Tb = G.interpolate_se3(T0.expand(2, 4, 4), T1.expand(2, 4, 4), torch.tensor([0.5, 1.0], dtype=DT))
+    assert torch.allclose(Tb[1], T1[0], atol=1e-9)
+
+
+def test_interpolate_series():
+    Ts = torch.cat([se3(rot_z(0.0), (0.0, 0.0, 0.0)), se3(rot_z(math.radians(40)), (1.0, 0.0, 0.0)),
+                    se3(rot_z(math.radians(40)), (1.0, 2.0, 0.0))])
+    stamps = [0.0, 1.0, 2.0]
+    T = G.interpolate_se3_series(stamps, Ts, 0.5)
+    assert torch.allclose(T[:3, :3], rot_z(math.radians(20)), atol=1e-9)
+    assert torch.allclose(T[:3, 3], torch.tensor([0.5, 0.0, 0.0], dtype=DT))
+    assert torch.allclose(G.interpolate_se3_series(stamps, Ts, 1.75)[:3, 3], torch.tensor([1.0, 1.5, 0.0], dtype=DT))
+    assert torch.allclose(G.interpolate_se3_series(stamps, Ts, 2.0), Ts[2])
+    assert G.interpolate_se3_series(stamps, Ts, 2.1) is None and G.interpolate_se3_series(stamps, Ts, -0.1) is None
+    ext = G.interpolate_se3_series(stamps, Ts, 2.1, max_extrapolation=0.2)
+    assert torch.allclose(ext[:3, 3], torch.tensor([1.0, 2.2, 0.0], dtype=DT))
+
+
+def test_quaternion_roundtrip_and_so3():
+    torch.manual_seed(0)
+    w = torch.randn(16, 3, dtype=DT) * 1.5
+    R = G.so3_exp(w)
+    assert torch.allclose(R @ R.transpose(-1, -2), torch.eye(3, dtype=DT).expand(16, 3, 3), atol=1e-12)
+    q = G.rotation_matrix_to_quaternion(R)
+    assert torch.allclose(G.quaternion_to_rotation_matrix(q), R, atol=1e-10)
+    assert torch.allclose(G.so3_exp(G.so3_log(R)), R, atol=1e-10)
+    assert torch.allclose(G.rotation_angle(R), torch.remainder(w.norm(dim=-1) + math.pi, 2 * math.pi).sub(math.pi).abs(),
+                          atol=1e-9)
+    assert G.rotation_angle(rot_z(math.radians(30))[None]).item() == pytest.approx(math.radians(30))
+    T = G.se3_exp(torch.tensor([[1.0, 2.0, 3.0, 0.0, 0.0, 0.0]], dtype=DT))
+    assert torch.allclose(T, se3(t=(1.0, 2.0, 3.0)))
+
+
+# ------------------------------------------------------------------ projection
+
+def test_backproject_project_roundtrip():
+    K = intrinsics(8, 6, 10.0)
+    depth = torch.linspace(0.5, 3.0, 48, dtype=DT).reshape(1, 6, 8)
+    P = G.backproject(depth, K)
+    assert torch.allclose(P[0, 2], depth[0])
+    # by hand: pixel (u=7, v=0) at depth 2 -> X = 2*(7-3.5)/10
+    assert P[0, 0, 0, 7].item() == pytest.approx(depth[0, 0, 7].item() * 3.5 / 10.0)
+    uv, z = G.project(P.reshape(1, 3, -1), K)
+    v, u = torch.meshgrid(torch.arange(6, dtype=DT), torch.arange(8, dtype=DT), indexing='ij')
+    assert torch.allclose(uv[0, 0], u.reshape(-1)) and torch.allclose(uv[0, 1], v.reshape(-1))
+    assert torch.allclose(z[0], depth.reshape(-1))
+
+
+# ------------------------------------------------------------------ plane-sweep warp
+
+W_, H_ = 64, 48
+MOTIONS = {
+    'tx': se3(t=(0.25, 0.0, 0.0)),
+    'ty': se3(t=(0.0, -0.25, 0.0)),
+    'tz': se3(t=(0.0, 0.0, -0.2)),   # source camera closer: no minification aliasing
+    'rot': se3(rot_y(math.radians(4.0)) @ rot_x(math.radians(-3.0)), (-0.2, 0.1, 0.05)),
+}
+
+
+def _sweep_costs(T_src_ref, k, D=16):
+    K = intrinsics(W_, H_, 60.0)
+    planes = depth_planes(0.5, 5.0, D, dtype=DT)
+    z = planes[k].item()
+    ref, src = render_plane_pair(K, K, T_src_ref, z, H_, W_)
+    warped, valid = G.plane_sweep_warp(src, K, K, T_src_ref, planes)
+    err = (warped - ref[:, :, None]).abs()[:, 0]          # B,D,H,W
+    vf = valid.to(DT)
+    cost = (err * vf).sum((0, 2, 3)) / vf.sum((0, 2, 3)).clamp_min(1)
+    cost = torch.where(vf.mean((0, 2, 3)) > 0.3, cost, torch.full_like(cost, float('inf')))
+    return cost
+
+
+@pytest.mark.parametrize('motion', list(MOTIONS))
+@pytest.mark.parametrize('k', [4, 9])
+def test_plane_sweep_minimum_at_true_plane(motion, k):
+    cost = _sweep_costs(MOTIONS[motion], k)
+    assert int(cost.argmin()) == k, cost
+    # at the true plane only bilinear-interpolation error remains: far below the neighbours
+    assert cost[k] < 0.02, cost
+    assert cost[k] < 0.5 * min(cost[k - 1], cost[k + 1]), cost
+
+
+def test_plane_sweep_identity_and_valid():
+    K = intrinsics(12, 10, 10.0)
+    src = torch.rand(2, 3, 10, 12, dtype=DT)
+    planes = depth_planes(1.0, 4.0, 5, dtype=DT)
+    T = se3().expand(2, 4, 4)
+    warped, valid = G.plane_sweep_warp(src, K.expand(2, 3, 3), K.expand(2, 3, 3), T, planes)
+    assert warped.shape == (2, 3, 5, 10, 12) and valid.shape == (2, 5, 10, 12)
+    assert valid.all()
+    assert torch.allclose(warped, src[:, :, None].expand_as(warped), atol=1e-12)
+    # a large x-translation pushes near planes out of the source image: zeros and invalid there
+    warped, valid = G.plane_sweep_warp(src, K.expand(2, 3, 3), K.expand(2, 3, 3), se3(t=(2.0, 0, 0)).expand(2, 4, 4), planes)
+    assert not valid[:, 0].any() and (warped[:, :, 0] == 0).all()
+    # ref_hw: a half-size reference grid reading from the full-size source
+    K_ref = G.scale_intrinsics(K, 0.5, 0.5)
+    warped, valid = G.plane_sweep_warp(src, K_ref.expand(2, 3, 3), K.expand(2, 3, 3), T, planes, ref_hw=(5, 6))
+    assert warped.shape == (2, 3, 5, 5, 6) and valid.all()
+
+
+def test_plane_sweep_gradcheck():
+    torch.manual_seed(1)
+    K = intrinsics(6, 5, 5.0)
+    planes = torch.tensor([1.0, 1.7, 3.1], dtype=DT)
+    src = torch.rand(1, 2, 5, 6, dtype=DT, requires_grad=True)
+    T = se3(rot_y(0.05), (0.13, -0.07, 0.05)).clone().requires_grad_(True)
+
+    def f(s, T_):
+        return G.plane_sweep_warp(s, K, K, T_, planes)[0]
+
+    assert torch.autograd.gradcheck(f, (src, T), eps=1e-6, atol=1e-5)
+
+
+# ------------------------------------------------------------------ volume warp
+
+def test_warp_volume_identity():
+    torch.manual_seed(0)
+    D, H, W = 8, 6, 7
+    logp = torch.log_softmax(torch.randn(2, D, H, W, dtype=DT) * 3, 1)
+    K = intrinsics(W, H, 6.0).expand(2, 3, 3)
+    planes = depth_planes(0.5, 4.0, D, dtype=DT)
+    # exactly the identity: returned unchanged (any dtype; a static camera must not blur its DPV)
+    out = G.warp_volume(logp, K, se3().expand(2, 4, 4), planes)
+    assert torch.allclose(out, logp, atol=1e-5)
+    out32 = G.warp_volume(logp.float(), K.float(), se3().float(), planes.float())
+    assert torch.allclose(out32.double(), logp, atol=1e-5)
+    # identity up to 1e-12 m goes through the full resampling path (float64) and still returns the input
+    out = G.warp_volume(logp, K, se3(t=(1e-12, 0.0, 0.0)).expand(2, 4, 4), planes)
+    assert torch.allclose(out, logp, atol=1e-5)
+    # float32 through the resampling path: the probabilities agree
+    out32 = G.warp_volume(logp.float(), K.float(), se3(t=(1e-9, 0.0, 0.0)).float(), planes.float())
+    assert torch.allclose(out32.double().exp(), logp.exp(), atol=1e-5)
+
+
+def _peaked_volume(D, H, W, u0, v0, k0):
+    logits = torch.zeros(1, D, H, W, dtype=DT)
+    logits[0, k0, v0, u0] = 25.0
+    return torch.log_softmax(logits, 1)
+
+
+@pytest.mark.parametrize('case', ['translate_x', 'general'])
+def test_warp_volume_moves_peak_to_reprojected_voxel(case):
+    D, H, W = 16, 24, 32
+    K = intrinsics(W, H, 30.0)
+    planes = depth_planes(0.5, 5.0, D, dtype=DT)
+    u0, v0, k0 = 10, 8, 6
+    X_a = planes[k0] * torch.linalg.inv(K[0]) @ torch.tensor([u0, v0, 1.0], dtype=DT)
+    if case == 'translate_x':
+        u1, v1, k1 = 13, 8, 6        # same depth, 3 pixels to the right
+        R = torch.eye(3, dtype=DT)
+    else:
+        u1, v1, k1 = 20, 15, 9
+        R = rot_y(math.radians(5.0)) @ rot_z(math.radians(10.0))
+    X_b = planes[k1] * torch.linalg.inv(K[0]) @ torch.tensor([u1, v1, 1.0], dtype=DT)
+    T_b_a = se3(R, X_b - R @ X_a)
+    out = G.warp_volume(_peaked_volume(D, H, W, u0, v0, k0), K, T_b_a, planes)
+    # the single most probable voxel of B is the re-projected one
+    flat = int(out.exp().div(1.0 / D).reshape(-1).argmax())
+    k, rem = divmod(flat, H * W)
+    v, u = divmod(rem, W)
+    assert (u, v, k) == (u1, v1, k1)
+    # along that ray the DPV is peaked at the right plane, with the right expected depth
+    # along that ray: the peak (~1 before renormalisation) at the right plane; every other voxel of
+    # the ray samples A at <= 1/D (uniform rays, or the peaked ray's empty bins), so after
+    # renormalisation p[k1] >= 1/(1 + (D-1)/D)
+    p = out[0, :, v1, u1].exp()
+    assert int(p.argmax()) == k1
+    assert p[k1].item() >= 1.0 / (1.0 + (D - 1) / D) - 1e-9
+    others = torch.cat([p[:k1], p[k1 + 1:]])
+    assert others.max() < 0.05
+    # rays far from the point stay (near) uniform
+    assert torch.allclose(out[0, :, 0, W - 1].exp(), torch.full((D,), 1.0 / D, dtype=DT), atol=1e-6)
+
+
+def test_warp_volume_outside_frustum_is_uniform():
+    D, H, W = 8, 12, 16
+    K = intrinsics(W, H, 15.0)
+    planes = depth_planes(0.5, 4.0, D, dtype=DT)
+    logp = torch.log_softmax(torch.zeros(1, D, H, W, dtype=DT).index_fill(1, torch.tensor([3]), 10.0), 1)
+    # turn 40 deg to the right: the right part of B's view was never seen by A
+    T_b_a = se3(rot_y(math.radians(-40.0)))
+    out, valid = G.warp_volume(logp, K, T_b_a, planes, return_valid=True)
+    unseen = ~valid.any(1)
+    assert unseen[0, :, -1].all() and not unseen[0, :, 0].any()
+    assert torch.allclose(out[0][:, unseen[0]], torch.full_like(out[0][:, unseen[0]], -math.log(D)), atol=1e-9)
+    # seen rays are normalised and keep a clear peak
+    assert torch.allclose(out.exp().sum(1), torch.ones(1, H, W, dtype=DT))
+    # (the plane is tilted in B, so its mass is spread over neighbouring planes)
+    top3 = out[0, :, :, 0].exp().topk(3, dim=0).values.sum(0)
+    assert (top3 > 0.95).all()
+    # camera moved 10 m backwards: everything B sees at <= d_max lies outside A -> uniform
+    out = G.warp_volume(logp, K, se3(t=(0.0, 0.0, 10.0)), planes)
+    assert torch.allclose(out, torch.full_like(out, -math.log(D)), atol=1e-9)
+
+
+def test_warp_volume_keeps_end_planes_for_small_motion():
+    # 1 cm backwards: B's nearest plane lies 1 cm in front of A's d_min plane - within its half voxel,
+    # so it keeps A's (here: near-zero) value instead of being reset to the uniform prior 1/D
+    D, H, W = 8, 6, 8
+    K = intrinsics(W, H, 6.0)
+    planes = depth_planes(0.5, 4.0, D, dtype=DT)
+    logp = torch.log_softmax(torch.zeros(1, D, H, W, dtype=DT).index_fill(1, torch.tensor([1]), 10.0), 1)
+    out, valid = G.warp_volume(logp, K, se3(t=(0.0, 0.0, 0.01)), planes, return_valid=True)
+    assert valid[0, :, 1:-1, 1:-1].all()
+    assert (out[0, 0, 1:-1, 1:-1].exp() < 0.01).all()
+    assert (out[0, 1, 1:-1, 1:-1].exp() > 0.8).all()
+    # 0.5 m backwards: far outside the first plane's half voxel -> not seen by A
+    out, valid = G.warp_volume(logp, K, se3(t=(0.0, 0.0, 0.5)), planes, return_valid=True)
+    assert not valid[0, 0].any()
+
+
+def test_warp_volume_gradcheck():
+    torch.manual_seed(2)
+    D, H, W = 4, 4, 5
+    K = intrinsics(W, H, 4.0)
+    planes = depth_planes(0.5, 3.0, D, dtype=DT)
+    logp = torch.log_softmax(torch.randn(1, D, H, W, dtype=DT), 1).requires_grad_(True)
+    T = se3(rot_x(0.03), (0.02, -0.01, 0.03))
+    assert torch.autograd.gradcheck(lambda x: G.warp_volume(x, K, T, planes), (logp,), eps=1e-6, atol=1e-5)
+
+
+# ------------------------------------------------------------------ image warp with depth
+
+def test_warp_image_with_depth_reconstructs_reference():
+    K = intrinsics(W_, H_, 60.0)
+    T = MOTIONS['rot']
+    z = 2.0
+    ref, src = render_plane_pair(K, K, T, z, H_, W_)
+    depth = torch.full((1, H_, W_), z, dtype=DT)
+    depth[0, :2, :] = 0.0                              # no depth -> invalid
+    warped, valid = G.warp_image_with_depth(src, depth, K, K, T)
+    assert not valid[0, :2].any() and valid.float().mean() > 0.6
+    err = (warped - ref).abs()[:, 0][valid]
+    assert err.mean() < 0.01
+    # a wrong depth gives a clearly worse alignment
+    warped2, valid2 = G.warp_image_with_depth(src, depth * 1.5, K, K, T)
+    assert (warped2 - ref).abs()[:, 0][valid2].mean() > 3 * err.mean()
+    assert (warped[:, 0][~valid] == 0).all()
+    # index helper consistent with the planes
+    planes = depth_planes(0.5, 5.0, 16, dtype=DT)
+    assert torch.allclose(depth_to_index(planes, 0.5, 5.0, 16), torch.arange(16, dtype=DT), atol=1e-9)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason='no CUDA device')
+def test_cuda_matches_cpu():
+    torch.manual_seed(3)
+    K = intrinsics(16, 12, 12.0).float()
+    planes = depth_planes(0.5, 4.0, 8)
+    src = torch.rand(1, 3, 12, 16)
+    T = se3(rot_y(0.05), (0.1, 0.0, 0.02)).float()
+    a, va = G.plane_sweep_warp(src, K, K, T, planes)
+    b, vb = G.plane_sweep_warp(src.cuda(), K.cuda(), K.cuda(), T.cuda(), planes.cuda())
+    assert torch.allclose(a, b.cpu(), atol=1e-5) and torch.equal(va, vb.cpu())
+    logp = torch.log_softmax(torch.randn(1, 8, 12, 16), 1)
+    assert torch.allclose(G.warp_volume(logp, K, T, planes), G.warp_volume(logp.cuda(), K.cuda(), T.cuda(), planes.cuda()).cpu(),
+                          atol=1e-4)
