@@ -1,0 +1,890 @@
+"""The streaming core of the virtual depth camera: ``Estimator(config).push(Frame) -> DepthOutput | None``.
+
+No ROS import here (layer 6); the node (``dpv_sensor/node.py``) only converts messages to :class:`Frame`
+and :class:`DepthOutput` back to messages.
+
+What happens to a pushed frame
+------------------------------
+1. **Checks.** A frame whose pose is missing (``None``) or non-finite / not rigid, whose stamp is not
+   finite, or whose stamp equals the previous one is dropped (``push`` returns None, the reason is in
+   ``status['last_drop_reason']``). The estimator *resets* (window, keyframe selector and filter; the
+   reason goes to ``status['last_reset_reason']`` and to the ``reset_reason`` of the next output) when
+   time goes backwards, when the image size or the intrinsics change, when consecutive frames are more
+   than ``reset_time_gap`` seconds apart, or when the camera jumps more than ``reset_translation`` m /
+   ``reset_rotation_deg`` degrees between consecutive frames (a threshold of 0 disables that rule).
+   The filter has its own rules between *keyframes* (same thresholds: ``DPVFilter(max_time_gap=...)``);
+   when it restarts itself, its ``reset_reason`` is passed on in ``DepthOutput.reset_reason``.
+2. **Keyframe selection** (:class:`dpv_sensor.keyframes.KeyframeSelector`): baseline
+   ``keyframe_translation``, rotation ``keyframe_rotation_deg`` since the last keyframe, at the latest
+   every ``keyframe_max_interval`` frames (paper: every 5th frame).
+3. **Keyframes** are resized to the processing size (area averaging when shrinking, bilinear when
+   growing; K scaled as ``fx' = fx*s``, ``cx' = (cx + 0.5)*s - 0.5``) and enter a window of 5
+   keyframes (:class:`dpv_sensor.keyframes.KeyframeWindow`):
+
+   * ``causal`` — reference = the newest keyframe, sources = the (up to 4) keyframes before it; no
+     latency. The first keyframe after a (re)start has no stereo partner and gives **no output**;
+     outputs start with the second keyframe (1 source), the window fills up by the fifth.
+   * ``centered`` — the paper's window: reference = the middle of 5 keyframes, sources on both sides.
+     The output for keyframe k is produced when keyframe k + 2 arrives (two keyframes of latency) and
+     carries keyframe k's stamp, pose and size. The first output comes with the third keyframe
+     (reference = first keyframe, sources = keyframes 2, 3). Keyframes still pending when the stream
+     resets are dropped (their window can no longer be completed).
+4. **Pose refinement hook** (issue 6): when a ``pose_refiner`` callable is given, it is called before
+   the plane sweep with a :class:`PoseRefinementRequest` (the window's keyframes, the reference index,
+   the depth and confidence the filter predicts for the reference) and returns refined ``T_world_cam``
+   poses for the window's keyframes (or None to keep them). Refined poses replace the keyframes' poses
+   (also for later windows); the odometry pose is kept in ``Keyframe.odom_T_world_cam_44``. A new
+   frame's pose starts as its odometry motion since the newest keyframe chained onto that keyframe's
+   refined pose (so the filter's prediction and the between-keyframe outputs follow the refined
+   trajectory). A refiner that exposes ``tracking_lost`` (True after a failed refinement, reason in
+   ``last_result.reason``) makes the estimator restart the filter and publish nothing for that
+   keyframe; ``reset()`` also calls the refiner's ``reset()`` when it has one.
+5. **Measurement**: the D-Net of ``nets.model.DPVNet`` when weights for the preset load (``config.weights``
+   or the packaged ``dpv_sensor/weights/<preset>.safetensors``); per-keyframe features are extracted once
+   and cached, so a source frame is never re-processed (the classical model takes images; each
+   keyframe's processing-size image tensor is kept, and its grey/gradient features are cheap to redo).
+   Otherwise (no file, corrupt file: a
+   ``CheckpointError``) a warning with the reason is logged and the classical NCC plane sweep
+   (``classical.ClassicalMeasurement``) is used; ``measurement='classical'`` forces it and
+   ``measurement='network'`` makes a missing/corrupt checkpoint an error.
+6. **Filter**: ``filter.DPVFilter`` carries the DPV between keyframes at the volume resolution (1/4 of the
+   processing size); it gets poses relative to the first keyframe since the last reset (computed in
+   float64), so large odometry coordinates lose no precision in its float32 arithmetic. Mode ``knet``
+   uses the network's K-Net; with the classical model it falls back to ``global`` damping (logged once,
+   noted in the status).
+7. **Output**: depth = the expectation over the planes (paper eq. 1), confidence = ``dpv.confidence``.
+
+   * network: from the R-Net's full-resolution (processing size) DPV;
+   * classical (and frames between keyframes): depth and confidence are computed from the volume-
+     resolution DPV and upsampled to the processing size - depth bilinearly in *inverse* depth (the
+     planes are uniform in inverse depth), confidence bilinearly. This costs O(H W) instead of the
+     O(D H W) of upsampling the whole DPV and gives the same result where the DPV is smooth.
+
+   A pixel has no estimate (depth NaN, confidence 0) when fewer than ``min_coverage`` (default half) of
+   its ray's plane samples project into at least one source view of the window (the ray lies outside
+   the sources' frustums). With ``output_resolution='input'`` the
+   maps are resized to the input image size with centre-aligned **nearest** neighbour (no depth is ever
+   interpolated across an occlusion edge, no "flying pixels" in point clouds; NaN stays NaN) and K is
+   the input K; with ``'processing'`` they stay at the processing size with the processing K.
+8. **Frames between keyframes** (``publish_between_keyframes``, causal mode): the filter's last
+   posterior is warped into the frame's pose (``geometry.warp_volume``, the filter's predict step) and
+   depth/confidence are taken from it - no network run. In ``centered`` mode such outputs would be
+   newer than the pending keyframe outputs (stamps out of order on one topic), so they are not produced
+   there (noted in the status).
+
+Device and precision: ``config.device`` (``cpu``, ``cuda``, ``cuda:N``); everything runs under
+``torch.no_grad()`` (not ``inference_mode``, so a pose refiner may still use autograd on the cached
+keyframe tensors); float32 on the CPU; on CUDA the networks run under ``torch.autocast`` (bfloat16 by
+default), the geometry, the filter and all DPV normalisations stay float32.
+"""
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+import pathlib
+import time
+from dataclasses import dataclass
+from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
+
+import cv2
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from . import dpv as dpv_ops
+from . import geometry
+from .frame import DepthOutput, Frame
+from .keyframes import WINDOW_MODES, Keyframe, KeyframeSelector, KeyframeWindow, pose_delta
+
+__all__ = ['EstimatorConfig', 'Estimator', 'PoseRefinementRequest', 'default_weights_path', 'evaluate_offline',
+           'MEASUREMENTS', 'FILTER_MODES']
+
+LOG = logging.getLogger('dpv_sensor.estimator')
+
+MEASUREMENTS = ('auto', 'network', 'classical')
+FILTER_MODES = ('none', 'bayes', 'global', 'knet')
+OUTPUT_RESOLUTIONS = ('input', 'processing')
+# planes sampled per ray for the "seen by some source view" mask (see Estimator._coverage)
+COVERAGE_PLANES = 16
+
+
+def default_weights_path(preset: str) -> pathlib.Path:
+    """The packaged checkpoint of a preset: ``<dpv_sensor package>/weights/<preset>.safetensors``
+    (``nets.checkpoint.default_weights_path``; the file may not exist)."""
+    from .nets.checkpoint import default_weights_path as _default
+    return _default(preset)
+
+
+# ------------------------------------------------------------------------------------------------------
+# configuration
+# ------------------------------------------------------------------------------------------------------
+
+@dataclass
+class EstimatorConfig:
+    """Everything the estimator needs; :meth:`from_params` maps the node's parameters (params.py).
+
+    The fields down to ``pose_refinement`` are node parameters (same names, same meaning; see
+    ``config/dpv_sensor.yaml``). The rest are library-level knobs with sensible defaults:
+    ``window_size`` (keyframes in a window, paper: 5), ``classical_downscale`` (volume = image / this),
+    ``min_coverage`` (fraction of a ray's planes that must project into at least one source view for the
+    pixel to get an estimate), ``amp_dtype`` (autocast dtype of the networks on CUDA, or ``'none'``).
+    """
+    preset: str = 'lite'
+    weights: str = ''
+    measurement: str = 'auto'
+    device: str = 'cpu'
+    processing_width: int = 320
+    processing_height: int = 256
+    d_min: float = 0.3
+    d_max: float = 8.0
+    num_planes: int = 64
+    filter_mode: str = 'knet'
+    damping: float = 0.8
+    reset_time_gap: float = 1.0
+    reset_translation: float = 1.0
+    reset_rotation_deg: float = 45.0
+    window_mode: str = 'causal'
+    keyframe_translation: float = 0.05
+    keyframe_rotation_deg: float = 5.0
+    keyframe_max_interval: int = 5
+    publish_between_keyframes: bool = False
+    output_resolution: str = 'input'
+    pose_refinement: str = 'off'
+    # --- not node parameters -------------------------------------------------------------------------
+    window_size: int = 5
+    classical_downscale: int = 4
+    min_coverage: float = 0.5
+    amp_dtype: str = 'bfloat16'
+
+    @classmethod
+    def from_params(cls, values: Dict[str, Any]) -> 'EstimatorConfig':
+        """Config from the node's parameter dict (``params.validate`` output).
+
+        Only the keys that are fields of this class are used (transport, QoS and camera parameters
+        belong to the node); missing keys keep the field defaults. The result is validated.
+        """
+        names = {f.name for f in dataclasses.fields(cls)}
+        cfg = cls(**{k: v for k, v in values.items() if k in names})
+        return cfg.validate()
+
+    def validate(self) -> 'EstimatorConfig':
+        """Raise ValueError naming the first inconsistent field; returns self."""
+        def one_of(name, choices):
+            if getattr(self, name) not in choices:
+                raise ValueError(f'{name} = {getattr(self, name)!r} is not one of {list(choices)}')
+        one_of('measurement', MEASUREMENTS)
+        one_of('filter_mode', FILTER_MODES)
+        one_of('window_mode', WINDOW_MODES)
+        one_of('output_resolution', OUTPUT_RESOLUTIONS)
+        one_of('pose_refinement', ('off', 'window'))
+        one_of('amp_dtype', ('bfloat16', 'float16', 'none'))
+        if min(self.processing_width, self.processing_height) < 8:
+            raise ValueError(f'processing size {self.processing_width}x{self.processing_height} is too small')
+        if not (0 < self.d_min < self.d_max):
+            raise ValueError(f'need 0 < d_min < d_max, got {self.d_min}, {self.d_max}')
+        if self.num_planes < 2:
+            raise ValueError(f'num_planes must be >= 2, got {self.num_planes}')
+        if not (0.0 <= self.damping <= 1.0):
+            raise ValueError(f'damping must lie in [0, 1], got {self.damping}')
+        for name in ('reset_time_gap', 'reset_translation', 'reset_rotation_deg', 'keyframe_translation',
+                     'keyframe_rotation_deg'):
+            if not (getattr(self, name) >= 0.0):
+                raise ValueError(f'{name} must be >= 0, got {getattr(self, name)}')
+        if self.keyframe_max_interval < 1:
+            raise ValueError(f'keyframe_max_interval must be >= 1, got {self.keyframe_max_interval}')
+        if self.window_size < 2 or (self.window_mode == 'centered' and self.window_size % 2 != 1):
+            raise ValueError(f'window_size {self.window_size} does not fit window_mode {self.window_mode!r} '
+                             '(>= 2; odd for centered)')
+        if self.classical_downscale < 1:
+            raise ValueError('classical_downscale must be >= 1')
+        if not (0.0 < self.min_coverage <= 1.0):
+            raise ValueError(f'min_coverage must lie in (0, 1], got {self.min_coverage}')
+        return self
+
+    @property
+    def processing_size(self) -> Tuple[int, int]:
+        """(width, height) the images are resized to."""
+        return int(self.processing_width), int(self.processing_height)
+
+
+@dataclass
+class PoseRefinementRequest:
+    """What a pose refiner gets before the plane sweep of a window (issue 6, paper eq. 11).
+
+    keyframes: the window's keyframes in time order (reference included; ``Keyframe.T_world_cam_44`` is
+    the current pose estimate, ``image_b3hw`` / ``K_b33`` the processing-size image and intrinsics).
+    reference: index of the reference keyframe in ``keyframes``.
+    depth_hw / confidence_hw: the depth and confidence the filter predicts for the reference (its last
+    posterior warped into the reference pose), torch (h, w) at the volume resolution with intrinsics
+    ``K_depth_33`` (numpy); None when the filter has no state yet (first window after a reset).
+    The refiner returns a list of ``T_world_cam`` 4x4 arrays, one per keyframe (same order), or None.
+    """
+    keyframes: List[Keyframe]
+    reference: int
+    depth_hw: Optional[torch.Tensor]
+    confidence_hw: Optional[torch.Tensor]
+    K_depth_33: Optional[np.ndarray]
+    depths_d: torch.Tensor
+
+
+PoseRefiner = Callable[[PoseRefinementRequest], Optional[Sequence[np.ndarray]]]
+
+
+@dataclass
+class _Posterior:
+    """The filter's latest posterior and where it lives (for between-keyframe outputs and prediction)."""
+    logp_bdhw: torch.Tensor
+    T_world_cam_44: np.ndarray
+    K_vol_b33: torch.Tensor
+    coverage_bhw: torch.Tensor          # bool, volume resolution
+    stamp: float
+
+
+@dataclass
+class _Measurement:
+    logp_bdhw: torch.Tensor
+    K_vol_b33: torch.Tensor
+    feats: Any = None
+
+
+# ------------------------------------------------------------------------------------------------------
+# small helpers
+# ------------------------------------------------------------------------------------------------------
+
+def _scale_K_np(K_33: np.ndarray, sx: float, sy: float) -> np.ndarray:
+    """fx' = fx*sx, cx' = (cx + 0.5)*sx - 0.5 (same for y) - the project's resize convention."""
+    K = np.array(K_33, dtype=np.float64, copy=True)
+    K[0, 0] *= sx
+    K[0, 1] *= sx
+    K[0, 2] = (K[0, 2] + 0.5) * sx - 0.5
+    K[1, 1] *= sy
+    K[1, 2] = (K[1, 2] + 0.5) * sy - 0.5
+    return K
+
+
+def _is_rigid(T_44: np.ndarray, tol: float = 1e-3) -> bool:
+    R = T_44[:3, :3]
+    return (np.allclose(R.T @ R, np.eye(3), atol=tol) and abs(np.linalg.det(R) - 1.0) < tol
+            and np.allclose(T_44[3], [0.0, 0.0, 0.0, 1.0], atol=tol))
+
+
+def resample_to_camera(x_bchw: torch.Tensor, K_src_33, K_dst_33, dst_hw: Tuple[int, int],
+                       mode: str = 'bilinear') -> torch.Tensor:
+    """Resample a map defined on camera grid ``K_src`` (its own size) onto grid ``K_dst`` of size dst_hw.
+
+    Both grids belong to the same pinhole camera (they differ only in scale and offset, e.g. an image
+    and its resized copy, or an image and its DPV's stride-4 grid), so destination pixel u reads source
+    coordinate ``u_src = fx_src/fx_dst * (u - cx_dst) + cx_src`` (same for v). Sampled with
+    ``grid_sample(align_corners=True)`` on pixel-centre coordinates, borders clamped. ``mode``:
+    'bilinear' or 'nearest'.
+    """
+    Ks = torch.as_tensor(K_src_33, dtype=torch.float64).reshape(3, 3)
+    Kd = torch.as_tensor(K_dst_33, dtype=torch.float64).reshape(3, 3)
+    B, C, Hs, Ws = x_bchw.shape
+    Hd, Wd = int(dst_hw[0]), int(dst_hw[1])
+    ax = float(Ks[0, 0] / Kd[0, 0])
+    ay = float(Ks[1, 1] / Kd[1, 1])
+    bx = float(Ks[0, 2]) - ax * float(Kd[0, 2])
+    by = float(Ks[1, 2]) - ay * float(Kd[1, 2])
+    dt, dev = (x_bchw.dtype if x_bchw.is_floating_point() else torch.float32), x_bchw.device
+    u = torch.arange(Wd, dtype=torch.float64) * ax + bx
+    v = torch.arange(Hd, dtype=torch.float64) * ay + by
+    gx = (2.0 * u / max(Ws - 1, 1) - 1.0).to(dt)
+    gy = (2.0 * v / max(Hs - 1, 1) - 1.0).to(dt)
+    gyy, gxx = torch.meshgrid(gy, gx, indexing='ij')
+    grid = torch.stack([gxx, gyy], -1)[None].expand(B, Hd, Wd, 2).to(dev)
+    src = x_bchw if x_bchw.is_floating_point() else x_bchw.to(dt)
+    return F.grid_sample(src, grid, mode=mode, padding_mode='border', align_corners=True)
+
+
+# ------------------------------------------------------------------------------------------------------
+# the estimator
+# ------------------------------------------------------------------------------------------------------
+
+class Estimator:
+    """Streaming depth estimation from posed frames (see the module docstring).
+
+    Args:
+        config: an :class:`EstimatorConfig` (``EstimatorConfig.from_params(params.validate(...))`` in the
+            node).
+        model: an already built ``DPVNet`` to use as the measurement model (e.g. random-init weights for
+            benchmarks, a model just trained); skips checkpoint loading. Ignored with
+            ``measurement='classical'``.
+        pose_refiner: optional callable ``(PoseRefinementRequest) -> list of T_world_cam | None``, called
+            before every plane sweep (issue 6). The node builds one when ``pose_refinement='window'``.
+        logger: a ``logging.Logger``-like object (``warning``/``info``); default ``dpv_sensor.estimator``.
+    """
+
+    def __init__(self, config: Optional[EstimatorConfig] = None, *, model=None,
+                 pose_refiner: Optional[PoseRefiner] = None, logger=None):
+        self.config = (config or EstimatorConfig()).validate()
+        self.log = logger or LOG
+        cfg = self.config
+        self.device = self._resolve_device(cfg.device)
+        self.pose_refiner = pose_refiner
+        self._notes: List[str] = []
+        self.model = None
+        self.classical = None
+        self._weights_path: Optional[str] = None
+        self._checkpoint_meta: Dict[str, Any] = {}
+        self._build_measurement(model)
+        self._build_filter()
+        if cfg.pose_refinement == 'window' and pose_refiner is None:
+            self._note('pose_refinement=window requested but no pose refiner was given: poses are used as received')
+        if cfg.publish_between_keyframes and cfg.window_mode == 'centered':
+            self._note('publish_between_keyframes is ignored in centered window mode (its outputs would be '
+                       'newer than the pending keyframe outputs)')
+        self.selector = KeyframeSelector(cfg.keyframe_translation, cfg.keyframe_rotation_deg,
+                                         cfg.keyframe_max_interval)
+        self.window = KeyframeWindow(cfg.window_size)
+        # counters and stream state
+        self._frames_received = 0
+        self._frames_accepted = 0
+        self._frames_dropped = 0
+        self._keyframes = 0
+        self._outputs = 0
+        self._resets = 0
+        self._last_reset_reason: Optional[str] = None
+        self._last_drop_reason: Optional[str] = None
+        self._pending_reset_reason: Optional[str] = None
+        self._last_frame: Optional[Tuple[float, np.ndarray, Tuple[int, int], np.ndarray]] = None
+        self._posterior: Optional[_Posterior] = None
+        self._anchor_T_world: Optional[np.ndarray] = None
+        self._tracking = 'waiting for frames'
+        self._last_timings: Dict[str, float] = {}
+        self._kf_counter = 0
+
+    # ------------------------------------------------------------------ construction helpers
+    @staticmethod
+    def _resolve_device(name: str) -> torch.device:
+        try:
+            dev = torch.device(name)
+        except (RuntimeError, TypeError) as exc:
+            raise ValueError(f'device {name!r} is not a torch device: {exc}') from None
+        if dev.type == 'cuda':
+            if not torch.cuda.is_available():
+                raise ValueError(f'device {name!r} requested but CUDA is not available on this machine')
+            if dev.index is not None and dev.index >= torch.cuda.device_count():
+                raise ValueError(f'device {name!r} requested but only {torch.cuda.device_count()} CUDA devices exist')
+        elif dev.type != 'cpu':
+            raise ValueError(f'device {name!r}: only cpu and cuda are supported')
+        return dev
+
+    def _note(self, text: str) -> None:
+        """Log a one-time warning and keep it for the status."""
+        if text not in self._notes:
+            self._notes.append(text)
+            self.log.warning(text)
+
+    def _build_measurement(self, model) -> None:
+        cfg = self.config
+        if cfg.measurement == 'classical':
+            self._use_classical('measurement=classical')
+            return
+        if model is not None:
+            self.model = model.to(self.device).eval()
+            self._measurement_reason = f'network ({self.model.preset.name}) passed in by the caller'
+            self._use_network()
+            return
+        path = pathlib.Path(cfg.weights) if cfg.weights else default_weights_path(cfg.preset)
+        try:
+            self.model = self._load_network(path)
+        except Exception as exc:  # CheckpointError, or the checkpoint module itself missing
+            reason = f'no network weights for preset {cfg.preset!r}: {type(exc).__name__}: {exc}'
+            if cfg.measurement == 'network':
+                raise
+            self.log.warning(f'{reason}; falling back to the classical (NCC plane sweep) measurement model')
+            self._use_classical(f'fallback: {reason}')
+            return
+        self._weights_path = str(path)
+        self._measurement_reason = f'network weights loaded from {path}'
+        self._use_network()
+
+    def _load_network(self, path: pathlib.Path):
+        """DPVNet from a checkpoint; raises CheckpointError (file missing, corrupt, other preset ...)."""
+        from .nets.checkpoint import load_checkpoint
+        model, meta = load_checkpoint(str(path), preset=self.config.preset, device=self.device)
+        self._checkpoint_meta = dict(meta or {})
+        return model.to(self.device).eval()
+
+    def _use_network(self) -> None:
+        self.measurement = 'network'
+        m = self.model
+        self.depths_d = m.depth_planes(torch.float32, self.device)
+        self.d_min, self.d_max, self.num_planes = float(m.d_min), float(m.d_max), int(m.num_planes)
+
+    def _use_classical(self, reason: str) -> None:
+        from .classical import ClassicalMeasurement
+        cfg = self.config
+        self.measurement = 'classical'
+        self._measurement_reason = reason
+        self.model = None
+        self.classical = ClassicalMeasurement(cfg.d_min, cfg.d_max, cfg.num_planes,
+                                              downscale=cfg.classical_downscale)
+        self.depths_d = dpv_ops.depth_planes(cfg.d_min, cfg.d_max, cfg.num_planes, torch.float32, self.device)
+        self.d_min, self.d_max, self.num_planes = float(cfg.d_min), float(cfg.d_max), int(cfg.num_planes)
+
+    def _build_filter(self) -> None:
+        from .filter import DPVFilter
+        cfg = self.config
+        mode = cfg.filter_mode
+        knet = None
+        if mode == 'knet':
+            if self.measurement == 'network':
+                knet = self._knet_callable()
+            else:
+                mode = 'global'
+                self._note('filter_mode=knet needs the network (K-Net); using global damping with the '
+                           'classical measurement model')
+        self.filter_mode = mode
+        # a threshold of 0 disables the rule (the filter wants positive values: infinity never triggers)
+        def off(x):
+            return float(x) if x > 0 else math.inf
+        self.filter = DPVFilter(mode=mode, damping=cfg.damping, knet=knet, max_time_gap=off(cfg.reset_time_gap),
+                                max_translation=off(cfg.reset_translation),
+                                max_rotation_deg=off(cfg.reset_rotation_deg))
+
+    def _autocast(self):
+        if self.device.type == 'cuda' and self.config.amp_dtype != 'none':
+            return torch.autocast('cuda', dtype=getattr(torch, self.config.amp_dtype))
+        return torch.autocast(self.device.type, enabled=False)
+
+    def _knet_callable(self):
+        knet = self.model.knet
+
+        def g(residual_bdhw, image_b3hw):
+            with self._autocast():
+                out = knet(residual_bdhw, image_b3hw)
+            return out.float()
+        return g
+
+    # ------------------------------------------------------------------ public API
+    @property
+    def status(self) -> Dict[str, Any]:
+        """Diagnostics: measurement model in use and why, device, counters, resets, tracking state."""
+        cfg = self.config
+        return {
+            'measurement': self.measurement,
+            'measurement_reason': self._measurement_reason,
+            'preset': self.model.preset.name if self.model is not None else None,
+            'weights': self._weights_path,
+            'checkpoint': {k: self._checkpoint_meta.get(k) for k in ('preset', 'steps', 'training_data',
+                                                                       'code_version')}
+            if self._checkpoint_meta else None,
+            'device': str(self.device),
+            'filter_mode': self.filter_mode,
+            'filter_mode_requested': cfg.filter_mode,
+            'window_mode': cfg.window_mode,
+            'processing_size': cfg.processing_size,
+            'depth_range': (self.d_min, self.d_max),
+            'num_planes': self.num_planes,
+            'frames': self._frames_received,
+            'frames_accepted': self._frames_accepted,
+            'frames_dropped': self._frames_dropped,
+            'keyframes': self._keyframes,
+            'keyframes_in_window': len(self.window),
+            'outputs': self._outputs,
+            'resets': self._resets,
+            'last_reset_reason': self._last_reset_reason,
+            'last_drop_reason': self._last_drop_reason,
+            'tracking': self._tracking,
+            'pose_refinement': cfg.pose_refinement,
+            'pose_refiner': self.pose_refiner is not None,
+            'last_timings_ms': dict(self._last_timings),
+            'notes': list(self._notes),
+        }
+
+    def reset(self, reason: str = 'reset requested') -> None:
+        """Forget the window, the keyframe selector and the filter state (counters are kept)."""
+        self.window.clear()
+        self.selector.reset()
+        self.filter.reset()
+        self._posterior = None
+        self._anchor_T_world = None
+        self._last_frame = None
+        if self.pose_refiner is not None and callable(getattr(self.pose_refiner, 'reset', None)):
+            self.pose_refiner.reset()
+        self._resets += 1
+        self._last_reset_reason = reason
+        self._pending_reset_reason = reason
+        self._tracking = 'waiting for keyframes'
+        self.log.info(f'estimator reset: {reason}')
+
+    def push(self, frame: Frame) -> Optional[DepthOutput]:
+        """Process one frame; returns the depth output that became ready (or None). See the module docs."""
+        t0 = time.perf_counter()
+        self._frames_received += 1
+        image = self._check_image(frame)
+        drop = self._drop_reason(frame)
+        if drop is not None:
+            self._frames_dropped += 1
+            self._last_drop_reason = drop
+            if 'pose' in drop:
+                self._tracking = 'no pose'
+            return None
+        T = np.asarray(frame.T_world_cam_44, dtype=np.float64)
+        K_in = np.asarray(frame.K_33, dtype=np.float64)
+        size = (int(image.shape[1]), int(image.shape[0]))
+        stamp = float(frame.stamp)
+        if self._last_frame is not None and stamp == self._last_frame[0]:
+            self._frames_dropped += 1
+            self._last_drop_reason = f'duplicate stamp {stamp:.6f} s (same as the previous frame)'
+            return None
+        reset = self._stream_reset_reason(stamp, T, size, K_in)
+        if reset is not None:
+            self.reset(reset)
+        self._last_frame = (stamp, T, size, K_in)
+        self._frames_accepted += 1
+        frame_index = self._frames_accepted - 1
+        decision = self.selector.decide(T)
+        with torch.no_grad():
+            if not decision.is_keyframe:
+                out = self._between_output(frame, T, size, K_in, t0)
+            else:
+                out = self._keyframe(frame, image, T, size, K_in, frame_index, t0)
+        if out is not None:
+            self._outputs += 1
+        return out
+
+    # ------------------------------------------------------------------ checks
+    @staticmethod
+    def _check_image(frame: Frame) -> np.ndarray:
+        image = np.asarray(frame.image)
+        if image.ndim != 3 or image.shape[2] != 3 or image.dtype != np.uint8:
+            raise ValueError(f'Frame.image must be uint8 HxWx3 RGB, got {image.dtype} {image.shape}')
+        if min(image.shape[:2]) < 2:
+            raise ValueError(f'Frame.image is too small: {image.shape}')
+        return image
+
+    @staticmethod
+    def _drop_reason(frame: Frame) -> Optional[str]:
+        if frame.T_world_cam_44 is None:
+            return 'no pose for the frame'
+        T = np.asarray(frame.T_world_cam_44, dtype=np.float64)
+        if T.shape != (4, 4):
+            return f'pose has shape {T.shape}, expected 4x4'
+        if not np.all(np.isfinite(T)):
+            return 'pose is not finite (NaN/inf)'
+        if not _is_rigid(T):
+            return 'pose is not a rigid transform'
+        K = np.asarray(frame.K_33, dtype=np.float64)
+        if K.shape != (3, 3) or not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0:
+            return 'invalid intrinsics K'
+        if not math.isfinite(float(frame.stamp)):
+            return 'stamp is not finite'
+        return None
+
+    def _stream_reset_reason(self, stamp: float, T: np.ndarray, size, K_in) -> Optional[str]:
+        if self._last_frame is None:
+            return None
+        cfg = self.config
+        last_stamp, last_T, last_size, last_K = self._last_frame
+        if stamp < last_stamp:
+            return f'time went backwards ({stamp:.6f} s after {last_stamp:.6f} s)'
+        if size != last_size:
+            return f'image size changed from {last_size[0]}x{last_size[1]} to {size[0]}x{size[1]}'
+        if not np.allclose(K_in, last_K, rtol=1e-6, atol=1e-6):
+            return 'camera intrinsics changed'
+        if cfg.reset_time_gap > 0 and stamp - last_stamp > cfg.reset_time_gap:
+            return f'time gap {stamp - last_stamp:.3f} s > reset_time_gap {cfg.reset_time_gap:g} s'
+        dt, dr = pose_delta(last_T, T)
+        if cfg.reset_translation > 0 and dt > cfg.reset_translation:
+            return f'camera jumped {dt:.3f} m > reset_translation {cfg.reset_translation:g} m'
+        if cfg.reset_rotation_deg > 0 and dr > cfg.reset_rotation_deg:
+            return f'camera turned {dr:.1f} deg > reset_rotation_deg {cfg.reset_rotation_deg:g} deg'
+        return None
+
+    # ------------------------------------------------------------------ keyframes
+    def _prepare(self, image: np.ndarray, K_in: np.ndarray) -> Tuple[torch.Tensor, np.ndarray]:
+        """Processing-size image (1, 3, H, W) float [0, 1] on the device and its K (numpy)."""
+        W, H = self.config.processing_size
+        h0, w0 = image.shape[:2]
+        if (w0, h0) != (W, H):
+            interp = cv2.INTER_AREA if (W <= w0 and H <= h0) else cv2.INTER_LINEAR
+            image = cv2.resize(image, (W, H), interpolation=interp)
+        K = _scale_K_np(K_in, W / w0, H / h0)
+        t = torch.from_numpy(np.ascontiguousarray(image)).to(self.device)
+        t = t.permute(2, 0, 1)[None].float().div_(255.0)
+        return t.contiguous(), K
+
+    def _keyframe(self, frame, image, T, size, K_in, frame_index, t0) -> Optional[DepthOutput]:
+        timings: Dict[str, float] = {}
+        t = time.perf_counter()
+        img_t, K_proc = self._prepare(image, K_in)
+        kf = Keyframe(index=self._kf_counter, frame_index=frame_index, stamp=float(frame.stamp),
+                      T_world_cam_44=self._chain_pose(T), image_b3hw=img_t,
+                      K_b33=torch.as_tensor(K_proc, dtype=torch.float32, device=self.device)[None],
+                      input_size=size, input_K_33=K_in, frame_id=frame.frame_id, odom_T_world_cam_44=T)
+        self._kf_counter += 1
+        self._keyframes += 1
+        self.window.append(kf)
+        timings['resize'] = self._ms(t)
+        sel = self.window.select(self.config.window_mode)
+        if sel is None:
+            self._tracking = 'waiting for keyframes'
+            self._last_timings = dict(timings, total=self._ms(t0))
+            return None
+        ref, sources = sel
+        lost = self._refine_poses(ref, sources, timings)
+        if lost is not None:
+            # the refiner lost tracking: restart the filter, publish nothing for this keyframe
+            self.filter.reset()
+            self._posterior = None
+            self._anchor_T_world = None
+            reason = f'pose refinement lost tracking: {lost}'
+            self._resets += 1
+            self._last_reset_reason = reason
+            self._pending_reset_reason = reason
+            self._tracking = 'pose tracking lost'
+            self._last_timings = dict(timings, total=self._ms(t0))
+            return None
+
+        t = time.perf_counter()
+        T_src_ref = np.stack([np.linalg.inv(s.T_world_cam_44) @ ref.T_world_cam_44 for s in sources])
+        T_src_ref_t = torch.as_tensor(T_src_ref, dtype=torch.float32, device=self.device)[None]   # 1,N,4,4
+        meas = self._measure(ref, sources, T_src_ref_t)
+        timings['measurement'] = self._ms(t)
+
+        t = time.perf_counter()
+        vol_hw = tuple(meas.logp_bdhw.shape[-2:])
+        coverage = self._coverage(meas.K_vol_b33, vol_hw, T_src_ref_t[0])
+        step = self.filter.step(meas.logp_bdhw.float(), meas.K_vol_b33, self._filter_pose(ref.T_world_cam_44),
+                                ref.stamp, self.depths_d, image_b3hw=ref.image_b3hw)
+        post = step.logp_bdhw
+        self._posterior = _Posterior(post, ref.T_world_cam_44.copy(), meas.K_vol_b33, coverage, ref.stamp)
+        timings['filter'] = self._ms(t)
+
+        t = time.perf_counter()
+        H, W = ref.image_b3hw.shape[-2:]
+        K_proc_t = ref.K_b33[0]
+        if self.measurement == 'network':
+            with self._autocast():
+                full = self.model.refine(post, meas.feats, ref.image_b3hw)
+            full = full.float()
+            depth = dpv_ops.expected_depth(full, self.depths_d)
+            conf = dpv_ops.confidence(full, self.depths_d)
+            valid = resample_to_camera(coverage[:, None].float(), meas.K_vol_b33[0], K_proc_t, (H, W),
+                                       mode='nearest')[:, 0] > 0.5
+            timings['refine'] = self._ms(t)
+        else:
+            depth, conf, valid = self._volume_maps_to_processing(
+                dpv_ops.expected_depth(post, self.depths_d), dpv_ops.confidence(post, self.depths_d), coverage,
+                meas.K_vol_b33[0], K_proc_t, (H, W))
+            timings['upsample'] = self._ms(t)
+
+        t = time.perf_counter()
+        reason = self._take_reset_reason(step.reset_reason)
+        out = self._compose(depth, conf, valid, ref.input_size, ref.input_K_33, ref.stamp, ref.T_world_cam_44,
+                            True, reason)
+        timings['output'] = self._ms(t)
+        timings['total'] = self._ms(t0)
+        out.timings_ms = timings
+        self._last_timings = dict(timings)
+        self._tracking = 'tracking'
+        return out
+
+    def _chain_pose(self, T_odom_44: np.ndarray) -> np.ndarray:
+        """Pose estimate of a new frame: its odometry motion since the newest keyframe chained onto that
+        keyframe's (possibly refined) pose. Without pose refinement this is the odometry pose itself."""
+        newest = self.window.newest
+        if newest is None:
+            return np.array(T_odom_44, dtype=np.float64, copy=True)
+        return newest.T_world_cam_44 @ np.linalg.inv(newest.odom_T_world_cam_44) @ T_odom_44
+
+    def _filter_pose(self, T_world_cam_44: np.ndarray) -> torch.Tensor:
+        """(1, 4, 4) float32 pose for the filter, relative to an anchor (the first keyframe since the last
+        reset), computed in float64: the filter only uses relative poses, and large world coordinates
+        (odometry hundreds of metres from its origin) would lose millimetres in float32."""
+        if self._anchor_T_world is None:
+            self._anchor_T_world = np.linalg.inv(np.asarray(T_world_cam_44, dtype=np.float64))
+        T = self._anchor_T_world @ np.asarray(T_world_cam_44, dtype=np.float64)
+        return torch.as_tensor(T, dtype=torch.float32, device=self.device)[None]
+
+    def _take_reset_reason(self, filter_reason: Optional[str]) -> Optional[str]:
+        """The reset reason of this output: the estimator's own (pending since its reset; the filter was
+        reset with it, so the filter's 'first frame' adds nothing), else the filter's."""
+        reason = self._pending_reset_reason or filter_reason
+        self._pending_reset_reason = None
+        return reason
+
+    @staticmethod
+    def _ms(t: float) -> float:
+        return (time.perf_counter() - t) * 1000.0
+
+    # ------------------------------------------------------------------ pose refinement hook
+    def _refine_poses(self, ref: Keyframe, sources: List[Keyframe], timings: Dict[str, float]) -> Optional[str]:
+        """Call the pose refiner (if any) on the window; returns a reason when it reports lost tracking
+        (a refiner may expose ``tracking_lost`` and ``last_result.reason``), else None."""
+        if self.pose_refiner is None:
+            return None
+        t = time.perf_counter()
+        kfs = sorted([ref] + list(sources), key=lambda k: k.index)
+        r = kfs.index(ref)
+        depth = conf = K_depth = None
+        pred = self.filter.predict(self._filter_pose(ref.T_world_cam_44))
+        if pred is not None and self._posterior is not None:
+            depth = dpv_ops.expected_depth(pred, self.depths_d)[0]
+            conf = dpv_ops.confidence(pred, self.depths_d)[0]
+            K_depth = self._posterior.K_vol_b33[0].double().cpu().numpy()
+        request = PoseRefinementRequest(kfs, r, depth, conf, K_depth, self.depths_d)
+        try:
+            refined = self.pose_refiner(request)
+        except Exception as exc:  # a failing refiner must not stop the sensor
+            self._note(f'pose refiner failed ({type(exc).__name__}: {exc}); using the unrefined poses')
+            refined = None
+        if refined is not None:
+            refined = [np.asarray(T, dtype=np.float64) for T in refined]
+            if len(refined) != len(kfs) or not all(T.shape == (4, 4) and np.all(np.isfinite(T)) and _is_rigid(T)
+                                                   for T in refined):
+                self._note('pose refiner returned an invalid result (count, shape or non-rigid pose); ignored')
+            else:
+                for kf, T in zip(kfs, refined):
+                    kf.T_world_cam_44 = T.copy()
+        timings['pose_refinement'] = self._ms(t)
+        if getattr(self.pose_refiner, 'tracking_lost', False):
+            result = getattr(self.pose_refiner, 'last_result', None)
+            return str(getattr(result, 'reason', None) or 'the refiner reports tracking loss')
+        return None
+
+    # ------------------------------------------------------------------ measurement
+    def _measure(self, ref: Keyframe, sources: List[Keyframe], T_src_ref_t: torch.Tensor) -> _Measurement:
+        if self.measurement == 'network':
+            with self._autocast():
+                for kf in [ref] + list(sources):
+                    if 'features' not in kf.cache:
+                        kf.cache['features'] = self.model.extract_features(kf.image_b3hw)
+                logp, K_vol, feats = self.model.measure(
+                    ref.image_b3hw, None, ref.K_b33, T_src_ref_t,
+                    src_features=[s.cache['features'] for s in sources], ref_features=ref.cache['features'])
+            return _Measurement(logp.float(), K_vol.float(), feats)
+        srcs = torch.stack([s.image_b3hw[0] for s in sources])[None]                 # 1,N,3,H,W
+        logp, K_vol = self.classical(ref.image_b3hw, srcs, ref.K_b33, T_src_ref_t)
+        return _Measurement(logp.float(), K_vol.float())
+
+    def _coverage(self, K_vol_b33: torch.Tensor, vol_hw, T_src_ref_n44: torch.Tensor) -> torch.Tensor:
+        """(1, h, w) bool: at least ``min_coverage`` of the ray's plane samples lie inside some source view.
+
+        Evaluated on at most ``COVERAGE_PLANES`` planes spread evenly over the D planes (visibility changes
+        smoothly along a ray, and all D planes would cost as much as the filter step)."""
+        N = T_src_ref_n44.shape[0]
+        h, w = int(vol_hw[0]), int(vol_hw[1])
+        D = self.depths_d.shape[0]
+        idx = torch.linspace(0, D - 1, min(D, COVERAGE_PLANES), device=self.device).round().long()
+        ones = torch.ones(N, 1, h, w, dtype=torch.float32, device=self.device)
+        K = K_vol_b33.float().expand(N, 3, 3)
+        _, valid = geometry.plane_sweep_warp(ones, K, K, T_src_ref_n44.float(), self.depths_d[idx], ref_hw=(h, w))
+        seen = valid.any(0).float().mean(0)                                          # h, w
+        return (seen >= self.config.min_coverage)[None]
+
+    # ------------------------------------------------------------------ outputs
+    def _volume_maps_to_processing(self, depth_bhw, conf_bhw, valid_bhw, K_vol_33, K_proc_33, hw):
+        """Volume-resolution depth/confidence/validity -> processing size (inverse depth bilinear)."""
+        inv = 1.0 / depth_bhw.clamp_min(1e-6)
+        maps = torch.stack([inv, conf_bhw], 1)
+        up = resample_to_camera(maps, K_vol_33, K_proc_33, hw, mode='bilinear')
+        valid = resample_to_camera(valid_bhw[:, None].float(), K_vol_33, K_proc_33, hw, mode='nearest')[:, 0] > 0.5
+        return 1.0 / up[:, 0].clamp_min(1e-6), up[:, 1], valid
+
+    def _compose(self, depth_bhw, conf_bhw, valid_bhw, input_size, K_in_33, stamp, T_world_cam, is_keyframe,
+                 reset_reason) -> DepthOutput:
+        """Mask, resize to the output size (nearest) and convert to numpy float32."""
+        valid = valid_bhw & torch.isfinite(depth_bhw) & (depth_bhw > 0)
+        depth = torch.where(valid, depth_bhw, torch.full_like(depth_bhw, float('nan')))
+        conf = torch.where(valid, conf_bhw.clamp(0.0, 1.0), torch.zeros_like(conf_bhw))
+        H, W = depth.shape[-2:]
+        # the processing K in float64, exactly as the resize convention gives it
+        K_out = _scale_K_np(K_in_33, W / input_size[0], H / input_size[1])
+        if self.config.output_resolution == 'input' and (input_size[0], input_size[1]) != (W, H):
+            hw = (int(input_size[1]), int(input_size[0]))
+            maps = torch.stack([depth, conf], 1)
+            maps = resample_to_camera(maps, K_out, K_in_33, hw, mode='nearest')
+            depth, conf = maps[:, 0], maps[:, 1]
+            K_out = np.array(K_in_33, dtype=np.float64, copy=True)
+        return DepthOutput(stamp=float(stamp),
+                           depth_hw=depth[0].float().cpu().numpy(),
+                           confidence_hw=conf[0].float().cpu().numpy(),
+                           K_33=K_out, is_keyframe=is_keyframe,
+                           T_world_cam_44=np.array(T_world_cam, dtype=np.float64, copy=True),
+                           reset_reason=reset_reason)
+
+    def _between_output(self, frame: Frame, T, size, K_in, t0) -> Optional[DepthOutput]:
+        """A non-keyframe: the filter's posterior warped into this frame's pose (no network run)."""
+        cfg = self.config
+        p = self._posterior
+        if not cfg.publish_between_keyframes or cfg.window_mode != 'causal' or p is None:
+            return None
+        t = time.perf_counter()
+        T = self._chain_pose(T)
+        T_cur_prev = np.linalg.inv(T) @ p.T_world_cam_44
+        T_t = torch.as_tensor(T_cur_prev, dtype=torch.float32, device=self.device)[None]
+        pred, inside = geometry.warp_volume(p.logp_bdhw, p.K_vol_b33, T_t, self.depths_d, return_valid=True)
+        depth_v = dpv_ops.expected_depth(pred, self.depths_d)
+        conf_v = dpv_ops.confidence(pred, self.depths_d)
+        # valid: most of the ray lies in the posterior's frustum, and the estimated surface point falls on
+        # a pixel of the keyframe that had an estimate
+        valid_v = inside.float().mean(1) >= cfg.min_coverage
+        T_prev_cur = torch.as_tensor(np.linalg.inv(T_cur_prev), dtype=torch.float32, device=self.device)[None]
+        cov, ok = geometry.warp_image_with_depth(p.coverage_bhw[:, None].float(), depth_v, p.K_vol_b33,
+                                                 p.K_vol_b33, T_prev_cur)
+        valid_v = valid_v & ok & (cov[:, 0] > 0.5)
+        W, H = cfg.processing_size
+        K_proc = torch.as_tensor(_scale_K_np(K_in, W / size[0], H / size[1]), dtype=torch.float32,
+                                 device=self.device)
+        depth, conf, valid = self._volume_maps_to_processing(depth_v, conf_v, valid_v, p.K_vol_b33[0], K_proc, (H, W))
+        out = self._compose(depth, conf, valid, size, K_in, float(frame.stamp), T, False, None)
+        out.timings_ms = {'between': self._ms(t), 'total': self._ms(t0)}
+        self._last_timings = dict(out.timings_ms)
+        return out
+
+
+# ------------------------------------------------------------------------------------------------------
+# offline evaluation
+# ------------------------------------------------------------------------------------------------------
+
+def evaluate_offline(sequence, config: EstimatorConfig, *, model=None, pose_refiner=None,
+                     max_frames: Optional[int] = None, min_depth: Optional[float] = None,
+                     max_depth: Optional[float] = None, keyframes_only: bool = True,
+                     keep_outputs: bool = False) -> Dict[str, Any]:
+    """Run a sequence through an :class:`Estimator` and score every output against the GT depth.
+
+    ``sequence``: anything with ``len``, ``K``, ``image(i)``, ``depth(i)`` (metres, 0 = invalid),
+    ``pose(i)`` and ``stamp(i)`` (``data.sequence.Sequence``, the synthetic renderer's sequences).
+    Frames are pushed in order with their GT poses. Each output is matched to its frame by stamp and
+    scored with ``metrics.MetricAccumulator`` (GT resized with nearest neighbour when the output is at
+    the processing size); the GT range defaults to the estimator's depth planes [d_min, d_max].
+
+    Returns ``{'rows': [per output: index, stamp, is_keyframe, abs_rel, rmse, delta1, ..., coverage,
+    ms_* (median-scaled), ause, mean_confidence, time_ms], 'summary': MetricAccumulator.summary(),
+    'status': Estimator.status, 'outputs': [DepthOutput] (only with keep_outputs)}``.
+    Only keyframe outputs are scored unless ``keyframes_only=False``.
+    """
+    from .metrics import MetricAccumulator
+    est = Estimator(config, model=model, pose_refiner=pose_refiner)
+    lo = est.d_min if min_depth is None else min_depth
+    hi = est.d_max if max_depth is None else max_depth
+    acc = MetricAccumulator(min_depth=lo, max_depth=hi)
+    n = len(sequence) if max_frames is None else min(len(sequence), int(max_frames))
+    index_of = {}
+    K = np.asarray(sequence.K, dtype=np.float64)
+    outputs = []
+    for i in range(n):
+        stamp = float(sequence.stamp(i))
+        index_of[stamp] = i
+        out = est.push(Frame(stamp=stamp, image=sequence.image(i), K_33=K, T_world_cam_44=sequence.pose(i),
+                             frame_id='camera'))
+        if out is None or (keyframes_only and not out.is_keyframe):
+            continue
+        j = index_of[out.stamp]
+        gt = np.asarray(sequence.depth(j), dtype=np.float32)
+        if gt.shape != out.depth_hw.shape:
+            gt = cv2.resize(gt, (out.depth_hw.shape[1], out.depth_hw.shape[0]),
+                            interpolation=cv2.INTER_NEAREST_EXACT)
+        acc.add(out.depth_hw, gt, out.confidence_hw, index=j, stamp=out.stamp, is_keyframe=out.is_keyframe,
+                time_ms=out.timings_ms.get('total', float('nan')))
+        if keep_outputs:
+            outputs.append(out)
+    result = {'rows': acc.rows, 'summary': acc.summary(), 'status': est.status}
+    if keep_outputs:
+        result['outputs'] = outputs
+    return result
