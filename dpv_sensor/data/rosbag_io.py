@@ -1,0 +1,540 @@
+"""rosbag2 read / write for dpv_sensor with the `rosbags` library (no rclpy; ROS 2 Jazzy message definitions).
+
+- `write_sequence_bag`: a posed image sequence (a `Sequence`, the synthetic renderer's output, or plain arrays via
+  `ArraySequence`) -> a bag with sensor_msgs/Image on /camera/image, sensor_msgs/CameraInfo on /camera/camera_info
+  and nav_msgs/Odometry on /odom, odometry at its own rate (interpolated between frames), with optional noise and
+  dropouts. MCAP by default, sqlite3 on request.
+- `BagWriter`: a generic writer (rosbags messages or raw CDR bytes) — what `bag record` uses for a live graph.
+- Readers: `bag_topics`, `read_messages`, `read_images`, `read_depth_images`, `read_camera_infos`,
+  `read_odometry` return numpy arrays with the exact header stamps (ns) and frame ids.
+- `export_depth_bag`: a recorded depth/confidence bag -> a sequence-folder-like directory (depth PNG mm,
+  confidence PNG, K.txt, stamps.txt, images and poses when the bag has them).
+
+Messages are built with the same code as the node's (dpv_sensor.msgs) in the `rosbags` flavour (`ROSBAGS`).
+"""
+from __future__ import annotations
+
+import json
+import os
+import pathlib
+from dataclasses import dataclass, field
+from typing import Any, Iterable, Iterator
+
+import numpy as np
+
+from dpv_sensor import msgs as M
+from dpv_sensor.pose_buffer import PoseBuffer, interpolate_pose, make_pose, pose7_to_matrix
+
+NS = 1_000_000_000
+
+IMAGE_TOPIC = '/camera/image'
+CAMERA_INFO_TOPIC = '/camera/camera_info'
+ODOM_TOPIC = '/odom'
+DEPTH_TOPIC = '/depth/image'
+CONFIDENCE_TOPIC = '/confidence/image'
+DEPTH_INFO_TOPIC = '/depth/camera_info'
+
+IMAGE = 'sensor_msgs/msg/Image'
+CAMERA_INFO = 'sensor_msgs/msg/CameraInfo'
+ODOMETRY = 'nav_msgs/msg/Odometry'
+POSE_STAMPED = 'geometry_msgs/msg/PoseStamped'
+
+STORAGES = ('mcap', 'sqlite3')
+
+_TYPESTORE = None
+
+
+class BagError(RuntimeError):
+    """A bag that cannot be written or read as asked (exists, missing topic, wrong type)."""
+
+
+def typestore():
+    """The rosbags typestore with the ROS 2 Jazzy message definitions (created once)."""
+    global _TYPESTORE
+    if _TYPESTORE is None:
+        from rosbags.typesys import Stores, get_typestore
+        _TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
+    return _TYPESTORE
+
+
+def _rosbags_class(typename: str):
+    try:
+        return typestore().types[typename]
+    except KeyError:
+        raise BagError(f'message type {typename!r} is not in the ROS 2 Jazzy typestore') from None
+
+
+# dpv_sensor.msgs builders in the rosbags flavour
+ROSBAGS = M.MessageTypes('rosbags', _rosbags_class, lambda b: np.frombuffer(bytes(b), dtype=np.uint8),
+                         lambda v: np.asarray(list(v), dtype=np.float64))
+
+
+def qos_profile(reliable: bool = True, depth: int = 10):
+    """A rosbags Qos record (keep-last, volatile) for a connection's offered_qos_profiles."""
+    from rosbags.interfaces import (Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime)
+    zero = QosTime(sec=0, nsec=0)
+    return Qos(history=QosHistory.KEEP_LAST, depth=int(depth),
+               reliability=QosReliability.RELIABLE if reliable else QosReliability.BEST_EFFORT,
+               durability=QosDurability.VOLATILE, deadline=zero, lifespan=zero,
+               liveliness=QosLiveliness.AUTOMATIC, liveliness_lease_duration=zero,
+               avoid_ros_namespace_conventions=False)
+
+
+# --------------------------------------------------------------------------------------------------------------
+# writing
+# --------------------------------------------------------------------------------------------------------------
+class BagWriter:
+    """Generic rosbag2 writer: `write(topic, msgtype, msg_or_cdr, stamp_ns)`; connections made on first use.
+
+    `msg_or_cdr` is a rosbags message (serialised here) or the CDR bytes of a message (as a live subscription
+    with raw=True delivers them). Usable as a context manager; safe to call from one thread at a time.
+    """
+
+    def __init__(self, path: str | os.PathLike, storage: str = 'mcap', overwrite: bool = False):
+        from rosbags.rosbag2 import StoragePlugin, Writer
+        if storage not in STORAGES:
+            raise BagError(f"storage must be one of {STORAGES}, got {storage!r}")
+        self.path = pathlib.Path(path)
+        if self.path.exists():
+            if not overwrite:
+                raise BagError(f'{self.path} exists already (pass overwrite=True / --overwrite to replace it)')
+            import shutil
+            shutil.rmtree(self.path)
+        plugin = StoragePlugin.MCAP if storage == 'mcap' else StoragePlugin.SQLITE3
+        self._writer = Writer(self.path, version=9, storage_plugin=plugin)
+        self._writer.open()
+        self._connections: dict[tuple[str, str], Any] = {}
+        self.counts: dict[str, int] = {}
+        self.closed = False
+
+    def connection(self, topic: str, msgtype: str, qos=None):
+        key = (topic, msgtype)
+        conn = self._connections.get(key)
+        if conn is None:
+            _rosbags_class(msgtype)  # a clear error for unknown types
+            conn = self._writer.add_connection(topic, msgtype, typestore=typestore(),
+                                               offered_qos_profiles=[qos or qos_profile()])
+            self._connections[key] = conn
+            self.counts[topic] = 0
+        return conn
+
+    def write(self, topic: str, msgtype: str, msg, stamp_ns: int, qos=None) -> None:
+        conn = self.connection(topic, msgtype, qos)
+        if isinstance(msg, (bytes, bytearray, memoryview)):
+            data = bytes(msg)
+        else:
+            data = typestore().serialize_cdr(msg, msgtype)
+        self._writer.write(conn, int(stamp_ns), data)
+        self.counts[topic] += 1
+
+    def close(self) -> None:
+        if not self.closed:
+            self._writer.close()
+            self.closed = True
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+
+class ArraySequence:
+    """Plain arrays in the sequence interface (len, K, size, image(i), pose(i), stamp(i), depth(i))."""
+
+    def __init__(self, images, poses, K, stamps=None, depths=None, rate: float = 30.0):
+        self._images = images
+        self._poses = np.asarray(poses, dtype=np.float64).reshape(-1, 4, 4)
+        self.K = np.asarray(K, dtype=np.float64).reshape(3, 3)
+        self._stamps = (np.arange(len(self._poses)) / rate) if stamps is None else np.asarray(stamps, np.float64)
+        self._depths = depths
+        h, w = np.asarray(images[0]).shape[:2]
+        self.size = (int(w), int(h))
+        if not len(images) == len(self._poses) == len(self._stamps):
+            raise ValueError(f'{len(images)} images, {len(self._poses)} poses, {len(self._stamps)} stamps')
+
+    def __len__(self):
+        return len(self._poses)
+
+    def image(self, i):
+        return np.asarray(self._images[i])
+
+    @property
+    def has_depth(self) -> bool:
+        return self._depths is not None
+
+    def depth(self, i):
+        if self._depths is None:
+            raise ValueError('this sequence has no depth')
+        return np.asarray(self._depths[i])
+
+    def pose(self, i):
+        return self._poses[i].copy()
+
+    def stamp(self, i):
+        return float(self._stamps[i])
+
+
+@dataclass
+class BagSummary:
+    path: pathlib.Path
+    storage: str
+    frames: int
+    odometry: int
+    odometry_dropped: int
+    start_ns: int
+    end_ns: int
+    image_stamps_ns: list[int] = field(default_factory=list)
+
+    @property
+    def duration_s(self) -> float:
+        return (self.end_ns - self.start_ns) / NS
+
+
+def _as_T_base_camera(T_base_camera) -> np.ndarray:
+    if T_base_camera is None:
+        return np.eye(4)
+    a = np.asarray(T_base_camera, dtype=np.float64)
+    return a if a.shape == (4, 4) else pose7_to_matrix(a.reshape(-1))
+
+
+def _perturb(T: np.ndarray, rng, pos_sigma: float, rot_sigma_rad: float) -> np.ndarray:
+    """T with white Gaussian noise on the translation (m) and a small random rotation (rad, per axis)."""
+    if pos_sigma <= 0 and rot_sigma_rad <= 0:
+        return T
+    out = T.copy()
+    out[:3, 3] += rng.normal(0.0, pos_sigma, 3) if pos_sigma > 0 else 0.0
+    if rot_sigma_rad > 0:
+        w = rng.normal(0.0, rot_sigma_rad, 3)
+        angle = float(np.linalg.norm(w))
+        if angle > 0:
+            axis = w / angle
+            q = np.concatenate([axis * np.sin(angle / 2), [np.cos(angle / 2)]])
+            out[:3, :3] = out[:3, :3] @ make_pose(np.zeros(3), q)[:3, :3]
+    return out
+
+
+def _sequence_pose_at(stamps_ns: np.ndarray, poses: np.ndarray, t_ns: int) -> np.ndarray:
+    """Camera pose of the sequence at t (SLERP + linear between the two frames around it; clamped at the ends)."""
+    i = int(np.searchsorted(stamps_ns, t_ns, side='left'))
+    if i < len(stamps_ns) and stamps_ns[i] == t_ns:
+        return poses[i]
+    if i == 0:
+        return poses[0]
+    if i >= len(stamps_ns):
+        return poses[-1]
+    a = (t_ns - stamps_ns[i - 1]) / (stamps_ns[i] - stamps_ns[i - 1])
+    return interpolate_pose(poses[i - 1], poses[i], a)
+
+
+def odometry_stamps(image_stamps_ns: np.ndarray, odom_rate: float | None) -> np.ndarray:
+    """Odometry times: the image stamps (odom_rate None/0) or a regular grid at odom_rate Hz from the first to the
+    last image stamp (the last image stamp is always included so every image is bracketed)."""
+    if not odom_rate:
+        return np.asarray(image_stamps_ns, dtype=np.int64)
+    t0, t1 = int(image_stamps_ns[0]), int(image_stamps_ns[-1])
+    period = NS / float(odom_rate)
+    n = int(np.floor((t1 - t0) / period + 1e-9))
+    grid = t0 + np.round(np.arange(n + 1) * period).astype(np.int64)
+    if grid[-1] < t1:
+        grid = np.append(grid, t1)
+    return grid
+
+
+def write_sequence_bag(path: str | os.PathLike, seq, *, storage: str = 'mcap', rate: float | None = None,
+                       odom_rate: float | None = None, odom_noise: tuple[float, float] = (0.0, 0.0),
+                       odom_dropout: float = 0.0, seed: int = 0, start_ns: int | None = None,
+                       image_topic: str = IMAGE_TOPIC, camera_info_topic: str = CAMERA_INFO_TOPIC,
+                       odom_topic: str = ODOM_TOPIC, camera_frame: str = 'camera_optical_frame',
+                       odom_frame: str = 'odom', base_frame: str = 'base_link', T_base_camera=None,
+                       encoding: str = 'rgb8', frames: Iterable[int] | None = None, with_odometry: bool = True,
+                       overwrite: bool = False, progress: bool = True) -> BagSummary:
+    """Write a posed image sequence as a rosbag2 and return what was written.
+
+    seq: anything with len(), .K, image(i) (uint8 RGB), pose(i) (4x4 T_world_cam) and stamp(i) (s); e.g. a
+    data.sequence.Sequence or an ArraySequence. rate: camera rate in Hz (stamps start_ns + i/rate); None keeps
+    the sequence's own stamps (shifted to start at start_ns when given). odom_rate: odometry rate in Hz (None:
+    one message per image, at its stamp). odom_noise: (position sigma m, rotation sigma deg) white noise per
+    message. odom_dropout: probability that an odometry message is left out (the first and last never are).
+    T_base_camera: camera pose in the odometry child frame ([x,y,z,qx,qy,qz,qw] or 4x4); odometry carries
+    T_world_base = T_world_cam @ inv(T_base_camera). The bag's record time of every message is its header stamp;
+    at equal stamps odometry is written before camera_info, camera_info before the image.
+    """
+    if storage not in STORAGES:
+        raise BagError(f"storage must be one of {STORAGES}, got {storage!r}")
+    idx = list(range(len(seq))) if frames is None else [int(i) for i in frames]
+    if not idx:
+        raise BagError('no frames to write')
+    if rate is not None and rate <= 0:
+        raise BagError(f'rate must be > 0, got {rate}')
+    if not 0.0 <= odom_dropout < 1.0:
+        raise BagError(f'odom_dropout must be in [0, 1), got {odom_dropout}')
+    if rate is not None:
+        base = 0 if start_ns is None else int(start_ns)
+        img_ns = np.array([base + int(round(k * NS / rate)) for k in range(len(idx))], dtype=np.int64)
+    else:
+        raw = np.array([int(round(seq.stamp(i) * NS)) for i in idx], dtype=np.int64)
+        img_ns = raw if start_ns is None else raw - raw[0] + int(start_ns)
+    if np.any(np.diff(img_ns) <= 0):
+        raise BagError('image stamps must increase strictly')
+    T_bc = _as_T_base_camera(T_base_camera)
+    T_cb = np.linalg.inv(T_bc)
+    poses = np.stack([np.asarray(seq.pose(i), dtype=np.float64) for i in idx])
+    K = np.asarray(seq.K, dtype=np.float64)
+
+    rng = np.random.default_rng(seed)
+    events: list[tuple[int, int, str, Any]] = []   # (stamp, order, kind, payload)
+    odom_count = odom_dropped = 0
+    if with_odometry:
+        o_ns = odometry_stamps(img_ns, odom_rate)
+        pos_sigma, rot_sigma = float(odom_noise[0]), float(np.deg2rad(odom_noise[1]))
+        for k, t in enumerate(o_ns):
+            if odom_dropout and 0 < k < len(o_ns) - 1 and rng.random() < odom_dropout:
+                odom_dropped += 1
+                continue
+            T_wb = _sequence_pose_at(img_ns, poses, int(t)) @ T_cb
+            events.append((int(t), 0, 'odom', _perturb(T_wb, rng, pos_sigma, rot_sigma)))
+            odom_count += 1
+    for k, t in enumerate(img_ns):
+        events.append((int(t), 1, 'image', k))
+    events.sort(key=lambda e: (e[0], e[1]))
+
+    reliable = qos_profile(True, 10)
+    iterator: Iterable = events
+    if progress:
+        from tqdm import tqdm
+        iterator = tqdm(events, desc=f'writing {pathlib.Path(path).name}', unit='msg', leave=False)
+    with BagWriter(path, storage=storage, overwrite=overwrite) as bag:
+        for t, _order, kind, payload in iterator:
+            if kind == 'odom':
+                msg = M.matrix_to_odometry(payload, t, base_frame, frame_id=odom_frame, types=ROSBAGS,
+                                           position_sigma=float(odom_noise[0]),
+                                           rotation_sigma=float(np.deg2rad(odom_noise[1])))
+                bag.write(odom_topic, ODOMETRY, msg, t, reliable)
+            else:
+                rgb = np.asarray(seq.image(idx[payload]))
+                info = M.K_to_camera_info(K, rgb.shape[1], rgb.shape[0], t, frame_id=camera_frame, types=ROSBAGS)
+                bag.write(camera_info_topic, CAMERA_INFO, info, t, reliable)
+                img = M.rgb_to_image(rgb, t, frame_id=camera_frame, encoding=encoding, types=ROSBAGS)
+                bag.write(image_topic, IMAGE, img, t, reliable)
+    return BagSummary(pathlib.Path(path), storage, len(idx), odom_count, odom_dropped, int(min(e[0] for e in events)),
+                      int(max(e[0] for e in events)), img_ns.tolist())
+
+
+# --------------------------------------------------------------------------------------------------------------
+# reading
+# --------------------------------------------------------------------------------------------------------------
+@dataclass
+class Stamped:
+    """One decoded message: header stamp (ns), frame id, record time (ns) and the numpy payload."""
+    stamp_ns: int
+    frame_id: str
+    data: Any
+    log_ns: int
+    extra: dict = field(default_factory=dict)
+
+    @property
+    def stamp(self) -> float:
+        return self.stamp_ns / NS
+
+
+def _open(path):
+    from rosbags.rosbag2 import Reader
+    p = pathlib.Path(path)
+    if not p.exists():
+        raise BagError(f'{p}: no such bag')
+    return Reader(p)
+
+
+def bag_topics(path) -> dict[str, tuple[str, int]]:
+    """{topic: (message type, message count)} of a bag."""
+    with _open(path) as reader:
+        return {c.topic: (c.msgtype, c.msgcount) for c in reader.connections}
+
+
+def bag_qos(path) -> dict[str, list]:
+    """{topic: offered QoS profiles (rosbags Qos records)} as recorded."""
+    with _open(path) as reader:
+        return {c.topic: list(getattr(c.ext, 'offered_qos_profiles', []) or []) for c in reader.connections}
+
+
+def read_messages(path, topics: Iterable[str] | None = None, raw: bool = False
+                  ) -> Iterator[tuple[str, str, int, Any]]:
+    """Yield (topic, msgtype, record time ns, message) in record-time order; message is the rosbags object,
+    or the CDR bytes with raw=True."""
+    with _open(path) as reader:
+        wanted = None if topics is None else set(topics)
+        conns = [c for c in reader.connections if wanted is None or c.topic in wanted]
+        if wanted is not None:
+            missing = wanted - {c.topic for c in conns}
+            if missing:
+                have = sorted(c.topic for c in reader.connections)
+                raise BagError(f'{path}: no topic {sorted(missing)} (topics: {have})')
+        ts = typestore()
+        for conn, log_ns, data in reader.messages(connections=conns):
+            yield conn.topic, conn.msgtype, log_ns, (bytes(data) if raw else ts.deserialize_cdr(data, conn.msgtype))
+
+
+def _read(path, topic, expected_type, decode) -> list[Stamped]:
+    topics = bag_topics(path)
+    if topic not in topics:
+        raise BagError(f'{path}: no topic {topic!r} (topics: {sorted(topics)})')
+    if topics[topic][0] != expected_type:
+        raise BagError(f'{path}: {topic} carries {topics[topic][0]}, expected {expected_type}')
+    out = []
+    for _t, _ty, log_ns, msg in read_messages(path, [topic]):
+        data, extra = decode(msg)
+        out.append(Stamped(M.stamp_to_ns(msg.header.stamp), msg.header.frame_id, data, log_ns, extra))
+    return out
+
+
+def read_images(path, topic: str = IMAGE_TOPIC) -> list[Stamped]:
+    """Colour images -> HxWx3 uint8 RGB (extra['encoding'] keeps the recorded encoding)."""
+    return _read(path, topic, IMAGE, lambda m: (M.image_to_rgb(m), {'encoding': m.encoding}))
+
+
+def read_depth_images(path, topic: str = DEPTH_TOPIC) -> list[Stamped]:
+    """32FC1 / 16UC1 images -> HxW float32 metres with NaN for no estimate (confidence images read the same)."""
+    return _read(path, topic, IMAGE, lambda m: (M.image_to_float(m), {'encoding': m.encoding}))
+
+
+def read_camera_infos(path, topic: str = CAMERA_INFO_TOPIC) -> list[Stamped]:
+    """CameraInfo -> K (3x3); extra['size'] = (width, height)."""
+    def decode(m):
+        K, size = M.camera_info_to_K(m)
+        return K, {'size': size}
+    return _read(path, topic, CAMERA_INFO, decode)
+
+
+def read_odometry(path, topic: str = ODOM_TOPIC) -> list[Stamped]:
+    """Odometry -> 4x4 T_world_base (extra['child_frame_id']); invalid messages give a NaN matrix."""
+    def decode(m):
+        try:
+            T = M.odometry_to_matrix(m)
+        except M.BadOdometry:
+            T = np.full((4, 4), np.nan)
+        return T, {'child_frame_id': m.child_frame_id}
+    return _read(path, topic, ODOMETRY, decode)
+
+
+def read_poses(path, topic: str) -> list[Stamped]:
+    """PoseStamped -> 4x4."""
+    return _read(path, topic, POSE_STAMPED, lambda m: (M.pose_msg_to_matrix(m), {}))
+
+
+# --------------------------------------------------------------------------------------------------------------
+# export
+# --------------------------------------------------------------------------------------------------------------
+def find_topic(topics: dict, wanted: str, suffix: str, msgtype: str) -> str | None:
+    """`wanted` when the bag has it, else the only topic of `msgtype` ending in `suffix` (a namespaced node)."""
+    if wanted in topics:
+        return wanted
+    cands = [t for t, (ty, _n) in topics.items() if ty == msgtype and t.endswith(suffix)]
+    return cands[0] if len(cands) == 1 else None
+
+
+def export_depth_bag(path, out_dir, *, depth_topic: str = DEPTH_TOPIC, confidence_topic: str = CONFIDENCE_TOPIC,
+                     info_topic: str = DEPTH_INFO_TOPIC, image_topic: str | None = IMAGE_TOPIC,
+                     odom_topic: str | None = ODOM_TOPIC, pose_topic: str | None = None, T_base_camera=None,
+                     max_odom_gap: float = 0.5, progress: bool = True) -> dict:
+    """A recorded bag of the node's outputs -> a sequence-folder-like directory.
+
+    Writes depth/NNNNNN.png (uint16 mm, 0 = none), confidence/NNNNNN.png (uint16, confidence * 65535),
+    stamps.txt (s, the depth header stamps), stamps_ns.txt (exact), K.txt (from depth/camera_info; written for the
+    first frame, with a warning in the summary when it changes), and, when the bag has them, images/NNNNNN.png (the
+    colour image with the same stamp, resized to the depth size) and poses.txt (T_world_cam from `pose_topic`, or
+    interpolated from odometry composed with T_base_camera). Returns a summary dict (also written as export.json).
+    """
+    import cv2
+    from dpv_sensor.data.sequence import depth_to_png_mm, write_intrinsics, write_poses
+
+    topics = bag_topics(path)
+    depth_topic_found = find_topic(topics, depth_topic, 'depth/image', IMAGE)
+    if depth_topic_found is None:
+        raise BagError(f'{path}: no depth topic {depth_topic!r} (topics: {sorted(topics)})')
+    conf_topic = find_topic(topics, confidence_topic, 'confidence/image', IMAGE)
+    info_t = find_topic(topics, info_topic, 'depth/camera_info', CAMERA_INFO)
+    out = pathlib.Path(out_dir)
+    (out / 'depth').mkdir(parents=True, exist_ok=True)
+    depth = read_depth_images(path, depth_topic_found)
+    conf = {s.stamp_ns: s for s in read_depth_images(path, conf_topic)} if conf_topic else {}
+    infos = {s.stamp_ns: s for s in read_camera_infos(path, info_t)} if info_t else {}
+    images = {}
+    if image_topic and image_topic in topics:
+        images = {s.stamp_ns: s for s in read_images(path, image_topic)}
+    poses_src = None
+    if pose_topic and pose_topic in topics:
+        poses_src = {s.stamp_ns: s.data for s in read_poses(path, pose_topic)}
+    elif odom_topic and odom_topic in topics:
+        buf = PoseBuffer(max_gap_s=max_odom_gap, history_s=1e9, T_base_camera_44=_as_T_base_camera(T_base_camera),
+                         backwards_tolerance_s=1e9)
+        for s in read_odometry(path, odom_topic):
+            buf.add(s.stamp_ns, None if np.isnan(s.data).any() else s.data)
+        poses_src = buf
+
+    if conf:
+        (out / 'confidence').mkdir(exist_ok=True)
+    if images:
+        (out / 'images').mkdir(exist_ok=True)
+    summary = {'bag': str(path), 'depth_topic': depth_topic_found, 'confidence_topic': conf_topic,
+               'camera_info_topic': info_t, 'frames': 0, 'without_confidence': 0, 'without_image': 0,
+               'without_pose': 0, 'K_changed': False}
+    K0 = None
+    stamps, poses = [], []
+    iterator: Iterable = depth
+    if progress:
+        from tqdm import tqdm
+        iterator = tqdm(depth, desc='exporting', unit='frame', leave=False)
+    for i, s in enumerate(iterator):
+        stem = f'{i:06d}'
+        d = s.data
+        cv2.imwrite(str(out / 'depth' / f'{stem}.png'), depth_to_png_mm(np.nan_to_num(d, nan=0.0)))
+        c = conf.get(s.stamp_ns)
+        if c is not None:
+            cu16 = np.round(np.clip(np.nan_to_num(c.data, nan=0.0), 0, 1) * 65535).astype(np.uint16)
+            cv2.imwrite(str(out / 'confidence' / f'{stem}.png'), cu16)
+        elif conf:
+            summary['without_confidence'] += 1
+        info = infos.get(s.stamp_ns)
+        if info is not None:
+            if K0 is None:
+                K0 = info.data
+            elif not np.allclose(K0, info.data):
+                summary['K_changed'] = True
+        im = images.get(s.stamp_ns)
+        if im is not None:
+            rgb = im.data
+            if rgb.shape[:2] != d.shape:
+                rgb = cv2.resize(rgb, (d.shape[1], d.shape[0]), interpolation=cv2.INTER_AREA)
+            cv2.imwrite(str(out / 'images' / f'{stem}.png'), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
+        elif images:
+            summary['without_image'] += 1
+        if poses_src is not None:
+            if isinstance(poses_src, dict):
+                T = poses_src.get(s.stamp_ns)
+            else:
+                q = poses_src.pose_at(s.stamp_ns)
+                T = q.T_world_cam_44
+            if T is None:
+                summary['without_pose'] += 1
+                T = np.full((4, 4), np.nan)
+            poses.append(T)
+        stamps.append(s.stamp_ns)
+        summary['frames'] += 1
+    if K0 is not None:
+        write_intrinsics(out / 'K.txt', K0)
+    with open(out / 'stamps.txt', 'w') as f:
+        f.writelines(f'{repr(t / NS)}\n' for t in stamps)
+    with open(out / 'stamps_ns.txt', 'w') as f:
+        f.writelines(f'{t}\n' for t in stamps)
+    if poses and summary['without_pose'] == 0:
+        write_poses(out / 'poses.txt', np.stack(poses))
+    with open(out / 'export.json', 'w') as f:
+        json.dump(summary, f, indent=1)
+    return summary
+
+
+__all__ = ['BagError', 'BagSummary', 'BagWriter', 'ArraySequence', 'Stamped', 'ROSBAGS', 'typestore', 'qos_profile',
+           'write_sequence_bag', 'odometry_stamps', 'bag_topics', 'bag_qos', 'read_messages', 'read_images',
+           'read_depth_images', 'read_camera_infos', 'read_odometry', 'read_poses', 'export_depth_bag', 'find_topic',
+           'IMAGE_TOPIC', 'CAMERA_INFO_TOPIC', 'ODOM_TOPIC', 'DEPTH_TOPIC', 'CONFIDENCE_TOPIC', 'DEPTH_INFO_TOPIC']

@@ -1,0 +1,274 @@
+"""Odometry buffer: the camera pose at an image stamp, interpolated between odometry messages (numpy, no ROS).
+
+The node pushes every odometry message into a `PoseBuffer` (`add(stamp_ns, T_world_base_44)`) and asks for
+the camera pose at each image stamp (`pose_at(stamp_ns)`). The answer is interpolated between the two
+messages that bracket the stamp — SLERP for the rotation, linear for the translation — and composed with the
+static `T_base_camera` so the caller gets `T_world_cam`. When no pose can be given, the answer says why:
+
+  'future'   no odometry at or after the stamp yet (the caller may wait for it, up to odom_wait_timeout)
+  'too old'  the stamp is before the oldest message still held
+  'gap'      the two bracketing messages are further apart than max_gap seconds
+  'nan'      one of the bracketing messages was invalid (NaN / non-unit quaternion)
+
+Stamps are integer nanoseconds (exactly what ROS headers carry) so no precision is lost. A message older
+than the newest one by more than `backwards_tolerance_s` means time went backwards (a bag restarting, a
+simulator reset): the buffer clears itself, counts it in `epoch` and reports it from `add`.
+
+Quaternions in this module are ROS order (x, y, z, w).
+"""
+from __future__ import annotations
+
+import bisect
+import math
+import threading
+from dataclasses import dataclass
+
+import numpy as np
+
+NS = 1_000_000_000
+
+# Reasons pose_at() gives when it cannot answer.
+FUTURE = 'future'
+TOO_OLD = 'too old'
+GAP = 'gap'
+NAN = 'nan'
+
+
+# --------------------------------------------------------------------------------------------------------------
+# quaternion / SE(3) helpers (float64 numpy)
+# --------------------------------------------------------------------------------------------------------------
+def quat_to_matrix(q_xyzw) -> np.ndarray:
+    """3x3 rotation of a quaternion (x, y, z, w); normalised first."""
+    x, y, z, w = np.asarray(q_xyzw, dtype=np.float64) / np.linalg.norm(q_xyzw)
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+    ])
+
+
+def matrix_to_quat(R_33) -> np.ndarray:
+    """Unit quaternion (x, y, z, w), w >= 0, of a rotation matrix (Shepperd's method)."""
+    m = np.asarray(R_33, dtype=np.float64)
+    tr = m[0, 0] + m[1, 1] + m[2, 2]
+    cands = np.array([1.0 + tr, 1.0 + m[0, 0] - m[1, 1] - m[2, 2],
+                      1.0 - m[0, 0] + m[1, 1] - m[2, 2], 1.0 - m[0, 0] - m[1, 1] + m[2, 2]])
+    i = int(np.argmax(cands))
+    s = 2.0 * math.sqrt(max(cands[i], 1e-300))
+    if i == 0:
+        q = [(m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s, s / 4]
+    elif i == 1:
+        q = [s / 4, (m[0, 1] + m[1, 0]) / s, (m[0, 2] + m[2, 0]) / s, (m[2, 1] - m[1, 2]) / s]
+    elif i == 2:
+        q = [(m[0, 1] + m[1, 0]) / s, s / 4, (m[1, 2] + m[2, 1]) / s, (m[0, 2] - m[2, 0]) / s]
+    else:
+        q = [(m[0, 2] + m[2, 0]) / s, (m[1, 2] + m[2, 1]) / s, s / 4, (m[1, 0] - m[0, 1]) / s]
+    q = np.array(q)
+    q /= np.linalg.norm(q)
+    return -q if q[3] < 0 else q
+
+
+def slerp(q0_xyzw, q1_xyzw, alpha: float) -> np.ndarray:
+    """Spherical linear interpolation along the shortest arc (alpha 0 -> q0, 1 -> q1)."""
+    q0 = np.asarray(q0_xyzw, dtype=np.float64)
+    q1 = np.asarray(q1_xyzw, dtype=np.float64)
+    q0 = q0 / np.linalg.norm(q0)
+    q1 = q1 / np.linalg.norm(q1)
+    dot = float(np.dot(q0, q1))
+    if dot < 0.0:
+        q1, dot = -q1, -dot
+    dot = min(dot, 1.0)
+    theta = math.acos(dot)
+    if math.sin(theta) < 1e-9:
+        q = (1.0 - alpha) * q0 + alpha * q1
+    else:
+        q = (math.sin((1.0 - alpha) * theta) * q0 + math.sin(alpha * theta) * q1) / math.sin(theta)
+    return q / np.linalg.norm(q)
+
+
+def make_pose(t_xyz, q_xyzw) -> np.ndarray:
+    """4x4 float64 transform from a translation and a quaternion (x, y, z, w)."""
+    T = np.eye(4)
+    T[:3, :3] = quat_to_matrix(q_xyzw)
+    T[:3, 3] = np.asarray(t_xyz, dtype=np.float64)
+    return T
+
+
+def pose7_to_matrix(pose7) -> np.ndarray:
+    """[x, y, z, qx, qy, qz, qw] (the T_base_camera parameter form) -> 4x4."""
+    p = [float(v) for v in pose7]
+    if len(p) != 7:
+        raise ValueError(f'expected [x, y, z, qx, qy, qz, qw], got {len(p)} numbers')
+    return make_pose(p[:3], p[3:])
+
+
+def matrix_to_pose7(T_44) -> list[float]:
+    """4x4 -> [x, y, z, qx, qy, qz, qw]."""
+    T = np.asarray(T_44, dtype=np.float64)
+    return [*map(float, T[:3, 3]), *map(float, matrix_to_quat(T[:3, :3]))]
+
+
+def interpolate_pose(T0_44, T1_44, alpha: float) -> np.ndarray:
+    """SLERP rotation + linear translation between two 4x4 poses (alpha 0 -> T0, 1 -> T1)."""
+    T0 = np.asarray(T0_44, dtype=np.float64)
+    T1 = np.asarray(T1_44, dtype=np.float64)
+    q = slerp(matrix_to_quat(T0[:3, :3]), matrix_to_quat(T1[:3, :3]), alpha)
+    return make_pose(T0[:3, 3] + alpha * (T1[:3, 3] - T0[:3, 3]), q)
+
+
+def is_valid_pose(T_44) -> bool:
+    """Finite 4x4 whose rotation block is orthonormal (to 1e-3) with determinant +1."""
+    if T_44 is None:
+        return False
+    T = np.asarray(T_44, dtype=np.float64)
+    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+        return False
+    R = T[:3, :3]
+    return bool(np.allclose(R @ R.T, np.eye(3), atol=1e-3) and np.linalg.det(R) > 0.0)
+
+
+# --------------------------------------------------------------------------------------------------------------
+# the buffer
+# --------------------------------------------------------------------------------------------------------------
+@dataclass
+class PoseQuery:
+    """Answer of PoseBuffer.pose_at: a pose, or None with a reason (one of FUTURE, TOO_OLD, GAP, NAN)."""
+    T_world_cam_44: np.ndarray | None
+    reason: str | None = None
+    detail: str = ''
+
+    @property
+    def ok(self) -> bool:
+        return self.T_world_cam_44 is not None
+
+
+class PoseBuffer:
+    """Time-ordered odometry samples; interpolated camera poses at arbitrary stamps. Thread-safe.
+
+    max_gap_s: largest bracket an image pose is interpolated across. history_s: samples older than this
+    behind the newest are discarded (memory stays flat). T_base_camera_44: static camera pose in the odometry
+    child frame (identity when None). backwards_tolerance_s: out-of-order arrivals within this window are
+    inserted in order instead of clearing the buffer (0: any step back clears it).
+    """
+
+    def __init__(self, max_gap_s: float = 0.5, history_s: float = 30.0, T_base_camera_44=None,
+                 backwards_tolerance_s: float = 0.0, max_samples: int = 100_000):
+        self.max_gap_ns = int(round(max_gap_s * NS))
+        self.history_ns = int(round(history_s * NS))
+        self.backwards_tolerance_ns = int(round(backwards_tolerance_s * NS))
+        self.max_samples = int(max_samples)
+        self.T_base_camera = np.eye(4) if T_base_camera_44 is None else np.asarray(T_base_camera_44, np.float64)
+        self._stamps: list[int] = []
+        self._t: list[np.ndarray | None] = []   # translation, None for an invalid sample
+        self._q: list[np.ndarray | None] = []   # quaternion (x, y, z, w)
+        self._lock = threading.Lock()
+        self.epoch = 0            # how many times time went backwards (and the buffer cleared itself)
+        self.cleared_reason: str | None = None
+
+    # ---- state -------------------------------------------------------------------------------------------
+    def __len__(self) -> int:
+        return len(self._stamps)
+
+    @property
+    def newest_ns(self) -> int | None:
+        with self._lock:
+            return self._stamps[-1] if self._stamps else None
+
+    @property
+    def oldest_ns(self) -> int | None:
+        with self._lock:
+            return self._stamps[0] if self._stamps else None
+
+    def clear(self, reason: str | None = None) -> None:
+        with self._lock:
+            self._clear(reason)
+
+    def _clear(self, reason):
+        self._stamps.clear()
+        self._t.clear()
+        self._q.clear()
+        self.cleared_reason = reason
+
+    # ---- input -------------------------------------------------------------------------------------------
+    def add(self, stamp_ns: int, T_world_base_44) -> str | None:
+        """Insert one odometry sample. `T_world_base_44` None or non-finite/non-rigid marks an invalid sample
+        (images bracketed by it get reason 'nan'). Returns a message when the buffer cleared itself because
+        time went backwards, else None."""
+        stamp_ns = int(stamp_ns)
+        if is_valid_pose(T_world_base_44):
+            T = np.asarray(T_world_base_44, dtype=np.float64)
+            t, q = T[:3, 3].copy(), matrix_to_quat(T[:3, :3])
+        else:
+            t = q = None
+        cleared = None
+        with self._lock:
+            if self._stamps and stamp_ns < self._stamps[-1] - self.backwards_tolerance_ns:
+                cleared = (f'odometry time went backwards by {(self._stamps[-1] - stamp_ns) / NS:.3f} s '
+                           f'({self._stamps[-1] / NS:.3f} -> {stamp_ns / NS:.3f}); pose buffer cleared')
+                self._clear(cleared)
+                self.epoch += 1
+            i = bisect.bisect_left(self._stamps, stamp_ns)
+            if i < len(self._stamps) and self._stamps[i] == stamp_ns:   # same stamp again: newest wins
+                self._t[i], self._q[i] = t, q
+            else:
+                self._stamps.insert(i, stamp_ns)
+                self._t.insert(i, t)
+                self._q.insert(i, q)
+            self._trim()
+        return cleared
+
+    def _trim(self):
+        newest = self._stamps[-1]
+        cut = bisect.bisect_left(self._stamps, newest - self.history_ns)
+        cut = max(cut, len(self._stamps) - self.max_samples)
+        # keep one sample before the horizon so stamps just inside it can still be bracketed
+        cut = max(0, cut - 1)
+        if cut:
+            del self._stamps[:cut], self._t[:cut], self._q[:cut]
+
+    def discard_newer_than(self, stamp_ns: int) -> int:
+        """Drop samples stamped after `stamp_ns` (used when images jump back in time before odometry does).
+        Returns how many were dropped."""
+        with self._lock:
+            i = bisect.bisect_right(self._stamps, int(stamp_ns))
+            n = len(self._stamps) - i
+            del self._stamps[i:], self._t[i:], self._q[i:]
+            return n
+
+    # ---- queries -----------------------------------------------------------------------------------------
+    def base_pose_at(self, stamp_ns: int) -> PoseQuery:
+        """T_world_base at `stamp_ns` (see pose_at)."""
+        stamp_ns = int(stamp_ns)
+        with self._lock:
+            stamps = self._stamps
+            if not stamps or stamp_ns > stamps[-1]:
+                newest = f'newest odometry {stamps[-1] / NS:.3f}' if stamps else 'no odometry yet'
+                return PoseQuery(None, FUTURE, f'image {stamp_ns / NS:.3f} s, {newest}')
+            if stamp_ns < stamps[0]:
+                return PoseQuery(None, TOO_OLD, f'image {stamp_ns / NS:.3f} s is before the oldest odometry '
+                                 f'{stamps[0] / NS:.3f} s')
+            i = bisect.bisect_left(stamps, stamp_ns)
+            if stamps[i] == stamp_ns:
+                j0 = j1 = i
+            else:
+                j0, j1 = i - 1, i
+            t0, t1 = stamps[j0], stamps[j1]
+            if self._t[j0] is None or self._t[j1] is None:
+                bad = t0 if self._t[j0] is None else t1
+                return PoseQuery(None, NAN, f'odometry at {bad / NS:.3f} s is invalid (NaN or non-unit quaternion)')
+            if t1 - t0 > self.max_gap_ns:
+                return PoseQuery(None, GAP, f'odometry gap {(t1 - t0) / NS:.3f} s around image '
+                                 f'{stamp_ns / NS:.3f} s exceeds max_odom_gap {self.max_gap_ns / NS:.3f} s')
+            if j0 == j1:
+                return PoseQuery(make_pose(self._t[j0], self._q[j0]))
+            alpha = (stamp_ns - t0) / (t1 - t0)
+            q = slerp(self._q[j0], self._q[j1], alpha)
+            t = self._t[j0] + alpha * (self._t[j1] - self._t[j0])
+            return PoseQuery(make_pose(t, q))
+
+    def pose_at(self, stamp_ns: int) -> PoseQuery:
+        """T_world_cam = T_world_base(stamp) @ T_base_camera, or None with the reason it cannot be given."""
+        q = self.base_pose_at(stamp_ns)
+        if q.ok:
+            q.T_world_cam_44 = q.T_world_cam_44 @ self.T_base_camera
+        return q

@@ -1,0 +1,357 @@
+"""`ros2 run dpv_sensor soak`: a long replay through the node, reporting throughput, latency, drops and memory.
+
+Renders (or takes) a long synthetic sequence, writes it as a rosbag2, starts the node as its own process, and replays
+the bag in a loop at 30 Hz (--rate) for --minutes (default 5) with the stamps rebased to the wall clock, so
+end-to-end latency = (receipt time of an output) - (its image stamp). Reported at the end (and as JSON with --json):
+
+  throughput   images offered / s, outputs received / s (keyframes only unless publish_between_keyframes)
+  latency      median and p95 of output receipt - image stamp (ms), and the node's own receipt -> publish figure
+  drops        the node's /diagnostics counters (dropped.* by reason, faults.*)
+  memory       VmRSS of the node process (from /proc) after warm-up, at the end, and its maximum
+
+A tool, not a unit test: it takes minutes. `OutputCollector` is also used by the node tests.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import pathlib
+import signal
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+REPO = pathlib.Path(__file__).resolve().parents[2]
+NS = 1_000_000_000
+
+
+# --------------------------------------------------------------------------------------------------------------
+# watching the node's outputs
+# --------------------------------------------------------------------------------------------------------------
+@dataclass
+class Received:
+    """Everything that arrived for one output stamp (messages kept only with keep_messages)."""
+    stamp_ns: int
+    frame_id: str = ''
+    depth: object = None
+    confidence: object = None
+    camera_info: object = None
+    points: object = None
+    depth_wall_ns: int | None = None
+    topics: set = field(default_factory=set)
+
+
+class OutputCollector:
+    """Subscribes (reliable) to a node's outputs under `namespace` and groups them by header stamp.
+
+    Topics: depth/image, depth/camera_info, confidence/image, optionally points, and /diagnostics (the latest status
+    of the node named `diagnostics_name` is kept in `diagnostics`, as a {key: value} dict).
+    """
+
+    def __init__(self, node, namespace: str = '', points: bool = False, keep_messages: bool = True,
+                 diagnostics_name: str = 'dpv_sensor: depth camera', depth: int = 50):
+        from diagnostic_msgs.msg import DiagnosticArray
+        from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+        from sensor_msgs.msg import CameraInfo, Image, PointCloud2
+        self.node = node
+        ns = namespace.rstrip('/')
+        qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth, reliability=ReliabilityPolicy.RELIABLE,
+                         durability=DurabilityPolicy.VOLATILE)
+        self.keep = keep_messages
+        self.by_stamp: dict[int, Received] = {}
+        self.order: list[int] = []               # depth stamps in arrival order
+        self.latency_ms: list[float] = []         # depth receipt (wall) - stamp, for rebased live stamps
+        self.diagnostics: dict = {}
+        self.diagnostics_level = None
+        self.diagnostics_message = ''
+        self.diagnostics_count = 0
+        self.diagnostics_name = diagnostics_name
+        self._lock = threading.Lock()
+        self.subs = [
+            node.create_subscription(Image, f'{ns}/depth/image', lambda m: self._on(m, 'depth'), qos),
+            node.create_subscription(Image, f'{ns}/confidence/image', lambda m: self._on(m, 'confidence'), qos),
+            node.create_subscription(CameraInfo, f'{ns}/depth/camera_info', lambda m: self._on(m, 'camera_info'), qos),
+            node.create_subscription(DiagnosticArray, '/diagnostics', self._on_diag, qos),
+        ]
+        self.points_sub = None
+        if points:
+            self.points_sub = node.create_subscription(PointCloud2, f'{ns}/points', lambda m: self._on(m, 'points'),
+                                                       qos)
+
+    def _on(self, msg, kind: str) -> None:
+        now = time.time_ns()
+        stamp = msg.header.stamp.sec * NS + msg.header.stamp.nanosec
+        with self._lock:
+            rec = self.by_stamp.get(stamp)
+            if rec is None:
+                rec = self.by_stamp[stamp] = Received(stamp, msg.header.frame_id)
+            rec.topics.add(kind)
+            if self.keep:
+                setattr(rec, kind, msg)
+            if kind == 'depth':
+                rec.depth_wall_ns = now
+                self.order.append(stamp)
+                self.latency_ms.append((now - stamp) / 1e6)
+            if not self.keep and len(self.by_stamp) > 1000:   # long runs: keep the bookkeeping bounded
+                for k in list(self.by_stamp)[:500]:
+                    del self.by_stamp[k]
+
+    def _on_diag(self, msg) -> None:
+        for st in msg.status:
+            if st.name == self.diagnostics_name:
+                with self._lock:
+                    self.diagnostics = {kv.key: kv.value for kv in st.values}
+                    self.diagnostics_level = int.from_bytes(st.level, 'little') if isinstance(st.level, bytes) \
+                        else int(st.level)
+                    self.diagnostics_message = st.message
+                    self.diagnostics_count += 1
+
+    def diag_int(self, key: str, default: int = 0) -> int:
+        try:
+            return int(self.diagnostics.get(key, default))
+        except (TypeError, ValueError):
+            return default
+
+    @property
+    def depth_count(self) -> int:
+        return len(self.order)
+
+    def complete(self) -> list[Received]:
+        """Outputs for which depth, confidence and camera_info all arrived, in arrival order of the depth."""
+        return [self.by_stamp[s] for s in self.order
+                if s in self.by_stamp and {'depth', 'confidence', 'camera_info'} <= self.by_stamp[s].topics]
+
+
+# --------------------------------------------------------------------------------------------------------------
+# process helpers
+# --------------------------------------------------------------------------------------------------------------
+def vm_rss_kib(pid: int) -> int | None:
+    """Resident memory (kB) of a process from /proc/<pid>/status, or None when it is gone."""
+    try:
+        with open(f'/proc/{pid}/status') as f:
+            for line in f:
+                if line.startswith('VmRSS:'):
+                    return int(line.split()[1])
+    except OSError:
+        return None
+    return None
+
+
+def start_node_process(params: dict, remaps: dict, env: dict | None = None, log_path=None) -> subprocess.Popen:
+    """`python -m dpv_sensor.node --ros-args -p k:=v ... -r a:=b` with its output to `log_path` (or a pipe)."""
+    cmd = [sys.executable, '-m', 'dpv_sensor.node', '--ros-args']
+    for k, v in params.items():
+        if isinstance(v, bool):
+            v = 'true' if v else 'false'
+        elif isinstance(v, (list, tuple)):
+            v = '[' + ','.join(repr(float(x)) for x in v) + ']'
+        cmd += ['-p', f'{k}:={v}']
+    for a, b in remaps.items():
+        cmd += ['-r', f'{a}:={b}']
+    full_env = dict(os.environ)
+    full_env['PYTHONPATH'] = os.pathsep.join([str(REPO)] + [p for p in full_env.get('PYTHONPATH', '').split(os.pathsep)
+                                                            if p])
+    full_env.setdefault('PYTHONUNBUFFERED', '1')
+    full_env.update(env or {})
+    out = open(log_path, 'w') if log_path else subprocess.PIPE
+    return subprocess.Popen(cmd, cwd=REPO, env=full_env, stdout=out, stderr=subprocess.STDOUT, text=True)
+
+
+def stop_node_process(proc: subprocess.Popen, timeout: float = 20.0) -> int:
+    if proc.poll() is None:
+        proc.send_signal(signal.SIGINT)
+    try:
+        return proc.wait(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        return proc.wait()
+
+
+# --------------------------------------------------------------------------------------------------------------
+# the soak run
+# --------------------------------------------------------------------------------------------------------------
+def _median_rss(samples, t0, t1):
+    vals = [r for t, r in samples if t0 <= t <= t1]
+    return int(np.median(vals)) if vals else None
+
+
+def _percentile(values, q):
+    return float(np.percentile(values, q)) if len(values) else float('nan')
+
+
+def run_soak(args) -> dict:
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+    from dpv_sensor.data import rosbag_io as R
+    from dpv_sensor.tools.bag import BagPlayer
+
+    work = pathlib.Path(args.work_dir or tempfile.mkdtemp(prefix='dpv_soak_'))
+    work.mkdir(parents=True, exist_ok=True)
+    name = f'soak_seed{args.seed}_{args.frames}f_{args.width}x{args.height}'
+    bag = pathlib.Path(args.bag) if args.bag else work / name
+    if not bag.exists():
+        from dpv_sensor.data.synthetic import render_sequence
+        print(f'rendering {args.frames} frames ({args.width}x{args.height}, seed {args.seed}) -> {bag}', flush=True)
+        seq = render_sequence(args.seed, args.frames, width=args.width, height=args.height, progress=True)
+        R.write_sequence_bag(bag, seq, odom_rate=args.odom_rate, progress=True)
+    topics = R.bag_topics(bag)
+    n_images = topics[R.IMAGE_TOPIC][1]
+    print(f'bag: {bag} ({n_images} images)', flush=True)
+
+    params = {'measurement': args.measurement, 'device': 'cpu', 'processing_width': args.processing_width,
+              'processing_height': args.processing_height, 'diagnostics_period': 1.0}
+    for item in args.param or []:
+        k, v = item.split(':=', 1)
+        params[k] = v
+    remaps = {'image': R.IMAGE_TOPIC, 'camera_info': R.CAMERA_INFO_TOPIC, 'odom': R.ODOM_TOPIC}
+    env = {'OMP_NUM_THREADS': str(args.threads)} if args.threads else {}
+    log_path = work / 'node.log'
+    proc = start_node_process(params, remaps, env=env, log_path=log_path)
+    print(f'node pid {proc.pid}, log {log_path}', flush=True)
+
+    context = rclpy.context.Context()
+    rclpy.init(context=context)
+    node = rclpy.create_node('dpv_soak', context=context)
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(node)
+    collector = OutputCollector(node, keep_messages=False)
+    player = BagPlayer(node, bag, rate=args.rate, rebase_stamps=True, loop=True)
+    result: dict = {'bag': str(bag), 'images_in_bag': n_images, 'minutes': args.minutes, 'rate': args.rate,
+                    'params': params, 'threads': args.threads}
+    try:
+        missing = player.wait_for_subscribers([R.IMAGE_TOPIC, R.CAMERA_INFO_TOPIC, R.ODOM_TOPIC], timeout=120.0,
+                                              spin=lambda t: executor.spin_once(timeout_sec=t))
+        if missing or proc.poll() is not None:
+            raise RuntimeError(f'node did not subscribe to {missing} (exit code {proc.poll()}); see {log_path}')
+        deadline = time.monotonic() + 60.0
+        while time.monotonic() < deadline and collector.depth_count == 0 and collector.diagnostics_count == 0:
+            executor.spin_once(timeout_sec=0.1)
+        stats_box = {}
+
+        def play():
+            stats_box['stats'] = player.play(duration=args.minutes * 60.0)
+        thread = threading.Thread(target=play, daemon=True)
+        t0 = time.monotonic()
+        thread.start()
+        rss_samples = []
+        rss_start = None
+        next_sample = t0
+        warmup_outputs = 5
+        while thread.is_alive():
+            executor.spin_once(timeout_sec=0.05)
+            now = time.monotonic()
+            if now >= next_sample:
+                rss = vm_rss_kib(proc.pid)
+                if rss is not None:
+                    rss_samples.append((round(now - t0, 1), rss))
+                    if rss_start is None and collector.depth_count >= warmup_outputs:
+                        rss_start = (round(now - t0, 1), rss)
+                next_sample = now + 5.0
+                if len(rss_samples) % 12 == 1:
+                    print(f'  t={now - t0:6.0f} s outputs={collector.depth_count} rss={rss} kB '
+                          f"dropped={collector.diagnostics.get('dropped_total', '?')}", flush=True)
+            if proc.poll() is not None:
+                player.stop()
+                raise RuntimeError(f'node exited during the soak (code {proc.returncode}); see {log_path}')
+        thread.join()
+        # let the last outputs and a fresh diagnostics message arrive
+        end = time.monotonic() + 5.0
+        while time.monotonic() < end:
+            executor.spin_once(timeout_sec=0.05)
+        rss_end = vm_rss_kib(proc.pid)
+        stats = stats_box.get('stats')
+        wall = stats.wall_s if stats else float('nan')
+        images_offered = stats.per_topic.get(R.IMAGE_TOPIC, 0) if stats else 0
+        lat = collector.latency_ms
+        d = collector.diagnostics
+        result.update({
+            'wall_s': round(wall, 1),
+            'images_offered': images_offered,
+            'input_fps': round(images_offered / wall, 2) if wall else None,
+            'outputs_received': collector.depth_count,
+            'output_fps': round(collector.depth_count / wall, 3) if wall else None,
+            'latency_ms_median': round(_percentile(lat, 50), 1),
+            'latency_ms_p95': round(_percentile(lat, 95), 1),
+            'latency_ms_max': round(float(max(lat)), 1) if lat else None,
+            'node_latency_ms_median': d.get('latency_ms_median'),
+            'node_processing_ms_median': d.get('processing_ms_median'),
+            'node_keyframe_ms_median': d.get('keyframe_ms_median'),
+            'node_frames_received': d.get('frames_received'),
+            'node_frames_processed': d.get('frames_processed'),
+            'node_outputs_published': d.get('outputs_published'),
+            'dropped': {k: v for k, v in d.items() if k.startswith('dropped')},
+            'faults': {k: v for k, v in d.items() if k.startswith('faults.')},
+            'measurement_model': d.get('measurement_model'),
+            'filter_resets': d.get('filter_resets'),
+            'rss_kib_start': rss_start,
+            'rss_kib_end': rss_end,
+            'rss_kib_max': max((r for _t, r in rss_samples), default=None),
+            # baseline (median) resident memory in the first and the last minute: flat memory means these agree
+            'rss_kib_median_first_min': _median_rss(rss_samples, 0.0, 60.0),
+            'rss_kib_median_last_min': _median_rss(rss_samples, wall - 60.0, wall + 1.0),
+            'rss_samples': rss_samples,
+            'player_worst_lateness_ms': round(stats.late_ms_max, 1) if stats else None,
+            'loops': stats.loops if stats else None,
+        })
+    finally:
+        code = stop_node_process(proc)
+        result['node_exit_code'] = code
+        executor.shutdown()
+        node.destroy_node()
+        rclpy.shutdown(context=context)
+    return result
+
+
+def _print_report(r: dict) -> None:
+    print('\n=== soak report ===')
+    print(f"duration      {r.get('wall_s')} s, {r.get('loops')} full loops of {r['images_in_bag']} images at "
+          f"{r['rate']:g}x ({r['params']['processing_width']}x{r['params']['processing_height']} processing, "
+          f"measurement {r.get('measurement_model')}, OMP threads {r.get('threads') or 'default'})")
+    print(f"throughput    in {r.get('input_fps')} images/s, out {r.get('output_fps')} depth/s "
+          f"({r.get('outputs_received')} outputs; node processed {r.get('node_frames_processed')} of "
+          f"{r.get('node_frames_received')} received)")
+    print(f"latency       stamp -> receipt median {r.get('latency_ms_median')} ms, p95 {r.get('latency_ms_p95')} ms, "
+          f"max {r.get('latency_ms_max')} ms (node receipt -> publish median {r.get('node_latency_ms_median')} ms; "
+          f"estimator {r.get('node_keyframe_ms_median')} ms per keyframe, {r.get('node_processing_ms_median')} ms "
+          'per processed frame)')
+    print(f"drops         {r.get('dropped')}")
+    print(f"faults        {r.get('faults') or 'none'}; filter resets {r.get('filter_resets')}")
+    print(f"memory VmRSS  start {r.get('rss_kib_start')} kB, end {r.get('rss_kib_end')} kB, max "
+          f"{r.get('rss_kib_max')} kB; median first minute {r.get('rss_kib_median_first_min')} kB, last minute "
+          f"{r.get('rss_kib_median_last_min')} kB")
+    print(f"node exit     {r.get('node_exit_code')}")
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(prog='soak', description=__doc__.split('\n\n')[0])
+    parser.add_argument('--minutes', type=float, default=5.0, help='how long to replay (default 5)')
+    parser.add_argument('--rate', type=float, default=1.0, help='playback speed factor (the bag is 30 Hz)')
+    parser.add_argument('--bag', help='an existing bag (default: render a synthetic one)')
+    parser.add_argument('--frames', type=int, default=300, help='frames of the synthetic sequence (looped)')
+    parser.add_argument('--width', type=int, default=320)
+    parser.add_argument('--height', type=int, default=240)
+    parser.add_argument('--seed', type=int, default=5)
+    parser.add_argument('--odom-rate', type=float, default=100.0)
+    parser.add_argument('--measurement', default='auto', choices=('auto', 'network', 'classical'))
+    parser.add_argument('--processing-width', type=int, default=320)
+    parser.add_argument('--processing-height', type=int, default=256)
+    parser.add_argument('--threads', type=int, default=0, help='OMP_NUM_THREADS for the node (0: torch default)')
+    parser.add_argument('--param', nargs='+', metavar='NAME:=VALUE', help='more node parameters')
+    parser.add_argument('--work-dir', help='where the bag and the node log go (default: a temp dir)')
+    parser.add_argument('--json', help='write the report as JSON here')
+    args = parser.parse_args(argv)
+    result = run_soak(args)
+    _print_report(result)
+    if args.json:
+        pathlib.Path(args.json).write_text(json.dumps(result, indent=1))
+    return 0 if result.get('node_exit_code') == 0 else 1
+
+
+if __name__ == '__main__':
+    sys.exit(main())
