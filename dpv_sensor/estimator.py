@@ -9,11 +9,23 @@ What happens to a pushed frame
    finite, or whose stamp equals the previous one is dropped (``push`` returns None, the reason is in
    ``status['last_drop_reason']``). The estimator *resets* (window, keyframe selector and filter; the
    reason goes to ``status['last_reset_reason']`` and to the ``reset_reason`` of the next output) when
-   time goes backwards, when the image size or the intrinsics change, when consecutive frames are more
-   than ``reset_time_gap`` seconds apart, or when the camera jumps more than ``reset_translation`` m /
-   ``reset_rotation_deg`` degrees between consecutive frames (a threshold of 0 disables that rule).
-   The filter has its own rules between *keyframes* (same thresholds: ``DPVFilter(max_time_gap=...)``);
-   when it restarts itself, its ``reset_reason`` is passed on in ``DepthOutput.reset_reason``.
+   time goes backwards, when the image size or the intrinsics change, when the *camera stream* had a
+   gap longer than ``reset_time_gap`` seconds, or when the camera *jumps* (a threshold of 0 disables
+   that rule). These rules catch real discontinuities of the sensor or the odometry, not gaps the
+   caller creates by leaving frames out (the node drops images while the estimator is busy):
+
+   * time gap: ``Frame.sensor_gap_s`` when the caller gives it (the longest interval between images it
+     received since the previous pushed frame, dropped or not), else the time since the previous pushed
+     frame (offline use, where every frame is pushed);
+   * jump: the camera motion since the previous pushed frame, judged against the time elapsed
+     (``filter.jump_limit``): more than ``reset_translation`` m / ``reset_rotation_deg`` degrees per
+     second, and never less than those values (frames less than 1 s apart are held to them exactly).
+     A continuous motion of normal speed never resets however far apart the pushed frames are.
+
+   The filter applies the same jump rule between *keyframes* (``DPVFilter(max_translation=...,
+   max_rotation_deg=...)``); its own time-gap rule is off (``max_time_gap=inf``): keyframes far apart
+   in time are no discontinuity, and a real stream gap already reset everything here. When the filter
+   restarts itself, its ``reset_reason`` is passed on in ``DepthOutput.reset_reason``.
 2. **Keyframe selection** (:class:`dpv_sensor.keyframes.KeyframeSelector`): baseline
    ``keyframe_translation``, rotation ``keyframe_rotation_deg`` since the last keyframe, at the latest
    every ``keyframe_max_interval`` frames (paper: every 5th frame).
@@ -94,6 +106,7 @@ import torch.nn.functional as F
 
 from . import dpv as dpv_ops
 from . import geometry
+from .filter import jump_limit
 from .frame import DepthOutput, Frame
 from .keyframes import WINDOW_MODES, Keyframe, KeyframeSelector, KeyframeWindow, pose_delta
 
@@ -129,11 +142,14 @@ class EstimatorConfig:
     ``window_size`` (keyframes in a window, paper: 5), ``classical_downscale`` (volume = image / this),
     ``min_coverage`` (fraction of a ray's planes that must project into at least one source view for the
     pixel to get an estimate), ``amp_dtype`` (autocast dtype of the networks on CUDA, or ``'none'``).
+    ``torch_threads`` > 0 is applied with ``torch.set_num_threads`` when the Estimator is built (it is
+    process-wide); 0 leaves torch's setting alone.
     """
     preset: str = 'lite'
     weights: str = ''
     measurement: str = 'auto'
     device: str = 'cpu'
+    torch_threads: int = 0
     processing_width: int = 320
     processing_height: int = 256
     d_min: float = 0.3
@@ -183,6 +199,8 @@ class EstimatorConfig:
             raise ValueError(f'processing size {self.processing_width}x{self.processing_height} is too small')
         if not (0 < self.d_min < self.d_max):
             raise ValueError(f'need 0 < d_min < d_max, got {self.d_min}, {self.d_max}')
+        if not (0 <= int(self.torch_threads) <= 64):
+            raise ValueError(f'torch_threads must lie in [0, 64] (0 = torch default), got {self.torch_threads}')
         if self.num_planes < 2:
             raise ValueError(f'num_planes must be >= 2, got {self.num_planes}')
         if not (0.0 <= self.damping <= 1.0):
@@ -322,6 +340,8 @@ class Estimator:
         self.log = logger or LOG
         cfg = self.config
         self.device = self._resolve_device(cfg.device)
+        if cfg.torch_threads > 0 and torch.get_num_threads() != cfg.torch_threads:
+            torch.set_num_threads(int(cfg.torch_threads))
         self.pose_refiner = pose_refiner
         self._notes: List[str] = []
         self.model = None
@@ -438,10 +458,13 @@ class Estimator:
                 self._note('filter_mode=knet needs the network (K-Net); using global damping with the '
                            'classical measurement model')
         self.filter_mode = mode
-        # a threshold of 0 disables the rule (the filter wants positive values: infinity never triggers)
+        # a threshold of 0 disables the rule (the filter wants positive values: infinity never triggers).
+        # The filter steps at keyframes only: time between keyframes says nothing about the stream's
+        # continuity (the stream's own gap is checked in push, which resets the filter too), so its
+        # time-gap rule is off; its jump rule is the same speed limit as the stream's (filter.jump_limit).
         def off(x):
             return float(x) if x > 0 else math.inf
-        self.filter = DPVFilter(mode=mode, damping=cfg.damping, knet=knet, max_time_gap=off(cfg.reset_time_gap),
+        self.filter = DPVFilter(mode=mode, damping=cfg.damping, knet=knet, max_time_gap=math.inf,
                                 max_translation=off(cfg.reset_translation),
                                 max_rotation_deg=off(cfg.reset_rotation_deg))
 
@@ -473,6 +496,7 @@ class Estimator:
                                                                        'code_version')}
             if self._checkpoint_meta else None,
             'device': str(self.device),
+            'torch_threads': torch.get_num_threads(),
             'filter_mode': self.filter_mode,
             'filter_mode_requested': cfg.filter_mode,
             'window_mode': cfg.window_mode,
@@ -531,7 +555,7 @@ class Estimator:
             self._frames_dropped += 1
             self._last_drop_reason = f'duplicate stamp {stamp:.6f} s (same as the previous frame)'
             return None
-        reset = self._stream_reset_reason(stamp, T, size, K_in)
+        reset = self._stream_reset_reason(stamp, T, size, K_in, frame.sensor_gap_s)
         if reset is not None:
             self.reset(reset)
         self._last_frame = (stamp, T, size, K_in)
@@ -555,6 +579,9 @@ class Estimator:
             raise ValueError(f'Frame.image must be uint8 HxWx3 RGB, got {image.dtype} {image.shape}')
         if min(image.shape[:2]) < 2:
             raise ValueError(f'Frame.image is too small: {image.shape}')
+        gap = frame.sensor_gap_s
+        if gap is not None and not (math.isfinite(float(gap)) and float(gap) >= 0.0):
+            raise ValueError(f'Frame.sensor_gap_s must be None or a finite number >= 0, got {gap!r}')
         return image
 
     @staticmethod
@@ -575,7 +602,9 @@ class Estimator:
             return 'stamp is not finite'
         return None
 
-    def _stream_reset_reason(self, stamp: float, T: np.ndarray, size, K_in) -> Optional[str]:
+    def _stream_reset_reason(self, stamp: float, T: np.ndarray, size, K_in,
+                             sensor_gap_s: Optional[float] = None) -> Optional[str]:
+        """Why the stream must restart at this frame (see the module docs, step 1), or None."""
         if self._last_frame is None:
             return None
         cfg = self.config
@@ -586,13 +615,22 @@ class Estimator:
             return f'image size changed from {last_size[0]}x{last_size[1]} to {size[0]}x{size[1]}'
         if not np.allclose(K_in, last_K, rtol=1e-6, atol=1e-6):
             return 'camera intrinsics changed'
-        if cfg.reset_time_gap > 0 and stamp - last_stamp > cfg.reset_time_gap:
-            return f'time gap {stamp - last_stamp:.3f} s > reset_time_gap {cfg.reset_time_gap:g} s'
+        elapsed = stamp - last_stamp
+        if sensor_gap_s is not None:
+            gap, where = float(sensor_gap_s), 'in the camera stream'
+        else:
+            gap, where = elapsed, 'since the previous frame'
+        if cfg.reset_time_gap > 0 and gap > cfg.reset_time_gap:
+            return f'time gap {gap:.3f} s {where} > reset_time_gap {cfg.reset_time_gap:g} s'
         dt, dr = pose_delta(last_T, T)
-        if cfg.reset_translation > 0 and dt > cfg.reset_translation:
-            return f'camera jumped {dt:.3f} m > reset_translation {cfg.reset_translation:g} m'
-        if cfg.reset_rotation_deg > 0 and dr > cfg.reset_rotation_deg:
-            return f'camera turned {dr:.1f} deg > reset_rotation_deg {cfg.reset_rotation_deg:g} deg'
+        lim_t = jump_limit(cfg.reset_translation, elapsed)
+        lim_r = jump_limit(cfg.reset_rotation_deg, elapsed)
+        if cfg.reset_translation > 0 and dt > lim_t:
+            return (f'camera jumped {dt:.3f} m in {elapsed:.3f} s > {lim_t:.3f} m '
+                    f'(reset_translation {cfg.reset_translation:g} m per second, at least that)')
+        if cfg.reset_rotation_deg > 0 and dr > lim_r:
+            return (f'camera turned {dr:.1f} deg in {elapsed:.3f} s > {lim_r:.1f} deg '
+                    f'(reset_rotation_deg {cfg.reset_rotation_deg:g} deg per second, at least that)')
         return None
 
     # ------------------------------------------------------------------ keyframes

@@ -3,8 +3,14 @@
 Per frame, :meth:`DPVFilter.step`
 
 1. decides whether to *reset* (first frame, volume layout changed, non-finite pose, time going
-   backwards, a time gap above ``max_time_gap``, a pose jump above ``max_translation`` metres or
-   ``max_rotation_deg`` degrees); a reset returns the measurement alone and restarts from it;
+   backwards, a time gap above ``max_time_gap``, a pose *jump*); a reset returns the measurement alone
+   and restarts from it. A jump is judged against the time elapsed since the previous step (see
+   :func:`jump_limit`): more than ``max_translation`` metres / ``max_rotation_deg`` degrees per second,
+   and never less than those values (an interval shorter than ``MOTION_REFERENCE_S`` = 1 s is held to
+   them). So steps that are far apart in time - keyframes of a stream whose frames were dropped in
+   between - do not reset while the camera moved continuously; a large real motion is handled by the
+   prediction itself (voxels outside the old frustum get the uniform prior). Only a motion faster than
+   the camera can move (an odometry teleport) restarts the belief.
 2. otherwise *predicts* the previous belief into the new camera with
    :func:`dpv_sensor.geometry.warp_volume` (eq. 5; voxels the old camera never saw get the uniform
    prior) and
@@ -33,9 +39,24 @@ import torch
 from .dpv import LOG_FLOOR, clamp_log
 from .geometry import invert_se3, rotation_angle, warp_volume
 
-__all__ = ['DPVFilter', 'FilterStep', 'MODES']
+__all__ = ['DPVFilter', 'FilterStep', 'MODES', 'MOTION_REFERENCE_S', 'jump_limit']
 
 MODES = ('none', 'bayes', 'global', 'knet')
+
+# The pose-jump thresholds are motions per this many seconds, and apply unscaled below it.
+MOTION_REFERENCE_S = 1.0
+
+
+def jump_limit(limit: float, elapsed_s: float) -> float:
+    """Largest camera motion (metres or degrees) accepted as continuous over ``elapsed_s`` seconds.
+
+    ``limit`` is the motion allowed per ``MOTION_REFERENCE_S`` (1 s): the bound grows linearly with the
+    elapsed time (a speed limit), but is never below ``limit`` itself, so consecutive frames of a
+    stream (milliseconds apart) are held to ``limit`` exactly as an absolute jump threshold. A motion
+    above the bound is physically implausible for a camera and treated as a teleport (odometry reset,
+    relocalisation). ``limit = inf`` disables the rule.
+    """
+    return float(limit) * max(1.0, float(elapsed_s) / MOTION_REFERENCE_S)
 
 
 @dataclass
@@ -61,9 +82,13 @@ class DPVFilter:
         damping: lambda of global damping (eq. 8), in [0, 1]; only used by mode 'global'.
         knet: callable ``g(residual_bdhw, image_b3hw) -> correction_bdhw`` (mode 'knet'), where
             residual = E_meas - E_pred (eq. 10); image may be None if the caller gave none.
-        max_time_gap: seconds; a larger gap between consecutive steps resets the filter.
-        max_translation: metres; a larger camera motion between consecutive steps resets.
-        max_rotation_deg: degrees; a larger camera rotation between consecutive steps resets.
+        max_time_gap: seconds; a larger gap between consecutive steps resets the filter. It judges
+            the time between *steps*: a caller that steps on a subset of a stream (keyframes, frames
+            left out while busy) should pass ``math.inf`` and check the stream's own continuity itself
+            (the Estimator does, with ``Frame.sensor_gap_s``).
+        max_translation: metres per second of elapsed time between consecutive steps, at least
+            ``max_translation`` metres (:func:`jump_limit`); a faster camera motion resets.
+        max_rotation_deg: degrees per second, likewise, for the camera rotation.
         log_floor: lowest log-probability kept (energies are capped at -log_floor).
     """
 
@@ -161,14 +186,19 @@ class DPVFilter:
             T_b_a = invert_se3(T_safe) @ prev
             trans = T_b_a[:, :3, 3].norm(dim=-1)
             rot = torch.rad2deg(rotation_angle(T_b_a[:, :3, :3]))
-            jump_t = ok & (trans > self.max_translation)
-            jump_r = ok & (rot > self.max_rotation_deg)
+            elapsed = stamp - self._stamp
+            lim_t = jump_limit(self.max_translation, elapsed)
+            lim_r = jump_limit(self.max_rotation_deg, elapsed)
+            jump_t = ok & (trans > lim_t)
+            jump_r = ok & (rot > lim_r)
             if jump_t.any():
-                reasons.append(f'pose jump: translation {trans[jump_t].max().item():.3f} m > '
-                               f'max_translation {self.max_translation:.3f} m')
+                reasons.append(f'pose jump: translation {trans[jump_t].max().item():.3f} m in {elapsed:.3f} s > '
+                               f'{lim_t:.3f} m (max_translation {self.max_translation:.3f} m per second, '
+                               'at least that)')
             if jump_r.any():
-                reasons.append(f'pose jump: rotation {rot[jump_r].max().item():.1f} deg > '
-                               f'max_rotation_deg {self.max_rotation_deg:.1f} deg')
+                reasons.append(f'pose jump: rotation {rot[jump_r].max().item():.1f} deg in {elapsed:.3f} s > '
+                               f'{lim_r:.1f} deg (max_rotation_deg {self.max_rotation_deg:.1f} deg per second, '
+                               'at least that)')
             mask = mask | jump_t | jump_r
         return None, mask, reasons
 

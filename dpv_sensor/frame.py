@@ -12,12 +12,21 @@ class Frame:
 
     image: uint8 HxWx3 RGB. K_33: intrinsics of this image size. T_world_cam_44: camera-to-world pose
     (OpenCV axes), or None when no pose source is available (odometry-free mode). stamp: seconds.
+
+    sensor_gap_s: what the camera stream did since the previous frame the caller *pushed*: the longest
+    interval (s) between consecutive images the caller *received* in that time, whether it passed them on
+    or dropped them (e.g. the node's newest-wins mailbox while the estimator was busy). With no image
+    dropped in between it is simply ``stamp`` minus the previous image's stamp. The estimator's time-gap
+    reset (``reset_time_gap``) judges this value, so deliberate drops do not restart the filter while a
+    camera stream that really stalled still does. None (offline use, replaying every frame): unknown; the
+    estimator then uses the time since the previous pushed frame.
     """
     stamp: float
     image: np.ndarray
     K_33: np.ndarray
     T_world_cam_44: np.ndarray | None = None
     frame_id: str = 'camera'
+    sensor_gap_s: float | None = None
 
 
 @dataclass

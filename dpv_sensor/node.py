@@ -14,9 +14,13 @@ Topics (relative names, remappable):
 Threading: callbacks only store messages. The newest image waits in a one-slot mailbox ("newest wins": an image
 that is still waiting when a newer one arrives is dropped and counted) and a worker thread converts it, waits up to
 odom_wait_timeout for odometry after its stamp, runs the estimator and publishes. Memory stays flat whatever the
-input rate. Every output carries exactly the input image's header (stamp and frame_id). The worker builds the
-estimator when the node starts ('ready' is logged once topics and parameters are up, 'estimator ready' once the
-model is loaded); if it cannot be built (e.g. measurement=network without weights) the node exits with code 2.
+input rate. Dropping is deliberate and does not break the stream: every Frame carries `sensor_gap_s`, the longest
+interval between consecutive images the node *received* since the previous frame it pushed (dropped images
+included), so the estimator's time-gap reset fires only when the camera stream itself stalled; its jump rules judge
+the motion against the elapsed time, so a slow machine that pushes a frame every few seconds keeps its filter.
+Every output carries exactly the input image's header (stamp and frame_id). The worker builds the estimator when
+the node starts ('ready' is logged once topics and parameters are up, 'estimator ready' once the model is loaded);
+if it cannot be built (e.g. measurement=network without weights) the node exits with code 2.
 SIGINT / SIGTERM stop the node cleanly (exit 0), also while it is still starting.
 
 Bad input never stops the node: each kind of fault (unsupported encoding, inconsistent image, size change,
@@ -59,7 +63,6 @@ PUBLISH_ERROR = 'publish_error'
 UNKNOWN_OUTPUT = 'unknown_output_stamp'
 INTERNAL_ERROR = 'internal_error'
 BUSY = 'busy'
-SLOW_RESET = 'reset_after_busy_drops'
 
 
 def self_check() -> int:
@@ -127,11 +130,15 @@ class StartupError(RuntimeError):
 # small plumbing pieces (no ROS)
 # --------------------------------------------------------------------------------------------------------------
 class Mailbox:
-    """One-slot hand-over from the callback thread to the worker: a newer item replaces a waiting one."""
+    """One-slot hand-over from the callback thread to the worker: a newer item replaces a waiting one.
 
-    def __init__(self):
+    merge: optional `merge(dropped_item, new_item) -> item` called (under the lock) when a waiting item is replaced,
+    so the new item can inherit what the dropped one knew (the node carries the stream's longest image gap)."""
+
+    def __init__(self, merge=None):
         self._item = None
         self._cv = threading.Condition()
+        self._merge = merge
         self.replaced = 0
         self.closed = False
 
@@ -141,6 +148,8 @@ class Mailbox:
             dropped = self._item is not None
             if dropped:
                 self.replaced += 1
+                if self._merge is not None:
+                    item = self._merge(self._item, item)
             self._item = item
             self._cv.notify()
             return dropped
@@ -281,11 +290,24 @@ class _ForwardHandler(logging.Handler):
             pass
 
 
+def _max_gap(a: int | None, b: int | None) -> int | None:
+    """The larger of two image gaps (ns); None = unknown, ignored."""
+    return b if a is None else a if b is None else max(a, b)
+
+
 @dataclass
 class _Incoming:
     msg: object          # sensor_msgs/Image as received
     receipt_mono: float  # time.monotonic() at receipt
     receipt_ns: int      # wall clock (ns) at receipt
+    gap_ns: int | None = None  # longest stamp interval between consecutive received images up to this one, since
+    #                            the previous item the worker took (None: first image, or time went backwards)
+
+
+def _merge_incoming(dropped: _Incoming, new: _Incoming) -> _Incoming:
+    """Mailbox merge: the image replacing a dropped one inherits the dropped one's stream gap."""
+    new.gap_ns = _max_gap(dropped.gap_ns, new.gap_ns)
+    return new
 
 
 @dataclass
@@ -391,10 +413,11 @@ class DepthCameraNode(_node_base()):
         self._started_mono = time.monotonic()
         self._last_image_mono = None
         self._last_push_ms = 0.0
-        self._busy_drops_at_push = 0
 
         # --- worker ---------------------------------------------------------------------------------------------
-        self._mailbox = Mailbox()
+        self._mailbox = Mailbox(merge=_merge_incoming)
+        self._last_received_stamp_ns = None   # header stamp of the newest image received (callback thread only)
+        self._gap_carry_ns = None             # longest image gap since the last push (worker thread only)
         self._stop = threading.Event()
         self._last_stamp_ns = None
         self._last_size = None
@@ -468,7 +491,13 @@ class DepthCameraNode(_node_base()):
         self.n_received += 1
         self._last_image_mono = time.monotonic()
         self.in_rate.tick(self._last_image_mono)
-        if self._mailbox.put(_Incoming(msg, time.monotonic(), time.time_ns())):
+        try:
+            stamp_ns = self._M.stamp_to_ns(msg.header.stamp)
+        except Exception:   # a malformed header is reported by the worker; no gap to measure here
+            stamp_ns = None
+        last, self._last_received_stamp_ns = self._last_received_stamp_ns, stamp_ns
+        gap_ns = stamp_ns - last if stamp_ns is not None and last is not None and stamp_ns > last else None
+        if self._mailbox.put(_Incoming(msg, time.monotonic(), time.time_ns(), gap_ns)):
             with self._stats_lock:
                 self.dropped[BUSY] += 1
             self.faults.report(BUSY, 'estimator busy: dropping an older image that was still waiting (newest wins; '
@@ -537,6 +566,7 @@ class DepthCameraNode(_node_base()):
             self.pose_refiner.reset()
         if self.visual_odometry is not None:
             self.visual_odometry.reset()
+        self._gap_carry_ns = None
         self._keyframe_meta.clear()
         self._frame_meta.clear()
 
@@ -569,6 +599,8 @@ class DepthCameraNode(_node_base()):
         msg = item.msg
         stamp_ns = M.stamp_to_ns(msg.header.stamp)
         frame_id = msg.header.frame_id
+        # the stream's longest image gap since the last push: images dropped here (bad input, no pose) count too
+        self._gap_carry_ns = _max_gap(self._gap_carry_ns, item.gap_ns)
 
         # 1. decode
         try:
@@ -647,23 +679,19 @@ class DepthCameraNode(_node_base()):
         from dpv_sensor.frame import Frame
         stamp_s = stamp_ns / NS
         meta = _FrameMeta(stamp_ns, frame_id, rgb, K, size[0], size[1], item.receipt_mono, item.receipt_ns)
-        frame = Frame(stamp=stamp_s, image=rgb, K_33=K, T_world_cam_44=T_world_cam, frame_id=frame_id)
+        gap_ns, self._gap_carry_ns = self._gap_carry_ns, None
+        frame = Frame(stamp=stamp_s, image=rgb, K_33=K, T_world_cam_44=T_world_cam, frame_id=frame_id,
+                      sensor_gap_s=None if gap_ns is None else gap_ns / NS)
         t0 = time.perf_counter()
-        with self._stats_lock:
-            busy_drops = self.dropped[BUSY]
         with self._estimator_lock:
             keyframes_before = self._status_int('keyframes')
-            resets_before = self._status_int('resets')
             try:
                 out = self.estimator.push(frame)
             except Exception as exc:
                 out = None
                 self._on_estimator_exception(exc)
             is_keyframe = self._status_int('keyframes') > keyframes_before
-            if self._status_int('resets') > resets_before:
-                self._check_self_inflicted_reset(busy_drops)
         self._last_push_ms = (time.perf_counter() - t0) * 1000.0
-        self._busy_drops_at_push = busy_drops
         self.process_ms.append(self._last_push_ms)
         if is_keyframe:
             self.keyframe_ms.append(self._last_push_ms)
@@ -678,18 +706,6 @@ class DepthCameraNode(_node_base()):
         except Exception as exc:
             self.faults.report(PUBLISH_ERROR, f'could not publish the output for {out.stamp:.3f} s: '
                                f'{type(exc).__name__}: {exc}', level='error')
-
-    def _check_self_inflicted_reset(self, busy_drops: int) -> None:
-        """A filter restart for a time gap that exists only because this node dropped the frames in between (the
-        estimator was busy): on slow hardware that repeats at every keyframe and the filter never accumulates."""
-        reason = str(self.estimator.status.get('last_reset_reason') or '')
-        if not reason.startswith('time gap') or busy_drops <= self._busy_drops_at_push:
-            return
-        slow = max(self._last_push_ms, float(self.process_ms[-1]) if self.process_ms else 0.0)
-        self.faults.report(SLOW_RESET, f'the filter restarted ({reason}) only because images were dropped while the '
-                           f'estimator was busy (the previous push took {slow:.0f} ms): processing is too slow for '
-                           f"reset_time_gap {self.config['reset_time_gap']:g} s - raise reset_time_gap, lower "
-                           'processing_width/height or use a faster device', period_s=60.0)
 
     def _status_int(self, key: str) -> int:
         if self.estimator is None:

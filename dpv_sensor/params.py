@@ -37,6 +37,9 @@ SPECS: tuple[ParamSpec, ...] = (
     ParamSpec('measurement', 'auto', 'Measurement model: auto (network, classical fallback), network or classical.',
               choices=('auto', 'network', 'classical')),
     ParamSpec('device', 'cpu', 'Torch device: cpu, cuda or cuda:N.'),
+    ParamSpec('torch_threads', 0, 'CPU threads for torch (torch.set_num_threads, applied when the estimator is '
+              'built; process-wide). 0 leaves torch\'s default. On a loaded 2-core machine 1 gives the steadiest '
+              'latency.', min_value=0, max_value=64),
     ParamSpec('processing_width', 320, 'Width the images are resized to for estimation (pixels).',
               min_value=32, max_value=4096),
     ParamSpec('processing_height', 256, 'Height the images are resized to for estimation (pixels).',
@@ -50,12 +53,16 @@ SPECS: tuple[ParamSpec, ...] = (
               '(knet needs network weights; falls back to global).', choices=('none', 'bayes', 'global', 'knet')),
     ParamSpec('damping', 0.8, 'Global damping lambda of the prediction energy (paper eq. 8).',
               min_value=0.0, max_value=1.0),
-    ParamSpec('reset_time_gap', 1.0, 'Reset the filter when keyframes are further apart than this (s).',
-              min_value=0.0, max_value=3600.0),
-    ParamSpec('reset_translation', 1.0, 'Reset the filter when the camera jumps further than this between '
-              'keyframes (m).', min_value=0.0, max_value=1000.0),
-    ParamSpec('reset_rotation_deg', 45.0, 'Reset the filter when the camera turns more than this between '
-              'keyframes (deg).', min_value=0.0, max_value=180.0),
+    ParamSpec('reset_time_gap', 1.0, 'Reset the filter when the camera stream itself has a gap longer than this '
+              '(s): two consecutive received images further apart. Images the node drops while busy do not '
+              'count. 0 disables.', min_value=0.0, max_value=3600.0),
+    ParamSpec('reset_translation', 1.0, 'Reset the filter when the camera jumps: moves more than this (m) per '
+              'second of elapsed time between processed frames, and never less than this (frames under 1 s '
+              'apart are held to it). Continuous motion across dropped frames or distant keyframes does not '
+              'reset. 0 disables.', min_value=0.0, max_value=1000.0),
+    ParamSpec('reset_rotation_deg', 45.0, 'Reset the filter when the camera turns more than this (deg) per second '
+              'of elapsed time between processed frames, and never less than this (as reset_translation). '
+              '0 disables.', min_value=0.0, max_value=180.0),
     # --- keyframes and window -----------------------------------------------------------------------------
     ParamSpec('window_mode', 'causal', 'causal: past keyframes only (no latency); centered: the paper window, two '
               'keyframes of latency.', choices=('causal', 'centered')),

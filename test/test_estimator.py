@@ -93,7 +93,8 @@ def sideways(n, step=0.03, **kw):
 def test_config_from_node_parameters():
     values = P.validate(P.defaults())
     cfg = EstimatorConfig.from_params(values)
-    for name in ('preset', 'weights', 'measurement', 'device', 'processing_width', 'processing_height', 'd_min',
+    for name in ('preset', 'weights', 'measurement', 'device', 'torch_threads', 'processing_width',
+                 'processing_height', 'd_min',
                  'd_max', 'num_planes', 'filter_mode', 'damping', 'reset_time_gap', 'reset_translation',
                  'reset_rotation_deg', 'window_mode', 'keyframe_translation', 'keyframe_rotation_deg',
                  'keyframe_max_interval', 'publish_between_keyframes', 'output_resolution', 'pose_refinement'):
@@ -105,6 +106,19 @@ def test_config_from_node_parameters():
     assert cfg.window_mode == 'centered' and cfg.processing_size == (96, 256)
     with pytest.raises(ValueError, match='window_mode'):
         EstimatorConfig(window_mode='sideways').validate()
+    with pytest.raises(ValueError, match='torch_threads'):
+        EstimatorConfig(torch_threads=65).validate()
+
+
+def test_torch_threads_is_applied_at_construction():
+    try:
+        torch.set_num_threads(2)
+        Estimator(small_config())                               # 0: torch's setting is left alone
+        assert torch.get_num_threads() == 2
+        est = Estimator(small_config(torch_threads=1))
+        assert torch.get_num_threads() == 1 and est.status['torch_threads'] == 1
+    finally:
+        torch.set_num_threads(1)
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -372,6 +386,102 @@ def test_time_gap_and_pose_jump_reset():
     assert est.status['resets'] == 2 and 'jumped' in est.status['last_reset_reason']
     assert est.push(frame_at(0, pose(x=1.0), stamp=2.03)) is None   # duplicate stamp: dropped, no reset
     assert est.status['resets'] == 2 and 'duplicate' in est.status['last_drop_reason']
+
+
+def smooth_path(t):
+    """A continuous camera path: 0.4 m/s sideways, a slow sway in y, turning 8 deg/s."""
+    return pose(x=0.4 * t, y=0.05 * math.sin(t), yaw_deg=8.0 * t)
+
+
+def sparse_stream(n_pushed=5, every=100, rate=30.0, **kw):
+    """Every `every`-th frame of a 30 Hz stream along `smooth_path` (the others were dropped by the caller):
+    pushed frames 3.33 s and 1.33 m / 27 deg apart, each saying the sensor gap was one frame (1/30 s)."""
+    frames = []
+    for k in range(n_pushed):
+        t = k * every / rate
+        f = frame_at(0, smooth_path(t), stamp=t, **kw)
+        f.sensor_gap_s = 1.0 / rate if k else None
+        frames.append(f)
+    return frames
+
+
+def test_deliberate_drops_do_not_reset():
+    """Keyframes seconds and more than reset_translation apart, along a continuous path, with a camera stream
+    that never stalled: neither the stream rules nor the filter's keyframe rules restart (default thresholds:
+    1 s, 1 m, 45 deg), so the filter fuses every keyframe into the previous belief."""
+    frames = sparse_stream()
+    dt, dr = pose_delta(frames[0].T_world_cam_44, frames[1].T_world_cam_44)
+    assert frames[1].stamp - frames[0].stamp > 3.0 and dt > 1.3 and 25 < dr < 45
+    cfg = small_config()
+    assert (cfg.reset_time_gap, cfg.reset_translation, cfg.reset_rotation_deg) == (1.0, 1.0, 45.0)
+    est = Estimator(cfg)
+    predictions = []
+    step = est.filter.step
+    est.filter.step = lambda *a, **kw: (lambda r: (predictions.append(r.predicted_logp_bdhw is not None), r)[1])(
+        step(*a, **kw))
+    outs = push_all(est, frames)
+    assert est.status['resets'] == 0 and est.status['last_reset_reason'] is None
+    assert all(o is not None for o in outs[1:])
+    assert outs[1].reset_reason == 'first frame'                # the filter's start, not a restart
+    assert [o.reset_reason for o in outs[2:]] == [None] * (len(frames) - 2)
+    assert predictions == [False] + [True] * (len(frames) - 2)  # every later keyframe was predicted and fused
+
+
+def test_without_sensor_gap_the_time_since_the_previous_frame_counts():
+    """Offline use (sensor_gap_s None): the same sparse frames look like a stalled stream and reset."""
+    frames = sparse_stream(n_pushed=3)
+    for f in frames:
+        f.sensor_gap_s = None
+    est = Estimator(small_config())
+    push_all(est, frames)
+    st = est.status
+    assert st['resets'] == 2 and st['last_reset_reason'].startswith('time gap 3.333 s since the previous frame')
+
+
+def test_real_sensor_gap_resets():
+    frames = sparse_stream(n_pushed=3)
+    frames[2].sensor_gap_s = 1.5                                # the camera delivered nothing for 1.5 s
+    est = Estimator(small_config())
+    outs = push_all(est, frames)
+    st = est.status
+    assert st['resets'] == 1
+    assert 'time gap 1.500 s in the camera stream > reset_time_gap 1 s' in st['last_reset_reason']
+    assert outs[2] is None                                      # first keyframe of the restarted stream
+    assert est.push(frame_at(0, smooth_path(7.0), stamp=7.0)).reset_reason.startswith('time gap')
+
+
+@pytest.mark.parametrize('extra,words', [
+    (pose(x=4.0), 'jumped'),                                    # > 3.33 m in 3.33 s: faster than 1 m/s
+    (pose(yaw_deg=160.0), 'turned'),                            # > 150 deg in 3.33 s: faster than 45 deg/s
+])
+def test_teleport_resets_even_between_distant_frames(extra, words):
+    frames = sparse_stream(n_pushed=3)
+    jump = frame_at(0, frames[2].T_world_cam_44 @ extra, stamp=frames[2].stamp)
+    jump.sensor_gap_s = 1 / 30.0
+    dt, dr = pose_delta(frames[1].T_world_cam_44, jump.T_world_cam_44)
+    assert (dt > 3.4) if words == 'jumped' else (dr > 155 and dt < 3.0)
+    est = Estimator(small_config())
+    push_all(est, frames[:2] + [jump])
+    assert est.status['resets'] == 1 and words in est.status['last_reset_reason']
+    assert 'per second' in est.status['last_reset_reason']
+
+
+def test_teleport_between_consecutive_frames_resets():
+    """Within one second the thresholds are absolute: 1.2 m or 50 deg from one 30 Hz frame to the next."""
+    for T, words in ((pose(x=1.23), 'jumped'), (pose(x=0.03, yaw_deg=50.0), 'turned')):
+        est = Estimator(small_config())
+        frames = sideways(2)
+        frames.append(frame_at(2, T))
+        frames[2].sensor_gap_s = 1 / 30.0
+        push_all(est, frames)
+        assert est.status['resets'] == 1 and words in est.status['last_reset_reason'], words
+
+
+def test_invalid_sensor_gap_is_an_error():
+    f = sideways(1)[0]
+    f.sensor_gap_s = -0.1
+    with pytest.raises(ValueError, match='sensor_gap_s'):
+        Estimator(small_config()).push(f)
 
 
 def test_image_size_change_resets():

@@ -10,7 +10,7 @@ sys.path.insert(0, os.path.dirname(__file__))
 from synthetic_planes import DT, Rect, intrinsics, render_scene, rot_y, se3  # noqa: E402
 
 from dpv_sensor import dpv  # noqa: E402
-from dpv_sensor.filter import DPVFilter, FilterStep  # noqa: E402
+from dpv_sensor.filter import MOTION_REFERENCE_S, DPVFilter, FilterStep, jump_limit  # noqa: E402
 
 W, H, D = 40, 30, 32
 D_MIN, D_MAX = 0.5, 6.0
@@ -266,6 +266,36 @@ def test_reset_translation_jump(warm):
 def test_reset_rotation_jump(warm):
     f, meas, Kt, planes = warm
     _check_reset(f.step(meas, Kt, se3(rot_y(math.radians(12))), 1.1, planes), meas, ['pose jump', 'rotation'])
+
+
+def test_jump_limit_is_a_speed_limit_with_a_floor():
+    assert MOTION_REFERENCE_S == 1.0
+    assert jump_limit(0.2, 0.0) == jump_limit(0.2, 0.5) == jump_limit(0.2, 1.0) == pytest.approx(0.2)
+    assert jump_limit(0.2, 3.0) == pytest.approx(0.6) and jump_limit(10.0, 2.5) == pytest.approx(25.0)
+    assert jump_limit(math.inf, 5.0) == math.inf
+
+
+def test_distant_steps_with_continuous_motion_do_not_reset():
+    """Keyframes of a stream whose frames in between were left out: steps 3 s apart, moving 0.5 m and
+    turning 25 deg each time (above the 0.2 m / 10 deg thresholds, below 3 s x those per second). With the
+    time-gap rule off (as the Estimator builds it) the filter keeps fusing; a faster motion still resets."""
+    Kt = intrinsics(8, 6, 6.0)
+    planes = dpv.depth_planes(0.5, 4.0, 8, dtype=DT)
+    gen = torch.Generator().manual_seed(7)
+    meas = dpv.normalize_log(torch.randn(1, 8, 6, 8, generator=gen, dtype=DT))
+    f = DPVFilter(mode='bayes', max_time_gap=math.inf, max_translation=0.2, max_rotation_deg=10.0)
+    assert f.step(meas, Kt, se3(), 0.0, planes).reset_reason == 'first frame'
+    for k in range(1, 4):
+        out = f.step(meas, Kt, se3(rot_y(math.radians(25 * k)), (0.5 * k, 0.0, 0.0)), 3.0 * k, planes)
+        assert out.reset_reason is None and out.predicted_logp_bdhw is not None, (k, out.reset_reason)
+    # 0.7 m in 3 s > 0.6 m; 35 deg in 3 s > 30 deg: teleports
+    T = se3(rot_y(math.radians(75)), (1.5, 0.7, 0.0))
+    _check_reset(f.step(meas, Kt, T, 12.0, planes), meas, ['pose jump', 'translation', 'in 3.000 s'])
+    _check_reset(f.step(meas, Kt, T @ se3(rot_y(math.radians(35))), 15.0, planes), meas, ['pose jump', 'rotation'])
+    # the time-gap rule, when a caller wants it, still judges the time between steps
+    g = DPVFilter(mode='bayes', max_time_gap=2.0, max_translation=0.2, max_rotation_deg=10.0)
+    g.step(meas, Kt, se3(), 0.0, planes)
+    _check_reset(g.step(meas, Kt, se3(t=(0.1, 0.0, 0.0)), 3.0, planes), meas, ['time gap'])
 
 
 def test_reset_layout_change(warm):

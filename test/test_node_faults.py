@@ -196,3 +196,24 @@ def test_fault_bag_replays_without_crash_and_every_fault_is_reported(fault_bag, 
         gt = seq.depth(stamps[rec.stamp_ns])
         valid = finite & (gt > 0.3) & (gt < 8.0)
         assert np.mean(np.abs(depth[valid] - gt[valid]) / gt[valid]) < 0.6
+
+
+def test_mailbox_drops_keep_the_longest_stream_gap():
+    """Newest-wins drops must not hide a stalled camera: the image that replaces a dropped one inherits its gap,
+    so the frame the worker pushes carries the longest interval between received images (Frame.sensor_gap_s)."""
+    from dpv_sensor.node import Mailbox, _Incoming, _max_gap, _merge_incoming
+    box = Mailbox(merge=_merge_incoming)
+    assert not box.put(_Incoming('a', 0.0, 0, gap_ns=None))      # first image: gap unknown
+    assert box.take(0.0).msg == 'a'
+    assert not box.put(_Incoming('b', 0.0, 0, gap_ns=33))
+    assert box.put(_Incoming('c', 0.0, 0, gap_ns=2 * NS))          # b dropped; c came after a 2 s stall
+    assert box.put(_Incoming('d', 0.0, 0, gap_ns=33))              # c dropped too
+    item = box.take(0.0)
+    assert item.msg == 'd' and item.gap_ns == 2 * NS and box.replaced == 2
+    assert box.take(0.0) is None
+    # without a merge the mailbox hands over the newest item untouched
+    plain = Mailbox()
+    plain.put(_Incoming('x', 0.0, 0, gap_ns=5))
+    plain.put(_Incoming('y', 0.0, 0, gap_ns=1))
+    assert plain.take(0.0).gap_ns == 1
+    assert _max_gap(None, None) is None and _max_gap(None, 3) == 3 and _max_gap(4, None) == 4 and _max_gap(4, 9) == 9
