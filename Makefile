@@ -5,6 +5,16 @@ export PYTHONPATH := $(CURDIR)
 export ROS_LOG_DIR ?= $(CURDIR)/log/ros
 BAG ?=
 OUT ?= out/demo
+# `make demo BAG=run.mcap IMAGE_TOPIC=/cam/image_raw CAMERA_INFO_TOPIC=/cam/camera_info ODOM_TOPIC=/odom \
+#   GT=seq_folder PARAMS="T_base_camera=[0,0,0,0,0,0,1]"` runs the demo on your own bag (see tools/demo.py).
+IMAGE_TOPIC ?=
+CAMERA_INFO_TOPIC ?=
+ODOM_TOPIC ?=
+GT ?=
+PARAMS ?=
+DEMO_ARGS ?=
+BENCH_OUT ?= out/bench
+BENCH_ARGS ?=
 
 .PHONY: venv demo test bench clean
 
@@ -12,13 +22,15 @@ venv:
 	@scripts/ensure_venv.sh
 
 demo: venv
-	$(PY) -m dpv_sensor.tools.demo --out $(OUT) $(if $(BAG),--bag $(BAG))
+	$(PY) -m dpv_sensor.tools.demo --out $(OUT) $(if $(BAG),--bag $(BAG)) \
+	  $(if $(IMAGE_TOPIC),--image-topic $(IMAGE_TOPIC)) $(if $(CAMERA_INFO_TOPIC),--camera-info-topic $(CAMERA_INFO_TOPIC)) \
+	  $(if $(ODOM_TOPIC),--odom-topic $(ODOM_TOPIC)) $(if $(GT),--gt $(GT)) $(if $(PARAMS),--params $(PARAMS)) $(DEMO_ARGS)
 
 test: venv
 	$(PY) -m pytest -q -ra test
 
 bench: venv
-	$(PY) -m dpv_sensor.tools.bench
+	$(PY) -m dpv_sensor.tools.bench --out $(BENCH_OUT) $(BENCH_ARGS)
 
 clean:
 	rm -rf build install log out .pytest_cache

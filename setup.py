@@ -8,6 +8,13 @@ PACKAGE = 'dpv_sensor'
 # Console tools, each runnable as `ros2 run dpv_sensor <name>`.
 TOOLS = {
     'node': 'dpv_sensor.node:main',
+    'evaluate': 'dpv_sensor.tools.evaluate:main',
+    'fuse': 'dpv_sensor.tools.fuse:main',
+    'train': 'dpv_sensor.tools.train:main',
+    'bag': 'dpv_sensor.tools.bag:main',
+    'soak': 'dpv_sensor.tools.soak:main',
+    'demo': 'dpv_sensor.tools.demo:main',
+    'bench': 'dpv_sensor.tools.bench:main',
 }
 
 setup(
