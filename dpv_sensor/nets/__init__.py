@@ -1,0 +1,20 @@
+"""Learned parts of dpv_sensor: D-Net (features + cost volume), K-Net, R-Net, presets, checkpoints.
+
+    from dpv_sensor.nets import DPVNet, get_preset, load_checkpoint, default_weights_path
+    net, meta = load_checkpoint(default_weights_path('lite'), preset='lite')
+
+torch only (no ROS imports). See model.py for the call interface and presets.py for the presets.
+"""
+from .checkpoint import CheckpointError, default_weights_path, load_checkpoint, read_metadata, save_checkpoint
+from .dnet import CostVolume, FeatureExtractor, ImageFeatures, feature_intrinsics, feature_size
+from .knet import KNet
+from .model import DPVNet, count_macs, count_parameters
+from .presets import PRESETS, Preset, get_preset, preset_names
+from .rnet import RNet, upsample_logp
+
+__all__ = [
+    'DPVNet', 'FeatureExtractor', 'CostVolume', 'KNet', 'RNet', 'ImageFeatures', 'Preset', 'PRESETS',
+    'get_preset', 'preset_names', 'feature_intrinsics', 'feature_size', 'upsample_logp',
+    'save_checkpoint', 'load_checkpoint', 'read_metadata', 'default_weights_path', 'CheckpointError',
+    'count_parameters', 'count_macs',
+]

@@ -1,0 +1,168 @@
+"""Training pipeline (issue 8): data stream, unrolled loss, checkpoints, resume, export.
+
+Everything runs at tiny sizes (<= 64x48, a few steps) so the file stays well under a minute on a
+shared 2-core CPU; nothing here depends on long training.
+"""
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from dpv_sensor import dpv
+from dpv_sensor.training.dataset import (TRAIN_SEED_BASE, VAL_SEEDS, SceneStream, StreamConfig, WindowLayout,
+                                         check_not_heldout)
+from dpv_sensor.training import loop
+
+
+def _small_stream(steps=2, w=64, h=48, **kw):
+    return StreamConfig(width=w, height=h, layout=WindowLayout(steps=steps), gap_min=2, gap_max=3, **kw)
+
+
+def test_window_layout_centered_and_causal():
+    ref, src = WindowLayout(steps=3, ref_position='center').indices()
+    assert ref.tolist() == [2, 3, 4]
+    assert src.tolist() == [[0, 1, 3, 4], [1, 2, 4, 5], [2, 3, 5, 6]]
+    ref, src = WindowLayout(steps=2, ref_position='last').indices()
+    assert ref.tolist() == [4, 5]
+    assert src[1].tolist() == [1, 2, 3, 4]
+
+
+def test_seed_sharding_is_disjoint_and_never_validation():
+    cfg = _small_stream()
+    seen = set()
+    for rank in range(3):
+        ds = SceneStream(cfg, rank=rank, world_size=3)
+        seeds = {ds.seed_of(i) for i in range(50)}
+        assert not (seeds & seen)
+        seen |= seeds
+    assert min(seen) >= TRAIN_SEED_BASE
+    assert not (seen & set(VAL_SEEDS))
+    with pytest.raises(ValueError):
+        StreamConfig(seed_base=5)
+    with pytest.raises(ValueError):
+        check_not_heldout('/x/shared/data/sun3d_3dmatch_frag1/')
+    with pytest.raises(ValueError):
+        loop.TrainConfig(val_seeds=(150,)).check()
+
+
+def test_sample_layout_geometry_and_determinism():
+    ds = SceneStream(_small_stream(steps=2), start_index=7)
+    a = ds.make_sample(7)
+    b = next(iter(ds))
+    M = 6
+    assert a['images'].shape == (M, 3, 48, 64) and a['depths'].shape == (M, 48, 64)
+    assert torch.equal(a['images'], b['images'])                 # sample i is a function of i only
+    assert int(a['seed']) == TRAIN_SEED_BASE + 7
+    assert torch.allclose(a['poses'][0], torch.eye(4), atol=1e-5)   # poses relative to the first keyframe
+    assert float(a['images'].min()) >= 0 and float(a['images'].max()) <= 1
+    assert (a['depths'] > 0).float().mean() > 0.5
+    c = ds.make_sample(8)
+    assert not torch.equal(a['images'], c['images'])              # a fresh scene per sample
+    assert a['src_count'].tolist() == [4, 4]                      # full windows by default
+
+
+def test_stream_start_runs_use_growing_source_counts():
+    causal = SceneStream(_small_stream(steps=3, ref_positions=('last',), startup_prob=1.0))
+    smp = causal.make_sample(0)
+    assert smp['ref_idx'].tolist() == [4, 5, 6]
+    assert smp['src_count'].tolist() == [1, 2, 3]                 # like the estimator after a (re)start
+    centred = SceneStream(_small_stream(steps=3, ref_positions=('center',), startup_prob=1.0))
+    assert centred.make_sample(0)['src_count'].tolist() == [4, 4, 4]
+
+
+def test_unrolled_loss_falls_and_reaches_every_net():
+    from dpv_sensor.nets.model import DPVNet
+    torch.manual_seed(0)
+    torch.set_num_threads(max(1, min(2, torch.get_num_threads())))
+    model = DPVNet('lite')
+    depths = model.depth_planes()
+    # a stream-start run: step 0 has a single source view, step 1 two
+    smp = SceneStream(_small_stream(steps=2, ref_positions=('last',), startup_prob=1.0)).make_sample(0)
+    assert smp['src_count'].tolist() == [1, 2]
+    batch = {k: v[None] for k, v in smp.items()}
+    opt = torch.optim.AdamW(model.parameters(), lr=2e-3)
+    losses = []
+    for it in range(10):
+        loss, stats = loop.run_unrolled(model, batch, depths, aux_weight=0.5)
+        assert math.isfinite(stats['loss']) and stats['resets'] == 0
+        opt.zero_grad()
+        loss.backward()
+        if it == 0:
+            for name, sub in (('features', model.features), ('knet', model.knet), ('rnet', model.rnet)):
+                g = sum(float(p.grad.abs().sum()) for p in sub.parameters() if p.grad is not None)
+                assert g > 0, f'no gradient reaches {name}'
+        opt.step()
+        losses.append(stats['loss'])
+    assert np.mean(losses[-3:]) < losses[0] - 0.05, losses
+
+
+def test_optimizer_state_roundtrip_without_pickle():
+    m = torch.nn.Sequential(torch.nn.Linear(3, 4), torch.nn.Linear(4, 1))
+    opt = torch.optim.AdamW(m.parameters(), lr=1e-2)
+    for _ in range(3):
+        opt.zero_grad()
+        m(torch.randn(5, 3)).sum().backward()
+        opt.step()
+    tensors, meta = loop._optimizer_to_flat(opt)
+    meta = json.loads(json.dumps(meta))
+    opt2 = torch.optim.AdamW(m.parameters(), lr=5.0)
+    opt2.load_state_dict(loop._optimizer_from_flat(tensors, meta))
+    s1, s2 = opt.state_dict(), opt2.state_dict()
+    assert s2['param_groups'][0]['lr'] == pytest.approx(1e-2)
+    for pid in s1['state']:
+        for k in ('exp_avg', 'exp_avg_sq', 'step'):
+            assert torch.equal(torch.as_tensor(s1['state'][pid][k]), torch.as_tensor(s2['state'][pid][k]))
+
+
+def _tiny_config(tmp_path, steps):
+    return loop.TrainConfig(preset='lite', run_dir=str(tmp_path / 'run'), export_path=str(tmp_path / 'w' / 'lite.safetensors'),
+                            width=48, height=32, steps=steps, batch_size=1, unroll=2, gap_min=2, gap_max=3,
+                            warmup=1, num_workers=0, threads=1, ckpt_every=2, log_every=1, val_every=3,
+                            val_seeds=(0,), val_keyframes=5, val_gap=2)
+
+
+def test_trainer_checkpoint_resume_and_export(tmp_path):
+    from dpv_sensor.nets.checkpoint import load_checkpoint
+    from safetensors.torch import load_file
+    out = loop.train(_tiny_config(tmp_path, steps=3), quiet=True)
+    assert out['step'] == 3
+    run = tmp_path / 'run'
+    ck = loop.latest_checkpoint(str(run))
+    assert ck is not None and ck.name == 'step_0000003'
+    state = json.loads((ck / 'state.json').read_text())
+    assert state['step'] == 3 and state['samples_seen'] == 3
+    assert [v['step'] for v in state['history']['val']] == [0, 3]
+    for f in ('loss_curves.png', 'val_montage_0000003.png', 'train.jsonl', 'val.jsonl'):
+        assert (run / f).is_file(), f
+    # the export loads through the project's checkpoint reader and carries the metadata
+    model, meta = load_checkpoint(str(tmp_path / 'w' / 'lite.safetensors'))
+    assert meta['preset'] == 'lite' and meta['D'] == model.preset.num_planes
+    assert meta['steps'] in (0, 3) and 'net_knet' in meta['validation_metrics']
+    assert meta['training_data']['train_seed_range'][0] >= TRAIN_SEED_BASE
+    saved = load_file(str(ck / 'model.safetensors'))
+
+    # resume: continues at step 3 with the saved weights and optimiser, runs to 5
+    t = loop.Trainer(_tiny_config(tmp_path, steps=5), resume=True, quiet=True)
+    assert t.step == 3 and t.samples_seen == 3
+    for k, v in t.model.state_dict().items():
+        assert torch.equal(v, saved[k]), k
+    assert len(t.optimizer.state) > 0
+    assert t.loader().dataset.start_index == 3          # the data stream continues, no scene repeats
+    out = t.train()
+    assert out['step'] == 5
+    assert loop.latest_checkpoint(str(run)).name == 'step_0000005'
+    rows = [json.loads(l) for l in (run / 'train.jsonl').read_text().splitlines()]
+    assert [r['step'] for r in rows] == [1, 2, 3, 4, 5]
+
+
+def test_cli_parses_and_refuses_sun3d(tmp_path):
+    from dpv_sensor.tools import train as tool
+    a = tool.build_parser().parse_args(['--val-seeds', '0-2,7', '--steps', '9'])
+    cfg = tool.config_from_args(a)
+    assert cfg.val_seeds == (0, 1, 2, 7) and cfg.steps == 9
+    assert tool.main(['--folders', str(tmp_path / 'sun3d_3dmatch_frag2'), '--folder-prob', '0.5',
+                      '--run-dir', str(tmp_path / 'r')]) == 2
