@@ -139,6 +139,7 @@ def test_trainer_checkpoint_resume_and_export(tmp_path):
     for f in ('loss_curves.png', 'val_montage_0000003.png', 'train.jsonl', 'val.jsonl'):
         assert (run / f).is_file(), f
     # the export loads through the project's checkpoint reader and carries the metadata
+    assert (tmp_path / 'w' / 'lite.safetensors').stat().st_mode & 0o044 == 0o044   # world-readable package file
     model, meta = load_checkpoint(str(tmp_path / 'w' / 'lite.safetensors'))
     assert meta['preset'] == 'lite' and meta['D'] == model.preset.num_planes
     assert meta['steps'] in (0, 3) and 'net_knet' in meta['validation_metrics']

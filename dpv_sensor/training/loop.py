@@ -643,6 +643,7 @@ def export_weights(model: nn.Module, path: str, metadata: Dict) -> None:
     tmp = target.with_name(f'.{target.stem}.tmp-{os.getpid()}.safetensors')
     try:
         save_checkpoint(str(tmp), model, _json_safe(metadata))
+        os.chmod(tmp, 0o644)          # a packaged file: readable by the user the node runs as
         os.replace(tmp, target)
     finally:
         if tmp.exists():
