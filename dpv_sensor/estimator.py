@@ -108,6 +108,7 @@ from . import dpv as dpv_ops
 from . import geometry
 from .filter import jump_limit
 from .frame import DepthOutput, Frame
+from .geometry import scale_intrinsics_np
 from .keyframes import WINDOW_MODES, Keyframe, KeyframeSelector, KeyframeWindow, pose_delta
 
 __all__ = ['EstimatorConfig', 'Estimator', 'PoseRefinementRequest', 'default_weights_path', 'evaluate_offline',
@@ -269,17 +270,6 @@ class _Measurement:
 # ------------------------------------------------------------------------------------------------------
 # small helpers
 # ------------------------------------------------------------------------------------------------------
-
-def _scale_K_np(K_33: np.ndarray, sx: float, sy: float) -> np.ndarray:
-    """fx' = fx*sx, cx' = (cx + 0.5)*sx - 0.5 (same for y) - the project's resize convention."""
-    K = np.array(K_33, dtype=np.float64, copy=True)
-    K[0, 0] *= sx
-    K[0, 1] *= sx
-    K[0, 2] = (K[0, 2] + 0.5) * sx - 0.5
-    K[1, 1] *= sy
-    K[1, 2] = (K[1, 2] + 0.5) * sy - 0.5
-    return K
-
 
 def _is_rigid(T_44: np.ndarray, tol: float = 1e-3) -> bool:
     R = T_44[:3, :3]
@@ -641,7 +631,7 @@ class Estimator:
         if (w0, h0) != (W, H):
             interp = cv2.INTER_AREA if (W <= w0 and H <= h0) else cv2.INTER_LINEAR
             image = cv2.resize(image, (W, H), interpolation=interp)
-        K = _scale_K_np(K_in, W / w0, H / h0)
+        K = scale_intrinsics_np(K_in, W / w0, H / h0)
         t = torch.from_numpy(np.ascontiguousarray(image)).to(self.device)
         t = t.permute(2, 0, 1)[None].float().div_(255.0)
         return t.contiguous(), K
@@ -832,7 +822,7 @@ class Estimator:
         conf = torch.where(valid, conf_bhw.clamp(0.0, 1.0), torch.zeros_like(conf_bhw))
         H, W = depth.shape[-2:]
         # the processing K in float64, exactly as the resize convention gives it
-        K_out = _scale_K_np(K_in_33, W / input_size[0], H / input_size[1])
+        K_out = scale_intrinsics_np(K_in_33, W / input_size[0], H / input_size[1])
         if self.config.output_resolution == 'input' and (input_size[0], input_size[1]) != (W, H):
             hw = (int(input_size[1]), int(input_size[0]))
             maps = torch.stack([depth, conf], 1)
@@ -867,7 +857,7 @@ class Estimator:
                                                  p.K_vol_b33, T_prev_cur)
         valid_v = valid_v & ok & (cov[:, 0] > 0.5)
         W, H = cfg.processing_size
-        K_proc = torch.as_tensor(_scale_K_np(K_in, W / size[0], H / size[1]), dtype=torch.float32,
+        K_proc = torch.as_tensor(scale_intrinsics_np(K_in, W / size[0], H / size[1]), dtype=torch.float32,
                                  device=self.device)
         depth, conf, valid = self._volume_maps_to_processing(depth_v, conf_v, valid_v, p.K_vol_b33[0], K_proc, (H, W))
         out = self._compose(depth, conf, valid, size, K_in, float(frame.stamp), T, False, None)

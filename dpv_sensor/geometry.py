@@ -16,6 +16,7 @@ from __future__ import annotations
 
 from typing import Optional, Sequence, Tuple
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 
@@ -36,6 +37,18 @@ __all__ = [
 # ----------------------------------------------------------------------------------------------
 # Intrinsics
 # ----------------------------------------------------------------------------------------------
+
+def scale_intrinsics_np(K_33, sx: float, sy: float) -> np.ndarray:
+    """Numpy float64 twin of scale_intrinsics: K for an image scaled by (sx, sy): fx' = fx*sx, cx' = (cx + 0.5)*sx - 0.5 (same for y)."""
+    K = np.array(K_33, dtype=np.float64, copy=True)
+    K[0, 0] *= sx
+    K[0, 1] *= sx
+    K[0, 2] = (K[0, 2] + 0.5) * sx - 0.5
+    K[1, 1] *= sy
+    K[1, 2] = (K[1, 2] + 0.5) * sy - 0.5
+    return K
+
+
 
 def scale_intrinsics(K_b33: torch.Tensor, sx: float, sy: float) -> torch.Tensor:
     """Intrinsics of an image resized by factors (sx, sy) (new_size = old_size * s).

@@ -42,3 +42,18 @@ def sun3d_frag2() -> pathlib.Path:
 @pytest.fixture
 def tartanair_hospital() -> pathlib.Path:
     return shared_sequence('tartanair_hospital')
+
+
+@pytest.fixture
+def observer():
+    """A private rclpy context with one node and an executor, for watching the node under test over DDS."""
+    import rclpy
+    context = rclpy.context.Context()
+    rclpy.init(context=context)
+    node = rclpy.create_node('test_observer', context=context)
+    executor = rclpy.executors.SingleThreadedExecutor(context=context)
+    executor.add_node(node)
+    yield node, executor
+    executor.shutdown()
+    node.destroy_node()
+    rclpy.shutdown(context=context)

@@ -14,7 +14,6 @@ import threading
 import cv2
 import numpy as np
 import pytest
-import rclpy
 
 from ros_helpers import start_node, stop_process, wait_for
 from dpv_sensor import msgs as M
@@ -102,17 +101,6 @@ def fault_bag(tmp_path_factory):
     return seq, path, corrupt
 
 
-@pytest.fixture
-def observer():
-    context = rclpy.context.Context()
-    rclpy.init(context=context)
-    node = rclpy.create_node('test_faults_observer', context=context)
-    executor = rclpy.executors.SingleThreadedExecutor(context=context)
-    executor.add_node(node)
-    yield node, executor
-    executor.shutdown()
-    node.destroy_node()
-    rclpy.shutdown(context=context)
 
 
 EXPECTED_LOGS = {

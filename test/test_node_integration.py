@@ -90,17 +90,6 @@ def offline(scene):
     return run_estimator(seq, summary.image_stamps_ns, range(FRAMES))
 
 
-@pytest.fixture
-def observer():
-    context = rclpy.context.Context()
-    rclpy.init(context=context)
-    node = rclpy.create_node('test_integration_observer', context=context)
-    executor = rclpy.executors.SingleThreadedExecutor(context=context)
-    executor.add_node(node)
-    yield node, executor
-    executor.shutdown()
-    node.destroy_node()
-    rclpy.shutdown(context=context)
 
 
 def test_replayed_bag_gives_depth_for_every_keyframe_with_exact_headers(scene, offline, observer, tmp_path):

@@ -2,23 +2,11 @@
 import signal
 
 import pytest
-import rclpy
 
 from ros_helpers import start_node, stop_process, wait_for
 from dpv_sensor.node import NODE_NAME
 
 
-@pytest.fixture
-def observer():
-    context = rclpy.context.Context()
-    rclpy.init(context=context)
-    node = rclpy.create_node('test_observer', context=context)
-    executor = rclpy.executors.SingleThreadedExecutor(context=context)
-    executor.add_node(node)
-    yield node, executor
-    executor.shutdown()
-    node.destroy_node()
-    rclpy.shutdown(context=context)
 
 
 def _visible(node) -> bool:

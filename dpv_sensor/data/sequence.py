@@ -30,6 +30,8 @@ from typing import Any, Callable, Dict, List, NamedTuple, Optional, Sequence as 
 import cv2
 import numpy as np
 
+from ..geometry import scale_intrinsics_np  # noqa: F401  (re-exported: the resize convention)
+
 PathLike = Union[str, os.PathLike]
 
 DEFAULT_FPS = 30.0
@@ -132,17 +134,6 @@ def depth_to_png_mm(depth_m: np.ndarray) -> np.ndarray:
     mm[valid] = np.round(d[valid] * 1000.0)
     mm[(mm > MAX_DEPTH_MM)] = 0
     return mm.astype(np.uint16)
-
-
-def scale_intrinsics_np(K_33: np.ndarray, sx: float, sy: float) -> np.ndarray:
-    """K for an image scaled by (sx, sy): fx' = fx*sx, cx' = (cx + 0.5)*sx - 0.5 (same for y)."""
-    K = np.array(K_33, dtype=np.float64, copy=True)
-    K[0, 0] *= sx
-    K[0, 1] *= sx
-    K[0, 2] = (K[0, 2] + 0.5) * sx - 0.5
-    K[1, 1] *= sy
-    K[1, 2] = (K[1, 2] + 0.5) * sy - 0.5
-    return K
 
 
 def _as_rgb_uint8(image: np.ndarray) -> np.ndarray:

@@ -737,6 +737,9 @@ def build_parser() -> argparse.ArgumentParser:
     n.add_argument('--domain-id', type=int, default=None, help='ROS_DOMAIN_ID (default: a random private one)')
     f = p.add_argument_group('fusion')
     f.add_argument('--voxel', type=float, default=0.03, help='TSDF voxel size in m (default 0.03)')
+    f.add_argument('--fuse-min-confidence', type=float, default=0.9,
+                   help='confidence threshold of the masked mesh (default 0.9: the lite weights put ~97 %% of '
+                        'pixels above 0.5, so 0.5 masks almost nothing)')
     f.add_argument('--no-fusion', action='store_true', help='skip step 7')
     p.add_argument('--quiet', action='store_true', help='no progress bars')
     return p
@@ -884,12 +887,13 @@ def main(argv: Optional[List[str]] = None) -> int:
         else:
             from dpv_sensor.tools import fuse as FU
             fuse_argv = ['bag', str(output_bag), '--gt', str(gt_dir), '--out', str(fusion_dir), '--voxel',
-                         f'{a.voxel:g}']
+                         f'{a.voxel:g}', '--min-confidence', f'{a.fuse_min_confidence:g}']
             if a.stamp_offset != 'auto':
                 fuse_argv += ['--stamp-offset', str(a.stamp_offset)]
             summary['fuse_command'] = ('python -m dpv_sensor.tools.fuse bag ' + _rel(output_bag) + ' --gt ' +
                                        _rel(gt_dir) + ' --out ' + _rel(out / 'fusion_by_hand') +
-                                       f' --voxel {a.voxel:g}' + ''.join(' ' + x for x in offset))
+                                       f' --voxel {a.voxel:g} --min-confidence {a.fuse_min_confidence:g}' +
+                                       ''.join(' ' + x for x in offset))
             with steps.step('fuse', f'TSDF-fuse the recorded depth (voxel {a.voxel:g} m) and score the mesh -> '
                             f'{_rel(fusion_dir)}') as rec:
                 code, text = _run_tool(FU.main, fuse_argv + ['--quiet'], logs / 'fuse.txt')

@@ -3,8 +3,8 @@
 Examples::
 
     # the lite preset on a 2-core CPU, in the background, resumable
-    nohup python -m dpv_sensor.tools.train --preset lite --run-dir /work/notes/train_runs/lite \\
-        --threads 2 --num-workers 1 --resume > /work/notes/train_runs/lite/stdout.log 2>&1 &
+    nohup python -m dpv_sensor.tools.train --preset lite --run-dir runs/lite \\
+        --threads 2 --num-workers 1 --resume > runs/lite/stdout.log 2>&1 &
     # continue after a stop (same command; --resume picks checkpoints/latest.json)
     # stop cleanly (writes a checkpoint first): kill -TERM <pid>
 

@@ -1,0 +1,120 @@
+"""Held-out evaluation of the trained lite network vs the classical model vs a constant depth.
+
+Runs dpv_sensor.estimator.evaluate_offline (the product's streaming path: keyframe selection, causal
+5-keyframe windows, filter, 320x256 processing, output at the input size) with GT poses on the given
+sequences, for filter modes none / global / knet, and scores keyframe outputs with
+dpv_sensor.metrics (metric, frame means). Constant depth = the median GT depth of the sequence (an
+oracle constant, i.e. a strong constant baseline), scored on the same keyframes.
+
+    .venv/bin/python -m dpv_sensor.benchmarks.heldout --weights dpv_sensor/weights/lite.safetensors \
+        --out results.json [--seqs sun3d_3dmatch_frag1 sun3d_3dmatch_frag2] [--synthetic-seeds 0-9]
+"""
+import argparse
+import pathlib
+import json
+import sys
+import time
+
+import numpy as np
+import torch
+
+from dpv_sensor.data.sequence import Sequence
+from dpv_sensor.estimator import EstimatorConfig, evaluate_offline
+from dpv_sensor.metrics import MetricAccumulator
+
+# ../shared/data beside the checkout (development machines only)
+DATA = str(pathlib.Path(__file__).resolve().parents[2].parent / 'shared' / 'data')
+
+
+def load_model(path):
+    from safetensors.torch import load_file
+    from dpv_sensor.nets.model import DPVNet
+    try:
+        from dpv_sensor.nets.checkpoint import load_checkpoint
+        model, meta = load_checkpoint(path)
+        return model.eval(), meta
+    except Exception as e:          # plain safetensors (run dir's best_model.safetensors)
+        print(f'load_checkpoint failed ({e}); reading plain safetensors', file=sys.stderr)
+        m = DPVNet('lite')
+        m.load_state_dict(load_file(path))
+        return m.eval(), {}
+
+
+def summarize(res):
+    s = res['summary']
+    fm = s['metric']['frame_mean']
+    out = {k: fm[k] for k in ('abs_rel', 'sq_rel', 'rmse', 'delta1')}
+    out['ms_abs_rel'] = s['median_scaled']['frame_mean']['abs_rel']
+    out['coverage'] = s['coverage']['frame_mean']
+    c = s.get('confidence', {})
+    out['confident_half_ratio'] = c.get('confident_half_ratio_frame_mean')
+    out['ause'] = c.get('ause_frame_mean')
+    out['frames'] = s['num_frames']
+    ts = [r.get('time_ms') for r in res['rows'] if r.get('time_ms') is not None]
+    out['time_ms'] = float(np.nanmean(ts)) if ts else None
+    return out
+
+
+def constant_baseline(seq, indices, d_min, d_max):
+    deps = [seq.depth(i) for i in range(len(seq))]
+    allv = np.concatenate([d[(d > 0) & np.isfinite(d)] for d in deps])
+    c = float(np.median(allv))
+    acc = MetricAccumulator(min_depth=d_min, max_depth=d_max)
+    for i in indices:
+        gt = deps[i]
+        acc.add(np.full_like(gt, c), gt)
+    s = acc.summary()
+    fm = s['metric']['frame_mean']
+    return {'abs_rel': fm['abs_rel'], 'sq_rel': fm['sq_rel'], 'rmse': fm['rmse'], 'delta1': fm['delta1'],
+            'constant_m': c, 'frames': s['num_frames']}
+
+
+def main():
+    ap = argparse.ArgumentParser()
+    ap.add_argument('--weights', required=True)
+    ap.add_argument('--out', required=True)
+    ap.add_argument('--seqs', nargs='*', default=['sun3d_3dmatch_frag1', 'sun3d_3dmatch_frag2'])
+    ap.add_argument('--synthetic-seeds', default='', help="e.g. '0-9' (held-out synthetic seeds)")
+    ap.add_argument('--synthetic-frames', type=int, default=60)
+    ap.add_argument('--modes', nargs='*', default=['none', 'global', 'knet'])
+    ap.add_argument('--window-mode', default='causal')
+    ap.add_argument('--no-classical', action='store_true')
+    ap.add_argument('--threads', type=int, default=2)
+    a = ap.parse_args()
+    torch.set_num_threads(a.threads)
+    model, meta = load_model(a.weights)
+    D = model.preset.num_planes
+    seqs = [(n, Sequence(f'{DATA}/{n}')) for n in a.seqs]
+    if a.synthetic_seeds:
+        from dpv_sensor.data.synthetic import render_sequence
+        lo, hi = (int(x) for x in a.synthetic_seeds.split('-'))
+        for s in range(lo, hi + 1):
+            assert s < 100, 'only held-out seeds'
+            seqs.append((f'synthetic_seed{s}', render_sequence(s, a.synthetic_frames, width=320, height=240, lazy=True)))
+    results = {'weights': a.weights, 'steps': meta.get('steps'), 'window_mode': a.window_mode, 'sequences': {}}
+    for name, seq in seqs:
+        r = {}
+        kf_idx = None
+        for mode in a.modes:
+            t0 = time.time()
+            cfg = EstimatorConfig(preset=model.preset.name, measurement='network', filter_mode=mode,
+                                  num_planes=D, window_mode=a.window_mode)
+            res = evaluate_offline(seq, cfg, model=model)
+            r[f'net_{mode}'] = summarize(res)
+            kf_idx = [row['index'] for row in res['rows']]
+            print(name, 'net', mode, json.dumps(r[f'net_{mode}']), f'{time.time() - t0:.0f}s', flush=True)
+        if not a.no_classical:
+            for mode in [m for m in a.modes if m != 'knet']:
+                cfg = EstimatorConfig(measurement='classical', filter_mode=mode, window_mode=a.window_mode)
+                res = evaluate_offline(seq, cfg)
+                r[f'classical_{mode}'] = summarize(res)
+                print(name, 'classical', mode, json.dumps(r[f'classical_{mode}']), flush=True)
+        r['constant_median'] = constant_baseline(seq, kf_idx, 0.3, 8.0)
+        print(name, 'constant', json.dumps(r['constant_median']), flush=True)
+        results['sequences'][name] = r
+    with open(a.out, 'w') as f:
+        json.dump(results, f, indent=1)
+
+
+if __name__ == '__main__':
+    main()
