@@ -47,6 +47,8 @@ import threading
 import time
 from typing import Any, Dict, List, Optional, Tuple
 
+from dpv_sensor.tools.node_process import proc_status_kib
+
 REPO = pathlib.Path(__file__).resolve().parents[2]
 PARTS = ('nets', 'core', 'estimator', 'node')
 CLASSICAL_PLANES = 64      # the node's default num_planes (the classical model's D)
@@ -55,15 +57,7 @@ CLASSICAL_PLANES = 64      # the node's default num_planes (the classical model'
 # --------------------------------------------------------------------------------------------------------------
 # memory helpers
 # --------------------------------------------------------------------------------------------------------------
-def _status_kib(key: str, pid: str = 'self') -> Optional[int]:
-    try:
-        with open(f'/proc/{pid}/status') as f:
-            for line in f:
-                if line.startswith(key + ':'):
-                    return int(line.split()[1])
-    except OSError:
-        return None
-    return None
+
 
 
 class PeakMemory:
@@ -83,7 +77,7 @@ class PeakMemory:
             self._reset = True
         except OSError:
             self._reset = False
-        self._rss0 = _status_kib('VmRSS')
+        self._rss0 = proc_status_kib('self', 'VmRSS')
         if self.device.startswith('cuda'):
             torch.cuda.synchronize()
             self._cuda0 = torch.cuda.memory_allocated()
@@ -92,7 +86,7 @@ class PeakMemory:
 
     def __exit__(self, *exc):
         import torch
-        hwm = _status_kib('VmHWM')
+        hwm = proc_status_kib('self', 'VmHWM')
         if hwm is not None:
             self.rss_peak_mib = hwm / 1024.0
             if self._rss0 is not None:
@@ -258,7 +252,7 @@ def bench_node(presets, sizes, device, out: pathlib.Path, *, hz: float, seconds:
                     peak = 0
                     while True:
                         executor.spin_once(timeout_sec=0.05)
-                        peak = max(peak, _status_kib('VmRSS', str(proc.pid)) or 0)
+                        peak = max(peak, proc_status_kib(proc.pid, 'VmRSS') or 0)
                         el = time.monotonic() - t_play
                         if el >= max_seconds or proc.poll() is not None:
                             break
@@ -270,7 +264,7 @@ def bench_node(presets, sizes, device, out: pathlib.Path, *, hz: float, seconds:
                     while time.monotonic() < end:
                         executor.spin_once(timeout_sec=0.05)
                     wall = time.monotonic() - t_play
-                    hwm = _status_kib('VmHWM', str(proc.pid))
+                    hwm = proc_status_kib(proc.pid, 'VmHWM')
                     d = dict(collector.diagnostics)
                     lat = collector.latency_ms
                     stats = box.get('stats')

@@ -64,6 +64,8 @@ import time
 from dataclasses import dataclass, field
 from typing import Any, Dict, List, Optional
 
+from dpv_sensor.tools.node_process import node_command, proc_status_kib
+
 REPO = pathlib.Path(__file__).resolve().parents[2]
 NS = 1_000_000_000
 
@@ -100,17 +102,6 @@ def _rel(path) -> str:
     except ValueError:
         return str(p)
 
-
-def _proc_status_kib(pid: int, key: str) -> Optional[int]:
-    """A field of /proc/<pid>/status in kB (VmRSS, VmHWM), or None when unavailable."""
-    try:
-        with open(f'/proc/{pid}/status') as f:
-            for line in f:
-                if line.startswith(key + ':'):
-                    return int(line.split()[1])
-    except OSError:
-        return None
-    return None
 
 
 def _as_number(text, default=None):
@@ -328,21 +319,6 @@ def render_scene(seq_dir: pathlib.Path, seed: int, frames: int, width: int, heig
     return seq
 
 
-def node_command(params: Dict[str, Any], remaps: Dict[str, str]) -> List[str]:
-    """`python -m dpv_sensor.node --ros-args -p k:=v ... -r a:=b ...`."""
-    cmd = [sys.executable, '-m', 'dpv_sensor.node', '--ros-args']
-    for k, v in params.items():
-        if isinstance(v, bool):
-            v = 'true' if v else 'false'
-        elif isinstance(v, (list, tuple)):
-            v = '[' + ','.join(repr(float(x)) for x in v) + ']'
-        elif isinstance(v, str) and v == '':
-            v = "''"
-        cmd += ['-p', f'{k}:={v}']
-    for a, b in remaps.items():
-        cmd += ['-r', f'{a}:={b}']
-    return cmd
-
 
 @dataclass
 class ReplayResult:
@@ -495,7 +471,7 @@ def run_node_replay(steps: Steps, input_bag: pathlib.Path, output_bag: pathlib.P
             thread.start()
             while thread.is_alive():
                 executor.spin_once(timeout_sec=0.05)
-                rss = _proc_status_kib(proc.pid, 'VmRSS')
+                rss = proc_status_kib(proc.pid, 'VmRSS')
                 peak_rss = max(peak_rss, rss or 0)
                 if proc.poll() is not None:
                     monitor.abort.set()
@@ -523,7 +499,7 @@ def run_node_replay(steps: Steps, input_bag: pathlib.Path, output_bag: pathlib.P
             if bar is not None:
                 bar.close()
             res.diagnostics = monitor.snapshot()
-            hwm = _proc_status_kib(proc.pid, 'VmHWM')
+            hwm = proc_status_kib(proc.pid, 'VmHWM')
             res.node_peak_rss_mib = round(max(peak_rss, hwm or 0) / 1024.0, 1)
             recorder.close()
             res.recorded = dict(recorder.counts)

@@ -27,6 +27,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from dpv_sensor.tools.node_process import node_command
+
 REPO = pathlib.Path(__file__).resolve().parents[2]
 NS = 1_000_000_000
 
@@ -145,15 +147,7 @@ def vm_rss_kib(pid: int) -> int | None:
 
 def start_node_process(params: dict, remaps: dict, env: dict | None = None, log_path=None) -> subprocess.Popen:
     """`python -m dpv_sensor.node --ros-args -p k:=v ... -r a:=b` with its output to `log_path` (or a pipe)."""
-    cmd = [sys.executable, '-m', 'dpv_sensor.node', '--ros-args']
-    for k, v in params.items():
-        if isinstance(v, bool):
-            v = 'true' if v else 'false'
-        elif isinstance(v, (list, tuple)):
-            v = '[' + ','.join(repr(float(x)) for x in v) + ']'
-        cmd += ['-p', f'{k}:={v}']
-    for a, b in remaps.items():
-        cmd += ['-r', f'{a}:={b}']
+    cmd = node_command(params, remaps)
     full_env = dict(os.environ)
     full_env['PYTHONPATH'] = os.pathsep.join([str(REPO)] + [p for p in full_env.get('PYTHONPATH', '').split(os.pathsep)
                                                             if p])
