@@ -8,6 +8,7 @@ import cv2
 import numpy as np
 import pytest
 
+from reprojection import reproject
 from dpv_sensor.data.sequence import (Sequence, SequenceFormatError, keyframe_windows, scale_intrinsics_np,
                                       write_sequence)
 
@@ -159,19 +160,9 @@ def test_keyframes_and_windows():
     np.testing.assert_array_equal(sub.pose(2), seq.pose(12))
 
 
-def _photometric_error(seq, i, j, T_i_j, scale=1.0):
+def _photometric_error(seq, i, j, T_i_j):
     """Mean |I_i(warp(p)) - I_j(p)| over pixels of frame j that land inside frame i, using depth of j."""
-    K = seq.K
-    w, h = seq.size
-    dj = seq.depth(j).astype(np.float64)
-    u, v = np.meshgrid(np.arange(w), np.arange(h))
-    X = (np.linalg.inv(K) @ np.stack([u.ravel(), v.ravel(), np.ones(u.size)])) * dj.ravel()
-    Xi = T_i_j[:3, :3] @ X + T_i_j[:3, 3:4]
-    p = K @ Xi
-    with np.errstate(divide='ignore', invalid='ignore'):
-        mx = (p[0] / p[2]).reshape(h, w).astype(np.float32)
-        my = (p[1] / p[2]).reshape(h, w).astype(np.float32)
-    valid = (dj > 0) & (p[2].reshape(h, w) > 0.1) & (mx >= 0) & (mx <= w - 1) & (my >= 0) & (my <= h - 1)
+    mx, my, _z, valid = reproject(seq, j, T_i_j, min_z=0.1)
     warped = cv2.remap(seq.image(i).astype(np.float32), mx, my, cv2.INTER_LINEAR)
     err = np.abs(warped - seq.image(j).astype(np.float32)).mean(-1)
     return float(err[valid].mean()), float(valid.mean())

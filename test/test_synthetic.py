@@ -9,6 +9,7 @@ import cv2
 import numpy as np
 import pytest
 
+from reprojection import reproject
 from dpv_sensor.data.sequence import Sequence, scale_intrinsics_np
 from dpv_sensor.data.synthetic import SceneConfig, SyntheticScene, main, render_sequence
 
@@ -19,22 +20,12 @@ def _warp_error(seq, i, j, T_i_j):
     """Mean |I_i(warp(p)) - I_j(p)| (0..255) over pixels p of frame j that are valid, land inside frame i,
     are not occluded there (z-test against depth i) and are not flagged view dependent (specular_mask) in
     either frame. Plain numpy + cv2.remap."""
-    K = seq.K
-    w, h = seq.size
-    dj = seq.depth(j).astype(np.float64)
-    u, v = np.meshgrid(np.arange(w), np.arange(h))
-    X = (np.linalg.inv(K) @ np.stack([u.ravel(), v.ravel(), np.ones(u.size)])) * dj.ravel()
-    Xi = T_i_j[:3, :3] @ X + T_i_j[:3, 3:4]
-    p = K @ Xi
-    with np.errstate(divide='ignore', invalid='ignore'):
-        mx = (p[0] / p[2]).reshape(h, w).astype(np.float32)
-        my = (p[1] / p[2]).reshape(h, w).astype(np.float32)
-    valid = (dj > 0) & (p[2].reshape(h, w) > 0.05) & (mx >= 0) & (mx <= w - 1) & (my >= 0) & (my <= h - 1)
+    mx, my, z_in_i, valid = reproject(seq, j, T_i_j, min_z=0.05)
     valid &= ~seq.extra('specular_mask', j)
     spec_i = cv2.remap(seq.extra('specular_mask', i).astype(np.uint8), mx, my, cv2.INTER_NEAREST)
     valid &= spec_i == 0
     z_i = cv2.remap(seq.depth(i), mx, my, cv2.INTER_NEAREST)
-    valid &= np.abs(p[2].reshape(h, w) - z_i) < 0.03 * z_i                # visible in frame i too
+    valid &= np.abs(z_in_i - z_i) < 0.03 * z_i                # visible in frame i too
     warped = cv2.remap(seq.image(i).astype(np.float32), mx, my, cv2.INTER_LINEAR)
     err = np.abs(warped - seq.image(j).astype(np.float32)).mean(-1)
     return float(err[valid].mean()), float(valid.mean())

@@ -47,7 +47,8 @@ import threading
 import time
 from typing import Any, Dict, List, Optional, Tuple
 
-from dpv_sensor.tools.node_process import proc_status_kib
+from dpv_sensor.tools.node_process import node_command, proc_status_kib
+from dpv_sensor.tools import tool_argv
 
 REPO = pathlib.Path(__file__).resolve().parents[2]
 PARTS = ('nets', 'core', 'estimator', 'node')
@@ -213,11 +214,8 @@ def bench_node(presets, sizes, device, out: pathlib.Path, *, hz: float, seconds:
             params = {'preset': preset, 'weights': weights, 'measurement': 'network', 'device': device,
                       'processing_width': w, 'processing_height': h, 'input_reliability': 'reliable',
                       'diagnostics_period': 0.5}
-            cmd = [sys.executable, '-m', 'dpv_sensor.node', '--ros-args']
-            for k, v in params.items():
-                cmd += ['-p', f'{k}:={v}']
-            cmd += ['-r', f'image:={R.IMAGE_TOPIC}', '-r', f'camera_info:={R.CAMERA_INFO_TOPIC}',
-                    '-r', f'odom:={R.ODOM_TOPIC}']
+            cmd = node_command(params, {'image': R.IMAGE_TOPIC, 'camera_info': R.CAMERA_INFO_TOPIC,
+                                        'odom': R.ODOM_TOPIC})
             log_path = out / 'logs' / f'node_{preset}_{w}x{h}_{device.replace(":", "")}.log'
             _say(f'node: {preset} {w}x{h} on {device}: {hz:g} images/s for >= {seconds:g} s (log {log_path})')
             row: Dict[str, Any] = {'preset': preset, 'width': w, 'height': h, 'device': device, 'weights': what,
@@ -466,9 +464,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Optional[List[str]] = None) -> int:
-    argv = list(sys.argv[1:] if argv is None else argv)
-    if '--ros-args' in argv:
-        argv = argv[:argv.index('--ros-args')]
+    argv = tool_argv(argv)
     a = build_parser().parse_args(argv)
     unknown = [x for x in a.parts if x not in PARTS]
     if unknown or not a.sizes or not a.presets:

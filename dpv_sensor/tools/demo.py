@@ -65,6 +65,7 @@ from dataclasses import dataclass, field
 from typing import Any, Dict, List, Optional
 
 from dpv_sensor.tools.node_process import node_command, proc_status_kib
+from dpv_sensor.tools import tool_argv
 
 REPO = pathlib.Path(__file__).resolve().parents[2]
 NS = 1_000_000_000
@@ -722,9 +723,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Optional[List[str]] = None) -> int:
-    argv = list(sys.argv[1:] if argv is None else argv)
-    if '--ros-args' in argv:
-        argv = argv[:argv.index('--ros-args')]
+    argv = tool_argv(argv)
     a = build_parser().parse_args(argv)
     t_total = time.perf_counter()
     progress = not a.quiet

@@ -34,6 +34,7 @@ import logging
 import pathlib
 import sys
 from typing import List, Optional
+from dpv_sensor.tools import tool_argv
 
 
 def _add_common(p: argparse.ArgumentParser) -> None:
@@ -113,9 +114,7 @@ def _print_table(rows) -> None:
 
 
 def main(argv: Optional[List[str]] = None) -> int:
-    argv = list(sys.argv[1:] if argv is None else argv)
-    if '--ros-args' in argv:                      # ros2 run appends ROS arguments; none are used here
-        argv = argv[:argv.index('--ros-args')]
+    argv = tool_argv(argv)
     a = build_parser().parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format='%(name)s: %(message)s')
     from .. import evaluation as E

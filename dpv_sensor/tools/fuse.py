@@ -21,6 +21,7 @@ import json
 import pathlib
 import sys
 from typing import List, Optional
+from dpv_sensor.tools import tool_argv
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -77,9 +78,7 @@ def _print_report(report) -> None:
 
 
 def main(argv: Optional[List[str]] = None) -> int:
-    argv = list(sys.argv[1:] if argv is None else argv)
-    if '--ros-args' in argv:
-        argv = argv[:argv.index('--ros-args')]
+    argv = tool_argv(argv)
     a = build_parser().parse_args(argv)
     from .. import evaluation as E
     from .. import fusion as F

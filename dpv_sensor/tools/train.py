@@ -27,6 +27,7 @@ from typing import List, Optional
 
 from ..training.dataset import TRAIN_SEED_BASE
 from ..training.loop import TrainConfig, latest_checkpoint
+from dpv_sensor.tools import tool_argv
 
 
 def _parse_seeds(text: str):
@@ -119,10 +120,7 @@ def _sigterm(signum, frame):
 
 
 def main(argv: Optional[List[str]] = None) -> int:
-    argv = list(sys.argv[1:] if argv is None else argv)
-    # ros2 run appends --ros-args ...; training has no ROS parameters
-    if '--ros-args' in argv:
-        argv = argv[:argv.index('--ros-args')]
+    argv = tool_argv(argv)   # training has no ROS parameters
     a = build_parser().parse_args(argv)
     try:
         cfg = config_from_args(a)
