@@ -17,6 +17,16 @@ import numpy as np
 __all__ = ['montage', 'sparsification_plot', 'bar_table', 'depth_range']
 
 
+
+def _save(fig, path, dpi: int) -> pathlib.Path:
+    """Lay out, write (creating the folder) and close a figure; return its path."""
+    fig.tight_layout()
+    path = pathlib.Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=dpi)
+    _plt().close(fig)
+    return path
+
 def _plt():
     import matplotlib
     matplotlib.use('Agg', force=False)
@@ -130,12 +140,7 @@ def sparsification_plot(curves: Dict[str, Dict[str, np.ndarray]], path, *, title
     ax.legend(fontsize=7)
     if title:
         ax.set_title(title, fontsize=10)
-    fig.tight_layout()
-    path = pathlib.Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=dpi)
-    plt.close(fig)
-    return path
+    return _save(fig, path, dpi)
 
 
 def bar_table(values: Dict[str, float], path, *, ylabel: str = 'abs_rel', title: Optional[str] = None,
@@ -151,9 +156,4 @@ def bar_table(values: Dict[str, float], path, *, ylabel: str = 'abs_rel', title:
     ax.grid(axis='y', alpha=0.3)
     if title:
         ax.set_title(title, fontsize=10)
-    fig.tight_layout()
-    path = pathlib.Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=dpi)
-    plt.close(fig)
-    return path
+    return _save(fig, path, dpi)

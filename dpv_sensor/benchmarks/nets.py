@@ -41,6 +41,7 @@ from typing import Dict, Iterable, Optional, Sequence, Tuple
 import torch
 
 from ..nets.model import DPVNet, count_macs, count_parameters
+from dpv_sensor.tools.node_process import proc_status_kib
 
 __all__ = ['run', 'main', 'parse_size']
 
@@ -56,17 +57,6 @@ def parse_size(text: str) -> Tuple[int, int]:
         raise argparse.ArgumentTypeError(f'size must look like 320x256, got {text!r}') from None
 
 
-def _rss_kb(field: str) -> Optional[int]:
-    try:
-        with open('/proc/self/status') as f:
-            for line in f:
-                if line.startswith(field + ':'):
-                    return int(line.split()[1])
-    except OSError:
-        return None
-    return None
-
-
 def _reset_peak_rss() -> bool:
     try:
         with open('/proc/self/clear_refs', 'w') as f:
@@ -80,14 +70,14 @@ class _CpuPeak:
     """Peak resident-set growth (MiB) over a block."""
 
     def __enter__(self):
-        self.clear_ok = _reset_peak_rss() and _rss_kb('VmHWM') is not None
-        self.rss0 = _rss_kb('VmRSS') if self.clear_ok else None
+        self.clear_ok = _reset_peak_rss() and proc_status_kib('self', 'VmHWM') is not None
+        self.rss0 = proc_status_kib('self', 'VmRSS') if self.clear_ok else None
         self.maxrss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
         return self
 
     def __exit__(self, *exc):
         if self.clear_ok:
-            self.peak_mb = max(0, _rss_kb('VmHWM') - self.rss0) / 1024.0
+            self.peak_mb = max(0, proc_status_kib('self', 'VmHWM') - self.rss0) / 1024.0
             self.method = 'VmHWM-VmRSS'
         else:
             self.peak_mb = max(0, resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - self.maxrss0) / 1024.0
