@@ -452,8 +452,8 @@ class DepthCameraNode(_node_base()):
         cfg = self.config
         try:
             if cfg['pose_refinement'] == 'window':
-                from dpv_sensor.poses import WindowPoseRefiner
-                self.pose_refiner = WindowPoseRefiner()
+                from dpv_sensor.poses import PoseRefinerConfig, WindowPoseRefiner
+                self.pose_refiner = WindowPoseRefiner(PoseRefinerConfig.from_params(cfg))
             if cfg['odometry'] == 'none':
                 from dpv_sensor.poses import VisualOdometry
                 self.visual_odometry = VisualOdometry()

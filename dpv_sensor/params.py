@@ -85,6 +85,12 @@ SPECS: tuple[ParamSpec, ...] = (
               'interpolated from (s).', min_value=0.0, max_value=60.0),
     ParamSpec('pose_refinement', 'off', 'Sliding-window pose refinement with gtsam: off or window.',
               choices=('off', 'window')),
+    ParamSpec('odom_sigma_rot_deg', 0.5, 'Pose refinement: rotation std of the odometry between two keyframes '
+              '(deg); lower trusts odometry more.', min_value=1e-4, max_value=90.0),
+    ParamSpec('odom_sigma_trans_m', 0.002, 'Pose refinement: translation std of the odometry between two keyframes, '
+              'constant part (m).', min_value=1e-6, max_value=10.0),
+    ParamSpec('odom_sigma_trans_rel', 0.03, 'Pose refinement: translation std of the odometry between two keyframes, '
+              'part proportional to the distance travelled (0.03 = 3 %).', min_value=0.0, max_value=10.0),
     # --- camera -------------------------------------------------------------------------------------------
     ParamSpec('camera_info_source', 'topic', 'Intrinsics from the camera_info topic or from the fx/fy/cx/cy '
               'parameters.', choices=('topic', 'parameters')),

@@ -130,6 +130,14 @@ class PoseRefinerConfig:
     lm_max_iterations: int = 30
     warmup_keyframes: int = 0
 
+    #: node parameters (dpv_sensor.params) that set fields of this class, same names
+    PARAMS = ('odom_sigma_rot_deg', 'odom_sigma_trans_m', 'odom_sigma_trans_rel')
+
+    @classmethod
+    def from_params(cls, values) -> 'PoseRefinerConfig':
+        """The defaults, with the fields named in :attr:`PARAMS` taken from the node's parameter values."""
+        return cls(**{k: type(getattr(cls, k))(values[k]) for k in cls.PARAMS if k in values})
+
 
 @dataclass
 class WindowKeyframe:

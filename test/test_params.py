@@ -39,3 +39,17 @@ def test_ints_are_accepted_for_floats():
     values = P.defaults()
     values['damping'] = 1
     assert P.validate(values)['damping'] == 1.0
+
+
+def test_pose_refiner_sigmas_come_from_the_parameters():
+    from dpv_sensor.poses import PoseRefinerConfig, odometry_between_sigmas
+    import numpy as np
+    defaults = P.defaults()
+    assert PoseRefinerConfig.from_params(defaults) == PoseRefinerConfig()   # one set of defaults
+    values = dict(defaults, odom_sigma_rot_deg=2.0, odom_sigma_trans_m=0.01, odom_sigma_trans_rel=0.1)
+    cfg = PoseRefinerConfig.from_params(P.validate(values))
+    step = np.eye(4)
+    step[:3, 3] = [0.3, 0.4, 0.0]                                            # 0.5 m
+    sig = odometry_between_sigmas(step, cfg)
+    np.testing.assert_allclose(sig[:3], np.radians(2.0))
+    np.testing.assert_allclose(sig[3:], 0.01 + 0.1 * 0.5)

@@ -280,18 +280,26 @@ class UnrolledModel(nn.Module):
 # ----------------------------------------------------------------------------------------------
 
 def render_validation_batches(seeds: Seq[int], num_keyframes: int, gap: int, width: int, height: int,
-                              layout: WindowLayout) -> List[Dict[str, torch.Tensor]]:
+                              layout: WindowLayout, split: str = 'val') -> List[Dict[str, torch.Tensor]]:
     """One batch (B = 1) per held-out seed: ``num_keyframes`` keyframes ``gap`` frames apart, rendered
-    at width x height, no augmentation, unrolled over all complete windows."""
+    at width x height, no augmentation, unrolled over all complete windows.
+
+    ``split='train'`` renders the same kind of batches from *training* seeds (>= ``TRAIN_SEED_BASE``),
+    e.g. to tune a baseline's parameters on training data only; each split refuses the other's seeds."""
     from ..data.synthetic import render_sequence
     steps = num_keyframes - layout.window + 1
     if steps < 1:
         raise ValueError(f'need at least {layout.window} validation keyframes')
     lay = WindowLayout(steps=steps, window=layout.window, ref_position=layout.ref_position)
     out = []
+    if split not in ('val', 'train'):
+        raise ValueError(f"split must be 'val' or 'train', got {split!r}")
     for s in seeds:
-        if s not in VAL_SEEDS:
+        if split == 'val' and s not in VAL_SEEDS:
             raise ValueError(f'validation seed {s} is not held out')
+        if split == 'train' and (s in VAL_SEEDS or s < TRAIN_SEED_BASE):
+            raise ValueError(f'seed {s} is not a training seed (need >= {TRAIN_SEED_BASE}; '
+                             f'{VAL_SEEDS.start}..{VAL_SEEDS.stop - 1} are held out)')
         ids = [k * gap for k in range(num_keyframes)]
         seq = render_sequence(int(s), ids[-1] + 1, width=width, height=height, lazy=True)
         smp = sample_from_sequence(seq, ids, lay, np.random.default_rng(0), augment=None, seed=int(s))
@@ -309,13 +317,17 @@ def _np(x: torch.Tensor) -> np.ndarray:
 
 @torch.no_grad()
 def evaluate_batches(model, batches: List[Dict[str, torch.Tensor]], depths_d: torch.Tensor, device,
-                     modes: Seq[str] = FILTER_MODES, classical=None, keep_last: bool = True) -> Dict:
+                     modes: Seq[str] = FILTER_MODES, classical=None, keep_last: bool = True,
+                     curves: bool = False) -> Dict:
     """Score the model (and optionally a classical measurement model) on validation batches.
 
-    Returns ``{'<source>_<mode>': {abs_rel, delta1, confident_half_ratio, nll_meas_q, nll_filtered_q,
-    nll_full}, ..., 'examples': [...]}`` with ``source`` = 'net' or 'classical'. NLLs are means over
-    frames of :func:`dpv_sensor.dpv.nll`; depth metrics are frame means of
-    :class:`dpv_sensor.metrics.MetricAccumulator` (metric, not median-scaled).
+    Returns ``{'<source>_<mode>': {abs_rel, delta1, confident_half_ratio, ause, aurg, nll_meas_q,
+    nll_filtered_q, nll_full}, ..., 'examples': [...]}`` with ``source`` = 'net' or 'classical'. NLLs
+    are means over frames of :func:`dpv_sensor.dpv.nll`; depth metrics are frame means of
+    :class:`dpv_sensor.metrics.MetricAccumulator` (metric, not median-scaled); ``ause`` is the frame
+    mean, ``aurg`` (area of random minus sparsification, > 0 = better than random) that of the mean
+    curve. With ``curves=True`` each entry also carries ``sparsification_curves``
+    (:meth:`MetricAccumulator.mean_curves`: numpy arrays, not JSON).
     """
     from ..metrics import MetricAccumulator
     was_training = model.training if model is not None else False
@@ -370,9 +382,14 @@ def evaluate_batches(model, batches: List[Dict[str, torch.Tensor]], depths_d: to
                 continue
             s = accs[mode].summary()
             fm = s['metric']['frame_mean']
+            conf = s.get('confidence', {})
             entry = {'abs_rel': fm['abs_rel'], 'delta1': fm['delta1'], 'rmse': fm['rmse'],
-                     'confident_half_ratio': s.get('confidence', {}).get('confident_half_ratio_frame_mean', float('nan')),
+                     'confident_half_ratio': conf.get('confident_half_ratio_frame_mean', float('nan')),
+                     'ause': conf.get('ause_frame_mean', float('nan')),
+                     'aurg': conf.get('aurg_of_mean_curve', float('nan')),
                      'frames': s['num_frames']}
+            if curves:
+                entry['sparsification_curves'] = accs[mode].mean_curves()
             for k, v in nlls[mode].items():
                 entry[k] = float(np.mean(v)) if v else float('nan')
             results[f'{name}_{mode}'] = entry
