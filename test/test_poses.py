@@ -430,3 +430,35 @@ def test_corrupt_trajectory_has_the_requested_per_keyframe_errors():
     assert np.allclose(t_err, 0.03 * steps, rtol=1e-6)           # 3 % of the step, random direction
     biased = corrupt_trajectory(gt, trans_noise_rel=0.0, rot_noise_deg=0.0, scale_bias=0.1, seed=7)
     assert np.allclose(relative_pose_errors(biased, gt)[0], 0.1 * steps, rtol=1e-6)
+
+
+class _Seq:
+    """The part of a dpv_sensor.data.sequence.Sequence that benchmarks.poses.gt_consistency reads."""
+
+    def __init__(self, poses, imgs, depths):
+        self.K, self._poses, self._imgs, self._depths = K_NP, poses, imgs, depths
+
+    def __len__(self):
+        return len(self._poses)
+
+    def pose(self, i):
+        return self._poses[i]
+
+    def image(self, i):
+        return self._imgs[i]
+
+    def depth(self, i):
+        return self._depths[i].numpy()
+
+
+def test_gt_consistency_check_finds_a_wrong_ground_truth_pose(sequence):
+    from dpv_sensor.benchmarks.poses import gt_consistency
+    gt, imgs, depths = sequence
+    exact = gt_consistency('exact', _Seq(gt, imgs, depths))
+    assert exact['pairs'] == len(gt) - 1
+    assert exact['moved_deg'] < 0.1 and exact['photo_aligned'] <= exact['photo_gt'] + 1e-3
+    # a "ground truth" whose poses are off by 0.6 deg: the alignment moves back by about that and the photometric
+    # error drops
+    wrong = [T @ se3(rot_y(math.radians(0.6 * (-1) ** i)))[0].numpy() for i, T in enumerate(gt)]
+    bad = gt_consistency('wrong', _Seq(wrong, imgs, depths))
+    assert bad['moved_deg'] > 0.8 and bad['photo_aligned'] < 0.7 * bad['photo_gt']
