@@ -37,8 +37,12 @@ rotation to a few hundredths of a degree but the translation only to a few perce
 scale and structure errors enter it directly), and a constant inverse-depth error of the predicted depth - what
 rotation errors leave in plane-swept depth - maps back onto a rotation about the axis normal to the baseline.
 The factors' covariances are widened accordingly (``depth_scale_sigma``, ``inv_depth_offset_sigma``,
-``translation_sigma_rel``), so in the fused window the odometry keeps the translation and the alignments correct
-the rotation.
+``translation_sigma_rel``). The defaults (5 % depth scale, 10 % of the step isotropically) still let the
+alignments move the translation by about the odometry's own error: keeping the odometry's translation while the
+alignments turn the rotation leaves a pose that agrees with neither, and plane-swept depth from such poses is
+biased (measured with ``benchmarks.poses``: with 50 % / 20 % widening, SUN3D recovered 0.22 and -0.01 of the
+noisy-to-GT abs_rel gap; with 10 % / 5 %, 0.81 and 0.62, and rendered sequences 0.88 and 0.81 instead of 0.82
+and 0.79, at the same metric translation RPE).
 
 Tracking loss: an alignment that does not converge (see :class:`~dpv_sensor.photometric.AlignmentResult`), too
 few valid pixels, or a refined pose that jumps away from the odometry (or constant-velocity) prediction by more
@@ -91,8 +95,9 @@ class PoseRefinerConfig:
         ``radians(odom_sigma_rot_deg) / |baseline to the nearest source|``.
     translation_sigma_rel: isotropic widening of the photometric translation, relative to the step length, for
         errors in the predicted depth's structure. With the filter's depth, photometric translations are only
-        good to a few percent of the baseline (rotations to a few hundredths of a degree), so the odometry keeps
-        the translation and the alignments mostly correct the rotation and the direction of motion.
+        good to a few percent of the baseline (rotations to a few hundredths of a degree); with exact depth, about
+        1-3 mm at 3-5 cm baselines (``benchmarks.poses --parts gtcheck``), so sub-millimetre odometry errors are
+        below what the alignment resolves.
     use_depth_uncertainty: in the estimator hook, derive the per-pixel inverse-depth std from the DPV confidence
         (:func:`~dpv_sensor.photometric.inverse_depth_std_from_confidence`) and let the alignment weigh it.
     max_sources: align the reference against at most this many sources (nearest in key order first);
@@ -117,9 +122,9 @@ class PoseRefinerConfig:
     prior_sigma_rot_deg: float = 1e-3
     prior_sigma_trans_m: float = 1e-5
     photometric_huber_k: float = 3.0
-    depth_scale_sigma: float = 0.2
+    depth_scale_sigma: float = 0.05
     inv_depth_offset_sigma: Optional[float] = None
-    translation_sigma_rel: float = 0.5
+    translation_sigma_rel: float = 0.1
     use_depth_uncertainty: bool = True
     max_sources: Optional[int] = None
     keep_old_factors: bool = True
