@@ -101,7 +101,10 @@ class PoseRefinerConfig:
     use_depth_uncertainty: in the estimator hook, derive the per-pixel inverse-depth std from the DPV confidence
         (:func:`~dpv_sensor.photometric.inverse_depth_std_from_confidence`) and let the alignment weigh it.
     max_sources: align the reference against at most this many sources (nearest in key order first);
-        None = all sources of the window.
+        None = all sources of the window. The earlier alignments stay in the window (``keep_old_factors``), so
+        2 keeps every window keyframe tied to two others at half the cost of 4 (measured on a rendered
+        sequence with the classical model: rotation RPE 0.054 deg either way, abs_rel 0.166 vs 0.165,
+        alignment 46 vs 86 ms per keyframe).
     keep_old_factors: keep earlier alignments between keyframes that are still in the window.
     min_converged_fraction: tracking is lost when fewer than this fraction of the alignments are usable
         (converged and no jump).
@@ -126,7 +129,7 @@ class PoseRefinerConfig:
     inv_depth_offset_sigma: Optional[float] = None
     translation_sigma_rel: float = 0.1
     use_depth_uncertainty: bool = True
-    max_sources: Optional[int] = None
+    max_sources: Optional[int] = 2
     keep_old_factors: bool = True
     min_converged_fraction: float = 0.5
     require_nearest: bool = True

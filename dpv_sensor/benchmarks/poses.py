@@ -365,7 +365,7 @@ def refiner_config(args, vo_mode: bool = False) -> PoseRefinerConfig:
     cfg = PoseRefinerConfig(alignment=al, odom_sigma_rot_deg=args.rot_noise if not vo_mode else 1.0,
                             odom_sigma_trans_m=5e-4,
                             odom_sigma_trans_rel=max(args.trans_noise, 1e-3) if not vo_mode else 0.1,
-                            max_sources=args.max_sources, depth_scale_sigma=args.depth_scale_sigma,
+                            max_sources=args.max_sources or None, depth_scale_sigma=args.depth_scale_sigma,
                             translation_sigma_rel=args.translation_sigma_rel,
                             use_depth_uncertainty=args.depth_uncertainty, warmup_keyframes=args.warmup,
                             inv_depth_offset_sigma=args.offset_sigma)
@@ -454,7 +454,8 @@ def main(argv=None) -> int:
     p.add_argument('--scale-bias', type=float, default=0.0)
     p.add_argument('--noise-seed', type=int, default=0)
     p.add_argument('--finest-level', type=int, default=1)
-    p.add_argument('--max-sources', type=int, default=None)
+    p.add_argument('--max-sources', type=int, default=PoseRefinerConfig.max_sources,
+                   help='sources aligned per keyframe (0 = all)')
     p.add_argument('--bootstrap-depth', type=float, default=2.0)
     p.add_argument('--depth-scale-sigma', type=float, default=PoseRefinerConfig.depth_scale_sigma)
     p.add_argument('--translation-sigma-rel', type=float, default=PoseRefinerConfig.translation_sigma_rel)
