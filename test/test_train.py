@@ -74,6 +74,24 @@ def test_stream_start_runs_use_growing_source_counts():
     assert centred.make_sample(0)['src_count'].tolist() == [4, 4, 4]
 
 
+def test_pose_noise_corrupts_relative_motion_but_not_images_or_depth():
+    from dpv_sensor.poses import relative_pose_errors
+    clean = SceneStream(_small_stream(steps=2)).make_sample(3)
+    noisy = SceneStream(_small_stream(steps=2, pose_noise_prob=1.0, pose_noise_rot_deg=1.0,
+                                      pose_noise_trans_rel=0.1)).make_sample(3)
+    assert torch.equal(clean['images'], noisy['images']) and torch.equal(clean['depths'], noisy['depths'])
+    assert torch.allclose(noisy['poses'][0], torch.eye(4), atol=1e-6)     # still relative to the first keyframe
+    t_err, r_err = relative_pose_errors([T.double().numpy() for T in noisy['poses']],
+                                        [T.double().numpy() for T in clean['poses']])
+    assert np.all(r_err <= 1.0 + 1e-3) and r_err.max() > 0.0 and t_err.max() > 0.0
+    steps = np.linalg.norm(np.diff(clean['poses'][:, :3, 3].double().numpy(), axis=0), axis=1)
+    assert np.all(t_err <= 0.1 * steps + 1e-5)
+    assert torch.equal(SceneStream(_small_stream(steps=2, pose_noise_prob=1.0)).make_sample(3)['poses'],
+                       SceneStream(_small_stream(steps=2, pose_noise_prob=1.0)).make_sample(3)['poses'])
+    with pytest.raises(ValueError, match='pose noise'):
+        _small_stream(pose_noise_prob=1.5)
+
+
 def test_unrolled_loss_falls_and_reaches_every_net():
     from dpv_sensor.nets.model import DPVNet
     torch.manual_seed(0)

@@ -92,6 +92,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--folder-prob', type=float, default=0.0, help='probability that a sample comes from --folders')
     p.add_argument('--startup-prob', type=float, default=0.0,
                    help='share of stream-start runs (causal windows with 1, 2, 3, 4 sources, as after a reset)')
+    p.add_argument('--pose-noise-prob', type=float, default=d.pose_noise_prob,
+                   help='share of samples whose poses get odometry-like errors (depths stay exact)')
+    p.add_argument('--pose-noise-rot-deg', type=float, default=d.pose_noise_rot_deg,
+                   help='largest rotation error per keyframe step of those samples (deg)')
+    p.add_argument('--pose-noise-trans-rel', type=float, default=d.pose_noise_trans_rel,
+                   help='largest translation error per step of those samples (fraction of the step)')
     p.add_argument('--no-augment', action='store_true', help='disable photometric augmentation')
     p.add_argument('--select-metric', default=d.select_metric,
                    help='validation score deciding exports, <metric>_<mode>, lower is better')
@@ -112,7 +118,9 @@ def config_from_args(a: argparse.Namespace) -> TrainConfig:
         val_every=a.val_every, val_seeds=_parse_seeds(a.val_seeds), val_keyframes=a.val_keyframes,
         val_gap=a.val_gap, val_width=a.val_width, val_height=a.val_height, folders=tuple(a.folders),
         folder_prob=a.folder_prob, augment=not a.no_augment, select_metric=a.select_metric,
-        init_weights=a.init_weights, max_minutes=a.max_minutes, startup_prob=a.startup_prob).check()
+        init_weights=a.init_weights, max_minutes=a.max_minutes, startup_prob=a.startup_prob,
+        pose_noise_prob=a.pose_noise_prob, pose_noise_rot_deg=a.pose_noise_rot_deg,
+        pose_noise_trans_rel=a.pose_noise_trans_rel).check()
 
 
 def _sigterm(signum, frame):

@@ -23,6 +23,9 @@ Layout of one sample (M keyframes, K unrolled filter steps, window w, S = w - 1 
                           stream-start run (``startup_prob``, causal windows), like the estimator
     seed     int64        the scene seed (or -1 - frame offset for folder samples)
 
+With ``pose_noise_prob`` > 0 a share of the samples gets odometry-like pose errors (the depths stay exact),
+so K-Net meets warped priors that are slightly misaligned, as with real odometry and real GT poses.
+
 Keyframes are ``gap`` frames apart with ``gap`` drawn per keyframe from [gap_min, gap_max], i.e. the
 irregular spacing a motion-triggered keyframe selector produces.
 """
@@ -128,6 +131,9 @@ class StreamConfig:
     ref_positions: Tuple[str, ...] = ()   # if given, the window layout's ref_position is drawn per batch
     startup_prob: float = 0.0             # probability (per batch) of a stream-start run (causal windows only)
     size_group: int = 1                   # consecutive samples sharing a size (= the batch size)
+    pose_noise_prob: float = 0.0          # probability that a sample's poses are corrupted like odometry
+    pose_noise_rot_deg: float = 0.7       # ... by up to this rotation per keyframe step (drawn per sample)
+    pose_noise_trans_rel: float = 0.05    # ... and up to this translation error relative to the step
 
     def __post_init__(self):
         if self.width % 4 or self.height % 4:
@@ -145,6 +151,8 @@ class StreamConfig:
         for w, h in self.extra_sizes:
             if w % 4 or h % 4:
                 raise ValueError(f'training sizes must be multiples of 4, got {w}x{h}')
+        if not 0.0 <= self.pose_noise_prob <= 1.0 or self.pose_noise_rot_deg < 0 or self.pose_noise_trans_rel < 0:
+            raise ValueError('pose noise: need 0 <= pose_noise_prob <= 1 and non-negative magnitudes')
 
 
 def check_not_heldout(folder: str) -> None:
@@ -321,6 +329,23 @@ class SceneStream(IterableDataset):
         smp['src_count'] = counts
         return smp
 
+    def _pose_noise(self, smp: Dict[str, torch.Tensor], rng: np.random.Generator) -> Dict[str, torch.Tensor]:
+        """With probability ``pose_noise_prob``, replace the sample's poses by an odometry-like corruption of
+        them (:func:`dpv_sensor.poses.corrupt_trajectory`: per keyframe step a rotation error about a random axis
+        and a translation error in a random direction, accumulating along the run; magnitudes drawn uniformly up
+        to ``pose_noise_rot_deg`` / ``pose_noise_trans_rel`` per sample). Images and depths stay exact, so the
+        nets learn what real poses do to the plane sweep and to the warped prior (K-Net learns to damp it)."""
+        cfg = self.config
+        if cfg.pose_noise_prob <= 0 or rng.random() >= cfg.pose_noise_prob:
+            return smp
+        from ..poses import corrupt_trajectory
+        poses = [T.double().numpy() for T in smp['poses']]
+        noisy = corrupt_trajectory(poses, trans_noise_rel=float(rng.uniform(0.0, cfg.pose_noise_trans_rel)),
+                                   rot_noise_deg=float(rng.uniform(0.0, cfg.pose_noise_rot_deg)),
+                                   seed=int(rng.integers(0, 2 ** 31)))
+        smp['poses'] = torch.from_numpy(np.stack(noisy).astype(np.float32))
+        return smp
+
     def _open_folders(self):
         if self._folders is None:
             from ..data.sequence import Sequence
@@ -340,10 +365,12 @@ class SceneStream(IterableDataset):
             ids = draw_keyframes(rng, M, cfg.folder_gap[0], cfg.folder_gap[1], start_max=len(seq) - 1 - span)
             if rng.random() < 0.5:      # play the run backwards: another plausible trajectory
                 ids = ids[::-1]
-            return self._finish(sample_from_sequence(seq, ids, self.layout_of(i), rng, cfg.augment, self.size_of(i),
-                                        scale=float(rng.uniform(*cfg.folder_scale)), seed=-1 - ids[0]), i)
-        from ..data.synthetic import render_sequence
-        ids = draw_keyframes(rng, M, cfg.gap_min, cfg.gap_max, start_max=cfg.gap_max)
-        w, h = self.size_of(i)
-        seq = render_sequence(seed, ids[-1] + 1, width=w, height=h, lazy=True, **cfg.render_kwargs)
-        return self._finish(sample_from_sequence(seq, ids, self.layout_of(i), rng, cfg.augment, seed=seed), i)
+            smp = sample_from_sequence(seq, ids, self.layout_of(i), rng, cfg.augment, self.size_of(i),
+                                       scale=float(rng.uniform(*cfg.folder_scale)), seed=-1 - ids[0])
+        else:
+            from ..data.synthetic import render_sequence
+            ids = draw_keyframes(rng, M, cfg.gap_min, cfg.gap_max, start_max=cfg.gap_max)
+            w, h = self.size_of(i)
+            seq = render_sequence(seed, ids[-1] + 1, width=w, height=h, lazy=True, **cfg.render_kwargs)
+            smp = sample_from_sequence(seq, ids, self.layout_of(i), rng, cfg.augment, seed=seed)
+        return self._finish(self._pose_noise(smp, rng), i)

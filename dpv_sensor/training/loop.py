@@ -122,6 +122,9 @@ class TrainConfig:
     select_metric: str = 'abs_rel_knet'   # validation score that decides exports (lower is better)
     init_weights: Optional[str] = None    # start from an exported .safetensors instead of random
     startup_prob: float = 0.0             # share of stream-start runs (1, 2, 3, 4 sources; causal windows)
+    pose_noise_prob: float = 0.0          # share of samples with odometry-like pose errors (depths exact)
+    pose_noise_rot_deg: float = 0.7       # their largest rotation error per keyframe step (deg)
+    pose_noise_trans_rel: float = 0.05    # their largest translation error per step (fraction of the step)
     max_minutes: float = 0.0              # stop (with a checkpoint) after this wall time; 0 = no limit
 
     def resolved_export(self) -> str:
@@ -158,7 +161,8 @@ class TrainConfig:
                             folder_prob=self.folder_prob, extra_sizes=tuple(tuple(s) for s in self.extra_sizes),
                             size_group=self.batch_size,
                             ref_positions=('center', 'last') if self.ref_mix else (),
-                            startup_prob=self.startup_prob)
+                            startup_prob=self.startup_prob, pose_noise_prob=self.pose_noise_prob,
+                            pose_noise_rot_deg=self.pose_noise_rot_deg, pose_noise_trans_rel=self.pose_noise_trans_rel)
 
     def check(self) -> 'TrainConfig':
         for s in self.val_seeds:
