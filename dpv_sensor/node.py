@@ -9,7 +9,7 @@ Topics (relative names, remappable):
        odom (nav_msgs/Odometry) - sensor-data QoS by default (input_reliability, input_depth)
   out  depth/image (32FC1 m, NaN = none | 16UC1 mm, 0 = none), depth/camera_info (K of the output size),
        confidence/image (32FC1 in [0, 1]), points (PointCloud2 XYZRGB, only computed while subscribed),
-       pose (PoseStamped, with pose_refinement), /diagnostics (DiagnosticArray)
+       pose (PoseStamped, with pose_refinement or odometry none), /diagnostics (DiagnosticArray)
 
 Threading: callbacks only store messages. The newest image waits in a one-slot mailbox ("newest wins": an image
 that is still waiting when a newer one arrives is dropped and counted) and a worker thread converts it, waits up to
@@ -394,7 +394,9 @@ class DepthCameraNode(_node_base()):
         self.pub_conf = self.create_publisher(Image, 'confidence/image', out_qos)
         self.pub_points = self.create_publisher(PointCloud2, 'points', out_qos)
         self.pub_pose = None
-        if cfg['pose_refinement'] != 'off':
+        if cfg['pose_refinement'] != 'off' or cfg['odometry'] == 'none':
+            # the refined pose, or the visual odometry's (the user has no other pose source then), in the odometry
+            # frame ('odom' without odometry)
             self.pub_pose = self.create_publisher(PoseStamped, 'pose', out_qos)
         self.pub_diag = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
 
