@@ -114,6 +114,29 @@ def main():
         results['sequences'][name] = r
     with open(a.out, 'w') as f:
         json.dump(results, f, indent=1)
+    print(markdown_table(results))
+
+
+def markdown_table(results) -> str:
+    """abs_rel / delta1 per model row and real sequence, and the mean abs_rel over the synthetic ones."""
+    seqs = results['sequences']
+    real = [n for n in seqs if not n.startswith('synthetic')]
+    synth = [n for n in seqs if n.startswith('synthetic')]
+    rows = []
+    for r in seqs.values():
+        rows += [k for k in r if k not in rows]
+    head = ['model'] + real + ([f'synthetic mean abs_rel ({len(synth)} seqs)'] if synth else [])
+    lines = ['| ' + ' | '.join(head) + ' |', '|' + '---|' * len(head)]
+    for k in rows:
+        cells = [k]
+        for n in real:
+            e = seqs[n].get(k)
+            cells.append(f"{e['abs_rel']:.3f} / {e['delta1']:.2f}" if e else '')
+        if synth:
+            v = [seqs[n][k]['abs_rel'] for n in synth if k in seqs[n]]
+            cells.append(f'{np.mean(v):.3f}' if v else '')
+        lines.append('| ' + ' | '.join(cells) + ' |')
+    return '\n'.join(lines)
 
 
 if __name__ == '__main__':
