@@ -51,6 +51,7 @@ NO_CAMERA_INFO = 'no_camera_info'
 BAD_CAMERA_INFO = 'bad_camera_info'
 CAMERA_INFO_MISMATCH = 'camera_info_size_mismatch'
 NAN_ODOMETRY = 'nan_odometry'
+ODOM_JUMP = 'odometry_jump'
 ODOM_GAP = 'odometry_gap'
 ODOM_TIMEOUT = 'odometry_timeout'
 ODOM_TOO_OLD = 'odometry_too_old'
@@ -367,7 +368,8 @@ class DepthCameraNode(_node_base()):
         # --- pose buffer and camera intrinsics -------------------------------------------------------------
         self.T_base_camera = pose7_to_matrix(cfg['T_base_camera'])
         self.pose_buffer = PoseBuffer(max_gap_s=cfg['max_odom_gap'], history_s=max(10.0, 4 * cfg['max_odom_gap']),
-                                      T_base_camera_44=self.T_base_camera)
+                                      T_base_camera_44=self.T_base_camera, max_speed=cfg['odom_max_speed'],
+                                      max_rate_deg=cfg['odom_max_rate_deg'])
         self._inputs_cv = threading.Condition()      # notified when odometry or camera_info arrives
         self._K = None                                # (K 3x3, (w, h)) from camera_info or the parameters
         if cfg['camera_info_source'] == 'parameters':
@@ -424,6 +426,7 @@ class DepthCameraNode(_node_base()):
         self._last_stamp_ns = None
         self._last_size = None
         self._last_epoch = self.pose_buffer.epoch
+        self._last_jumps = self.pose_buffer.jumps
         self._keyframe_meta: collections.OrderedDict = collections.OrderedDict()
         self._frame_meta: collections.OrderedDict = collections.OrderedDict()
         self._worker = threading.Thread(target=self._work, name='dpv_sensor_worker', daemon=True)
@@ -531,8 +534,12 @@ class DepthCameraNode(_node_base()):
                                'interpolated across it are dropped')
             T = None
         self._odom_frame = msg.header.frame_id or self._odom_frame
+        jumps = self.pose_buffer.jumps
         cleared = self.pose_buffer.add(stamp_ns, T)
-        if cleared:
+        if cleared and self.pose_buffer.jumps != jumps:
+            self.faults.report(ODOM_JUMP, f'{cleared}: images before it are dropped and the estimator restarts '
+                               '(relocalisation or loop closure in the odometry frame?)')
+        elif cleared:
             self.faults.report(TIME_BACKWARDS, f'time went backwards: {cleared} (bag restarted or simulator reset?)',
                                key='time_backwards:odometry')
         with self._inputs_cv:
@@ -667,6 +674,10 @@ class DepthCameraNode(_node_base()):
                                f'is {size[0]}x{size[1]}; scaling K to the image size')
             K = M.scale_K(K, info_size, size)
         T_world_cam = pose
+        if pose is not None and self.pose_buffer.jumps != self._last_jumps:
+            # the pose comes from after an odometry teleport: the belief is in the old frame
+            self._last_jumps = self.pose_buffer.jumps
+            self._reset_estimator('odometry jumped')
         if self.visual_odometry is not None:
             vo = self.visual_odometry.track(rgb, K, stamp_ns / NS)
             if not vo.tracking_ok:

@@ -83,6 +83,10 @@ SPECS: tuple[ParamSpec, ...] = (
               min_value=0.0, max_value=60.0),
     ParamSpec('max_odom_gap', 0.5, 'Largest gap between the two odometry messages an image pose is '
               'interpolated from (s).', min_value=0.0, max_value=60.0),
+    ParamSpec('odom_max_speed', 10.0, 'An odometry step faster than this (m/s, and over 0.1 m) is a teleport: the '
+              'pose buffer restarts and so does the estimator. 0 disables.', min_value=0.0, max_value=1e4),
+    ParamSpec('odom_max_rate_deg', 720.0, 'An odometry step turning faster than this (deg/s, and over 10 deg) is a '
+              'teleport (as odom_max_speed). 0 disables.', min_value=0.0, max_value=1e6),
     ParamSpec('pose_refinement', 'off', 'Sliding-window pose refinement with gtsam: off or window.',
               choices=('off', 'window')),
     ParamSpec('odom_sigma_rot_deg', 0.5, 'Pose refinement: rotation std of the odometry between two keyframes '

@@ -14,6 +14,13 @@ Stamps are integer nanoseconds (exactly what ROS headers carry) so no precision 
 than the newest one by more than `backwards_tolerance_s` means time went backwards (a bag restarting, a
 simulator reset): the buffer clears itself, counts it in `epoch` and reports it from `add`.
 
+A message that moves further from the previous one than a camera can move in between (an odometry *teleport*:
+a relocalisation, a loop-closure correction in a map frame, a driver restart at another pose) cannot be
+interpolated across: with `max_speed` / `max_rate_deg` set, a step of more than `max_speed * dt` metres or
+`max_rate_deg * dt` degrees (and at least `JUMP_FLOOR_M` / `JUMP_FLOOR_DEG`, so jitter of fast odometry is not
+flagged) clears the older samples, counts it in `jumps` and is reported from `add`. Images before it then get
+'too old'; the caller should restart whatever it accumulated in the old pose frame.
+
 Quaternions in this module are ROS order (x, y, z, w).
 """
 from __future__ import annotations
@@ -26,6 +33,10 @@ from dataclasses import dataclass
 import numpy as np
 
 NS = 1_000_000_000
+
+# A step between consecutive odometry samples is only a teleport when it is also larger than these.
+JUMP_FLOOR_M = 0.1
+JUMP_FLOOR_DEG = 10.0
 
 # Reasons pose_at() gives when it cannot answer.
 FUTURE = 'future'
@@ -152,7 +163,8 @@ class PoseBuffer:
     """
 
     def __init__(self, max_gap_s: float = 0.5, history_s: float = 30.0, T_base_camera_44=None,
-                 backwards_tolerance_s: float = 0.0, max_samples: int = 100_000):
+                 backwards_tolerance_s: float = 0.0, max_samples: int = 100_000, max_speed: float = 0.0,
+                 max_rate_deg: float = 0.0):
         self.max_gap_ns = int(round(max_gap_s * NS))
         self.history_ns = int(round(history_s * NS))
         self.backwards_tolerance_ns = int(round(backwards_tolerance_s * NS))
@@ -162,7 +174,10 @@ class PoseBuffer:
         self._t: list[np.ndarray | None] = []   # translation, None for an invalid sample
         self._q: list[np.ndarray | None] = []   # quaternion (x, y, z, w)
         self._lock = threading.Lock()
+        self.max_speed = float(max_speed)          # m/s; 0 = no teleport check on translation
+        self.max_rate_deg = float(max_rate_deg)    # deg/s; 0 = no teleport check on rotation
         self.epoch = 0            # how many times time went backwards (and the buffer cleared itself)
+        self.jumps = 0            # how many odometry teleports cleared the buffer
         self.cleared_reason: str | None = None
 
     # ---- state -------------------------------------------------------------------------------------------
@@ -193,7 +208,7 @@ class PoseBuffer:
     def add(self, stamp_ns: int, T_world_base_44) -> str | None:
         """Insert one odometry sample. `T_world_base_44` None or non-finite/non-rigid marks an invalid sample
         (images bracketed by it get reason 'nan'). Returns a message when the buffer cleared itself because
-        time went backwards, else None."""
+        time went backwards or the odometry teleported (see the module doc), else None."""
         stamp_ns = int(stamp_ns)
         if is_valid_pose(T_world_base_44):
             T = np.asarray(T_world_base_44, dtype=np.float64)
@@ -207,6 +222,12 @@ class PoseBuffer:
                            f'({self._stamps[-1] / NS:.3f} -> {stamp_ns / NS:.3f}); pose buffer cleared')
                 self._clear(cleared)
                 self.epoch += 1
+            elif t is not None and self._stamps and stamp_ns > self._stamps[-1] and self._t[-1] is not None:
+                jump = self._jump(stamp_ns, t, q)
+                if jump:
+                    cleared = f'odometry jumped {jump}; pose buffer cleared'
+                    self._clear(cleared)
+                    self.jumps += 1
             i = bisect.bisect_left(self._stamps, stamp_ns)
             if i < len(self._stamps) and self._stamps[i] == stamp_ns:   # same stamp again: newest wins
                 self._t[i], self._q[i] = t, q
@@ -216,6 +237,19 @@ class PoseBuffer:
                 self._q.insert(i, q)
             self._trim()
         return cleared
+
+    def _jump(self, stamp_ns: int, t: np.ndarray, q: np.ndarray) -> str | None:
+        """Why the step from the newest sample to (t, q) at stamp_ns is a teleport, or None."""
+        dt = (stamp_ns - self._stamps[-1]) / NS
+        dist = float(np.linalg.norm(t - self._t[-1]))
+        if self.max_speed > 0 and dist > max(self.max_speed * dt, JUMP_FLOOR_M):
+            return (f'{dist:.3f} m in {dt:.3f} s at {stamp_ns / NS:.3f} s ({dist / max(dt, 1e-9):.1f} m/s > '
+                    f'{self.max_speed:g} m/s)')
+        angle = math.degrees(2.0 * math.acos(min(1.0, abs(float(np.dot(q, self._q[-1]))))))
+        if self.max_rate_deg > 0 and angle > max(self.max_rate_deg * dt, JUMP_FLOOR_DEG):
+            return (f'{angle:.1f} deg in {dt:.3f} s at {stamp_ns / NS:.3f} s ({angle / max(dt, 1e-9):.0f} deg/s > '
+                    f'{self.max_rate_deg:g} deg/s)')
+        return None
 
     def _trim(self):
         newest = self._stamps[-1]

@@ -4,8 +4,8 @@ with its own message, counted in /diagnostics, and the node keeps publishing val
 Faults in the bag (160x128 rendered frames at 30 Hz, replayed at 0.25x): no camera_info for the first frames, a
 camera_info with K all zeros, a 16UC1 image on the colour topic, an image whose data is shorter than step*height, a
 1x1 image (the estimator raises on it: an exception inside push), a stretch of 80x64 images (size change and back),
-a NaN odometry message at an image stamp, an odometry gap wider than max_odom_gap, and every stamp jumping back by
-5 s (a bag restarting). The node also starts with a corrupt weights file and must fall back to the classical model.
+a NaN odometry message at an image stamp, an odometry gap wider than max_odom_gap, every stamp jumping back by
+5 s (a bag restarting), and an odometry teleport (every pose 0.5 m off from one message on: a relocalisation). The node also starts with a corrupt weights file and must fall back to the classical model.
 """
 import math
 import re
@@ -35,7 +35,8 @@ SMALL = range(16, 19)           # 80x64 images (+ matching camera_info)
 NAN_ODOM = 22                   # odometry at this frame's stamp is NaN
 GAP = (25, 28)                  # no odometry strictly between these frames
 JUMP = 32                       # from this frame on, every stamp is 5 s earlier
-PAUSE_BEFORE = {WRONG_ENCODING, TRUNCATED, TINY, SMALL[0], NAN_ODOM, GAP[0] + 1, JUMP}
+TELEPORT = 36                   # from this frame on, every odometry pose is 0.5 m off (the images are not)
+PAUSE_BEFORE = {WRONG_ENCODING, TRUNCATED, TINY, SMALL[0], NAN_ODOM, GAP[0] + 1, JUMP, TELEPORT}
 
 
 def frame_time_ns(i: float) -> int:
@@ -63,6 +64,9 @@ def write_fault_bag(path, seq):
                 continue
             j = int(math.floor(i))
             pose = seq.pose(j) if i == j else R.interpolate_pose(seq.pose(j), seq.pose(j + 1), 0.5)
+            if i >= TELEPORT:
+                pose = pose.copy()
+                pose[0, 3] += 0.5
             msg = M.matrix_to_odometry(pose, header_ns(i), 'base_link', 'odom', types=T)
             if i == NAN_ODOM:
                 msg.pose.pose.position.x = float('nan')
@@ -114,6 +118,7 @@ EXPECTED_LOGS = {
     'odometry_invalid_bracket': 'invalid odometry around the image',
     'odometry_gap': 'exceeds max_odom_gap 0.050 s',
     'time_backwards': 'time went backwards',
+    'odometry_jump': 'odometry jumped 0.5',
 }
 
 
@@ -161,6 +166,7 @@ def test_fault_bag_replays_without_crash_and_every_fault_is_reported(fault_bag, 
     assert 'image size changed from 80x64 to 160x128' in out
     assert re.search(r'time went backwards: image stamp 17499999\d\d\.\d+ s after 17500000\d\d\.\d+ s; resetting the '
                      r'estimator and the pose buffer', out)
+    assert 'estimator reset: odometry jumped' in out               # no window spans the teleport
     assert int(diag['faults.image_size_change']) == 4            # 160 -> 1x1 -> 160 ... 160 -> 80x64 -> 160
     assert out.count('Traceback') == 1, 'the estimator exception must be logged with its traceback exactly once'
     # corrupt weights: the estimator fell back to the classical model, visible in the log and in /diagnostics

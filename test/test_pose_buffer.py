@@ -154,6 +154,27 @@ def test_time_going_backwards_clears_the_buffer():
     np.testing.assert_allclose(buf.pose_at(S + S // 20).T_world_cam_44[:3, 3], [7.5, 0, 0], atol=1e-12)
 
 
+def test_odometry_teleport_clears_the_buffer():
+    buf = PoseBuffer(max_gap_s=1.0, max_speed=10.0, max_rate_deg=720.0)
+    for k in range(10):                                  # 100 Hz at 5 m/s: 5 cm per message, no jump
+        assert buf.add(k * S // 100, translation(0.05 * k, 0, 0)) is None
+    msg = buf.add(10 * S // 100, translation(0.05 * 9 + 0.5, 0, 0))   # 0.5 m in 10 ms
+    assert msg is not None and 'jumped 0.500 m in 0.010 s' in msg
+    assert buf.jumps == 1 and buf.epoch == 0 and len(buf) == 1
+    assert buf.pose_at(5 * S // 100).reason == pb.TOO_OLD          # never interpolated across the teleport
+    buf.add(11 * S // 100, translation(1.0, 0, 0))
+    assert buf.pose_at(105 * S // 1000).ok
+    # a turn of 30 degrees in 10 ms (3000 deg/s) is one too; 5 degrees in 10 ms is under the 10 degree floor
+    assert buf.add(12 * S // 100, yaw(5.0, (1.0, 0, 0))) is None
+    assert 'deg in 0.010 s' in buf.add(13 * S // 100, yaw(35.0, (1.0, 0, 0)))
+    assert buf.jumps == 2
+    # 5 cm of jitter at 1 kHz (50 m/s) is under the 0.1 m floor; off (0) means no check at all
+    assert buf.add(1301 * S // 10000, yaw(35.0, (1.05, 0, 0))) is None
+    off = PoseBuffer(max_gap_s=1.0)
+    off.add(0, translation(0, 0, 0))
+    assert off.add(S // 100, translation(100, 0, 0)) is None and off.jumps == 0
+
+
 def test_small_reordering_is_tolerated_when_allowed():
     buf = PoseBuffer(max_gap_s=1.0, backwards_tolerance_s=0.05)
     buf.add(0, translation(0, 0, 0))
