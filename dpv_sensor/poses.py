@@ -40,9 +40,9 @@ The factors' covariances are widened accordingly (``depth_scale_sigma``, ``inv_d
 ``translation_sigma_rel``). The defaults (5 % depth scale, 10 % of the step isotropically) still let the
 alignments move the translation by about the odometry's own error: keeping the odometry's translation while the
 alignments turn the rotation leaves a pose that agrees with neither, and plane-swept depth from such poses is
-biased (measured with ``benchmarks.poses``: with 50 % / 20 % widening, SUN3D recovered 0.22 and -0.01 of the
-noisy-to-GT abs_rel gap; with 10 % / 5 %, 0.81 and 0.62, and rendered sequences 0.88 and 0.81 instead of 0.82
-and 0.79, at the same metric translation RPE).
+biased (measured with ``benchmarks.poses``, classical model: with 50 % / 20 % widening, SUN3D recovered 0.22 and
+-0.01 of the noisy-to-GT abs_rel gap; with 10 % / 5 % (and 2 sources per keyframe), 0.74 and 0.59, and rendered
+sequences 0.87 and 0.81 instead of 0.82 and 0.79, at the same metric translation RPE).
 
 Tracking loss: an alignment that does not converge (see :class:`~dpv_sensor.photometric.AlignmentResult`), too
 few valid pixels, or a refined pose that jumps away from the odometry (or constant-velocity) prediction by more
