@@ -235,7 +235,7 @@ def _input_poses(seq, options: EvalOptions) -> List[np.ndarray]:
     gt = [np.asarray(seq.pose(i), np.float64) for i in range(len(seq))]
     if options.pose_source == 'gt':
         return gt
-    from .poses import corrupt_trajectory
+    from .data.trajectory import corrupt_trajectory
     return corrupt_trajectory(gt, trans_noise_rel=float(options.pose_noise[0]),
                               rot_noise_deg=float(options.pose_noise[1]), seed=options.seed)
 

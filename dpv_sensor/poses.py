@@ -63,6 +63,7 @@ from typing import Callable, Dict, Hashable, List, Optional, Sequence, Tuple
 import gtsam
 import numpy as np
 
+from dpv_sensor.data.trajectory import corrupt_trajectory  # noqa: F401  (re-exported: experiments and tests)
 from dpv_sensor.photometric import (AlignmentConfig, AlignmentResult, Aligner, ImagePyramid,
                                    inverse_depth_std_from_confidence, pose_error)
 
@@ -204,32 +205,6 @@ def relative_pose_errors(T_world_est: Sequence[np.ndarray], T_world_gt: Sequence
         t_err.append(te)
         r_err.append(re)
     return np.asarray(t_err), np.asarray(r_err)
-
-
-def corrupt_trajectory(T_world_cam: Sequence[np.ndarray], trans_noise_rel: float = 0.03,
-                       rot_noise_deg: float = 0.5, scale_bias: float = 0.0, seed: int = 0) -> List[np.ndarray]:
-    """Odometry-like corruption of a trajectory (for experiments and tests).
-
-    Every relative motion between consecutive poses gets a translation error of ``trans_noise_rel`` times its
-    length in a random direction (drift that accumulates as a random walk), a scale error ``scale_bias``
-    (systematic; monocular photometry cannot observe it), and a rotation error of ``rot_noise_deg`` degrees about
-    a random axis. The corrupted motions are chained from the first pose (which stays exact).
-    """
-    rng = np.random.default_rng(seed)
-    T_world_cam = [np.asarray(T, dtype=np.float64) for T in T_world_cam]
-    out = [T_world_cam[0].copy()]
-    for i in range(1, len(T_world_cam)):
-        rel = _rel(T_world_cam[i - 1], T_world_cam[i])
-        step = float(np.linalg.norm(rel[:3, 3]))
-        d = rng.normal(size=3)
-        d /= np.linalg.norm(d)
-        axis = rng.normal(size=3)
-        axis /= np.linalg.norm(axis)
-        noisy = rel.copy()
-        noisy[:3, 3] = rel[:3, 3] * (1.0 + scale_bias) + trans_noise_rel * step * d
-        noisy[:3, :3] = gtsam.Rot3.Expmap(axis * math.radians(rot_noise_deg)).matrix() @ rel[:3, :3]
-        out.append(out[-1] @ noisy)
-    return out
 
 
 def _pose3(T_44: np.ndarray) -> gtsam.Pose3:

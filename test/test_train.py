@@ -185,3 +185,23 @@ def test_cli_parses_and_refuses_sun3d(tmp_path):
     assert cfg.val_seeds == (0, 1, 2, 7) and cfg.steps == 9
     assert tool.main(['--folders', str(tmp_path / 'sun3d_3dmatch_frag2'), '--folder-prob', '0.5',
                       '--run-dir', str(tmp_path / 'r')]) == 2
+
+
+def test_training_runs_without_ros_gtsam_or_rosbags(tmp_path):
+    """A GPU machine with only PyTorch, numpy, scipy and OpenCV must be able to train: block the ROS, gtsam, bag and
+    Open3D imports and run two tiny steps (pose-noise augmentation included)."""
+    import subprocess
+    import sys
+    code = (
+        "import sys\n"
+        "for m in ('gtsam', 'rclpy', 'rosbags', 'open3d'):\n"
+        "    sys.modules[m] = None\n"
+        f"sys.argv = ['train', '--preset', 'lite', '--run-dir', {str(tmp_path / 'run')!r}, '--export', "
+        f"{str(tmp_path / 'w.safetensors')!r}, '--width', '64', '--height', '48', '--batch-size', '1', '--unroll', '2', "
+        "'--steps', '2', '--val-every', '2', '--val-seeds', '0', '--val-keyframes', '6', '--threads', '1', "
+        "'--num-workers', '0', '--quiet', '--pose-noise-prob', '1.0']\n"
+        "from dpv_sensor.tools import train\n"
+        "sys.exit(train.main())\n")
+    res = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True, timeout=300)
+    assert res.returncode == 0, res.stdout + res.stderr
+    assert (tmp_path / 'w.safetensors').is_file()

@@ -9,6 +9,9 @@ time (sums of sinusoids and an arc-length table), so the pose at any time — su
 blur and rolling shutter included — is exact and deterministic.
 
 World frame: z up. Camera frame: OpenCV (x right, y down, z forward). ``pose(t)`` returns T_world_cam.
+
+:func:`corrupt_trajectory` turns an exact trajectory into an odometry-like one (drift and rotation noise per
+step), for pose-refinement experiments and as training augmentation.
 """
 from __future__ import annotations
 
@@ -17,6 +20,7 @@ from dataclasses import dataclass, field
 from typing import List, Sequence, Tuple
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 
 def _sines(terms: Sequence[Tuple[float, float, float]], t: np.ndarray) -> np.ndarray:
@@ -245,3 +249,29 @@ class HandheldTrajectory:
                    height0=float(h0), height_terms=heights, direction=direction, speed_mean=float(v_mean),
                    speed_terms=speeds, t0=float(u(0, 1000.0)), shake_terms=shake, yaw_offset_mean=yaw_mean,
                    yaw_terms=yaw_terms, pitch_mean=pitch_mean, pitch_terms=pitch_terms, roll_terms=roll_terms)
+
+
+def corrupt_trajectory(T_world_cam: Sequence[np.ndarray], trans_noise_rel: float = 0.03,
+                       rot_noise_deg: float = 0.5, scale_bias: float = 0.0, seed: int = 0) -> List[np.ndarray]:
+    """Odometry-like corruption of a trajectory (pose-refinement experiments, training augmentation, tests).
+
+    Every relative motion between consecutive poses gets a translation error of ``trans_noise_rel`` times its
+    length in a random direction (drift that accumulates as a random walk), a scale error ``scale_bias``
+    (systematic; monocular photometry cannot observe it), and a rotation error of ``rot_noise_deg`` degrees about
+    a random axis. The corrupted motions are chained from the first pose (which stays exact).
+    """
+    rng = np.random.default_rng(seed)
+    T_world_cam = [np.asarray(T, dtype=np.float64) for T in T_world_cam]
+    out = [T_world_cam[0].copy()]
+    for i in range(1, len(T_world_cam)):
+        rel = np.linalg.inv(T_world_cam[i - 1]) @ T_world_cam[i]
+        step = float(np.linalg.norm(rel[:3, 3]))
+        d = rng.normal(size=3)
+        d /= np.linalg.norm(d)
+        axis = rng.normal(size=3)
+        axis /= np.linalg.norm(axis)
+        noisy = rel.copy()
+        noisy[:3, 3] = rel[:3, 3] * (1.0 + scale_bias) + trans_noise_rel * step * d
+        noisy[:3, :3] = Rotation.from_rotvec(axis * math.radians(rot_noise_deg)).as_matrix() @ rel[:3, :3]
+        out.append(out[-1] @ noisy)
+    return out

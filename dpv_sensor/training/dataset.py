@@ -338,7 +338,7 @@ class SceneStream(IterableDataset):
         cfg = self.config
         if cfg.pose_noise_prob <= 0 or rng.random() >= cfg.pose_noise_prob:
             return smp
-        from ..poses import corrupt_trajectory
+        from ..data.trajectory import corrupt_trajectory
         poses = [T.double().numpy() for T in smp['poses']]
         noisy = corrupt_trajectory(poses, trans_noise_rel=float(rng.uniform(0.0, cfg.pose_noise_trans_rel)),
                                    rot_noise_deg=float(rng.uniform(0.0, cfg.pose_noise_rot_deg)),
