@@ -94,9 +94,14 @@ def estimator_config(seq, measurement: str, filter_mode: str = 'global') -> Esti
                            reset_time_gap=0.0, pose_refinement='window')
 
 
-def make_model(measurement: str):
+def make_model(measurement: str, weights: Optional[str] = None):
+    """None for the classical model; the network of ``measurement``'s preset with ``weights`` (a checkpoint), or
+    with random weights when none are given (what the timing needs: the cost does not depend on the values)."""
     if measurement == 'classical':
         return None
+    if weights:
+        from dpv_sensor.nets.checkpoint import load_checkpoint
+        return load_checkpoint(weights, preset=measurement)[0].eval()
     from dpv_sensor.nets.model import DPVNet
     torch.manual_seed(0)
     return DPVNet(measurement).eval()
@@ -119,12 +124,13 @@ class RunResult:
 
 def run_pipeline(name: str, seq, poses: Optional[Seq[np.ndarray]], measurement: str, *,
                  refiner: Optional[WindowPoseRefiner] = None, vo: Optional[VisualOdometry] = None,
-                 model=None, max_depth: Optional[float] = None, garbage_frames: Seq[int] = ()) -> RunResult:
+                 model=None, max_depth: Optional[float] = None, garbage_frames: Seq[int] = (),
+                 filter_mode: str = 'global') -> RunResult:
     """Push the keyframes through an Estimator (with the refiner hook / VO when given) and score the outputs.
 
     ``garbage_frames``: indices whose image is replaced by uniform noise (bad input: tracking must be lost and no
     depth published for them)."""
-    cfg = estimator_config(seq, measurement)
+    cfg = estimator_config(seq, measurement, filter_mode)
     est = Estimator(cfg, model=model, pose_refiner=refiner)
     acc = MetricAccumulator(min_depth=est.d_min, max_depth=max_depth or est.d_max)
     K = np.asarray(seq.K, dtype=np.float64)
@@ -303,12 +309,13 @@ def _abs_rel(r: RunResult, kind: str = 'metric') -> float:
 def odometry_experiment(label: str, seq, args, measurement: str) -> Dict:
     gt = [seq.pose(j) for j in range(len(seq))]
     noisy = corrupt_trajectory(gt, args.trans_noise, args.rot_noise, args.scale_bias, seed=args.noise_seed)
-    model = make_model(measurement)
+    model = make_model(measurement, args.weights)
     cfg = refiner_config(args)
-    r_gt = run_pipeline('GT poses', seq, gt, measurement, model=model)
-    r_noisy = run_pipeline('noisy odometry', seq, noisy, measurement, model=model)
+    fm = args.filter_mode
+    r_gt = run_pipeline('GT poses', seq, gt, measurement, model=model, filter_mode=fm)
+    r_noisy = run_pipeline('noisy odometry', seq, noisy, measurement, model=model, filter_mode=fm)
     refiner = WindowPoseRefiner(cfg)
-    r_ref = run_pipeline('noisy + refinement', seq, noisy, measurement, refiner=refiner, model=model)
+    r_ref = run_pipeline('noisy + refinement', seq, noisy, measurement, refiner=refiner, model=model, filter_mode=fm)
     ub = refiner_gt_depth_rpe(seq, noisy, cfg)
     out = {'sequence': label, 'keyframes': len(seq), 'runs': {}}
     for r in (r_gt, r_noisy, r_ref):
@@ -338,15 +345,17 @@ def odometry_experiment(label: str, seq, args, measurement: str) -> Dict:
 
 def vo_experiment(label: str, seq, args, measurement: str) -> Dict:
     gt = [seq.pose(j) for j in range(len(seq))]
-    model = make_model(measurement)
-    r_gt = run_pipeline('GT poses', seq, gt, measurement, model=model)
+    model = make_model(measurement, args.weights)
+    r_gt = run_pipeline('GT poses', seq, gt, measurement, model=model, filter_mode=args.filter_mode)
     vo = VisualOdometry(VisualOdometryConfig(bootstrap_depth=args.bootstrap_depth))
     refiner = WindowPoseRefiner(refiner_config(args, vo_mode=True))
-    r_vo = run_pipeline('odometry-free', seq, None, measurement, refiner=refiner, vo=vo, model=model)
+    r_vo = run_pipeline('odometry-free', seq, None, measurement, refiner=refiner, vo=vo, model=model,
+                        filter_mode=args.filter_mode)
     garbage = [len(seq) // 2]
     r_bad = run_pipeline('+ noise frame', seq, None, measurement, model=model, garbage_frames=garbage,
                          refiner=WindowPoseRefiner(refiner_config(args, vo_mode=True)),
-                         vo=VisualOdometry(VisualOdometryConfig(bootstrap_depth=args.bootstrap_depth)))
+                         vo=VisualOdometry(VisualOdometryConfig(bootstrap_depth=args.bootstrap_depth)),
+                         filter_mode=args.filter_mode)
     out = {'sequence': label, 'keyframes': len(seq), 'runs': {}}
     for r in (r_gt, r_vo, r_bad):
         t, rot = rpe_of(r.used_poses, gt)
@@ -476,6 +485,10 @@ def main(argv=None) -> int:
     p.add_argument('--size', default='320x240', help='processing size WxH')
     p.add_argument('--measurement', default='classical', choices=['classical', 'lite', 'paper'],
                    help='measurement model for the accuracy parts (network presets use random weights)')
+    p.add_argument('--weights', default=None,
+                   help='checkpoint for --measurement lite/paper (default: random weights, enough for timing)')
+    p.add_argument('--filter-mode', default='global', choices=['none', 'global', 'knet'],
+                   help='filter of the estimator runs (knet needs a network)')
     p.add_argument('--timing-measurement', default='lite', choices=['classical', 'lite', 'paper'])
     p.add_argument('--timing-repeats', type=int, default=3)
     p.add_argument('--trans-noise', type=float, default=0.03)
