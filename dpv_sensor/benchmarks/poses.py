@@ -191,20 +191,8 @@ def run_pipeline(name: str, seq, poses: Optional[Seq[np.ndarray]], measurement: 
 def rpe_of(used: Dict[int, np.ndarray], gt: Seq[np.ndarray], worst: bool = False):
     """Mean (or with ``worst`` the largest) RPE (translation m, rotation deg) over consecutive scored keyframes
     (pairs across a gap are skipped)."""
-    idx = sorted(used)
-    te, re = [], []
-    for a, b in zip(idx[:-1], idx[1:]):
-        if b != a + 1:
-            continue
-        rel_est = np.linalg.inv(used[a]) @ used[b]
-        rel_gt = np.linalg.inv(gt[a]) @ gt[b]
-        t, r = pose_error(rel_gt, rel_est)
-        te.append(t)
-        re.append(r)
-    if not te:
-        return float('nan'), float('nan')
-    agg = np.max if worst else np.mean
-    return float(agg(te)), float(agg(re))
+    relative = {a: np.linalg.inv(gt[a]) @ gt[a + 1] for a in range(len(gt) - 1)}
+    return rpe_against(used, relative, np.max if worst else np.mean)
 
 
 def reprojection_rpe(used: Dict[int, np.ndarray], seq, step: int = 8) -> float:
@@ -287,16 +275,16 @@ def gt_consistency(label: str, seq) -> Dict:
             'baseline_mm': float(a[:, 4].mean()), 'relative': relative}
 
 
-def rpe_against(used: Dict[int, np.ndarray], relative: Dict[int, np.ndarray]):
-    """Mean RPE (translation m, rotation deg) of consecutive scored keyframes against reference relative poses
-    ``relative[a] = T_a_(a+1)`` (e.g. :func:`gt_consistency`'s sensor-depth alignments)."""
+def rpe_against(used: Dict[int, np.ndarray], relative: Dict[int, np.ndarray], agg=np.mean):
+    """RPE (translation m, rotation deg; mean, or ``agg``) of consecutive scored keyframes against reference
+    relative poses ``relative[a] = T_a_(a+1)`` (the GT's, or :func:`gt_consistency`'s sensor-depth alignments)."""
     te, re = [], []
     for a in sorted(used):
         if a + 1 in used and a in relative:
             t, r = pose_error(relative[a], np.linalg.inv(used[a]) @ used[a + 1])
             te.append(t)
             re.append(r)
-    return (float(np.mean(te)), float(np.mean(re))) if te else (float('nan'), float('nan'))
+    return (float(agg(te)), float(agg(re))) if te else (float('nan'), float('nan'))
 
 
 def _abs_rel(r: RunResult, kind: str = 'metric') -> float:
@@ -306,7 +294,8 @@ def _abs_rel(r: RunResult, kind: str = 'metric') -> float:
 # ------------------------------------------------------------------------------------------------------------------
 # experiments
 
-def odometry_experiment(label: str, seq, args, measurement: str) -> Dict:
+def odometry_experiment(label: str, seq, args, measurement: str, consistency: Dict) -> Dict:
+    """``consistency``: :func:`gt_consistency` of ``seq`` (its sensor-depth alignments are the photo-ref)."""
     gt = [seq.pose(j) for j in range(len(seq))]
     noisy = corrupt_trajectory(gt, args.trans_noise, args.rot_noise, args.scale_bias, seed=args.noise_seed)
     model = make_model(measurement, args.weights)
@@ -327,7 +316,7 @@ def odometry_experiment(label: str, seq, args, measurement: str) -> Dict:
     out['runs']['refiner on GT depth'] = {'rpe_t_mm': 1e3 * ub[0], 'rpe_r_deg': ub[1], 'rpe_px': ub[2]}
     # RPE against the sensor-depth alignment of consecutive keyframes (a reference that does not inherit the GT
     # poses' own errors; see gtcheck)
-    photo_ref = gt_consistency(label, seq)['relative']
+    photo_ref = consistency['relative']
     for r in (r_gt, r_noisy, r_ref):
         t, rot = rpe_against(r.used_poses, photo_ref)
         out['runs'][r.name].update(photo_rpe_t_mm=1e3 * t, photo_rpe_r_deg=rot)
@@ -530,12 +519,19 @@ def main(argv=None) -> int:
             else:
                 print(f'{path} is absent: skipped', file=sys.stderr)
 
+    consistency: Dict[str, Dict] = {}
+
+    def consistency_of(label, seq) -> Dict:      # once per sequence: the odometry tables and gtcheck share it
+        if label not in consistency:
+            consistency[label] = gt_consistency(label, seq)
+        return consistency[label]
+
     if 'synthetic' in args.parts or 'sun3d' in args.parts:
         todo = (seqs if 'synthetic' in args.parts else []) + (sun if 'sun3d' in args.parts else [])
         results = []
         for label, seq in todo:
             t = time.perf_counter()
-            results.append(odometry_experiment(label, seq, args, args.measurement))
+            results.append(odometry_experiment(label, seq, args, args.measurement, consistency_of(label, seq)))
             print(f'{label}: {time.perf_counter() - t:.0f} s', file=sys.stderr)
         report['odometry'] = results
         print_odometry_table(results)
@@ -544,7 +540,7 @@ def main(argv=None) -> int:
         report['vo'] = results
         print_vo_table(results)
     if 'gtcheck' in args.parts:
-        report['gtcheck'] = [{k: v for k, v in gt_consistency(label, seq).items() if k != 'relative'}
+        report['gtcheck'] = [{k: v for k, v in consistency_of(label, seq).items() if k != 'relative'}
                              for label, seq in seqs + sun]
         print_gt_consistency(report['gtcheck'])
     if 'timing' in args.parts and seqs:
