@@ -17,7 +17,8 @@ from .geometry import inverse_depth_index
 __all__ = [
     'LOG_FLOOR', 'depth_planes', 'depth_to_index', 'index_to_depth', 'normalize_log', 'clamp_log',
     'uniform_log', 'expected_depth', 'expected_index', 'argmax_depth', 'confidence', 'entropy',
-    'nll', 'valid_depth_mask', 'one_hot_log',
+    'nll', 'valid_depth_mask', 'one_hot_log', 'READOUTS', 'quantile_index', 'median_depth',
+    'relative_depth', 'depth_estimate', 'estimate_index', 'DEFAULT_READOUT', 'resolve_readout',
 ]
 
 # Lowest log-probability we keep anywhere in the filter (e^-30 ~ 1e-13): a zero-probability
@@ -82,8 +83,12 @@ def one_hot_log(index_bhw: torch.Tensor, D: int, peak: float = 0.0, floor: float
     return normalize_log(logits)
 
 
+def _planes(depths_d: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
+    return torch.as_tensor(depths_d, dtype=like.dtype, device=like.device)
+
+
 def _view_d(depths_d: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
-    d = torch.as_tensor(depths_d, dtype=like.dtype, device=like.device)
+    d = _planes(depths_d, like)
     return d.reshape(1, -1, 1, 1) if d.dim() == 1 else d[:, :, None, None]
 
 
@@ -94,24 +99,98 @@ def expected_depth(logp_bdhw: torch.Tensor, depths_d: torch.Tensor) -> torch.Ten
 
 def expected_index(logp_bdhw: torch.Tensor, depths_d: torch.Tensor) -> torch.Tensor:
     """Fractional plane index of the expected depth (planes uniform in inverse depth)."""
-    d = torch.as_tensor(depths_d, dtype=logp_bdhw.dtype, device=logp_bdhw.device)
+    d = _planes(depths_d, logp_bdhw)
     D = logp_bdhw.shape[1]
     return inverse_depth_index(expected_depth(logp_bdhw, d), d[0], d[-1], D)
 
 
 def argmax_depth(logp_bdhw: torch.Tensor, depths_d: torch.Tensor) -> torch.Tensor:
     """Depth of the most probable plane (MAP over the discrete planes); shape (B, H, W)."""
-    d = torch.as_tensor(depths_d, dtype=logp_bdhw.dtype, device=logp_bdhw.device)
-    return d[logp_bdhw.argmax(1)]
+    return _planes(depths_d, logp_bdhw)[logp_bdhw.argmax(1)]
 
 
-def confidence(logp_bdhw: torch.Tensor, depths_d: torch.Tensor) -> torch.Tensor:
+def quantile_index(logp_bdhw: torch.Tensor, q: float = 0.5) -> torch.Tensor:
+    """Fractional plane index where the DPV's cumulative mass reaches ``q``; shape (B, H, W).
+
+    Plane k's mass is taken as spread uniformly over the index interval ``[k - 0.5, k + 0.5]`` (the
+    same model as :func:`confidence`), so the CDF is piecewise linear in the index and the quantile is
+    exact under that model; the result is clamped to ``[0, D - 1]``. Differentiable in the
+    probabilities (piecewise).
+    """
+    D = logp_bdhw.shape[1]
+    p = torch.exp(logp_bdhw)
+    cdf = p.cumsum(1)
+    k = (cdf < q).sum(1, keepdim=True).clamp(max=D - 1)                  # first plane whose CDF >= q
+    before = torch.where(k > 0, cdf.gather(1, (k - 1).clamp(min=0)), torch.zeros_like(cdf[:, :1]))
+    pk = p.gather(1, k).clamp_min(torch.finfo(p.dtype).tiny)
+    f = k.to(p.dtype) - 0.5 + ((q - before) / pk).clamp(0.0, 1.0)
+    return f[:, 0].clamp(0.0, D - 1.0)
+
+
+def median_depth(logp_bdhw: torch.Tensor, depths_d: torch.Tensor) -> torch.Tensor:
+    """Median depth of every ray (minimises the expected absolute error); shape (B, H, W)."""
+    d = _planes(depths_d, logp_bdhw)
+    return index_to_depth(quantile_index(logp_bdhw), d[0], d[-1], logp_bdhw.shape[1])
+
+
+def relative_depth(logp_bdhw: torch.Tensor, depths_d: torch.Tensor) -> torch.Tensor:
+    """The depth that minimises the expected *relative* error ``E|x - d| / d`` under the DPV.
+
+    Setting the derivative of ``sum_k p_k |x - d_k| / d_k`` to zero shows the minimiser is the median
+    of the reweighted distribution ``p_k / d_k``: a depth sensor's error is specified relative to the
+    range, and this is the Bayes estimate for that loss (and for abs_rel). Shape (B, H, W).
+    """
+    d = _planes(depths_d, logp_bdhw)
+    reweighted = normalize_log(logp_bdhw - torch.log(d).reshape(1, -1, 1, 1))
+    return index_to_depth(quantile_index(reweighted), d[0], d[-1], logp_bdhw.shape[1])
+
+
+# How a DPV is turned into one depth per pixel. 'mean' is the paper's eq. 1 (the expectation, which
+# minimises the expected squared error); 'median' minimises the expected absolute error; 'relative'
+# minimises the expected relative error. Mean and median differ most where the DPV is wide or has two
+# modes (occlusion edges, weak texture): the mean lands between the modes, a flying pixel, while the
+# median and 'relative' stay on one of them.
+READOUTS = ('mean', 'median', 'relative')
+_READOUT_FN = {'mean': expected_depth, 'median': median_depth, 'relative': relative_depth}
+# The node's default (params.py) is 'auto': 'relative' for a learned DPV, 'mean' for the classical one.
+# Chosen on training scenes (rendered training seeds, TartanAir hospital); the held-out figures are in the
+# README. A classical NCC volume is nearly flat on weak texture, and reweighting a flat DPV by 1/d (or
+# taking its median) moves those pixels to the nearest planes, where its mean stays mid-range.
+DEFAULT_READOUT = 'auto'
+
+
+def resolve_readout(readout: str, learned: bool) -> str:
+    """The readout to use: ``readout`` itself, or for 'auto' 'relative' (learned) / 'mean' (classical)."""
+    if readout == 'auto':
+        return 'relative' if learned else 'mean'
+    if readout not in READOUTS:
+        raise ValueError(f"readout must be 'auto' or one of {READOUTS}, got {readout!r}")
+    return readout
+
+
+def depth_estimate(logp_bdhw: torch.Tensor, depths_d: torch.Tensor, readout: str = 'mean') -> torch.Tensor:
+    """One depth per ray with the given readout (one of :data:`READOUTS`); shape (B, H, W)."""
+    try:
+        fn = _READOUT_FN[readout]
+    except KeyError:
+        raise ValueError(f'readout must be one of {READOUTS}, got {readout!r}') from None
+    return fn(logp_bdhw, depths_d)
+
+
+def estimate_index(logp_bdhw: torch.Tensor, depths_d: torch.Tensor, readout: str = 'mean') -> torch.Tensor:
+    """Fractional plane index of :func:`depth_estimate`; shape (B, H, W)."""
+    d = _planes(depths_d, logp_bdhw)
+    return inverse_depth_index(depth_estimate(logp_bdhw, d, readout), d[0], d[-1], logp_bdhw.shape[1])
+
+
+def confidence(logp_bdhw: torch.Tensor, depths_d: torch.Tensor, readout: str = 'mean') -> torch.Tensor:
     """Paper eq. 2 made comparable across planes: probability mass within +-1 bin of the estimate.
 
-    With ``f`` the fractional plane index of the expected depth (eq. 1) and plane k taken to cover
-    the index interval ``[k - 0.5, k + 0.5]`` with its mass spread uniformly, the confidence is the
-    mass of the DPV inside the index window ``[f - 1, f + 1]`` (one plane spacing, in inverse depth,
-    either side of the estimate):
+    With ``f`` the fractional plane index of the depth estimate (eq. 1 for ``readout='mean'``, else
+    :func:`depth_estimate` with that readout) and plane k taken to cover the index interval
+    ``[k - 0.5, k + 0.5]`` with its mass spread uniformly, the confidence is the mass of the DPV
+    inside the index window ``[f - 1, f + 1]`` (one plane spacing, in inverse depth, either side of
+    the estimate):
 
         C = sum_k p_k * |[k - 0.5, k + 0.5] ∩ [f - 1, f + 1]|.
 
@@ -122,7 +201,8 @@ def confidence(logp_bdhw: torch.Tensor, depths_d: torch.Tensor) -> torch.Tensor:
     between two planes. Shape (B, H, W); differentiable in the probabilities.
     """
     B, D, H, W = logp_bdhw.shape
-    f = expected_index(logp_bdhw, depths_d)[:, None]                       # B,1,H,W
+    f = (expected_index(logp_bdhw, depths_d) if readout == 'mean'
+         else estimate_index(logp_bdhw, depths_d, readout))[:, None]        # B,1,H,W
     k = torch.arange(D, dtype=logp_bdhw.dtype, device=logp_bdhw.device).reshape(1, D, 1, 1)
     overlap = (torch.minimum(k + 0.5, f + 1.0) - torch.maximum(k - 0.5, f - 1.0)).clamp(0.0, 1.0)
     return (torch.exp(logp_bdhw) * overlap).sum(1).clamp(0.0, 1.0)

@@ -157,6 +157,7 @@ class EstimatorConfig:
     d_max: float = 8.0
     num_planes: int = 64
     filter_mode: str = 'knet'
+    depth_readout: str = dpv_ops.DEFAULT_READOUT
     damping: float = 0.8
     reset_time_gap: float = 1.0
     reset_translation: float = 1.0
@@ -192,6 +193,7 @@ class EstimatorConfig:
                 raise ValueError(f'{name} = {getattr(self, name)!r} is not one of {list(choices)}')
         one_of('measurement', MEASUREMENTS)
         one_of('filter_mode', FILTER_MODES)
+        one_of('depth_readout', ('auto',) + dpv_ops.READOUTS)
         one_of('window_mode', WINDOW_MODES)
         one_of('output_resolution', OUTPUT_RESOLUTIONS)
         one_of('pose_refinement', ('off', 'window'))
@@ -418,6 +420,11 @@ class Estimator:
         self._checkpoint_meta = dict(meta or {})
         return model.to(self.device).eval()
 
+    @property
+    def readout(self) -> str:
+        """The depth readout in use (``depth_readout`` with 'auto' resolved for the measurement model)."""
+        return dpv_ops.resolve_readout(self.config.depth_readout, self.measurement == 'network')
+
     def _use_network(self) -> None:
         self.measurement = 'network'
         m = self.model
@@ -489,6 +496,7 @@ class Estimator:
             'torch_threads': torch.get_num_threads(),
             'filter_mode': self.filter_mode,
             'filter_mode_requested': cfg.filter_mode,
+            'depth_readout': self.readout,
             'window_mode': cfg.window_mode,
             'processing_size': cfg.processing_size,
             'depth_range': (self.d_min, self.d_max),
@@ -690,14 +698,13 @@ class Estimator:
             with self._autocast():
                 full = self.model.refine(post, meas.feats, ref.image_b3hw)
             full = full.float()
-            depth = dpv_ops.expected_depth(full, self.depths_d)
-            conf = dpv_ops.confidence(full, self.depths_d)
+            depth, conf = self._readout(full)
             valid = resample_to_camera(coverage[:, None].float(), meas.K_vol_b33[0], K_proc_t, (H, W),
                                        mode='nearest')[:, 0] > 0.5
             timings['refine'] = self._ms(t)
         else:
             depth, conf, valid = self._volume_maps_to_processing(
-                dpv_ops.expected_depth(post, self.depths_d), dpv_ops.confidence(post, self.depths_d), coverage,
+                *self._readout(post), coverage,
                 meas.K_vol_b33[0], K_proc_t, (H, W))
             timings['upsample'] = self._ms(t)
 
@@ -736,6 +743,12 @@ class Estimator:
         self._pending_reset_reason = None
         return reason
 
+    def _readout(self, logp_bdhw: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
+        """(depth, confidence), each (B, H, W), of a DPV with the configured ``depth_readout``."""
+        r = self.readout
+        return (dpv_ops.depth_estimate(logp_bdhw, self.depths_d, r),
+                dpv_ops.confidence(logp_bdhw, self.depths_d, r))
+
     @staticmethod
     def _ms(t: float) -> float:
         return (time.perf_counter() - t) * 1000.0
@@ -752,8 +765,7 @@ class Estimator:
         depth = conf = K_depth = None
         pred = self.filter.predict(self._filter_pose(ref.T_world_cam_44))
         if pred is not None and self._posterior is not None:
-            depth = dpv_ops.expected_depth(pred, self.depths_d)[0]
-            conf = dpv_ops.confidence(pred, self.depths_d)[0]
+            depth, conf = (x[0] for x in self._readout(pred))
             K_depth = self._posterior.K_vol_b33[0].double().cpu().numpy()
         request = PoseRefinementRequest(kfs, r, depth, conf, K_depth, self.depths_d)
         try:
@@ -847,8 +859,7 @@ class Estimator:
         T_cur_prev = np.linalg.inv(T) @ p.T_world_cam_44
         T_t = torch.as_tensor(T_cur_prev, dtype=torch.float32, device=self.device)[None]
         pred, inside = geometry.warp_volume(p.logp_bdhw, p.K_vol_b33, T_t, self.depths_d, return_valid=True)
-        depth_v = dpv_ops.expected_depth(pred, self.depths_d)
-        conf_v = dpv_ops.confidence(pred, self.depths_d)
+        depth_v, conf_v = self._readout(pred)
         # valid: most of the ray lies in the posterior's frustum, and the estimated surface point falls on
         # a pixel of the keyframe that had an estimate
         valid_v = inside.float().mean(1) >= cfg.min_coverage

@@ -51,6 +51,12 @@ SPECS: tuple[ParamSpec, ...] = (
     # --- filter -------------------------------------------------------------------------------------------
     ParamSpec('filter_mode', 'knet', 'DPV filter update: none, bayes, global or knet '
               '(knet needs network weights; falls back to global).', choices=('none', 'bayes', 'global', 'knet')),
+    ParamSpec('depth_readout', 'auto', 'How the DPV becomes one depth per pixel: relative (the depth with the '
+              'least expected relative error, the median of p(d)/d), median (least absolute error), mean (the '
+              'expectation, paper eq. 1; lands between the modes of a two-mode DPV) or auto (relative with the '
+              'network, mean with the classical model, whose flat DPVs the other two pull to the near planes). '
+              'Confidence is the mass within one plane of that depth.',
+              choices=('auto', 'relative', 'median', 'mean')),
     ParamSpec('damping', 0.8, 'Global damping lambda of the prediction energy (paper eq. 8).',
               min_value=0.0, max_value=1.0),
     ParamSpec('reset_time_gap', 1.0, 'Reset the filter when the camera stream itself has a gap longer than this '

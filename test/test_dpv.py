@@ -150,3 +150,76 @@ def test_gradcheck_depth_and_confidence():
     x = torch.randn(1, 6, 2, 3, dtype=DT, requires_grad=True)
     assert torch.autograd.gradcheck(lambda t: dpv.expected_depth(dpv.normalize_log(t), planes), (x,))
     assert torch.autograd.gradcheck(lambda t: dpv.confidence(dpv.normalize_log(t), planes), (x,), atol=1e-5)
+
+
+# ------------------------------------------------------------------ readouts (median, relative)
+
+def test_median_by_hand():
+    planes = dpv.depth_planes(1.0, 4.0, 3, dtype=DT)                   # 1, 1.6, 4 m
+    # one-hot at plane 1: its mass covers index [0.5, 1.5], the CDF reaches 0.5 at index 1
+    assert dpv.quantile_index(_logp([0, 1, 0])).item() == pytest.approx(1.0)
+    assert dpv.median_depth(_logp([0, 1, 0]), planes).item() == pytest.approx(1.6)
+    # half on plane 0, half on plane 1: the median is the boundary between them, index 0.5
+    assert dpv.quantile_index(_logp([0.5, 0.5, 0])).item() == pytest.approx(0.5)
+    # 0.2 / 0.2 / 0.6: the CDF is 0.4 at index 1.5 and rises 0.6 per index after, 0.5 at 1.5 + 1/6
+    assert dpv.quantile_index(_logp([0.2, 0.2, 0.6])).item() == pytest.approx(1.5 + 1.0 / 6.0)
+    # the quantile never leaves [0, D - 1]
+    assert dpv.quantile_index(_logp([1, 0, 0])).item() == pytest.approx(0.0)
+    assert dpv.quantile_index(_logp([0, 0, 1]), q=0.99).item() == pytest.approx(2.0)
+
+
+def test_relative_readout_by_hand():
+    planes = dpv.depth_planes(1.0, 2.0, 2, dtype=DT)                   # 1 m and 2 m
+    # p = (0.5, 0.5) reweighted by 1/d: (2/3, 1/3); the CDF reaches 0.5 inside plane 0's bin at
+    # index -0.5 + 0.5 / (2/3) = 0.25, i.e. inverse depth 1 - 0.5 * 0.25 = 0.875
+    assert dpv.relative_depth(_logp([0.5, 0.5]), planes).item() == pytest.approx(1.0 / 0.875)
+    assert dpv.expected_depth(_logp([0.5, 0.5]), planes).item() == pytest.approx(1.5)
+    # a one-hot DPV reads the same depth with every readout
+    planes = dpv.depth_planes(1.0, 4.0, 3, dtype=DT)
+    for r in dpv.READOUTS:
+        assert dpv.depth_estimate(_logp([0, 1, 0]), planes, r).item() == pytest.approx(1.6)
+    with pytest.raises(ValueError, match='readout'):
+        dpv.depth_estimate(_logp([0, 1, 0]), planes, 'mode')
+
+
+def test_relative_readout_minimises_the_expected_relative_error():
+    """Brute force over a fine depth grid: sum_k p_k |x - d_k| / d_k is smallest within half a plane of
+    the 'relative' readout (the discrete minimiser sits on a plane; the readout interpolates in its bin)."""
+    torch.manual_seed(3)
+    D = 16
+    planes = dpv.depth_planes(0.3, 8.0, D, dtype=DT)
+    lp = dpv.normalize_log(2.0 * torch.randn(1, D, 1, 8, dtype=DT))
+    x = torch.linspace(0.3, 8.0, 20001, dtype=DT)
+    p = lp.exp()[0, :, 0].T                                           # 8, D
+    cost = (p[:, None, :] * (x[None, :, None] - planes).abs() / planes).sum(-1)    # 8, grid
+    best = x[cost.argmin(1)]
+    got = dpv.relative_depth(lp, planes)[0, 0]
+    gi = dpv.depth_to_index(got, 0.3, 8.0, D)
+    bi = dpv.depth_to_index(best, 0.3, 8.0, D)
+    assert ((gi - bi).abs() <= 0.5 + 1e-6).all(), (gi, bi)
+
+
+def test_two_mode_dpv_mean_is_a_flying_pixel_median_is_not():
+    planes = dpv.depth_planes(1.0, 4.0, 10, dtype=DT)
+    lp = _logp([0, 0, 0.6, 0, 0, 0, 0, 0, 0.4, 0])
+    mean_idx = dpv.expected_index(lp, planes).item()
+    assert 3.0 < mean_idx < 7.0                                       # between the modes, on neither
+    assert dpv.confidence(lp, planes, 'mean').item() == pytest.approx(0.0, abs=1e-9)
+    for r in ('median', 'relative'):
+        assert abs(dpv.estimate_index(lp, planes, r).item() - 2.0) <= 0.5
+        assert dpv.confidence(lp, planes, r).item() >= 0.6 - 1e-9    # the near mode's mass
+
+
+def test_gradcheck_readouts():
+    planes = dpv.depth_planes(0.5, 4.0, 6, dtype=DT)
+    x = torch.randn(1, 6, 2, 3, dtype=DT, requires_grad=True)
+    for r in ('median', 'relative'):
+        assert torch.autograd.gradcheck(lambda t: dpv.depth_estimate(dpv.normalize_log(t), planes, r), (x,))
+
+
+def test_auto_readout_depends_on_the_measurement_model():
+    assert dpv.resolve_readout('auto', learned=True) == 'relative'
+    assert dpv.resolve_readout('auto', learned=False) == 'mean'
+    assert dpv.resolve_readout('median', learned=False) == 'median'
+    with pytest.raises(ValueError, match='readout'):
+        dpv.resolve_readout('mode', learned=True)

@@ -295,6 +295,7 @@ def test_missing_weights_fall_back_to_classical(tmp_path):
     assert 'fallback' in st['measurement_reason'] and str(path) in st['measurement_reason']
     assert 'not found' in st['measurement_reason']
     assert st['filter_mode'] == 'global' and any('knet' in n for n in st['notes'])
+    assert st['depth_readout'] == 'mean'                       # 'auto' with the classical model
     assert push_all(est, sideways(3))[-1] is not None
 
 
@@ -317,6 +318,18 @@ def test_corrupt_weights_fall_back_to_classical(tmp_path):
                                                  ).status['measurement_reason']
 
 
+def test_depth_readout_is_applied_and_checked():
+    """The same sequence read out with 'mean' and with 'median': different depth maps, and an unknown
+    readout is refused naming the field."""
+    outs = {r: push_all(Estimator(small_config(measurement='classical', depth_readout=r)), sideways(4))[-1]
+            for r in ('mean', 'median')}
+    a, b = outs['mean'].depth_hw, outs['median'].depth_hw
+    both = np.isfinite(a) & np.isfinite(b)
+    assert both.mean() > 0.5 and np.abs(a[both] - b[both]).max() > 1e-3
+    with pytest.raises(ValueError, match='depth_readout'):
+        small_config(depth_readout='mode').validate()
+
+
 def test_measurement_network_without_weights_is_an_error(tmp_path):
     from dpv_sensor.nets import CheckpointError
     with pytest.raises(CheckpointError, match='not found'):
@@ -332,6 +345,7 @@ def test_network_measurement_caches_features_and_uses_knet():
     net.extract_features = lambda img: (calls.append(tuple(img.shape)), original(img))[1]
     est = Estimator(small_config(measurement='auto', filter_mode='knet', output_resolution='processing'), model=net)
     assert est.status['measurement'] == 'network' and est.status['filter_mode'] == 'knet'
+    assert est.status['depth_readout'] == 'relative'           # 'auto' with the network
     outs = push_all(est, sideways(5))
     # every keyframe's image went through the feature extractor exactly once (sources reuse the cache)
     assert len(calls) == 5 and all(c == (1, 3, 48, 64) for c in calls)

@@ -7,7 +7,8 @@ dpv_sensor.metrics (metric, frame means). Constant depth = the median GT depth o
 oracle constant, i.e. a strong constant baseline), scored on the same keyframes.
 
     .venv/bin/python -m dpv_sensor.benchmarks.heldout --weights dpv_sensor/weights/lite.safetensors \
-        --out results.json [--seqs sun3d_3dmatch_frag1 sun3d_3dmatch_frag2] [--synthetic-seeds 0-9]
+        --out results.json [--seqs sun3d_3dmatch_frag1 sun3d_3dmatch_frag2] [--synthetic-seeds 0-9] \
+        [--readout auto|relative|median|mean]
 """
 import argparse
 import pathlib
@@ -19,6 +20,7 @@ import numpy as np
 import torch
 
 from dpv_sensor.data.sequence import Sequence
+from dpv_sensor.dpv import DEFAULT_READOUT, READOUTS
 from dpv_sensor.estimator import EstimatorConfig, evaluate_offline
 from dpv_sensor.metrics import MetricAccumulator
 
@@ -78,6 +80,8 @@ def main():
     ap.add_argument('--synthetic-frames', type=int, default=60)
     ap.add_argument('--modes', nargs='*', default=['none', 'global', 'knet'])
     ap.add_argument('--window-mode', default='causal')
+    ap.add_argument('--readout', default=DEFAULT_READOUT, choices=('auto',) + READOUTS,
+                    help='depth readout of every model (the node parameter depth_readout)')
     ap.add_argument('--no-classical', action='store_true')
     ap.add_argument('--threads', type=int, default=2)
     a = ap.parse_args()
@@ -91,21 +95,23 @@ def main():
         for s in range(lo, hi + 1):
             assert s < 100, 'only held-out seeds'
             seqs.append((f'synthetic_seed{s}', render_sequence(s, a.synthetic_frames, width=320, height=240, lazy=True)))
-    results = {'weights': a.weights, 'steps': meta.get('steps'), 'window_mode': a.window_mode, 'sequences': {}}
+    results = {'weights': a.weights, 'steps': meta.get('steps'), 'window_mode': a.window_mode, 'readout': a.readout,
+               'sequences': {}}
     for name, seq in seqs:
         r = {}
         kf_idx = None
         for mode in a.modes:
             t0 = time.time()
             cfg = EstimatorConfig(preset=model.preset.name, measurement='network', filter_mode=mode,
-                                  num_planes=D, window_mode=a.window_mode)
+                                  num_planes=D, window_mode=a.window_mode, depth_readout=a.readout)
             res = evaluate_offline(seq, cfg, model=model)
             r[f'net_{mode}'] = summarize(res)
             kf_idx = [row['index'] for row in res['rows']]
             print(name, 'net', mode, json.dumps(r[f'net_{mode}']), f'{time.time() - t0:.0f}s', flush=True)
         if not a.no_classical:
             for mode in [m for m in a.modes if m != 'knet']:
-                cfg = EstimatorConfig(measurement='classical', filter_mode=mode, window_mode=a.window_mode)
+                cfg = EstimatorConfig(measurement='classical', filter_mode=mode, window_mode=a.window_mode,
+                                      depth_readout=a.readout)
                 res = evaluate_offline(seq, cfg)
                 r[f'classical_{mode}'] = summarize(res)
                 print(name, 'classical', mode, json.dumps(r[f'classical_{mode}']), flush=True)

@@ -322,8 +322,11 @@ def _np(x: torch.Tensor) -> np.ndarray:
 @torch.no_grad()
 def evaluate_batches(model, batches: List[Dict[str, torch.Tensor]], depths_d: torch.Tensor, device,
                      modes: Seq[str] = FILTER_MODES, classical=None, keep_last: bool = True,
-                     curves: bool = False) -> Dict:
+                     curves: bool = False, readout: str = dpvops.DEFAULT_READOUT) -> Dict:
     """Score the model (and optionally a classical measurement model) on validation batches.
+
+    Depth and confidence come from the DPVs with ``readout`` (:func:`dpv_sensor.dpv.depth_estimate`;
+    'auto' resolves per source with :func:`dpv_sensor.dpv.resolve_readout`).
 
     Returns ``{'<source>_<mode>': {abs_rel, delta1, confident_half_ratio, ause, aurg, nll_meas_q,
     nll_filtered_q, nll_full}, ..., 'examples': [...]}`` with ``source`` = 'net' or 'classical'. NLLs
@@ -346,6 +349,7 @@ def evaluate_batches(model, batches: List[Dict[str, torch.Tensor]], depths_d: to
     results: Dict = {}
     examples = []
     for name, src in sources:
+        ro = dpvops.resolve_readout(readout, learned=name == 'net')
         accs = {m: MetricAccumulator() for m in modes}
         nlls = {m: {'nll_meas_q': [], 'nll_filtered_q': [], 'nll_full': []} for m in modes}
         for bi, batch in enumerate(batches):
@@ -369,13 +373,13 @@ def evaluate_batches(model, batches: List[Dict[str, torch.Tensor]], depths_d: to
                     if 'logp_full' in r:
                         lp = r['logp_full'].float()
                         nlls[mode]['nll_full'].append(float(dpvops.nll(lp, depths_d, gt)))
-                        depth = dpvops.expected_depth(lp, depths_d)
-                        conf = dpvops.confidence(lp, depths_d)
+                        depth = dpvops.depth_estimate(lp, depths_d, ro)
+                        conf = dpvops.confidence(lp, depths_d, ro)
                     else:                                   # classical: upsample the quarter-res maps
                         lq = r['filtered_q'].float()
                         H, W = gt.shape[-2:]
-                        depth = _upsample_map(dpvops.expected_depth(lq, depths_d), (H, W))
-                        conf = _upsample_map(dpvops.confidence(lq, depths_d), (H, W))
+                        depth = _upsample_map(dpvops.depth_estimate(lq, depths_d, ro), (H, W))
+                        conf = _upsample_map(dpvops.confidence(lq, depths_d, ro), (H, W))
                     for b in range(gt.shape[0]):
                         accs[mode].add(_np(depth[b]), _np(gt[b]), confidence=_np(conf[b]))
                     if keep_last and bi == 0 and j == len(meas) - 1:
