@@ -168,6 +168,7 @@ class EstimatorConfig:
     keyframe_max_interval: int = 5
     publish_between_keyframes: bool = False
     output_resolution: str = 'input'
+    min_confidence: float = 0.0
     pose_refinement: str = 'off'
     # --- not node parameters -------------------------------------------------------------------------
     window_size: int = 5
@@ -219,6 +220,8 @@ class EstimatorConfig:
                              '(>= 2; odd for centered)')
         if self.classical_downscale < 1:
             raise ValueError('classical_downscale must be >= 1')
+        if not (0.0 <= self.min_confidence <= 1.0):
+            raise ValueError(f'min_confidence must lie in [0, 1], got {self.min_confidence}')
         if not (0.0 < self.min_coverage <= 1.0):
             raise ValueError(f'min_coverage must lie in (0, 1], got {self.min_coverage}')
         return self
@@ -828,10 +831,15 @@ class Estimator:
 
     def _compose(self, depth_bhw, conf_bhw, valid_bhw, input_size, K_in_33, stamp, T_world_cam, is_keyframe,
                  reset_reason) -> DepthOutput:
-        """Mask, resize to the output size (nearest) and convert to numpy float32."""
+        """Mask, resize to the output size (nearest) and convert to numpy float32.
+
+        Pixels without an estimate get NaN depth and confidence 0; with ``min_confidence`` > 0, depth whose
+        confidence is below it is NaN too (no estimate), while its confidence is kept."""
         valid = valid_bhw & torch.isfinite(depth_bhw) & (depth_bhw > 0)
-        depth = torch.where(valid, depth_bhw, torch.full_like(depth_bhw, float('nan')))
         conf = torch.where(valid, conf_bhw.clamp(0.0, 1.0), torch.zeros_like(conf_bhw))
+        if self.config.min_confidence > 0.0:
+            valid = valid & (conf >= self.config.min_confidence)
+        depth = torch.where(valid, depth_bhw, torch.full_like(depth_bhw, float('nan')))
         H, W = depth.shape[-2:]
         # the processing K in float64, exactly as the resize convention gives it
         K_out = scale_intrinsics_np(K_in_33, W / input_size[0], H / input_size[1])

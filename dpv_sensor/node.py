@@ -772,9 +772,7 @@ class DepthCameraNode(_node_base()):
             rgb_src = current[1]
         header = M.make_header(meta.stamp_ns, meta.frame_id)
         depth = np.asarray(out.depth_hw, dtype=np.float32)
-        conf = np.asarray(out.confidence_hw, dtype=np.float32)
-        if cfg['min_confidence'] > 0.0:
-            depth = np.where(conf >= cfg['min_confidence'], depth, np.float32(np.nan))
+        conf = np.asarray(out.confidence_hw, dtype=np.float32)     # depth below min_confidence: NaN (estimator)
         h, w = depth.shape
         K_out = self._output_K(out, meta, (w, h))
         self.pub_depth.publish(M.depth_to_image(depth, header, encoding=cfg['depth_encoding']))

@@ -330,6 +330,22 @@ def test_depth_readout_is_applied_and_checked():
         small_config(depth_readout='mode').validate()
 
 
+def test_min_confidence_masks_depth_and_keeps_confidence():
+    """The node parameter min_confidence is applied by the estimator, so offline evaluation scores what
+    the node publishes: depth below it is NaN (no estimate), its confidence is still reported."""
+    full = push_all(Estimator(small_config()), sideways(4))[-1]
+    thr = float(np.quantile(full.confidence_hw[np.isfinite(full.depth_hw)], 0.5))
+    cut = push_all(Estimator(small_config(min_confidence=thr)), sideways(4))[-1]
+    low = np.isfinite(full.depth_hw) & (full.confidence_hw < thr)
+    assert low.mean() > 0.1
+    assert np.isnan(cut.depth_hw[low]).all()
+    np.testing.assert_array_equal(cut.confidence_hw, full.confidence_hw)
+    keep = np.isfinite(full.depth_hw) & ~low
+    np.testing.assert_array_equal(cut.depth_hw[keep], full.depth_hw[keep])
+    with pytest.raises(ValueError, match='min_confidence'):
+        small_config(min_confidence=1.5).validate()
+
+
 def test_measurement_network_without_weights_is_an_error(tmp_path):
     from dpv_sensor.nets import CheckpointError
     with pytest.raises(CheckpointError, match='not found'):
