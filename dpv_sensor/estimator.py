@@ -64,7 +64,9 @@ What happens to a pushed frame
    float64), so large odometry coordinates lose no precision in its float32 arithmetic. Mode ``knet``
    uses the network's K-Net; with the classical model it falls back to ``global`` damping (logged once,
    noted in the status).
-7. **Output**: depth = the expectation over the planes (paper eq. 1), confidence = ``dpv.confidence``.
+7. **Output**: depth = ``dpv.depth_estimate`` with the ``depth_readout`` (``auto``: the relative-error
+   optimum for the network, the expectation of paper eq. 1 for the classical model), confidence =
+   ``dpv.confidence`` around that depth; depth below ``min_confidence`` is NaN.
 
    * network: from the R-Net's full-resolution (processing size) DPV;
    * classical (and frames between keyframes): depth and confidence are computed from the volume-
