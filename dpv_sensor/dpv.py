@@ -183,7 +183,8 @@ def estimate_index(logp_bdhw: torch.Tensor, depths_d: torch.Tensor, readout: str
     return inverse_depth_index(depth_estimate(logp_bdhw, d, readout), d[0], d[-1], logp_bdhw.shape[1])
 
 
-def confidence(logp_bdhw: torch.Tensor, depths_d: torch.Tensor, readout: str = 'mean') -> torch.Tensor:
+def confidence(logp_bdhw: torch.Tensor, depths_d: torch.Tensor, readout: str = 'mean',
+               depth_bhw: Optional[torch.Tensor] = None) -> torch.Tensor:
     """Paper eq. 2 made comparable across planes: probability mass within +-1 bin of the estimate.
 
     With ``f`` the fractional plane index of the depth estimate (eq. 1 for ``readout='mean'``, else
@@ -198,11 +199,14 @@ def confidence(logp_bdhw: torch.Tensor, depths_d: torch.Tensor, readout: str = '
     (nearly) 1 (exactly when the estimate falls at their midpoint in index); the uniform DPV gives
     2/D away from the ends (less near the ends, where the window is cut).
     Unlike the raw ``p(d_hat)`` of a single bin, it does not drop just because the estimate sits
-    between two planes. Shape (B, H, W); differentiable in the probabilities.
+    between two planes. ``depth_bhw``: the estimate when the caller already has it (it is not read out
+    again). Shape (B, H, W); differentiable in the probabilities.
     """
     B, D, H, W = logp_bdhw.shape
-    f = (expected_index(logp_bdhw, depths_d) if readout == 'mean'
-         else estimate_index(logp_bdhw, depths_d, readout))[:, None]        # B,1,H,W
+    d = _planes(depths_d, logp_bdhw)
+    if depth_bhw is None:
+        depth_bhw = depth_estimate(logp_bdhw, d, readout)
+    f = inverse_depth_index(depth_bhw, d[0], d[-1], D)[:, None]             # B,1,H,W
     k = torch.arange(D, dtype=logp_bdhw.dtype, device=logp_bdhw.device).reshape(1, D, 1, 1)
     overlap = (torch.minimum(k + 0.5, f + 1.0) - torch.maximum(k - 0.5, f - 1.0)).clamp(0.0, 1.0)
     return (torch.exp(logp_bdhw) * overlap).sum(1).clamp(0.0, 1.0)

@@ -750,9 +750,8 @@ class Estimator:
 
     def _readout(self, logp_bdhw: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
         """(depth, confidence), each (B, H, W), of a DPV with the configured ``depth_readout``."""
-        r = self.readout
-        return (dpv_ops.depth_estimate(logp_bdhw, self.depths_d, r),
-                dpv_ops.confidence(logp_bdhw, self.depths_d, r))
+        depth = dpv_ops.depth_estimate(logp_bdhw, self.depths_d, self.readout)
+        return depth, dpv_ops.confidence(logp_bdhw, self.depths_d, depth_bhw=depth)
 
     @staticmethod
     def _ms(t: float) -> float:

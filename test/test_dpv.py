@@ -208,6 +208,8 @@ def test_two_mode_dpv_mean_is_a_flying_pixel_median_is_not():
     for r in ('median', 'relative'):
         assert abs(dpv.estimate_index(lp, planes, r).item() - 2.0) <= 0.5
         assert dpv.confidence(lp, planes, r).item() >= 0.6 - 1e-9    # the near mode's mass
+        given = dpv.confidence(lp, planes, depth_bhw=dpv.depth_estimate(lp, planes, r))
+        assert given.item() == pytest.approx(dpv.confidence(lp, planes, r).item())
 
 
 def test_gradcheck_readouts():

@@ -374,12 +374,13 @@ def evaluate_batches(model, batches: List[Dict[str, torch.Tensor]], depths_d: to
                         lp = r['logp_full'].float()
                         nlls[mode]['nll_full'].append(float(dpvops.nll(lp, depths_d, gt)))
                         depth = dpvops.depth_estimate(lp, depths_d, ro)
-                        conf = dpvops.confidence(lp, depths_d, ro)
+                        conf = dpvops.confidence(lp, depths_d, depth_bhw=depth)
                     else:                                   # classical: upsample the quarter-res maps
                         lq = r['filtered_q'].float()
                         H, W = gt.shape[-2:]
-                        depth = _upsample_map(dpvops.depth_estimate(lq, depths_d, ro), (H, W))
-                        conf = _upsample_map(dpvops.confidence(lq, depths_d, ro), (H, W))
+                        dq = dpvops.depth_estimate(lq, depths_d, ro)
+                        depth = _upsample_map(dq, (H, W))
+                        conf = _upsample_map(dpvops.confidence(lq, depths_d, depth_bhw=dq), (H, W))
                     for b in range(gt.shape[0]):
                         accs[mode].add(_np(depth[b]), _np(gt[b]), confidence=_np(conf[b]))
                     if keep_last and bi == 0 and j == len(meas) - 1:
