@@ -18,7 +18,7 @@ __all__ = [
     'LOG_FLOOR', 'depth_planes', 'depth_to_index', 'index_to_depth', 'normalize_log', 'clamp_log',
     'uniform_log', 'expected_depth', 'expected_index', 'argmax_depth', 'confidence', 'entropy',
     'nll', 'valid_depth_mask', 'one_hot_log', 'READOUTS', 'quantile_index', 'median_depth',
-    'relative_depth', 'depth_estimate', 'estimate_index', 'DEFAULT_READOUT', 'resolve_readout',
+    'relative_depth', 'depth_estimate', 'estimate_index', 'DEFAULT_READOUT', 'READOUT_CHOICES', 'resolve_readout',
 ]
 
 # Lowest log-probability we keep anywhere in the filter (e^-30 ~ 1e-13): a zero-probability
@@ -157,6 +157,7 @@ _READOUT_FN = {'mean': expected_depth, 'median': median_depth, 'relative': relat
 # README. A classical NCC volume is nearly flat on weak texture, and reweighting a flat DPV by 1/d (or
 # taking its median) moves those pixels to the nearest planes, where its mean stays mid-range.
 DEFAULT_READOUT = 'auto'
+READOUT_CHOICES = ('auto',) + READOUTS      # what depth_readout accepts (params.py lists the same)
 
 
 def resolve_readout(readout: str, learned: bool) -> str:

@@ -196,7 +196,7 @@ class EstimatorConfig:
                 raise ValueError(f'{name} = {getattr(self, name)!r} is not one of {list(choices)}')
         one_of('measurement', MEASUREMENTS)
         one_of('filter_mode', FILTER_MODES)
-        one_of('depth_readout', ('auto',) + dpv_ops.READOUTS)
+        one_of('depth_readout', dpv_ops.READOUT_CHOICES)
         one_of('window_mode', WINDOW_MODES)
         one_of('output_resolution', OUTPUT_RESOLUTIONS)
         one_of('pose_refinement', ('off', 'window'))

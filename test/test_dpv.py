@@ -220,6 +220,9 @@ def test_gradcheck_readouts():
 
 
 def test_auto_readout_depends_on_the_measurement_model():
+    from dpv_sensor.params import SPECS
+    spec = [p for p in SPECS if p.name == 'depth_readout'][0]
+    assert set(spec.choices) == set(dpv.READOUT_CHOICES) and spec.default == dpv.DEFAULT_READOUT
     assert dpv.resolve_readout('auto', learned=True) == 'relative'
     assert dpv.resolve_readout('auto', learned=False) == 'mean'
     assert dpv.resolve_readout('median', learned=False) == 'median'

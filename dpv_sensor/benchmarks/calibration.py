@@ -371,7 +371,7 @@ def main(argv: Optional[List[str]] = None) -> Dict:
     ap.add_argument('--json', default=None, help='write all results here')
     ap.add_argument('--out', default='out/calibration', help='folder for the sparsification PNGs')
     ap.add_argument('--threads', type=int, default=1)
-    ap.add_argument('--readout', default=dpvops.DEFAULT_READOUT, choices=('auto',) + dpvops.READOUTS,
+    ap.add_argument('--readout', default=dpvops.DEFAULT_READOUT, choices=dpvops.READOUT_CHOICES,
                     help='depth readout (the node parameter depth_readout)')
     ap.add_argument('--no-progress', action='store_true')
     a = ap.parse_args(argv)

@@ -20,7 +20,7 @@ import numpy as np
 import torch
 
 from dpv_sensor.data.sequence import Sequence
-from dpv_sensor.dpv import DEFAULT_READOUT, READOUTS
+from dpv_sensor.dpv import DEFAULT_READOUT, READOUT_CHOICES
 from dpv_sensor.estimator import EstimatorConfig, evaluate_offline
 from dpv_sensor.metrics import MetricAccumulator
 
@@ -80,8 +80,8 @@ def main():
     ap.add_argument('--synthetic-frames', type=int, default=60)
     ap.add_argument('--modes', nargs='*', default=['none', 'global', 'knet'])
     ap.add_argument('--window-mode', default='causal')
-    ap.add_argument('--readout', default=DEFAULT_READOUT, choices=('auto',) + READOUTS,
-                    help='depth readout of every model (the node parameter depth_readout)')
+    ap.add_argument('--readout', default=DEFAULT_READOUT, choices=READOUT_CHOICES,
+                    help='depth readout (the node parameter depth_readout; auto resolves per model)')
     ap.add_argument('--no-classical', action='store_true')
     ap.add_argument('--threads', type=int, default=2)
     a = ap.parse_args()
