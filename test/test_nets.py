@@ -334,6 +334,31 @@ def test_knet_starts_as_damped_blend_and_uses_the_image():
     torch.testing.assert_close(e_new, (0.8 * e_pred + e_meas) / 1.8)
 
 
+def test_knet_memory_layout_changes_speed_not_results():
+    """NDHWC (the default, faster on the CPU) and NCDHW give the same correction and the same gradients,
+    and a checkpoint loaded into either layout keeps it."""
+    torch.manual_seed(0)
+    net = DPVNet('lite')
+    assert net.knet.channels_last
+    assert net.knet.conv0_b.weight.is_contiguous(memory_format=torch.channels_last_3d)
+    with torch.no_grad():
+        net.knet.conv2_b.weight.normal_(0, 0.1)
+    r = (torch.randn(2, 32, 6, 8) * 3).requires_grad_()
+    img = torch.rand(2, 3, 24, 32)
+    results = []
+    for layout_3d in (True, False):
+        net.set_channels_last(True, layout_3d)
+        net.zero_grad()
+        r.grad = None
+        out = net.knet(r, img)
+        (out * torch.linspace(-1, 1, 8)).sum().backward()
+        results.append((out.detach(), r.grad.clone(), net.knet.conv0_b.weight.grad.clone()))
+    assert not net.knet.channels_last
+    assert net.knet.conv0_b.weight.is_contiguous()
+    for a, b in zip(*results):
+        torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-5)
+
+
 def test_image_to_volume_grid_is_centred_on_4j():
     img = torch.arange(20.0).view(1, 1, 1, 20).expand(1, 3, 9, 20)
     out = image_to_volume_grid(img, feature_size(9, 20))

@@ -140,7 +140,7 @@ def _window(width: int, height: int, num_sources: int, device):
 @torch.no_grad()
 def run_one(preset: str, size: Tuple[int, int], device='cpu', num_sources: int = 4, repeats: int = 5,
             warmup: int = 1, amp: Optional[str] = None, channels_last: Optional[bool] = None,
-            channels_last_3d: bool = False) -> Dict:
+            channels_last_3d: Optional[bool] = None) -> Dict:
     """Benchmark one preset at one size; see the module docstring for the fields."""
     device = torch.device(device)
     width, height = size
@@ -200,7 +200,7 @@ def run_one(preset: str, size: Tuple[int, int], device='cpu', num_sources: int =
 def run(presets: Sequence[str] = ('lite', 'paper'), sizes: Iterable[Tuple[int, int]] = DEFAULT_SIZES,
         device: str = 'cpu', num_sources: int = 4, repeats: int = 5, warmup: int = 1,
         amp: Optional[str] = None, threads: Optional[int] = None, channels_last: Optional[bool] = None,
-        channels_last_3d: bool = False, verbose: bool = False) -> Dict:
+        channels_last_3d: Optional[bool] = None, verbose: bool = False) -> Dict:
     """Benchmark every preset x size; returns ``{'results': [run_one(...) dicts], 'torch': ..., ...}``."""
     if threads:
         torch.set_num_threads(int(threads))
@@ -247,14 +247,15 @@ def main(argv=None) -> int:
     ap.add_argument('--warmup', type=int, default=1)
     ap.add_argument('--threads', type=int, default=None, help='torch.set_num_threads')
     ap.add_argument('--no-channels-last', action='store_true', help='NCHW instead of NHWC for the 2-D nets')
-    ap.add_argument('--channels-last-3d', action='store_true', help='NDHWC for the K-Net 3-D convs')
+    ap.add_argument('--no-channels-last-3d', action='store_true', help='NCDHW instead of NDHWC for the K-Net 3-D convs')
     ap.add_argument('--json', default=None, help='also write the results to this file')
     a = ap.parse_args(argv)
     if a.device.startswith('cuda') and not torch.cuda.is_available():
         print('CUDA is not available', file=sys.stderr)
         return 2
     out = run(a.presets, a.sizes, a.device, a.sources, a.repeats, a.warmup, a.amp, a.threads,
-              channels_last=False if a.no_channels_last else None, channels_last_3d=a.channels_last_3d,
+              channels_last=False if a.no_channels_last else None,
+              channels_last_3d=False if a.no_channels_last_3d else None,
               verbose=True)
     if a.json:
         os.makedirs(os.path.dirname(os.path.abspath(a.json)), exist_ok=True)
