@@ -34,6 +34,7 @@ command -v nvidia-smi >/dev/null && nvidia-smi --query-gpu=name,memory.total --f
     "${init[@]}" --device "$device" --amp auto --width "${size%x*}" --height "${size#*x}" --batch-size "$batch" \
     --unroll 4 --startup-prob 0.3 --pose-noise-prob 0.3 --steps 4000 --lr 5e-4 --warmup 200 \
     --num-workers "$workers" --threads 4 --val-every 500 --ckpt-every 500 --val-seeds 0-7 --val-keyframes 14 \
+    --val-pose-noise 0.03 0.5 --select-metric abs_rel_knet_both \
     --max-minutes "$minutes" --quiet 2>&1 | tee -a "$out/log.txt"
 status=${PIPESTATUS[0]}
 if [ -f "$run/$preset.safetensors" ]; then

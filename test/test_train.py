@@ -5,6 +5,7 @@ shared 2-core CPU; nothing here depends on long training.
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 
@@ -176,6 +177,50 @@ def test_trainer_checkpoint_resume_and_export(tmp_path):
     assert loop.latest_checkpoint(str(run)).name == 'step_0000005'
     rows = [json.loads(l) for l in (run / 'train.jsonl').read_text().splitlines()]
     assert [r['step'] for r in rows] == [1, 2, 3, 4, 5]
+
+
+def test_selection_metric_names():
+    assert loop.parse_select_metric('abs_rel_knet') == ('abs_rel', 'knet', 'clean')
+    assert loop.parse_select_metric('confident_half_ratio_global_noisy') == ('confident_half_ratio', 'global', 'noisy')
+    assert loop.parse_select_metric('nll_full_knet_both') == ('nll_full', 'knet', 'both')
+    for bad in ('abs_rel', 'abs_rel_kalman', 'abs_rel_knet_noisier', '_knet'):
+        with pytest.raises(ValueError):
+            loop.parse_select_metric(bad)
+    with pytest.raises(ValueError, match='val_pose_noise'):
+        loop.parse_select_metric('abs_rel_knet_both', noisy_validation=False)
+    m = {'net_knet': {'abs_rel': 0.1}, 'noisy_net_knet': {'abs_rel': 0.3}}
+    assert loop.select_score(m, 'abs_rel_knet') == 0.1
+    assert loop.select_score(m, 'abs_rel_knet_noisy') == 0.3
+    assert loop.select_score(m, 'abs_rel_knet_both') == pytest.approx(0.2)
+    assert loop.select_score(m, 'abs_rel_global') is None
+
+
+def test_noisy_pose_validation_corrupts_relative_poses_and_is_reported(tmp_path):
+    """--val-pose-noise: the validation batches are scored a second time with odometry-like poses (images and
+    depth unchanged, the same poses at every validation), as noisy_net_<mode>; a *_both metric selects on the mean."""
+    from dpv_sensor.tools import train as tool
+    a = tool.build_parser().parse_args(['--val-pose-noise', '0.05', '1.0', '--select-metric', 'abs_rel_knet_both'])
+    assert tool.config_from_args(a).val_pose_noise == (0.05, 1.0)
+    with pytest.raises(ValueError):
+        tool.config_from_args(tool.build_parser().parse_args(['--select-metric', 'abs_rel_knet_noisy']))
+    cfg = dataclasses.replace(_tiny_config(tmp_path, steps=1), val_pose_noise=(0.05, 1.0),
+                              select_metric='abs_rel_knet_both')
+    t = loop.Trainer(cfg, quiet=True)
+    clean, noisy = t.val_batches(), t.noisy_val_batches()
+    assert t.noisy_val_batches() is noisy
+    again = loop.corrupt_validation_batches(clean, 0.05, 1.0)
+    for b, n, n2 in zip(clean, noisy, again):
+        assert torch.equal(b['images'], n['images']) and torch.equal(b['depths'], n['depths'])
+        torch.testing.assert_close(n['poses'], n2['poses'])
+        rel = lambda P, i: torch.linalg.inv(P[0, i]) @ P[0, i + 1]       # noqa: E731
+        moved = max(float((rel(b['poses'], i) - rel(n['poses'], i)).abs().max()) for i in range(n['poses'].shape[1] - 1))
+        assert moved > 1e-3
+    metrics = t.validate()
+    for mode in loop.FILTER_MODES:
+        assert f'noisy_net_{mode}' in metrics and f'net_{mode}' in metrics
+    assert metrics['noisy_net_knet']['abs_rel'] != metrics['net_knet']['abs_rel']
+    row = json.loads((tmp_path / 'run' / 'val.jsonl').read_text().splitlines()[-1])
+    assert row['score'] == pytest.approx((metrics['net_knet']['abs_rel'] + metrics['noisy_net_knet']['abs_rel']) / 2)
 
 
 def test_cli_parses_and_refuses_sun3d(tmp_path):

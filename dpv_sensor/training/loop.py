@@ -119,7 +119,8 @@ class TrainConfig:
     folders: Tuple[str, ...] = ()         # extra sequence folders mixed into training (never SUN3D)
     folder_prob: float = 0.0
     augment: bool = True
-    select_metric: str = 'abs_rel_knet'   # validation score that decides exports (lower is better)
+    select_metric: str = 'abs_rel_knet'   # validation score that decides exports (lower is better), see select_score
+    val_pose_noise: Tuple[float, float] = (0.0, 0.0)   # also validate with odometry-like poses: (rel. translation, deg) per step
     init_weights: Optional[str] = None    # start from an exported .safetensors instead of random
     startup_prob: float = 0.0             # share of stream-start runs (1, 2, 3, 4 sources; causal windows)
     pose_noise_prob: float = 0.0          # share of samples with odometry-like pose errors (depths exact)
@@ -137,6 +138,7 @@ class TrainConfig:
         d['val_seeds'] = list(self.val_seeds)
         d['folders'] = list(self.folders)
         d['extra_sizes'] = [list(s) for s in self.extra_sizes]
+        d['val_pose_noise'] = list(self.val_pose_noise)
         return d
 
     @classmethod
@@ -149,6 +151,8 @@ class TrainConfig:
             kw['folders'] = tuple(kw['folders'])
         if 'extra_sizes' in kw:
             kw['extra_sizes'] = tuple(tuple(s) for s in kw['extra_sizes'])
+        if 'val_pose_noise' in kw:
+            kw['val_pose_noise'] = tuple(float(v) for v in kw['val_pose_noise'])
         return cls(**kw)
 
     def layout(self) -> WindowLayout:
@@ -174,7 +178,41 @@ class TrainConfig:
             check_not_heldout(f)
         if self.width % 4 or self.height % 4:
             raise ValueError('width and height must be multiples of 4')
+        if len(self.val_pose_noise) != 2 or min(self.val_pose_noise) < 0:
+            raise ValueError(f'val_pose_noise must be (relative translation, rotation deg) >= 0, got {self.val_pose_noise}')
+        parse_select_metric(self.select_metric, noisy_validation=max(self.val_pose_noise) > 0)
         return self
+
+
+SELECT_POSES = ('clean', 'noisy', 'both')
+
+
+def parse_select_metric(name: str, noisy_validation: bool = True) -> Tuple[str, str, str]:
+    """``<metric>_<mode>[_noisy|_both]`` -> (metric, filter mode, poses): e.g. ``abs_rel_knet`` (GT poses),
+    ``abs_rel_knet_noisy`` (the noisy-pose validation) or ``abs_rel_knet_both`` (the mean of the two)."""
+    parts = name.rsplit('_', 2)
+    poses = 'clean'
+    if len(parts) == 3 and parts[2] in ('noisy', 'both'):
+        metric, mode, poses = parts[0], parts[1], parts[2]
+    else:
+        metric, mode = name.rsplit('_', 1) if '_' in name else (name, '')
+    if mode not in FILTER_MODES or not metric:
+        raise ValueError(f'select_metric {name!r}: expected <metric>_<{"|".join(FILTER_MODES)}>[_noisy|_both]')
+    if poses != 'clean' and not noisy_validation:
+        raise ValueError(f'select_metric {name!r} needs the noisy-pose validation (val_pose_noise > 0)')
+    return metric, mode, poses
+
+
+def select_score(metrics: Dict, name: str) -> Optional[float]:
+    """The validation score ``name`` (see :func:`parse_select_metric`) from :meth:`Trainer.validate`'s metrics;
+    None when it is missing."""
+    metric, mode, poses = parse_select_metric(name)
+    keys = {'clean': [f'net_{mode}'], 'noisy': [f'noisy_net_{mode}'],
+            'both': [f'net_{mode}', f'noisy_net_{mode}']}[poses]
+    vals = [metrics.get(k, {}).get(metric) for k in keys]
+    if any(v is None for v in vals):
+        return None
+    return float(np.mean(vals))
 
 
 # ----------------------------------------------------------------------------------------------
@@ -308,6 +346,24 @@ def render_validation_batches(seeds: Seq[int], num_keyframes: int, gap: int, wid
         seq = render_sequence(int(s), ids[-1] + 1, width=width, height=height, lazy=True)
         smp = sample_from_sequence(seq, ids, lay, np.random.default_rng(0), augment=None, seed=int(s))
         out.append({k: v[None] for k, v in smp.items()})
+    return out
+
+
+def corrupt_validation_batches(batches: List[Dict[str, torch.Tensor]], trans_noise_rel: float, rot_noise_deg: float
+                               ) -> List[Dict[str, torch.Tensor]]:
+    """Copies of validation batches whose poses carry odometry-like errors (``data.trajectory.corrupt_trajectory``:
+    per keyframe step a rotation of ``rot_noise_deg`` about a random axis and a translation error of
+    ``trans_noise_rel`` of the step, accumulating), seeded by the batch's position so every validation sees the
+    same poses. Images and depths are untouched: the score says how well the nets cope with imperfect poses."""
+    from ..data.trajectory import corrupt_trajectory
+    out = []
+    for j, b in enumerate(batches):
+        poses = [T.double().numpy() for T in b['poses'][0]]
+        noisy = corrupt_trajectory(poses, trans_noise_rel=float(trans_noise_rel), rot_noise_deg=float(rot_noise_deg),
+                                   seed=1000 + j)
+        nb = dict(b)
+        nb['poses'] = torch.from_numpy(np.stack(noisy).astype(np.float32))[None].to(b['poses'].dtype)
+        out.append(nb)
     return out
 
 
@@ -511,6 +567,9 @@ def plot_curves(history: Dict, path: str, reference: Optional[Dict] = None) -> N
         for mode, colour in (('none', 'tab:gray'), ('global', 'tab:green'), ('knet', 'tab:red')):
             y = [v['metrics'].get(f'net_{mode}', {}).get('abs_rel', np.nan) for v in va]
             axes[1].plot(steps, y, 'o-', color=colour, label=f'net {mode}')
+            yn = np.array([v['metrics'].get(f'noisy_net_{mode}', {}).get('abs_rel', np.nan) for v in va], np.float64)
+            if np.isfinite(yn).any():
+                axes[1].plot(steps, yn, 'x--', color=colour, label=f'net {mode}, noisy poses')
             y2 = [v['metrics'].get(f'net_{mode}', {}).get('nll_full', np.nan) for v in va]
             axes[2].plot(steps, y2, 'o-', color=colour, label=f'net {mode} (full res)')
         y3 = [v['metrics'].get('net_knet', {}).get('nll_meas_q', np.nan) for v in va]
@@ -787,6 +846,7 @@ class Trainer:
             from torch.nn.parallel import DistributedDataParallel as DDP
             self.ddp = DDP(self.unrolled, device_ids=[self.device.index] if self.device.type == 'cuda' else None)
         self._val_batches = None
+        self._noisy_val_batches = None
 
     # -- helpers --------------------------------------------------------------------------------
     def _log(self, msg: str) -> None:
@@ -817,6 +877,12 @@ class Trainer:
                                                           self.cfg.val_gap, w, h, self.cfg.layout())
         return self._val_batches
 
+    def noisy_val_batches(self):
+        """The validation batches with ``val_pose_noise`` odometry-like pose errors (same poses every time)."""
+        if self._noisy_val_batches is None:
+            self._noisy_val_batches = corrupt_validation_batches(self.val_batches(), *self.cfg.val_pose_noise)
+        return self._noisy_val_batches
+
     def state_dict_json(self) -> Dict:
         return {'config': self.cfg.to_json(), 'history': self.history, 'best': self.best,
                 'best_metrics': self.best_metrics, 'classical_ref': self.classical_ref,
@@ -842,6 +908,8 @@ class Trainer:
             'train_seed_rule': 'seed = seed_base + i * world_size + rank, i = 0 .. samples per rank - 1',
             'samples_seen': self.samples_seen,
             'validation_seeds': list(cfg.val_seeds),
+            'validation_pose_noise': list(cfg.val_pose_noise),
+            'selection_metric': cfg.select_metric,
             'held_out_seed_range': [VAL_SEEDS.start, VAL_SEEDS.stop - 1],
             'mixed_folders': [os.path.basename(os.path.normpath(f)) for f in cfg.folders],
             'folder_prob': cfg.folder_prob,
@@ -892,7 +960,11 @@ class Trainer:
         examples = res.pop('examples')
         examples += getattr(self, '_classical_examples', [])
         metrics = dict(res)
-        score = metrics.get(f"net_{cfg.select_metric.rsplit('_', 1)[-1]}", {}).get(cfg.select_metric.rsplit('_', 1)[0])
+        if max(cfg.val_pose_noise) > 0:
+            noisy = evaluate_batches(self.model, self.noisy_val_batches(), self.depths, self.device)
+            noisy.pop('examples')
+            metrics.update({f'noisy_{k}': v for k, v in noisy.items()})
+        score = select_score(metrics, cfg.select_metric)
         entry = {'step': self.step, 'metrics': metrics, 'score': score, 'seconds': time.time() - t0}
         self.history['val'].append(entry)
         self._append_jsonl('val.jsonl', entry)
