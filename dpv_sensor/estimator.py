@@ -893,12 +893,13 @@ class Estimator:
 def evaluate_offline(sequence, config: EstimatorConfig, *, model=None, pose_refiner=None,
                      max_frames: Optional[int] = None, min_depth: Optional[float] = None,
                      max_depth: Optional[float] = None, keyframes_only: bool = True,
-                     keep_outputs: bool = False) -> Dict[str, Any]:
+                     keep_outputs: bool = False, input_poses=None) -> Dict[str, Any]:
     """Run a sequence through an :class:`Estimator` and score every output against the GT depth.
 
     ``sequence``: anything with ``len``, ``K``, ``image(i)``, ``depth(i)`` (metres, 0 = invalid),
     ``pose(i)`` and ``stamp(i)`` (``data.sequence.Sequence``, the synthetic renderer's sequences).
-    Frames are pushed in order with their GT poses. Each output is matched to its frame by stamp and
+    Frames are pushed in order with their GT poses, or with ``input_poses[i]`` (T_world_cam per frame, e.g.
+    :func:`dpv_sensor.data.trajectory.corrupt_trajectory` of the GT: odometry-like poses). Each output is matched to its frame by stamp and
     scored with ``metrics.MetricAccumulator`` (GT resized with nearest neighbour when the output is at
     the processing size); the GT range defaults to the estimator's depth planes [d_min, d_max].
 
@@ -915,12 +916,14 @@ def evaluate_offline(sequence, config: EstimatorConfig, *, model=None, pose_refi
     n = len(sequence) if max_frames is None else min(len(sequence), int(max_frames))
     index_of = {}
     K = np.asarray(sequence.K, dtype=np.float64)
+    if input_poses is not None and len(input_poses) < n:
+        raise ValueError(f'input_poses has {len(input_poses)} poses for {n} frames')
     outputs = []
     for i in range(n):
         stamp = float(sequence.stamp(i))
         index_of[stamp] = i
-        out = est.push(Frame(stamp=stamp, image=sequence.image(i), K_33=K, T_world_cam_44=sequence.pose(i),
-                             frame_id='camera'))
+        T = sequence.pose(i) if input_poses is None else input_poses[i]
+        out = est.push(Frame(stamp=stamp, image=sequence.image(i), K_33=K, T_world_cam_44=T, frame_id='camera'))
         if out is None or (keyframes_only and not out.is_keyframe):
             continue
         j = index_of[out.stamp]

@@ -651,6 +651,14 @@ def test_evaluate_offline_rows_and_outputs():
     assert result['rows'][-1]['abs_rel'] < 0.05 and result['rows'][-1]['coverage'] > 0.8
     assert result['summary']['num_frames'] == 4
     assert result['status']['keyframes'] == 5
+    # input_poses: the estimator sees these instead of the GT (the depth is still scored against the GT)
+    from dpv_sensor.data.trajectory import corrupt_trajectory
+    noisy = corrupt_trajectory([seq.pose(i) for i in range(len(seq))], trans_noise_rel=0.5, rot_noise_deg=2.0, seed=1)
+    bad = evaluate_offline(seq, cfg, keep_outputs=True, input_poses=noisy)
+    np.testing.assert_allclose(bad['outputs'][-1].T_world_cam_44, noisy[-1])
+    assert bad['rows'][-1]['abs_rel'] > 2 * result['rows'][-1]['abs_rel']
+    with pytest.raises(ValueError, match='input_poses'):
+        evaluate_offline(seq, cfg, input_poses=noisy[:3])
 
 
 # ----------------------------------------------------------------------------------------------------

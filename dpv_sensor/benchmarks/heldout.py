@@ -2,13 +2,14 @@
 
 Runs dpv_sensor.estimator.evaluate_offline (the product's streaming path: keyframe selection, causal
 5-keyframe windows, filter, 320x256 processing, output at the input size) with GT poses on the given
-sequences, for filter modes none / global / knet, and scores keyframe outputs with
+sequences (or, with ``--pose-noise``, odometry-like poses), for filter modes none / global / knet, and
+scores keyframe outputs with
 dpv_sensor.metrics (metric, frame means). Constant depth = the median GT depth of the sequence (an
 oracle constant, i.e. a strong constant baseline), scored on the same keyframes.
 
     .venv/bin/python -m dpv_sensor.benchmarks.heldout --weights dpv_sensor/weights/lite.safetensors \
         --out results.json [--seqs sun3d_3dmatch_frag1 sun3d_3dmatch_frag2] [--synthetic-seeds 0-9] \
-        [--readout auto|relative|median|mean]
+        [--readout auto|relative|median|mean] [--pose-noise 0.01 0.15]
 """
 import argparse
 import pathlib
@@ -83,6 +84,10 @@ def main():
     ap.add_argument('--readout', default=DEFAULT_READOUT, choices=READOUT_CHOICES,
                     help='depth readout (the node parameter depth_readout; auto resolves per model)')
     ap.add_argument('--no-classical', action='store_true')
+    ap.add_argument('--pose-noise', type=float, nargs=2, default=None, metavar=('REL_T', 'ROT_DEG'),
+                    help='feed odometry-like poses instead of GT: per frame a translation error of REL_T of the '
+                         'step and a rotation error of ROT_DEG, accumulating (data.trajectory.corrupt_trajectory, '
+                         'seeded per sequence); depth is still scored against GT')
     ap.add_argument('--threads', type=int, default=2)
     a = ap.parse_args()
     torch.set_num_threads(a.threads)
@@ -96,15 +101,20 @@ def main():
             assert s < 100, 'only held-out seeds'
             seqs.append((f'synthetic_seed{s}', render_sequence(s, a.synthetic_frames, width=320, height=240, lazy=True)))
     results = {'weights': a.weights, 'steps': meta.get('steps'), 'window_mode': a.window_mode, 'readout': a.readout,
-               'sequences': {}}
-    for name, seq in seqs:
+               'pose_noise': a.pose_noise, 'sequences': {}}
+    for k, (name, seq) in enumerate(seqs):
         r = {}
         kf_idx = None
+        poses = None
+        if a.pose_noise is not None:
+            from dpv_sensor.data.trajectory import corrupt_trajectory
+            poses = corrupt_trajectory([seq.pose(i) for i in range(len(seq))], trans_noise_rel=a.pose_noise[0],
+                                       rot_noise_deg=a.pose_noise[1], seed=k)
         for mode in a.modes:
             t0 = time.time()
             cfg = EstimatorConfig(preset=model.preset.name, measurement='network', filter_mode=mode,
                                   num_planes=D, window_mode=a.window_mode, depth_readout=a.readout)
-            res = evaluate_offline(seq, cfg, model=model)
+            res = evaluate_offline(seq, cfg, model=model, input_poses=poses)
             r[f'net_{mode}'] = summarize(res)
             kf_idx = [row['index'] for row in res['rows']]
             print(name, 'net', mode, json.dumps(r[f'net_{mode}']), f'{time.time() - t0:.0f}s', flush=True)
@@ -112,7 +122,7 @@ def main():
             for mode in [m for m in a.modes if m != 'knet']:
                 cfg = EstimatorConfig(measurement='classical', filter_mode=mode, window_mode=a.window_mode,
                                       depth_readout=a.readout)
-                res = evaluate_offline(seq, cfg)
+                res = evaluate_offline(seq, cfg, input_poses=poses)
                 r[f'classical_{mode}'] = summarize(res)
                 print(name, 'classical', mode, json.dumps(r[f'classical_{mode}']), flush=True)
         r['constant_median'] = constant_baseline(seq, kf_idx, 0.3, 8.0)
