@@ -19,6 +19,7 @@ __all__ = [
     'uniform_log', 'expected_depth', 'expected_index', 'argmax_depth', 'confidence', 'entropy',
     'nll', 'valid_depth_mask', 'one_hot_log', 'READOUTS', 'quantile_index', 'median_depth',
     'relative_depth', 'depth_estimate', 'estimate_index', 'DEFAULT_READOUT', 'READOUT_CHOICES', 'resolve_readout',
+    'ratio_confidence', 'published_confidence', 'CONFIDENCES', 'DEFAULT_CONFIDENCE',
 ]
 
 # Lowest log-probability we keep anywhere in the filter (e^-30 ~ 1e-13): a zero-probability
@@ -184,6 +185,15 @@ def estimate_index(logp_bdhw: torch.Tensor, depths_d: torch.Tensor, readout: str
     return inverse_depth_index(depth_estimate(logp_bdhw, d, readout), d[0], d[-1], logp_bdhw.shape[1])
 
 
+def _mass_in_index_window(logp_bdhw: torch.Tensor, lo_b1hw: torch.Tensor, hi_b1hw: torch.Tensor) -> torch.Tensor:
+    """DPV mass inside the fractional index window [lo, hi], plane k covering [k - 0.5, k + 0.5] with its mass
+    spread uniformly (so uniform in inverse depth). (B, H, W) in [0, 1]."""
+    D = logp_bdhw.shape[1]
+    k = torch.arange(D, dtype=logp_bdhw.dtype, device=logp_bdhw.device).reshape(1, D, 1, 1)
+    overlap = (torch.minimum(k + 0.5, hi_b1hw) - torch.maximum(k - 0.5, lo_b1hw)).clamp(0.0, 1.0)
+    return (torch.exp(logp_bdhw) * overlap).sum(1).clamp(0.0, 1.0)
+
+
 def confidence(logp_bdhw: torch.Tensor, depths_d: torch.Tensor, readout: str = 'mean',
                depth_bhw: Optional[torch.Tensor] = None) -> torch.Tensor:
     """Paper eq. 2 made comparable across planes: probability mass within +-1 bin of the estimate.
@@ -208,9 +218,43 @@ def confidence(logp_bdhw: torch.Tensor, depths_d: torch.Tensor, readout: str = '
     if depth_bhw is None:
         depth_bhw = depth_estimate(logp_bdhw, d, readout)
     f = inverse_depth_index(depth_bhw, d[0], d[-1], D)[:, None]             # B,1,H,W
-    k = torch.arange(D, dtype=logp_bdhw.dtype, device=logp_bdhw.device).reshape(1, D, 1, 1)
-    overlap = (torch.minimum(k + 0.5, f + 1.0) - torch.maximum(k - 0.5, f - 1.0)).clamp(0.0, 1.0)
-    return (torch.exp(logp_bdhw) * overlap).sum(1).clamp(0.0, 1.0)
+    return _mass_in_index_window(logp_bdhw, f - 1.0, f + 1.0)
+
+
+def ratio_confidence(logp_bdhw: torch.Tensor, depths_d: torch.Tensor, depth_bhw: torch.Tensor,
+                     ratio: float = 1.25) -> torch.Tensor:
+    """Probability under the DPV that the true depth d lies within a factor ``ratio`` of the estimate:
+    ``P(max(d / d_hat, d_hat / d) < ratio)``, i.e. that the pixel counts as correct by the delta < ratio
+    accuracy measure (delta < 1.25 by default). Same bin model as :func:`confidence` (plane k's mass spread
+    uniformly in inverse depth over [k - 0.5, k + 0.5]); the part of the band beyond the first or last plane
+    holds no mass. Unlike the +-1-plane window, whose width in depth grows with depth (planes are uniform in
+    inverse depth), the band is the same relative width everywhere, so a DPV as wide in metres at 5 m as
+    another at 1 m is less confident. (B, H, W) in [0, 1]; differentiable in the probabilities.
+    """
+    if not ratio > 1.0:
+        raise ValueError(f'ratio must be > 1, got {ratio}')
+    B, D, H, W = logp_bdhw.shape
+    d = _planes(depths_d, logp_bdhw)
+    lo = inverse_depth_index(depth_bhw / ratio, d[0], d[-1], D)[:, None]    # nearer -> smaller index
+    hi = inverse_depth_index(depth_bhw * ratio, d[0], d[-1], D)[:, None]
+    return _mass_in_index_window(logp_bdhw, lo, hi)
+
+
+CONFIDENCES = ('plane', 'ratio')
+DEFAULT_CONFIDENCE = 'ratio'
+
+
+def published_confidence(logp_bdhw: torch.Tensor, depths_d: torch.Tensor, depth_bhw: torch.Tensor,
+                         mode: str = DEFAULT_CONFIDENCE, ratio: float = 1.25) -> torch.Tensor:
+    """The confidence image the sensor publishes for the depth ``depth_bhw`` read out of a DPV (the node
+    parameters ``confidence`` / ``confidence_ratio``): 'plane' = :func:`confidence` (mass within one plane
+    of the estimate), 'ratio' = :func:`ratio_confidence` (probability that the depth is within a factor
+    ``ratio`` of the truth)."""
+    if mode == 'plane':
+        return confidence(logp_bdhw, depths_d, depth_bhw=depth_bhw)
+    if mode == 'ratio':
+        return ratio_confidence(logp_bdhw, depths_d, depth_bhw, ratio)
+    raise ValueError(f'confidence {mode!r} is not one of {list(CONFIDENCES)}')
 
 
 def entropy(logp_bdhw: torch.Tensor) -> torch.Tensor:

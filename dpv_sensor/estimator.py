@@ -66,7 +66,9 @@ What happens to a pushed frame
    noted in the status).
 7. **Output**: depth = ``dpv.depth_estimate`` with the ``depth_readout`` (``auto``: the relative-error
    optimum for the network, the expectation of paper eq. 1 for the classical model), confidence =
-   ``dpv.confidence`` around that depth; depth below ``min_confidence`` is NaN.
+   ``dpv.published_confidence`` of that depth (``confidence``: ``ratio`` = the probability that the depth
+   is within a factor ``confidence_ratio`` of the truth, ``plane`` = the mass within one plane of it);
+   depth below ``min_confidence`` is NaN.
 
    * network: from the R-Net's full-resolution (processing size) DPV;
    * classical (and frames between keyframes): depth and confidence are computed from the volume-
@@ -160,6 +162,8 @@ class EstimatorConfig:
     num_planes: int = 64
     filter_mode: str = 'knet'
     depth_readout: str = dpv_ops.DEFAULT_READOUT
+    confidence: str = dpv_ops.DEFAULT_CONFIDENCE
+    confidence_ratio: float = 1.25
     damping: float = 0.8
     reset_time_gap: float = 1.0
     reset_translation: float = 1.0
@@ -197,6 +201,9 @@ class EstimatorConfig:
         one_of('measurement', MEASUREMENTS)
         one_of('filter_mode', FILTER_MODES)
         one_of('depth_readout', dpv_ops.READOUT_CHOICES)
+        one_of('confidence', dpv_ops.CONFIDENCES)
+        if not (1.0 < self.confidence_ratio <= 10.0):
+            raise ValueError(f'confidence_ratio must lie in (1, 10], got {self.confidence_ratio}')
         one_of('window_mode', WINDOW_MODES)
         one_of('output_resolution', OUTPUT_RESOLUTIONS)
         one_of('pose_refinement', ('off', 'window'))
@@ -502,6 +509,7 @@ class Estimator:
             'filter_mode': self.filter_mode,
             'filter_mode_requested': cfg.filter_mode,
             'depth_readout': self.readout,
+            'confidence': cfg.confidence if cfg.confidence == 'plane' else f'ratio {cfg.confidence_ratio:g}',
             'window_mode': cfg.window_mode,
             'processing_size': cfg.processing_size,
             'depth_range': (self.d_min, self.d_max),
@@ -749,9 +757,11 @@ class Estimator:
         return reason
 
     def _readout(self, logp_bdhw: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
-        """(depth, confidence), each (B, H, W), of a DPV with the configured ``depth_readout``."""
+        """(depth, confidence), each (B, H, W), of a DPV with the configured ``depth_readout`` and
+        ``confidence``."""
         depth = dpv_ops.depth_estimate(logp_bdhw, self.depths_d, self.readout)
-        return depth, dpv_ops.confidence(logp_bdhw, self.depths_d, depth_bhw=depth)
+        return depth, dpv_ops.published_confidence(logp_bdhw, self.depths_d, depth, self.config.confidence,
+                                                   self.config.confidence_ratio)
 
     @staticmethod
     def _ms(t: float) -> float:
@@ -769,7 +779,9 @@ class Estimator:
         depth = conf = K_depth = None
         pred = self.filter.predict(self._filter_pose(ref.T_world_cam_44))
         if pred is not None and self._posterior is not None:
-            depth, conf = (x[0] for x in self._readout(pred))
+            # the refiner maps the +-1-plane mass to an inverse-depth std, whatever the published confidence is
+            depth = dpv_ops.depth_estimate(pred, self.depths_d, self.readout)
+            depth, conf = depth[0], dpv_ops.confidence(pred, self.depths_d, depth_bhw=depth)[0]
             K_depth = self._posterior.K_vol_b33[0].double().cpu().numpy()
         request = PoseRefinementRequest(kfs, r, depth, conf, K_depth, self.depths_d)
         try:

@@ -435,7 +435,8 @@ class DepthCameraNode(_node_base()):
 
         log.info(
             f"ready: preset={cfg['preset']} device={cfg['device']} measurement={cfg['measurement']} "
-            f"filter={cfg['filter_mode']} readout={cfg['depth_readout']} odometry={cfg['odometry']} "
+            f"filter={cfg['filter_mode']} readout={cfg['depth_readout']} confidence={cfg['confidence']}"
+            f"{' ' + format(cfg['confidence_ratio'], 'g') if cfg['confidence'] == 'ratio' else ''} odometry={cfg['odometry']} "
             f"processing={cfg['processing_width']}x{cfg['processing_height']} "
             f"input QoS={cfg['input_reliability']}/{cfg['input_depth']} "
             f"image='{self.sub_image.topic_name}' camera_info="

@@ -54,8 +54,7 @@ SPECS: tuple[ParamSpec, ...] = (
     ParamSpec('depth_readout', 'auto', 'How the DPV becomes one depth per pixel: relative (the depth with the '
               'least expected relative error, the median of p(d)/d), median (least absolute error), mean (the '
               'expectation, paper eq. 1; lands between the modes of a two-mode DPV) or auto (relative with the '
-              'network, mean with the classical model, whose flat DPVs the other two pull to the near planes). '
-              'Confidence is the mass within one plane of that depth.',
+              'network, mean with the classical model, whose flat DPVs the other two pull to the near planes).',
               choices=('auto', 'relative', 'median', 'mean')),
     ParamSpec('damping', 0.8, 'Global damping lambda of the prediction energy (paper eq. 8).',
               min_value=0.0, max_value=1.0),
@@ -113,6 +112,12 @@ SPECS: tuple[ParamSpec, ...] = (
               '(0 = none), REP 118.', choices=('32FC1', '16UC1')),
     ParamSpec('output_resolution', 'input', 'Output image size: input (the camera\'s) or processing.',
               choices=('input', 'processing')),
+    ParamSpec('confidence', 'ratio', 'What the confidence image holds: ratio (the probability under the DPV that '
+              'the true depth is within a factor confidence_ratio of the published one, i.e. that the pixel is '
+              'correct by the delta < 1.25 measure) or plane (the DPV mass within one depth plane of it, paper '
+              'eq. 2 made independent of where the depth falls between planes).', choices=('ratio', 'plane')),
+    ParamSpec('confidence_ratio', 1.25, 'Factor of the ratio confidence: the band [d/ratio, d*ratio] around '
+              'the published depth d.', min_value=1.01, max_value=10.0),
     ParamSpec('min_confidence', 0.0, 'Depth with lower confidence is published as no estimate.',
               min_value=0.0, max_value=1.0),
     # --- transport ----------------------------------------------------------------------------------------

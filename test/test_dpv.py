@@ -90,6 +90,51 @@ def test_confidence_by_hand():
     assert dpv.confidence(lp, planes).item() == pytest.approx(0.8 * (f + 1.0 - 3.5))
 
 
+def test_ratio_confidence_by_hand():
+    """Planes 1, 4/3, 2, 4 m (inverse depths 1, 0.75, 0.5, 0.25; index f(d) = 4 (1 - 1/d)). Estimate 2 m
+    (index 2), ratio 1.25: the band [1.6, 2.5] m is the index window [1.5, 2.4], i.e. 0.9 of plane 2."""
+    planes = dpv.depth_planes(1.0, 4.0, 4, dtype=DT)
+    assert torch.allclose(planes, torch.tensor([1.0, 4.0 / 3.0, 2.0, 4.0], dtype=DT))
+    d_hat = torch.full((1, 1, 1), 2.0, dtype=DT)
+    conf = lambda probs: dpv.ratio_confidence(_logp(probs), planes, d_hat).item()   # noqa: E731
+    assert conf([0, 0, 1, 0]) == pytest.approx(0.9)
+    assert conf([0.25] * 4) == pytest.approx(0.25 * 0.9)
+    assert conf([0, 0, 0.5, 0.5]) == pytest.approx(0.45)
+    assert conf([0.5, 0.5, 0, 0]) == pytest.approx(0.0)
+    # a wider band: ratio 2 -> [1, 4] m = index window [0, 3]: half of plane 0, planes 1 and 2, half of plane 3
+    assert dpv.ratio_confidence(_logp([0.1, 0.2, 0.3, 0.4]), planes, d_hat, ratio=2.0).item() == \
+        pytest.approx(0.05 + 0.2 + 0.3 + 0.2)
+    # the band beyond the last plane holds nothing: estimate 4 m, band [3.2, 5] m = index [2.75, 3.2]
+    far = torch.full((1, 1, 1), 4.0, dtype=DT)
+    assert dpv.ratio_confidence(_logp([0, 0, 0, 1]), planes, far).item() == pytest.approx(0.45)
+    with pytest.raises(ValueError, match='ratio'):
+        dpv.ratio_confidence(_logp([0.25] * 4), planes, d_hat, ratio=1.0)
+
+
+def test_ratio_confidence_is_strict_far_where_the_plane_window_is_lenient():
+    """The same DPV shape (mass on three neighbouring planes) near and far: the +-1-plane confidence is the
+    same, the ratio confidence is lower far away, where three planes span more than a factor 1.25."""
+    planes = dpv.depth_planes(0.3, 8.0, 32, dtype=DT)
+    res = {}
+    for k in (5, 29):
+        p = [0.0] * 32
+        p[k - 1], p[k], p[k + 1] = 0.25, 0.5, 0.25
+        lp = _logp(p)
+        d = dpv.depth_estimate(lp, planes, 'median')
+        res[k] = (dpv.confidence(lp, planes, depth_bhw=d).item(), dpv.ratio_confidence(lp, planes, d).item())
+    assert res[5][0] == pytest.approx(res[29][0])
+    assert res[5][1] > 0.99 and res[29][1] < 0.65
+    for mode, (plane_c, ratio_c) in (('plane', res[29]), ('ratio', res[29])):
+        p = [0.0] * 32
+        p[28], p[29], p[30] = 0.25, 0.5, 0.25
+        lp = _logp(p)
+        d = dpv.depth_estimate(lp, planes, 'median')
+        got = dpv.published_confidence(lp, planes, d, mode).item()
+        assert got == pytest.approx(plane_c if mode == 'plane' else ratio_c)
+    with pytest.raises(ValueError, match='confidence'):
+        dpv.published_confidence(lp, planes, d, 'entropy')
+
+
 def test_confidence_peaked_beats_flat_and_batched():
     planes = dpv.depth_planes(0.5, 5.0, 16, dtype=DT)
     logits = torch.zeros(2, 16, 3, 4, dtype=DT)
@@ -217,6 +262,8 @@ def test_gradcheck_readouts():
     x = torch.randn(1, 6, 2, 3, dtype=DT, requires_grad=True)
     for r in ('median', 'relative'):
         assert torch.autograd.gradcheck(lambda t: dpv.depth_estimate(dpv.normalize_log(t), planes, r), (x,))
+    d_hat = torch.tensor([[[0.7, 1.1, 1.9], [2.5, 3.3, 0.6]]], dtype=DT)
+    assert torch.autograd.gradcheck(lambda t: dpv.ratio_confidence(dpv.normalize_log(t), planes, d_hat), (x,))
 
 
 def test_auto_readout_depends_on_the_measurement_model():

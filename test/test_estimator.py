@@ -330,6 +330,25 @@ def test_depth_readout_is_applied_and_checked():
         small_config(depth_readout='mode').validate()
 
 
+def test_confidence_definition_is_applied_and_checked():
+    """confidence='plane' publishes the +-1-plane mass, 'ratio' the delta-band probability (the default):
+    same depth, different confidence images; ratio 1.5 is more lenient than 1.25; bad values are refused."""
+    outs = {c: push_all(Estimator(small_config(confidence=c, confidence_ratio=r)), sideways(4))[-1]
+            for c, r in (('plane', 1.25), ('ratio', 1.25), ('ratio', 1.5))}
+    assert EstimatorConfig().confidence == 'ratio' and EstimatorConfig().confidence_ratio == 1.25
+    np.testing.assert_array_equal(outs['plane'].depth_hw, outs['ratio'].depth_hw)
+    ok = np.isfinite(outs['plane'].depth_hw)
+    assert np.abs(outs['plane'].confidence_hw[ok] - outs['ratio'].confidence_hw[ok]).max() > 1e-3
+    est = Estimator(small_config(confidence='ratio', confidence_ratio=1.5))
+    assert est.status['confidence'] == 'ratio 1.5'
+    wider = push_all(est, sideways(4))[-1]
+    assert (wider.confidence_hw[ok] >= outs['ratio'].confidence_hw[ok] - 1e-6).all()
+    with pytest.raises(ValueError, match='confidence'):
+        small_config(confidence='entropy').validate()
+    with pytest.raises(ValueError, match='confidence_ratio'):
+        small_config(confidence_ratio=1.0).validate()
+
+
 def test_min_confidence_masks_depth_and_keeps_confidence():
     """The node parameter min_confidence is applied by the estimator, so offline evaluation scores what
     the node publishes: depth below it is NaN (no estimate), its confidence is still reported."""

@@ -184,7 +184,8 @@ def _below_random(c: Optional[Dict[str, np.ndarray]]) -> Tuple[Optional[bool], f
 
 
 def _evaluate_dataset(name: str, batches, model, depths_d, classicals: Dict[str, ClassicalMeasurement],
-                      bar, readout: str = dpvops.DEFAULT_READOUT) -> Tuple[List[Dict], Dict[str, Dict]]:
+                      bar, readout: str = dpvops.DEFAULT_READOUT, confidence: str = dpvops.DEFAULT_CONFIDENCE
+                      ) -> Tuple[List[Dict], Dict[str, Dict]]:
     """Rows of one dataset (net modes, then every classical source) and the curves per row key."""
     rows, curves = [], {}
     jobs = [('net', model, None)] + [(label, None, cm) for label, cm in classicals.items()]
@@ -193,7 +194,7 @@ def _evaluate_dataset(name: str, batches, model, depths_d, classicals: Dict[str,
             continue
         modes = ('none', 'global', 'knet') if net is not None else ('none', 'global')
         res = evaluate_batches(net, _Ticking(batches, bar), depths_d, 'cpu', modes=modes, classical=cm,
-                               keep_last=False, curves=True, readout=readout)
+                               keep_last=False, curves=True, readout=readout, confidence=confidence)
         res.pop('examples', None)
         src = 'net' if net is not None else 'classical'
         for mode in modes:
@@ -220,13 +221,15 @@ def run(model, *, synthetic_seeds: Seq[int] = tuple(range(6)), sun3d_windows: in
         height: int = 256, tune_seeds: Seq[int] = DEFAULT_TUNE_SEEDS,
         temperatures: Seq[float] = DEFAULT_TEMPERATURES, num_keyframes: Optional[int] = None,
         gap: Optional[int] = None, skip_sun3d: bool = False, data_dir=DATA, out: Optional[str] = None,
-        progress: bool = True, quiet: bool = False, readout: str = dpvops.DEFAULT_READOUT) -> Dict:
+        progress: bool = True, quiet: bool = False, readout: str = dpvops.DEFAULT_READOUT,
+        confidence: str = dpvops.DEFAULT_CONFIDENCE) -> Dict:
     """Run the whole benchmark (see the module docstring); returns a JSON-ready dict with ``rows``,
     ``temperature`` (tuned, default, grid, tuning NLL per temperature), ``datasets`` and ``plots``.
 
     ``model``: a :class:`dpv_sensor.nets.model.DPVNet` (its preset gives the planes). ``num_keyframes``
     and ``gap`` default to the training validation's (``TrainConfig.val_keyframes`` / ``val_gap``).
-    ``readout``: how depth and confidence are read from the DPVs (the node's ``depth_readout``).
+    ``readout``: how depth and confidence are read from the DPVs (the node's ``depth_readout``);
+    ``confidence``: which confidence is ranked (the node's ``confidence``, ratio band 1.25).
     """
     from tqdm import tqdm
     t_start = time.time()
@@ -277,7 +280,7 @@ def run(model, *, synthetic_seeds: Seq[int] = tuple(range(6)), sun3d_windows: in
             bar.total -= n_win
         rows, plots, curves_out = [], {}, {}
         for name, d in datasets.items():
-            r, curves = _evaluate_dataset(name, d['batches'], model, depths_d, classicals, bar, readout)
+            r, curves = _evaluate_dataset(name, d['batches'], model, depths_d, classicals, bar, readout, confidence)
             rows += r
             best_net = _best(r, 'net')
             tuned_label = next(iter(classicals))
@@ -373,6 +376,8 @@ def main(argv: Optional[List[str]] = None) -> Dict:
     ap.add_argument('--threads', type=int, default=1)
     ap.add_argument('--readout', default=dpvops.DEFAULT_READOUT, choices=dpvops.READOUT_CHOICES,
                     help='depth readout (the node parameter depth_readout)')
+    ap.add_argument('--confidence', default=dpvops.DEFAULT_CONFIDENCE, choices=dpvops.CONFIDENCES,
+                    help='confidence definition (the node parameter confidence)')
     ap.add_argument('--no-progress', action='store_true')
     a = ap.parse_args(argv)
     torch.set_num_threads(a.threads)
@@ -384,7 +389,7 @@ def main(argv: Optional[List[str]] = None) -> Dict:
               width=a.width, height=a.height, tune_seeds=_parse_seeds(a.tune_seeds),
               temperatures=[float(x) for x in a.temperatures.split(',') if x.strip()],
               num_keyframes=a.keyframes, skip_sun3d=a.skip_sun3d, data_dir=a.data, out=a.out,
-              progress=not a.no_progress, readout=a.readout)
+              progress=not a.no_progress, readout=a.readout, confidence=a.confidence)
     res['weights'] = {'path': weights, 'steps': meta.get('steps'), 'preset': model.preset.name}
     res['command'] = ' '.join(['python -m dpv_sensor.benchmarks.calibration'] + list(argv if argv is not None else sys.argv[1:]))
     print(f"total {res['seconds']:.0f} s; plots: {', '.join(res['plots'].values()) or '-'}")

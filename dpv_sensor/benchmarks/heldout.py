@@ -21,7 +21,7 @@ import numpy as np
 import torch
 
 from dpv_sensor.data.sequence import Sequence
-from dpv_sensor.dpv import DEFAULT_READOUT, READOUT_CHOICES
+from dpv_sensor.dpv import CONFIDENCES, DEFAULT_CONFIDENCE, DEFAULT_READOUT, READOUT_CHOICES
 from dpv_sensor.estimator import EstimatorConfig, evaluate_offline
 from dpv_sensor.metrics import MetricAccumulator
 
@@ -83,6 +83,8 @@ def main():
     ap.add_argument('--window-mode', default='causal')
     ap.add_argument('--readout', default=DEFAULT_READOUT, choices=READOUT_CHOICES,
                     help='depth readout (the node parameter depth_readout; auto resolves per model)')
+    ap.add_argument('--confidence', default=DEFAULT_CONFIDENCE, choices=CONFIDENCES,
+                    help='confidence definition (the node parameter confidence)')
     ap.add_argument('--no-classical', action='store_true')
     ap.add_argument('--pose-noise', type=float, nargs=2, default=None, metavar=('REL_T', 'ROT_DEG'),
                     help='feed odometry-like poses instead of GT: per frame a translation error of REL_T of the '
@@ -101,7 +103,7 @@ def main():
             assert s < 100, 'only held-out seeds'
             seqs.append((f'synthetic_seed{s}', render_sequence(s, a.synthetic_frames, width=320, height=240, lazy=True)))
     results = {'weights': a.weights, 'steps': meta.get('steps'), 'window_mode': a.window_mode, 'readout': a.readout,
-               'pose_noise': a.pose_noise, 'sequences': {}}
+               'confidence': a.confidence, 'pose_noise': a.pose_noise, 'sequences': {}}
     for k, (name, seq) in enumerate(seqs):
         r = {}
         kf_idx = None
@@ -113,7 +115,8 @@ def main():
         for mode in a.modes:
             t0 = time.time()
             cfg = EstimatorConfig(preset=model.preset.name, measurement='network', filter_mode=mode,
-                                  num_planes=D, window_mode=a.window_mode, depth_readout=a.readout)
+                                  num_planes=D, window_mode=a.window_mode, depth_readout=a.readout,
+                                  confidence=a.confidence)
             res = evaluate_offline(seq, cfg, model=model, input_poses=poses)
             r[f'net_{mode}'] = summarize(res)
             kf_idx = [row['index'] for row in res['rows']]
@@ -121,7 +124,7 @@ def main():
         if not a.no_classical:
             for mode in [m for m in a.modes if m != 'knet']:
                 cfg = EstimatorConfig(measurement='classical', filter_mode=mode, window_mode=a.window_mode,
-                                      depth_readout=a.readout)
+                                      depth_readout=a.readout, confidence=a.confidence)
                 res = evaluate_offline(seq, cfg, input_poses=poses)
                 r[f'classical_{mode}'] = summarize(res)
                 print(name, 'classical', mode, json.dumps(r[f'classical_{mode}']), flush=True)

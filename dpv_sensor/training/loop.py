@@ -378,7 +378,8 @@ def _np(x: torch.Tensor) -> np.ndarray:
 @torch.no_grad()
 def evaluate_batches(model, batches: List[Dict[str, torch.Tensor]], depths_d: torch.Tensor, device,
                      modes: Seq[str] = FILTER_MODES, classical=None, keep_last: bool = True,
-                     curves: bool = False, readout: str = dpvops.DEFAULT_READOUT) -> Dict:
+                     curves: bool = False, readout: str = dpvops.DEFAULT_READOUT,
+                     confidence: str = dpvops.DEFAULT_CONFIDENCE, confidence_ratio: float = 1.25) -> Dict:
     """Score the model (and optionally a classical measurement model) on validation batches.
 
     Depth and confidence come from the DPVs with ``readout`` (:func:`dpv_sensor.dpv.depth_estimate`;
@@ -430,13 +431,14 @@ def evaluate_batches(model, batches: List[Dict[str, torch.Tensor]], depths_d: to
                         lp = r['logp_full'].float()
                         nlls[mode]['nll_full'].append(float(dpvops.nll(lp, depths_d, gt)))
                         depth = dpvops.depth_estimate(lp, depths_d, ro)
-                        conf = dpvops.confidence(lp, depths_d, depth_bhw=depth)
+                        conf = dpvops.published_confidence(lp, depths_d, depth, confidence, confidence_ratio)
                     else:                                   # classical: upsample the quarter-res maps
                         lq = r['filtered_q'].float()
                         H, W = gt.shape[-2:]
                         dq = dpvops.depth_estimate(lq, depths_d, ro)
                         depth = _upsample_map(dq, (H, W))
-                        conf = _upsample_map(dpvops.confidence(lq, depths_d, depth_bhw=dq), (H, W))
+                        conf = _upsample_map(dpvops.published_confidence(lq, depths_d, dq, confidence,
+                                                                         confidence_ratio), (H, W))
                     for b in range(gt.shape[0]):
                         accs[mode].add(_np(depth[b]), _np(gt[b]), confidence=_np(conf[b]))
                     if keep_last and bi == 0 and j == len(meas) - 1:
