@@ -715,8 +715,8 @@ def build_parser() -> argparse.ArgumentParser:
     f = p.add_argument_group('fusion')
     f.add_argument('--voxel', type=float, default=0.03, help='TSDF voxel size in m (default 0.03)')
     f.add_argument('--fuse-min-confidence', type=float, default=0.9,
-                   help='confidence threshold of the masked mesh (default 0.9: the lite weights put ~97 %% of '
-                        'pixels above 0.5, so 0.5 masks almost nothing)')
+                   help='confidence threshold of the masked mesh (default 0.9: with the default ratio confidence, '
+                        'pixels 90 %% sure to be within a factor 1.25; about a third of the demo\'s pixels)')
     f.add_argument('--no-fusion', action='store_true', help='skip step 7')
     p.add_argument('--quiet', action='store_true', help='no progress bars')
     return p
