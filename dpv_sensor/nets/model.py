@@ -16,8 +16,9 @@ Precision: float32 on the CPU; on CUDA run it under ``torch.autocast('cuda', dty
 (or float16) - the cost volume (pixel coordinates) and all log-softmaxes stay in float32 and every
 returned DPV is float32. ``channels_last`` (default: on; on the CPU PyTorch's oneDNN convs are 2-4x
 faster in NHWC) applies to the 2-D nets, ``channels_last_3d`` (default: on) to K-Net's 3-D convs: on the
-CPU their backward pass is 2.7x faster in NDHWC and the forward 1.6x (``benchmarks.nets``, and a lite
-training step at 256x192 takes 3.4 s instead of 4.9 s), with identical results.
+CPU their backward pass is 2.7x faster in NDHWC while the forward pass costs about the same (a lite
+training step at 256x192 takes 3.4 s instead of 4.9 s; inference in ``benchmarks.nets`` is unchanged), with
+identical results.
 
 Also here: :func:`count_parameters` and :func:`count_macs` (per stage, MACs counted with forward hooks
 on the conv / transposed conv / linear layers; the cost volume's sampling and L1 are counted

@@ -184,9 +184,6 @@ class TrainConfig:
         return self
 
 
-SELECT_POSES = ('clean', 'noisy', 'both')
-
-
 def parse_select_metric(name: str, noisy_validation: bool = True) -> Tuple[str, str, str]:
     """``<metric>_<mode>[_noisy|_both]`` -> (metric, filter mode, poses): e.g. ``abs_rel_knet`` (GT poses),
     ``abs_rel_knet_noisy`` (the noisy-pose validation) or ``abs_rel_knet_both`` (the mean of the two)."""
