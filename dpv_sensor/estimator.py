@@ -249,7 +249,9 @@ class PoseRefinementRequest:
     the current pose estimate, ``image_b3hw`` / ``K_b33`` the processing-size image and intrinsics).
     reference: index of the reference keyframe in ``keyframes``.
     depth_hw / confidence_hw: the depth and confidence the filter predicts for the reference (its last
-    posterior warped into the reference pose), torch (h, w) at the volume resolution with intrinsics
+    posterior warped into the reference pose); the confidence is always the +-1-plane mass
+    (``dpv.confidence``, what ``photometric.inverse_depth_std_from_confidence`` expects), whatever the
+    published ``confidence`` is; torch (h, w) at the volume resolution with intrinsics
     ``K_depth_33`` (numpy); None when the filter has no state yet (first window after a reset).
     The refiner returns a list of ``T_world_cam`` 4x4 arrays, one per keyframe (same order), or None.
     """
