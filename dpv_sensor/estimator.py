@@ -90,8 +90,11 @@ What happens to a pushed frame
 
 Device and precision: ``config.device`` (``cpu``, ``cuda``, ``cuda:N``); everything runs under
 ``torch.no_grad()`` (not ``inference_mode``, so a pose refiner may still use autograd on the cached
-keyframe tensors); float32 on the CPU; on CUDA the networks run under ``torch.autocast`` (bfloat16 by
-default), the geometry, the filter and all DPV normalisations stay float32.
+keyframe tensors); on CUDA the networks run under ``torch.autocast`` (bfloat16 by default); on the CPU in
+float32 or under bfloat16 autocast, as ``cpu_precision`` says (node parameter; ``auto``, the default, is
+bfloat16 where the CPU has AMX / AVX512-BF16, see ``nets.cpu_bf16_fast``: about 2x faster networks, with
+the same accuracy on the selection scenes to 4 digits). The geometry, the filter and all DPV
+normalisations stay float32.
 """
 from __future__ import annotations
 
@@ -114,6 +117,7 @@ from .filter import jump_limit
 from .frame import DepthOutput, Frame
 from .geometry import scale_intrinsics_np
 from .keyframes import WINDOW_MODES, Keyframe, KeyframeSelector, KeyframeWindow, pose_delta
+from .nets.model import cpu_bf16_fast
 
 __all__ = ['EstimatorConfig', 'Estimator', 'PoseRefinementRequest', 'default_weights_path', 'evaluate_offline',
            'MEASUREMENTS', 'FILTER_MODES']
@@ -123,6 +127,7 @@ LOG = logging.getLogger('dpv_sensor.estimator')
 MEASUREMENTS = ('auto', 'network', 'classical')
 FILTER_MODES = ('none', 'bayes', 'global', 'knet')
 OUTPUT_RESOLUTIONS = ('input', 'processing')
+CPU_PRECISIONS = ('auto', 'float32', 'bfloat16')
 # planes sampled per ray for the "seen by some source view" mask (see Estimator._coverage)
 COVERAGE_PLANES = 16
 
@@ -176,6 +181,7 @@ class EstimatorConfig:
     output_resolution: str = 'input'
     min_confidence: float = 0.0
     pose_refinement: str = 'off'
+    cpu_precision: str = 'auto'
     # --- not node parameters -------------------------------------------------------------------------
     window_size: int = 5
     classical_downscale: int = 4
@@ -207,6 +213,7 @@ class EstimatorConfig:
         one_of('window_mode', WINDOW_MODES)
         one_of('output_resolution', OUTPUT_RESOLUTIONS)
         one_of('pose_refinement', ('off', 'window'))
+        one_of('cpu_precision', CPU_PRECISIONS)
         one_of('amp_dtype', ('bfloat16', 'float16', 'none'))
         if min(self.processing_width, self.processing_height) < 8:
             raise ValueError(f'processing size {self.processing_width}x{self.processing_height} is too small')
@@ -358,6 +365,10 @@ class Estimator:
         self._build_filter()
         if cfg.pose_refinement == 'window' and pose_refiner is None:
             self._note('pose_refinement=window requested but no pose refiner was given: poses are used as received')
+        if cfg.cpu_precision == 'bfloat16' and self.device.type == 'cpu' and self.model is not None \
+                and not cpu_bf16_fast():
+            self._note('cpu_precision=bfloat16: this CPU has no native bfloat16 kernels (AMX / AVX512-BF16), so '
+                       'the networks run emulated bfloat16, slower than float32')
         if cfg.publish_between_keyframes and cfg.window_mode == 'centered':
             self._note('publish_between_keyframes is ignored in centered window mode (its outputs would be '
                        'newer than the pending keyframe outputs)')
@@ -479,9 +490,25 @@ class Estimator:
                                 max_translation=off(cfg.reset_translation),
                                 max_rotation_deg=off(cfg.reset_rotation_deg))
 
+    def _cpu_bfloat16(self) -> bool:
+        p = self.config.cpu_precision
+        return self.device.type == 'cpu' and (p == 'bfloat16' or (p == 'auto' and cpu_bf16_fast()))
+
+    def _precision(self) -> str:
+        """What the networks run in (the geometry, filter and DPV normalisations are always float32)."""
+        if self.model is None:
+            return 'float32'
+        if self.device.type == 'cuda' and self.config.amp_dtype != 'none':
+            return f'{self.config.amp_dtype} autocast'
+        if self._cpu_bfloat16():
+            return 'bfloat16 autocast' + ('' if cpu_bf16_fast() else ' (emulated: no AMX / AVX512-BF16)')
+        return 'float32'
+
     def _autocast(self):
         if self.device.type == 'cuda' and self.config.amp_dtype != 'none':
             return torch.autocast('cuda', dtype=getattr(torch, self.config.amp_dtype))
+        if self._cpu_bfloat16():
+            return torch.autocast('cpu', dtype=torch.bfloat16)
         return torch.autocast(self.device.type, enabled=False)
 
     def _knet_callable(self):
@@ -507,6 +534,7 @@ class Estimator:
                                                                        'code_version')}
             if self._checkpoint_meta else None,
             'device': str(self.device),
+            'precision': self._precision(),
             'torch_threads': torch.get_num_threads(),
             'filter_mode': self.filter_mode,
             'filter_mode_requested': cfg.filter_mode,

@@ -434,7 +434,8 @@ class DepthCameraNode(_node_base()):
         self.create_timer(cfg['diagnostics_period'], self._publish_diagnostics)
 
         log.info(
-            f"ready: preset={cfg['preset']} device={cfg['device']} measurement={cfg['measurement']} "
+            f"ready: preset={cfg['preset']} device={cfg['device']}"
+            f" cpu_precision={cfg['cpu_precision']} measurement={cfg['measurement']} "
             f"filter={cfg['filter_mode']} readout={cfg['depth_readout']} confidence={cfg['confidence']}"
             f"{' ' + format(cfg['confidence_ratio'], 'g') if cfg['confidence'] == 'ratio' else ''} odometry={cfg['odometry']} "
             f"processing={cfg['processing_width']}x{cfg['processing_height']} "
@@ -853,6 +854,7 @@ class DepthCameraNode(_node_base()):
         values['measurement_model'] = st.get('measurement', 'unknown')
         values['measurement_reason'] = st.get('measurement_reason', '')
         values['device'] = st.get('device', self.config['device'])
+        values['precision'] = st.get('precision', '')
         values['filter_mode'] = st.get('filter_mode', self.config['filter_mode'])
         values['tracking'] = st.get('tracking', '')
         values['estimator_keyframes'] = st.get('keyframes', '')

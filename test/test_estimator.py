@@ -392,6 +392,34 @@ def test_network_measurement_caches_features_and_uses_knet():
     assert est.status['depth_range'] == (net.d_min, net.d_max)
 
 
+@pytest.mark.parametrize('precision', ['bfloat16', 'auto'])
+def test_cpu_bfloat16_gives_the_float32_depths(precision):
+    """cpu_precision: the shipped lite weights under CPU bfloat16 autocast publish the float32 depths to
+    within a fraction of a plane (the cost volume, filter and readout stay float32), and the status says
+    which precision ran; 'auto' is bfloat16 exactly where the CPU has native kernels."""
+    from dpv_sensor.nets import cpu_bf16_fast, default_weights_path, load_checkpoint
+    net, _ = load_checkpoint(default_weights_path('lite'), preset='lite')
+    frames = sideways(6, step=0.05, w=160, h=120)
+    outs, status = {}, {}
+    for p in ('float32', precision):
+        est = Estimator(small_config(measurement='network', filter_mode='knet', processing_width=128,
+                                     processing_height=96, cpu_precision=p), model=net)
+        outs[p] = push_all(est, frames)[-1]
+        status[p] = est.status['precision']
+    assert status['float32'] == 'float32'
+    bf16 = precision == 'bfloat16' or cpu_bf16_fast()
+    assert status[precision].startswith('bfloat16 autocast') == bf16
+    a, b = outs['float32'].depth_hw, outs[precision].depth_hw
+    both = np.isfinite(a) & np.isfinite(b)
+    assert both.mean() > 0.8
+    rel = np.abs(a[both] - b[both]) / a[both]
+    if bf16:
+        assert rel.max() > 0                                     # autocast really ran
+    assert np.median(rel) < 0.01 and np.mean(rel > 0.05) < 0.02
+    with pytest.raises(ValueError, match='cpu_precision'):
+        Estimator(small_config(cpu_precision='float16'))
+
+
 # ----------------------------------------------------------------------------------------------------
 # drops and resets
 # ----------------------------------------------------------------------------------------------------

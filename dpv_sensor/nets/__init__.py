@@ -8,7 +8,7 @@ torch only (no ROS imports). See model.py for the call interface and presets.py 
 from .checkpoint import CheckpointError, default_weights_path, load_checkpoint, read_metadata, save_checkpoint
 from .dnet import CostVolume, FeatureExtractor, ImageFeatures, feature_intrinsics, feature_size
 from .knet import KNet
-from .model import DPVNet, count_macs, count_parameters
+from .model import DPVNet, count_macs, count_parameters, cpu_bf16_fast
 from .presets import PRESETS, Preset, get_preset, preset_names
 from .rnet import RNet, upsample_logp
 
@@ -16,5 +16,5 @@ __all__ = [
     'DPVNet', 'FeatureExtractor', 'CostVolume', 'KNet', 'RNet', 'ImageFeatures', 'Preset', 'PRESETS',
     'get_preset', 'preset_names', 'feature_intrinsics', 'feature_size', 'upsample_logp',
     'save_checkpoint', 'load_checkpoint', 'read_metadata', 'default_weights_path', 'CheckpointError',
-    'count_parameters', 'count_macs',
+    'count_parameters', 'count_macs', 'cpu_bf16_fast',
 ]

@@ -12,8 +12,9 @@ into source view n. ``logp_q`` is (B, D, ceil(H/4), ceil(W/4)) and ``K_vol`` its
 ``measure(..., src_features=[...])`` reuses them (only the reference image is then run through the
 extractor; pass ``ref_features`` too to skip even that).
 
-Precision: float32 on the CPU; on CUDA run it under ``torch.autocast('cuda', dtype=torch.bfloat16)``
-(or float16) - the cost volume (pixel coordinates) and all log-softmaxes stay in float32 and every
+Precision: float32, or under ``torch.autocast('cuda', dtype=torch.bfloat16)`` (or float16) on CUDA, or
+``torch.autocast('cpu', dtype=torch.bfloat16)`` on a CPU where :func:`cpu_bf16_fast` (oneDNN's AMX /
+AVX512-BF16 kernels: about 2x faster convolutions there, emulated and slower elsewhere) - the cost volume (pixel coordinates) and all log-softmaxes stay in float32 and every
 returned DPV is float32. ``channels_last`` (default: on; on the CPU PyTorch's oneDNN convs are 2-4x
 faster in NHWC) applies to the 2-D nets, ``channels_last_3d`` (default: on) to K-Net's 3-D convs: on the
 CPU their backward pass is 2.7x faster in NDHWC while the forward pass costs about the same (a lite
@@ -39,7 +40,7 @@ from .knet import KNet
 from .presets import Preset, get_preset
 from .rnet import RNet
 
-__all__ = ['DPVNet', 'count_parameters', 'count_macs', 'STAGES']
+__all__ = ['DPVNet', 'count_parameters', 'count_macs', 'STAGES', 'cpu_bf16_fast']
 
 STAGES = ('feature_extraction', 'cost_volume', 'knet', 'rnet')
 
@@ -155,6 +156,15 @@ class DPVNet(nn.Module):
 
 
 # ---------------------------------------------------------------------- counting
+def cpu_bf16_fast() -> bool:
+    """True when oneDNN has native bfloat16 kernels on this CPU (AVX512-BF16 or AMX), i.e. when CPU autocast
+    to bfloat16 is faster than float32 rather than emulated."""
+    try:
+        return bool(torch.ops.mkldnn._is_mkldnn_bf16_supported())
+    except (AttributeError, RuntimeError):
+        return False
+
+
 def count_parameters(model: DPVNet) -> Dict[str, int]:
     """Trainable parameters per stage (feature_extraction, cost_volume, knet, rnet) and 'total'."""
     out = OrderedDict()
