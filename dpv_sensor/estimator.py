@@ -92,7 +92,7 @@ Device and precision: ``config.device`` (``cpu``, ``cuda``, ``cuda:N``); everyth
 ``torch.no_grad()`` (not ``inference_mode``, so a pose refiner may still use autograd on the cached
 keyframe tensors); on CUDA the networks run under ``torch.autocast`` (bfloat16 by default); on the CPU in
 float32 or under bfloat16 autocast, as ``cpu_precision`` says (node parameter; ``auto``, the default, is
-bfloat16 where the CPU has AMX / AVX512-BF16, see ``nets.cpu_bf16_fast``: about 2x faster networks, with
+bfloat16 where the CPU has AMX / AVX512-BF16, see ``nets.cpu_bf16_fast``: a keyframe 1.25-1.4x faster, with
 the same accuracy on the selection scenes to 4 digits). The geometry, the filter and all DPV
 normalisations stay float32.
 """

@@ -287,3 +287,15 @@ def test_training_runs_without_ros_gtsam_or_rosbags(tmp_path):
     res = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True, timeout=300)
     assert res.returncode == 0, res.stdout + res.stderr
     assert (tmp_path / 'w.safetensors').is_file()
+
+
+def test_train_step_benchmark_times_every_precision_on_the_same_batches(capsys):
+    from dpv_sensor.benchmarks import train_step
+    assert train_step.main(['--width', '64', '--height', '48', '--batch-size', '1', '--unroll', '2',
+                            '--steps', '1', '--rounds', '1', '--amps', 'off', 'bf16']) == 0
+    out = capsys.readouterr().out
+    assert 'float32' in out and 'bfloat16' in out
+    rows = train_step.run(width=64, height=48, batch_size=1, unroll=2, steps=1, rounds=1, amps=('off', 'bf16'))
+    assert [r['dtype'] for r in rows] == ['float32', 'bfloat16']
+    assert all(r['s_per_step'] > 0 and len(r['losses']) == 1 for r in rows)
+    assert rows[1]['losses'][0] == pytest.approx(rows[0]['losses'][0], rel=0.02)

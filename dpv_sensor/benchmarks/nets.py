@@ -3,6 +3,7 @@
     python -m dpv_sensor.benchmarks.nets                       # lite + paper at 320x256 and 640x480, CPU
     python -m dpv_sensor.benchmarks.nets --presets lite --sizes 320x256 --repeats 10
     python -m dpv_sensor.benchmarks.nets --device cuda --amp bf16 --json out/nets.json
+    python -m dpv_sensor.benchmarks.nets --presets lite --amp bf16    # CPU bfloat16 autocast (cpu_precision)
 
 One "keyframe" is what the streaming estimator does per keyframe with a window of 1 reference + N
 (default 4) source views: feature extraction of the new frame (sources come from the feature cache),

@@ -14,7 +14,8 @@ extractor; pass ``ref_features`` too to skip even that).
 
 Precision: float32, or under ``torch.autocast('cuda', dtype=torch.bfloat16)`` (or float16) on CUDA, or
 ``torch.autocast('cpu', dtype=torch.bfloat16)`` on a CPU where :func:`cpu_bf16_fast` (oneDNN's AMX /
-AVX512-BF16 kernels: about 2x faster convolutions there, emulated and slower elsewhere) - the cost volume (pixel coordinates) and all log-softmaxes stay in float32 and every
+AVX512-BF16 kernels: K-Net and the extractor 2x, a keyframe 1.25-1.4x faster there, emulated and slower
+elsewhere) - the cost volume (pixel coordinates) and all log-softmaxes stay in float32 and every
 returned DPV is float32. ``channels_last`` (default: on; on the CPU PyTorch's oneDNN convs are 2-4x
 faster in NHWC) applies to the 2-D nets, ``channels_last_3d`` (default: on) to K-Net's 3-D convs: on the
 CPU their backward pass is 2.7x faster in NDHWC while the forward pass costs about the same (a lite

@@ -900,6 +900,7 @@ def main(argv: Optional[List[str]] = None) -> int:
             **_weights_info(d),
             'preset': values['preset'], 'filter_mode': d.get('filter_mode'), 'filter_mode_requested':
             values['filter_mode'], 'window_mode': values['window_mode'], 'device': d.get('device'),
+            'precision': d.get('precision'),
             'processing_size': [values['processing_width'], values['processing_height']],
             'images_in_bag': replay.images_in_bag, 'images_sent': replay.images_sent,
             'frames_received': d.get('frames_received'), 'frames_processed': d.get('frames_processed'),
@@ -944,7 +945,8 @@ def print_summary(s: Dict[str, Any]) -> None:
                      + (f' ({steps} training steps)' if steps is not None else ''))
         else:
             model = f"classical NCC plane sweep ({nd.get('measurement_reason')})"
-        print(f'what ran   python -m dpv_sensor.node (its own process, {nd.get("device")}): {model}')
+        where = str(nd.get('device')) + (f', {nd["precision"]}' if nd.get('precision') else '')
+        print(f'what ran   python -m dpv_sensor.node (its own process, {where}): {model}')
         print(f"           filter {nd.get('filter_mode')}, {nd.get('window_mode')} window, processing "
               f"{nd['processing_size'][0]}x{nd['processing_size'][1]}; {nd.get('images_sent')} images replayed "
               f"({nd['pacing']}), {nd.get('keyframes')} keyframes, {nd.get('outputs_published')} depth outputs "

@@ -79,7 +79,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--num-workers', type=int, default=d.num_workers, help='DataLoader worker processes (rendering)')
     p.add_argument('--threads', type=int, default=d.threads, help='torch CPU threads')
     p.add_argument('--device', default=d.device, help="'auto', 'cpu', 'cuda', 'cuda:1', ...")
-    p.add_argument('--amp', choices=('auto', 'off', 'bf16', 'fp16'), default=d.amp, help='mixed precision: on CUDA auto = bf16 (fp16 where bf16 is missing); on the CPU auto = bf16 where the CPU has AMX / AVX512-BF16 (about 2x faster steps), else float32')
+    p.add_argument('--amp', choices=('auto', 'off', 'bf16', 'fp16'), default=d.amp, help='mixed precision: on CUDA auto = bf16 (fp16 where bf16 is missing); on the CPU auto = bf16 where the CPU has AMX / AVX512-BF16 (a lite step 1.75x faster), else float32')
     p.add_argument('--ckpt-every', type=int, default=d.ckpt_every, help='steps between checkpoints')
     p.add_argument('--log-every', type=int, default=d.log_every)
     p.add_argument('--val-every', type=int, default=d.val_every, help='steps between validations ("epoch")')
