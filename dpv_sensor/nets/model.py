@@ -28,6 +28,7 @@ analytically, see :func:`count_macs`).
 """
 from __future__ import annotations
 
+import functools
 from collections import OrderedDict
 from typing import Dict, Optional, Sequence, Union
 
@@ -157,6 +158,7 @@ class DPVNet(nn.Module):
 
 
 # ---------------------------------------------------------------------- counting
+@functools.lru_cache(maxsize=None)
 def cpu_bf16_fast() -> bool:
     """True when oneDNN has native bfloat16 kernels on this CPU (AVX512-BF16 or AMX), i.e. when CPU autocast
     to bfloat16 is faster than float32 rather than emulated."""
