@@ -157,7 +157,7 @@ class DPVNet(nn.Module):
         return self.refine(logp, feats, ref_b3hw)
 
 
-# ---------------------------------------------------------------------- counting
+# ---------------------------------------------------------------------- precision
 @functools.lru_cache(maxsize=None)
 def cpu_bf16_fast() -> bool:
     """True when oneDNN has native bfloat16 kernels on this CPU (AVX512-BF16 or AMX), i.e. when CPU autocast
@@ -168,6 +168,7 @@ def cpu_bf16_fast() -> bool:
         return False
 
 
+# ---------------------------------------------------------------------- counting
 def count_parameters(model: DPVNet) -> Dict[str, int]:
     """Trainable parameters per stage (feature_extraction, cost_volume, knet, rnet) and 'total'."""
     out = OrderedDict()
