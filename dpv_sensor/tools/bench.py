@@ -47,7 +47,7 @@ import threading
 import time
 from typing import Any, Dict, List, Optional, Tuple
 
-from dpv_sensor.tools.node_process import node_command, proc_status_kib
+from dpv_sensor.tools.node_process import ClientNode, node_command, proc_status_kib
 from dpv_sensor.tools import tool_argv
 
 REPO = pathlib.Path(__file__).resolve().parents[2]
@@ -192,8 +192,6 @@ def _bench_bag(out: pathlib.Path, size, frames: int, seed: int, cache: Dict) -> 
 def bench_node(presets, sizes, device, out: pathlib.Path, *, hz: float, seconds: float, min_outputs: int,
                max_seconds: float, start_timeout: float, frames: int, seed: int, threads: Optional[int]) -> List[Dict]:
     """Start the node per preset x size, play a looped synthetic bag at `hz` with live stamps, measure."""
-    import rclpy
-    from rclpy.executors import SingleThreadedExecutor
     from dpv_sensor.data import rosbag_io as R
     from dpv_sensor.tools.bag import BagPlayer
     from dpv_sensor.tools.soak import OutputCollector
@@ -220,12 +218,8 @@ def bench_node(presets, sizes, device, out: pathlib.Path, *, hz: float, seconds:
             _say(f'node: {preset} {w}x{h} on {device}: {hz:g} images/s for >= {seconds:g} s (log {log_path})')
             row: Dict[str, Any] = {'preset': preset, 'width': w, 'height': h, 'device': device, 'weights': what,
                                    'input_hz': hz, 'log': str(log_path)}
-            context = rclpy.context.Context()
-            from rclpy.signals import SignalHandlerOptions
-            rclpy.init(context=context, signal_handler_options=SignalHandlerOptions.NO)   # Ctrl-C: KeyboardInterrupt
-            node = rclpy.create_node('dpv_bench', context=context)
-            executor = SingleThreadedExecutor(context=context)
-            executor.add_node(node)
+            client = ClientNode('dpv_bench')   # Ctrl-C: KeyboardInterrupt
+            node, executor = client.node, client.executor
             collector = OutputCollector(node, keep_messages=False)
             player = BagPlayer(node, bag, rate=hz / 30.0, rebase_stamps=True, loop=True)
             with open(log_path, 'w') as log:
@@ -294,9 +288,7 @@ def bench_node(presets, sizes, device, out: pathlib.Path, *, hz: float, seconds:
                             row['exit_code'] = proc.wait()
                     else:
                         row['exit_code'] = proc.returncode
-                    executor.shutdown()
-                    node.destroy_node()
-                    rclpy.shutdown(context=context)
+                    client.close()
             results.append(row)
     return results
 

@@ -64,7 +64,7 @@ import time
 from dataclasses import dataclass, field
 from typing import Any, Dict, List, Optional
 
-from dpv_sensor.tools.node_process import node_command, proc_status_kib
+from dpv_sensor.tools.node_process import ClientNode, node_command, proc_status_kib
 from dpv_sensor.tools import tool_argv
 
 REPO = pathlib.Path(__file__).resolve().parents[2]
@@ -365,8 +365,6 @@ def run_node_replay(steps: Steps, input_bag: pathlib.Path, output_bag: pathlib.P
                     start_timeout: float, frame_timeout: float, max_images: int, progress: bool) -> ReplayResult:
     """Steps 3-5: start the node, replay `input_bag` through it while recording its outputs, stop it."""
     import subprocess
-    import rclpy
-    from rclpy.executors import SingleThreadedExecutor
     from dpv_sensor.data import rosbag_io as R
     from dpv_sensor.tools.bag import BagPlayer, BagRecorder
 
@@ -382,24 +380,19 @@ def run_node_replay(steps: Steps, input_bag: pathlib.Path, output_bag: pathlib.P
     env.setdefault('PYTHONUNBUFFERED', '1')
     log_path = log_dir / 'node.log'
     log_file = open(log_path, 'w')
-    context = rclpy.context.Context()
     proc = None
-    node = executor = recorder = monitor = player = None
+    client = node = executor = recorder = monitor = player = None
     t_start = time.perf_counter()
     peak_rss = 0
     try:
         # ---------------------------------------------------------------- 3. start the node
         with steps.step('node', 'start the node process and wait for its subscriptions') as rec:
             proc = subprocess.Popen(cmd, cwd=REPO, env=env, stdout=log_file, stderr=subprocess.STDOUT, text=True)
-            from rclpy.signals import SignalHandlerOptions
-            # no rclpy signal handlers: Ctrl-C stays a KeyboardInterrupt here (and reaches the node process, which
-            # is in the same process group, as a SIGINT: it stops cleanly by itself)
-            rclpy.init(context=context, signal_handler_options=SignalHandlerOptions.NO)
-            node = rclpy.create_node('dpv_demo', context=context)
+            # Ctrl-C stays a KeyboardInterrupt here and reaches the node process as a SIGINT: it stops by itself
+            client = ClientNode('dpv_demo')
+            node, executor = client.node, client.executor
             from rclpy.logging import LoggingSeverity
             node.get_logger().set_level(LoggingSeverity.WARN)   # the recorder's "recording ..." lines
-            executor = SingleThreadedExecutor(context=context)
-            executor.add_node(node)
             monitor = NodeMonitor(node)
             recorder = BagRecorder(node, output_bag, OUTPUT_TOPICS, overwrite=True)
             player = BagPlayer(node, input_bag, rate=rate, topics=play_topics)
@@ -558,12 +551,8 @@ def run_node_replay(steps: Steps, input_bag: pathlib.Path, output_bag: pathlib.P
             except subprocess.TimeoutExpired:
                 proc.kill()
                 proc.wait()
-        if executor is not None:
-            executor.shutdown()
-        if node is not None:
-            node.destroy_node()
-        if context.ok():
-            rclpy.shutdown(context=context)
+        if client is not None:
+            client.close()
         log_file.close()
     return res
 

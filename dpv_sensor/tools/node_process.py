@@ -1,4 +1,5 @@
-"""Helpers the tools share for running the node as a child process and reading its memory from /proc."""
+"""Helpers the tools share for running the node as a child process, talking to it from a client node of their
+own, and reading its memory from /proc."""
 from __future__ import annotations
 
 import sys
@@ -31,3 +32,35 @@ def proc_status_kib(pid: int | str, key: str) -> Optional[int]:
     except OSError:
         return None
     return None
+
+
+class ClientNode:
+    """A node of the tool's own (bag player, output collector) in a private rclpy context.
+
+    The context is initialised with no command-line arguments: rclpy would otherwise read the tool's own argv,
+    where a `--param name:=value` meant for the node under test is taken for a (deprecated) remap rule. There are
+    no rclpy signal handlers, so Ctrl-C stays a KeyboardInterrupt in the tool (and reaches the node process, in
+    the same process group, as its own SIGINT)."""
+
+    def __init__(self, name: str):
+        import rclpy
+        from rclpy.executors import SingleThreadedExecutor
+        from rclpy.signals import SignalHandlerOptions
+        self._rclpy = rclpy
+        self.context = rclpy.context.Context()
+        rclpy.init(args=[], context=self.context, signal_handler_options=SignalHandlerOptions.NO)
+        self.node = rclpy.create_node(name, context=self.context)
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.node)
+
+    def spin_once(self, timeout_sec: float) -> None:
+        self.executor.spin_once(timeout_sec=timeout_sec)
+
+    def close(self) -> None:
+        """Idempotent."""
+        if self.executor is not None:
+            self.executor.shutdown()
+            self.node.destroy_node()
+            self.executor = None
+        if self.context.ok():
+            self._rclpy.shutdown(context=self.context)

@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from dpv_sensor.tools.node_process import node_command
+from dpv_sensor.tools.node_process import ClientNode, node_command
 
 REPO = pathlib.Path(__file__).resolve().parents[2]
 NS = 1_000_000_000
@@ -180,8 +180,6 @@ def _percentile(values, q):
 
 
 def run_soak(args) -> dict:
-    import rclpy
-    from rclpy.executors import SingleThreadedExecutor
     from dpv_sensor.data import rosbag_io as R
     from dpv_sensor.tools.bag import BagPlayer
 
@@ -209,11 +207,8 @@ def run_soak(args) -> dict:
     proc = start_node_process(params, remaps, env=env, log_path=log_path)
     print(f'node pid {proc.pid}, log {log_path}', flush=True)
 
-    context = rclpy.context.Context()
-    rclpy.init(context=context)
-    node = rclpy.create_node('dpv_soak', context=context)
-    executor = SingleThreadedExecutor(context=context)
-    executor.add_node(node)
+    client = ClientNode('dpv_soak')
+    node, executor = client.node, client.executor
     collector = OutputCollector(node, keep_messages=False)
     player = BagPlayer(node, bag, rate=args.rate, rebase_stamps=True, loop=True)
     result: dict = {'bag': str(bag), 'images_in_bag': n_images, 'minutes': args.minutes, 'rate': args.rate,
@@ -296,9 +291,7 @@ def run_soak(args) -> dict:
     finally:
         code = stop_node_process(proc)
         result['node_exit_code'] = code
-        executor.shutdown()
-        node.destroy_node()
-        rclpy.shutdown(context=context)
+        client.close()
     return result
 
 
