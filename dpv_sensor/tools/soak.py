@@ -175,6 +175,21 @@ def _median_rss(samples, t0, t1):
     return int(np.median(vals)) if vals else None
 
 
+def rss_trend(samples, wall_s: float, parts: int = 6, min_window_s: float = 60.0):
+    """Median resident memory per consecutive window: `parts` equal windows over the run, none shorter than
+    `min_window_s`. [(t0, t1, median kB or None)]. A leak climbs window after window; allocator growth that
+    levels off stops climbing."""
+    if not samples or not wall_s or wall_s != wall_s:
+        return []
+    n = max(1, min(parts, int(wall_s // min_window_s)))
+    edges = np.linspace(0.0, wall_s, n + 1)
+    out = []
+    for a, b in zip(edges[:-1], edges[1:]):
+        vals = [r for t, r in samples if a <= t < b or (b == edges[-1] and t >= b)]
+        out.append((round(float(a), 1), round(float(b), 1), int(np.median(vals)) if vals else None))
+    return out
+
+
 def _percentile(values, q):
     return float(np.percentile(values, q)) if len(values) else float('nan')
 
@@ -284,6 +299,7 @@ def run_soak(args) -> dict:
             # baseline (median) resident memory in the first and the last minute: flat memory means these agree
             'rss_kib_median_first_min': _median_rss(rss_samples, 0.0, 60.0),
             'rss_kib_median_last_min': _median_rss(rss_samples, wall - 60.0, wall + 1.0),
+            'rss_kib_median_by_window': rss_trend(rss_samples, wall),
             'rss_samples': rss_samples,
             'player_worst_lateness_ms': round(stats.late_ms_max, 1) if stats else None,
             'loops': stats.loops if stats else None,
@@ -312,6 +328,11 @@ def _print_report(r: dict) -> None:
     print(f"memory VmRSS  start {r.get('rss_kib_start')} kB, end {r.get('rss_kib_end')} kB, max "
           f"{r.get('rss_kib_max')} kB; median first minute {r.get('rss_kib_median_first_min')} kB, last minute "
           f"{r.get('rss_kib_median_last_min')} kB")
+    trend = r.get('rss_kib_median_by_window') or []
+    if len(trend) > 1:
+        print('memory trend  median per window: ' + ', '.join(
+            f"{a / 60:.0f}-{b / 60:.0f} min {m / 1024:.0f} MB" if m is not None else f"{a / 60:.0f}-{b / 60:.0f} min -"
+            for a, b, m in trend))
     print(f"node exit     {r.get('node_exit_code')}")
 
 
