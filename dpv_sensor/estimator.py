@@ -91,9 +91,9 @@ What happens to a pushed frame
 Device and precision: ``config.device`` (``cpu``, ``cuda``, ``cuda:N``); everything runs under
 ``torch.no_grad()`` (not ``inference_mode``, so a pose refiner may still use autograd on the cached
 keyframe tensors); on CUDA the networks run under ``torch.autocast`` (bfloat16 by default); on the CPU in
-float32 (the default) or under bfloat16 autocast, as ``cpu_precision`` says (node parameter; ``auto`` is
-bfloat16 where the CPU has AMX / AVX512-BF16, see ``nets.cpu_bf16_fast``: a keyframe 1.25-1.4x faster, with
-the same accuracy on the selection scenes to 4 digits). The geometry, the filter and all DPV
+float32 or under bfloat16 autocast, as ``cpu_precision`` says (node parameter; ``auto``, the default, is
+bfloat16 where the CPU has AMX / AVX512-BF16, see ``nets.cpu_bf16_fast``, else float32: a keyframe 1.25-1.4x
+faster, with the same accuracy on the selection scenes to 4 digits). The geometry, the filter and all DPV
 normalisations stay float32.
 """
 from __future__ import annotations
@@ -181,7 +181,7 @@ class EstimatorConfig:
     output_resolution: str = 'input'
     min_confidence: float = 0.0
     pose_refinement: str = 'off'
-    cpu_precision: str = 'float32'
+    cpu_precision: str = 'auto'
     # --- not node parameters -------------------------------------------------------------------------
     window_size: int = 5
     classical_downscale: int = 4

@@ -325,7 +325,8 @@ def _print_report(r: dict) -> None:
           'per processed frame)')
     print(f"drops         {r.get('dropped')}")
     print(f"faults        {r.get('faults') or 'none'}; filter resets {r.get('filter_resets')}")
-    print(f"memory VmRSS  start {r.get('rss_kib_start')} kB, end {r.get('rss_kib_end')} kB, max "
+    t_start, rss_start = r.get('rss_kib_start') or (None, None)   # (seconds, kB) at the 5th output
+    print(f"memory VmRSS  start {rss_start} kB (at {t_start} s, after 5 outputs), end {r.get('rss_kib_end')} kB, max "
           f"{r.get('rss_kib_max')} kB; median first minute {r.get('rss_kib_median_first_min')} kB, last minute "
           f"{r.get('rss_kib_median_last_min')} kB")
     trend = r.get('rss_kib_median_by_window') or []
