@@ -514,6 +514,7 @@ _TABLE_COLUMNS = [
     ('temporal', ('temporal_consistency', 'pair_mean'), '{:.4f}'),
     ('AUSE', ('confidence', 'ause_frame_mean'), '{:.4f}'),
     ('conf½/all', ('confidence', 'confident_half_ratio_frame_mean'), '{:.3f}'),
+    ('conf½ pooled', ('confidence', 'confident_half_ratio_pooled'), '{:.3f}'),
     ('ms/kf', ('time_ms_per_keyframe', 'mean'), '{:.0f}'),
     ('kf', ('num_keyframes',), '{:d}'),
 ]
@@ -599,7 +600,9 @@ def compare(seq, base_overrides: Optional[Dict[str, Any]], variants: SequenceT[D
         out.mkdir(parents=True, exist_ok=True)
         (out / 'compare.md').write_text(md + '\n\nFrame means over keyframes; ms = per-frame median-scaled; '
                                         'temporal = mean abs relative disagreement of consecutive keyframes; '
-                                        'conf½/all = abs_rel of the most confident half / abs_rel of all.\n')
+                                        'conf½/all = abs_rel of the most confident half / abs_rel of all '
+                                        '(per frame, mean over frames); conf½ pooled = the same over the pixels of '
+                                        'all frames together.\n')
         with open(out / 'compare.json', 'w') as f:
             json.dump(to_jsonable({'rows': rows, 'base_overrides': base_overrides or {},
                                    'variants': list(variants), 'options': dataclasses.asdict(options)}), f, indent=1)

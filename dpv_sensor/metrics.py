@@ -368,6 +368,12 @@ class MetricAccumulator:
     ``add_temporal(value, n)`` records one temporal-consistency pair. ``summary()`` returns
     ``frame_mean`` (headline: mean over frames) and ``pixel_weighted`` (pooled pixels) for both
     ``metric`` and ``median_scaled``, plus coverage, confidence quality and temporal consistency.
+
+    The confidence quality is given per frame (``confident_half_ratio_frame_mean``: does the confidence find the
+    better half *within* each image) and pooled (``confident_half_ratio_pooled``: the most confident half of all
+    scored pixels of all frames, as a user thresholding the confidence over a whole run sees it; it also ranks
+    whole frames against each other). The pooled figure keeps every ``pool_stride``-th scored pixel of each
+    frame (deterministic, in proportion to each frame's pixels).
     """
     min_depth: Optional[float] = None
     max_depth: Optional[float] = None
@@ -379,6 +385,8 @@ class MetricAccumulator:
     _n_eval: int = 0
     _curves: List[Dict[str, np.ndarray]] = field(default_factory=list)
     _temporal: List[Tuple[float, int]] = field(default_factory=list)
+    pool_stride: int = 8
+    _pooled: List[Tuple[np.ndarray, np.ndarray]] = field(default_factory=list)
 
     def add(self, pred: np.ndarray, gt: np.ndarray, confidence: Optional[np.ndarray] = None,
             **extra) -> Dict:
@@ -418,6 +426,8 @@ class MetricAccumulator:
                 self._curves.append(curves)
                 row['ause'] = ause(curves)
                 row['confident_half_ratio'] = confident_half_ratio(err, c)
+                self._pooled.append((err[::self.pool_stride].astype(np.float32),
+                                     c[::self.pool_stride].astype(np.float32)))
             else:
                 row['ause'] = float('nan')
                 row['confident_half_ratio'] = float('nan')
@@ -427,6 +437,13 @@ class MetricAccumulator:
     def add_temporal(self, value: float, num_pixels: int) -> None:
         """Record the temporal consistency of one pair of consecutive keyframes."""
         self._temporal.append((float(value), int(num_pixels)))
+
+    def pooled_confident_half_ratio(self) -> float:
+        """:func:`confident_half_ratio` over the kept pixels of all frames together (NaN without any)."""
+        if not self._pooled:
+            return float('nan')
+        return confident_half_ratio(np.concatenate([e for e, _ in self._pooled]),
+                                    np.concatenate([c for _, c in self._pooled]))
 
     def mean_curves(self) -> Optional[Dict[str, np.ndarray]]:
         """Sparsification / oracle / random curves averaged over frames (None without confidence)."""
@@ -457,6 +474,7 @@ class MetricAccumulator:
                 'ause_of_mean_curve': ause(curves),
                 'aurg_of_mean_curve': aurg(curves),
                 'confident_half_ratio_frame_mean': _nanmean(r.get('confident_half_ratio') for r in self.rows),
+                'confident_half_ratio_pooled': self.pooled_confident_half_ratio(),
                 'mean_confidence': _nanmean(r.get('mean_confidence') for r in self.rows),
             }
         if self._temporal:

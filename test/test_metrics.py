@@ -289,3 +289,17 @@ def test_dpv_nll_uses_the_dpv_helper():
     mask = torch.ones(1, 2, 2, dtype=torch.bool)
     mask[0, 0, 0] = False
     assert M.dpv_nll(wrong, depths, gt, mask) == pytest.approx(0.0, abs=1e-9)
+
+
+def test_confident_half_pooled_ranks_frames_against_each_other():
+    """Two frames, each uniformly right or wrong and uniformly confident: within a frame the confidence cannot
+    rank anything (per-frame ratio 1), pooled it picks the good frame (0.1 / mean(0.1, 0.5) = 1/3)."""
+    acc = M.MetricAccumulator(min_depth=0.1, max_depth=10.0)
+    gt = np.full((16, 16), 2.0)
+    acc.add(np.full_like(gt, 2.2), gt, np.full_like(gt, 0.9))    # abs_rel 0.1, confident
+    acc.add(np.full_like(gt, 3.0), gt, np.full_like(gt, 0.1))    # abs_rel 0.5, not
+    c = acc.summary()['confidence']
+    assert c['confident_half_ratio_frame_mean'] == pytest.approx(1.0)
+    assert c['confident_half_ratio_pooled'] == pytest.approx(0.1 / 0.3)
+    assert len(acc._pooled[0][0]) == 16 * 16 // acc.pool_stride
+    assert np.isnan(M.MetricAccumulator().pooled_confident_half_ratio())

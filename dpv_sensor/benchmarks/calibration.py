@@ -12,7 +12,8 @@ What is scored (per dataset x source x filter mode):
   for the network, of R-Net's full-resolution output. All on the network's planes (D, d_min, d_max of
   the checkpoint), so network and classical NLLs are comparable.
 * abs_rel, delta1 (metric, frame means), the **confident-half ratio** (abs_rel of the most confident half
-  of the pixels / abs_rel of all, frame mean; target <= 0.6), AUSE and AURG of the sparsification curves
+  of the pixels / abs_rel of all, frame mean; target <= 0.6; and pooled over all frames, where it also ranks
+  whole frames against each other), AUSE and AURG of the sparsification curves
   (:mod:`dpv_sensor.metrics`), and whether the mean sparsification curve lies below the random one
   (at every removed fraction > 0).
 
@@ -329,7 +330,7 @@ def _f(x, fmt='{:.3f}') -> str:
 def format_table(result: Dict) -> str:
     """The printed table: rows dataset x source x filter mode."""
     hdr = ['dataset', 'source', 'mode', 'NLL meas 1/4', 'NLL filt 1/4', 'NLL full', 'abs_rel', 'delta1',
-           f'conf-half (<={CONFIDENT_HALF_TARGET:g})', 'AUSE', 'AURG', 'below random']
+           f'conf-half (<={CONFIDENT_HALF_TARGET:g})', 'pooled', 'AUSE', 'AURG', 'below random']
     lines = []
     for r in result['rows']:
         below = '-' if r['below_random'] is None else ('yes' if r['below_random'] else
@@ -338,7 +339,8 @@ def format_table(result: Dict) -> str:
         if r.get('confident_half_ok') is not None:
             ch += ' ok' if r['confident_half_ok'] else ' NO'
         lines.append([r['dataset'], r['source'], r['mode'], _f(r['nll_meas_q']), _f(r['nll_filtered_q']),
-                      _f(r['nll_full']), _f(r['abs_rel'], '{:.4f}'), _f(r['delta1']), ch, _f(r['ause'], '{:.4f}'),
+                      _f(r['nll_full']), _f(r['abs_rel'], '{:.4f}'), _f(r['delta1']), ch,
+                      _f(r.get('confident_half_ratio_pooled'), '{:.2f}'), _f(r['ause'], '{:.4f}'),
                       _f(r['aurg'], '{:.4f}'), below])
     w = [max(len(h), *(len(l[i]) for l in lines)) if lines else len(h) for i, h in enumerate(hdr)]
     fmt = lambda cells: '  '.join(c.ljust(w[i]) if i < 3 else c.rjust(w[i]) for i, c in enumerate(cells))

@@ -51,6 +51,7 @@ def summarize(res):
     out['coverage'] = s['coverage']['frame_mean']
     c = s.get('confidence', {})
     out['confident_half_ratio'] = c.get('confident_half_ratio_frame_mean')
+    out['confident_half_ratio_pooled'] = c.get('confident_half_ratio_pooled')
     out['ause'] = c.get('ause_frame_mean')
     out['frames'] = s['num_frames']
     ts = [r.get('time_ms') for r in res['rows'] if r.get('time_ms') is not None]

@@ -451,6 +451,7 @@ def evaluate_batches(model, batches: List[Dict[str, torch.Tensor]], depths_d: to
             conf = s.get('confidence', {})
             entry = {'abs_rel': fm['abs_rel'], 'delta1': fm['delta1'], 'rmse': fm['rmse'],
                      'confident_half_ratio': conf.get('confident_half_ratio_frame_mean', float('nan')),
+                     'confident_half_ratio_pooled': conf.get('confident_half_ratio_pooled', float('nan')),
                      'ause': conf.get('ause_frame_mean', float('nan')),
                      'aurg': conf.get('aurg_of_mean_curve', float('nan')),
                      'frames': s['num_frames']}
