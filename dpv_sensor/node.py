@@ -926,6 +926,10 @@ def main(argv: list[str] | None = None) -> int:
     if args.check:
         return self_check()
 
+    # before any thread exists (DDS, the worker, OpenMP): they then share two malloc arenas (see process_memory)
+    from dpv_sensor.process_memory import limit_malloc_arenas
+    arenas_note = limit_malloc_arenas()
+
     import signal as signal_module
 
     import rclpy
@@ -949,6 +953,7 @@ def main(argv: list[str] | None = None) -> int:
     executor = None
     try:
         node = DepthCameraNode()
+        node.get_logger().info(arenas_note)
         executor = SingleThreadedExecutor()
         executor.add_node(node)
         while not stop.is_set() and rclpy.ok():

@@ -44,7 +44,8 @@ SPECS: tuple[ParamSpec, ...] = (
               'AMX or AVX512-BF16 kernels, else float32), float32, or bfloat16 (autocast; a lite keyframe 1.25x '
               '(320x256) to 1.4x (640x480) faster with those kernels, emulated and slower without). Geometry, '
               'filter and DPV normalisations stay float32; on CUDA the networks always run under bfloat16 '
-              'autocast. bfloat16 holds about 90 MB more resident memory (bounded over a 30-minute soak, peaks up to 1.5 GB).',
+              'autocast. bfloat16 held about 90 MB more resident memory than float32 in a 30-minute soak (bounded; '
+              'peaks to 1.5 GB) before the node capped glibc\'s malloc arenas at two, which brought it lower.',
               choices=('auto', 'float32', 'bfloat16')),
     ParamSpec('processing_width', 320, 'Width the images are resized to for estimation (pixels).',
               min_value=32, max_value=4096),

@@ -1,0 +1,51 @@
+"""The node caps glibc's malloc arenas: threads started afterwards share them instead of making one each."""
+import os
+import subprocess
+import sys
+
+import pytest
+
+from dpv_sensor.process_memory import limit_malloc_arenas
+
+_COUNT_ARENAS = r'''
+import ctypes, sys, threading
+sys.path.insert(0, {repo!r})
+from dpv_sensor.process_memory import limit_malloc_arenas
+if {limit}:
+    print(limit_malloc_arenas(2), file=sys.stderr)
+libc = ctypes.CDLL('libc.so.6')
+libc.malloc.restype = ctypes.c_void_p
+libc.free.argtypes = (ctypes.c_void_p,)
+barrier = threading.Barrier(8)
+def work():
+    barrier.wait()                         # all eight threads alive at once: none can inherit a freed arena
+    for _ in range(200):
+        libc.free(libc.malloc(64 * 1024))
+ts = [threading.Thread(target=work) for _ in range(8)]
+[t.start() for t in ts]; [t.join() for t in ts]
+libc.malloc_stats()                        # writes 'Arena N:' per arena to stderr
+'''
+
+
+def _arenas(limit: bool, env_extra=None) -> tuple[int, str]:
+    repo = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    env = {k: v for k, v in os.environ.items() if k != 'MALLOC_ARENA_MAX'}
+    env.update(env_extra or {})
+    out = subprocess.run([sys.executable, '-c', _COUNT_ARENAS.format(repo=repo, limit=limit)], env=env,
+                         capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0, out.stderr
+    return sum(1 for line in out.stderr.splitlines() if line.startswith('Arena ')), out.stderr
+
+
+@pytest.mark.skipif(not sys.platform.startswith('linux'), reason='glibc malloc')
+def test_arena_cap_holds_for_threads_started_afterwards():
+    free, _ = _arenas(limit=False)
+    capped, log = _arenas(limit=True)
+    assert free > 2, f'without the cap eight threads should get arenas of their own (got {free})'
+    assert capped <= 2, log
+    assert 'at most 2' in log
+
+
+def test_environment_setting_wins(monkeypatch):
+    monkeypatch.setenv('MALLOC_ARENA_MAX', '4')
+    assert limit_malloc_arenas(2) == 'malloc arenas: 4 (MALLOC_ARENA_MAX from the environment)'
