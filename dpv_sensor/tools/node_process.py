@@ -53,9 +53,6 @@ class ClientNode:
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)
 
-    def spin_once(self, timeout_sec: float) -> None:
-        self.executor.spin_once(timeout_sec=timeout_sec)
-
     def close(self) -> None:
         """Idempotent."""
         if self.executor is not None:
