@@ -10,7 +10,6 @@ window, 0.83 GB p99 (README, Measured numbers).
 from __future__ import annotations
 
 import ctypes
-import ctypes.util
 import os
 
 M_ARENA_MAX = -8          # glibc <malloc.h>
@@ -25,8 +24,7 @@ def limit_malloc_arenas(n: int = DEFAULT_ARENAS) -> str:
     if env:
         return f'malloc arenas: {env} (MALLOC_ARENA_MAX from the environment)'
     try:
-        libc = ctypes.CDLL(ctypes.util.find_library('c') or 'libc.so.6')
-        mallopt = libc.mallopt
+        mallopt = ctypes.CDLL(None).mallopt      # the C library already loaded into this process
     except (OSError, AttributeError) as exc:
         return f'malloc arenas: left as they are (no glibc mallopt: {exc})'
     mallopt.argtypes = (ctypes.c_int, ctypes.c_int)
