@@ -179,6 +179,28 @@ def test_trainer_checkpoint_resume_and_export(tmp_path):
     assert [r['step'] for r in rows] == [1, 2, 3, 4, 5]
 
 
+def test_train_modules_knet_updates_only_knet(tmp_path):
+    """--train-modules knet: D-Net runs without autograd, R-Net is frozen, only K-Net's weights move,
+    and the loss is the R-Net NLL alone (the auxiliary D-Net term carries no gradient then)."""
+    cfg = dataclasses.replace(_tiny_config(tmp_path, steps=2), train_modules=('knet',), val_every=100)
+    t = loop.Trainer(cfg, quiet=True)
+    before = {k: v.clone() for k, v in t.model.state_dict().items()}
+    trainable = {n for n, p in t.model.named_parameters() if p.requires_grad}
+    assert trainable and all(n.startswith('knet.') for n in trainable)
+    assert sum(len(g['params']) for g in t.optimizer.param_groups) == len(trainable)
+    t.train()
+    after = t.model.state_dict()
+    moved = {k for k in before if not torch.equal(before[k], after[k])}
+    assert moved and all(k.startswith('knet.') for k in moved), moved
+    rows = [json.loads(l) for l in (tmp_path / 'run' / 'train.jsonl').read_text().splitlines()]
+    assert all(r['loss'] == pytest.approx(r['nll_full']) for r in rows)
+    meta = t.metadata({})
+    assert meta['trained_modules'] == ['knet'] and 'D-Net' not in meta['loss']
+    with pytest.raises(ValueError, match='train_modules'):
+        dataclasses.replace(cfg, train_modules=('dnet',)).check()
+    assert loop.TrainConfig.from_json(cfg.to_json()).train_modules == ('knet',)
+
+
 def test_selection_metric_names():
     assert loop.parse_select_metric('abs_rel_knet') == ('abs_rel', 'knet', 'clean')
     assert loop.parse_select_metric('confident_half_ratio_global_noisy') == ('confident_half_ratio', 'global', 'noisy')

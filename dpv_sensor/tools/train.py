@@ -26,7 +26,7 @@ import sys
 from typing import List, Optional
 
 from ..training.dataset import TRAIN_SEED_BASE
-from ..training.loop import TrainConfig, latest_checkpoint
+from ..training.loop import MODULES, TrainConfig, latest_checkpoint
 from dpv_sensor.tools import tool_argv
 
 
@@ -73,6 +73,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--clip', type=float, default=d.clip, help='gradient-norm clipping')
     p.add_argument('--aux-weight', type=float, default=d.aux_weight,
                    help='weight of the auxiliary NLL of the quarter-res D-Net measurement (0 = paper loss)')
+    p.add_argument('--train-modules', nargs='+', choices=MODULES, default=list(d.train_modules), metavar='MODULE',
+                   help=f'update only these sub-networks ({", ".join(MODULES)}; default: all). Without features '
+                        'and cost_volume, D-Net runs without autograd and the auxiliary term is dropped, e.g. '
+                        '`--train-modules knet` fine-tunes the damping alone over long unrolls')
     p.add_argument('--seed', type=int, default=d.seed, help='torch seed (weight init)')
     p.add_argument('--seed-base', type=int, default=d.seed_base,
                    help=f'first training scene seed (>= {TRAIN_SEED_BASE}; 0..99 are held out)')
@@ -125,7 +129,7 @@ def config_from_args(a: argparse.Namespace) -> TrainConfig:
         val_pose_noise=tuple(a.val_pose_noise),
         init_weights=a.init_weights, max_minutes=a.max_minutes, startup_prob=a.startup_prob,
         pose_noise_prob=a.pose_noise_prob, pose_noise_rot_deg=a.pose_noise_rot_deg,
-        pose_noise_trans_rel=a.pose_noise_trans_rel).check()
+        pose_noise_trans_rel=a.pose_noise_trans_rel, train_modules=tuple(a.train_modules)).check()
 
 
 def _sigterm(signum, frame):

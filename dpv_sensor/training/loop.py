@@ -74,6 +74,8 @@ __all__ = ['TrainConfig', 'UnrolledModel', 'Trainer', 'train', 'run_unrolled', '
            'resolve_amp']
 
 FILTER_MODES = ('none', 'global', 'knet')
+# the sub-networks of DPVNet, as named there: D-Net = features + cost_volume
+MODULES = ('features', 'cost_volume', 'knet', 'rnet')
 
 
 # ----------------------------------------------------------------------------------------------
@@ -129,6 +131,7 @@ class TrainConfig:
     pose_noise_rot_deg: float = 0.7       # their largest rotation error per keyframe step (deg)
     pose_noise_trans_rel: float = 0.05    # their largest translation error per step (fraction of the step)
     max_minutes: float = 0.0              # stop (with a checkpoint) after this wall time; 0 = no limit
+    train_modules: Tuple[str, ...] = ()   # sub-networks the optimiser updates (see MODULES); () = all of them
 
     def resolved_export(self) -> str:
         if self.export_path:
@@ -141,6 +144,7 @@ class TrainConfig:
         d['folders'] = list(self.folders)
         d['extra_sizes'] = [list(s) for s in self.extra_sizes]
         d['val_pose_noise'] = list(self.val_pose_noise)
+        d['train_modules'] = list(self.train_modules)
         return d
 
     @classmethod
@@ -155,6 +159,8 @@ class TrainConfig:
             kw['extra_sizes'] = tuple(tuple(s) for s in kw['extra_sizes'])
         if 'val_pose_noise' in kw:
             kw['val_pose_noise'] = tuple(float(v) for v in kw['val_pose_noise'])
+        if 'train_modules' in kw:
+            kw['train_modules'] = tuple(kw['train_modules'])
         return cls(**kw)
 
     def layout(self) -> WindowLayout:
@@ -183,7 +189,18 @@ class TrainConfig:
         if len(self.val_pose_noise) != 2 or min(self.val_pose_noise) < 0:
             raise ValueError(f'val_pose_noise must be (relative translation, rotation deg) >= 0, got {self.val_pose_noise}')
         parse_select_metric(self.select_metric, noisy_validation=max(self.val_pose_noise) > 0)
+        unknown = set(self.train_modules) - set(MODULES)
+        if unknown:
+            raise ValueError(f'train_modules: unknown {sorted(unknown)}; choose from {MODULES}')
         return self
+
+    def trains(self, module: str) -> bool:
+        return not self.train_modules or module in self.train_modules
+
+    @property
+    def measurement_trained(self) -> bool:
+        """Whether D-Net (features or cost volume) gets gradients; if not, it runs without autograd."""
+        return self.trains('features') or self.trains('cost_volume')
 
 
 def parse_select_metric(name: str, noisy_validation: bool = True) -> Tuple[str, str, str]:
@@ -283,9 +300,14 @@ def filter_steps(model, meas: List[Dict], depths_d: torch.Tensor, mode: str, ref
 
 
 def run_unrolled(model, batch: Dict[str, torch.Tensor], depths_d: torch.Tensor, aux_weight: float = 0.5,
-                 mode: str = 'knet') -> Tuple[torch.Tensor, Dict[str, float]]:
-    """The training loss of one batch (see the module docstring) and scalar statistics."""
-    meas = measure_steps(model, batch)
+                 mode: str = 'knet', measure_grad: bool = True) -> Tuple[torch.Tensor, Dict[str, float]]:
+    """The training loss of one batch (see the module docstring) and scalar statistics.
+
+    ``measure_grad=False`` runs D-Net without autograd (it is frozen) and drops the auxiliary term, which
+    would then carry no gradient.
+    """
+    with torch.set_grad_enabled(measure_grad and torch.is_grad_enabled()):
+        meas = measure_steps(model, batch)
     res = filter_steps(model, meas, depths_d, mode)
     nll_full, nll_q = [], []
     for m, r in zip(meas, res):
@@ -294,7 +316,7 @@ def run_unrolled(model, batch: Dict[str, torch.Tensor], depths_d: torch.Tensor, 
         nll_q.append(dpvops.nll(m['logp_q'].float(), depths_d, gq))
     l_full = torch.stack(nll_full).mean()
     l_q = torch.stack(nll_q).mean()
-    loss = l_full + aux_weight * l_q if aux_weight > 0 else l_full
+    loss = l_full + aux_weight * l_q if aux_weight > 0 and measure_grad else l_full
     stats = {'loss': float(loss.detach()), 'nll_full': float(l_full.detach()), 'nll_meas_q': float(l_q.detach()),
              'resets': sum(r['reset'] is not None for r in res[1:])}
     for j, v in enumerate(nll_full):
@@ -305,14 +327,15 @@ def run_unrolled(model, batch: Dict[str, torch.Tensor], depths_d: torch.Tensor, 
 class UnrolledModel(nn.Module):
     """nn.Module wrapper whose forward is the whole unrolled loss (what DDP wraps)."""
 
-    def __init__(self, model: nn.Module, depths_d: torch.Tensor, aux_weight: float):
+    def __init__(self, model: nn.Module, depths_d: torch.Tensor, aux_weight: float, measure_grad: bool = True):
         super().__init__()
         self.model = model
         self.register_buffer('depths_d', depths_d, persistent=False)
         self.aux_weight = float(aux_weight)
+        self.measure_grad = bool(measure_grad)
 
     def forward(self, batch: Dict[str, torch.Tensor]):
-        loss, stats = run_unrolled(self.model, batch, self.depths_d, self.aux_weight)
+        loss, stats = run_unrolled(self.model, batch, self.depths_d, self.aux_weight, measure_grad=self.measure_grad)
         return loss, stats
 
 
@@ -831,6 +854,8 @@ class Trainer:
             self.init_meta = None
         self.depths = dpvops.depth_planes(self.preset.d_min, self.preset.d_max, self.preset.num_planes,
                                           device=self.device)
+        for name, child in self.model.named_children():
+            child.requires_grad_(cfg.trains(name))
         self.optimizer = torch.optim.AdamW(_param_groups(self.model, cfg.weight_decay), lr=cfg.lr,
                                            betas=(0.9, 0.999))
         self.amp_dtype = resolve_amp(cfg.amp, self.device)
@@ -863,7 +888,8 @@ class Trainer:
                 if st.get('scaler'):
                     self.scaler.load_state_dict(st['scaler'])
                 self._log(f'resumed from {ck} at step {self.step}')
-        self.unrolled = UnrolledModel(self.model, self.depths, cfg.aux_weight).to(self.device)
+        self.unrolled = UnrolledModel(self.model, self.depths, cfg.aux_weight,
+                                      measure_grad=cfg.measurement_trained).to(self.device)
         self.ddp = None
         if self.world > 1:
             from torch.nn.parallel import DistributedDataParallel as DDP
@@ -959,7 +985,9 @@ class Trainer:
             'train_input_size': [cfg.width, cfg.height],
             'training_data': data, 'steps': prior_steps + self.step, 'wall_time_s': round(self.wall_s, 1),
             'validation_metrics': metrics, 'validation_seeds': list(cfg.val_seeds),
-            'loss': f'mean over {cfg.unroll} unrolled knet-filter steps of NLL(R-Net output) + {cfg.aux_weight} * NLL(D-Net 1/4-res measurement)',
+            'loss': (f'mean over {cfg.unroll} unrolled knet-filter steps of NLL(R-Net output)'
+                     + (f' + {cfg.aux_weight} * NLL(D-Net 1/4-res measurement)' if cfg.measurement_trained else '')),
+            'trained_modules': [m for m in MODULES if cfg.trains(m)],
             'optimizer': f'AdamW lr {cfg.lr} cosine (warm-up {cfg.warmup}), wd {cfg.weight_decay}, clip {cfg.clip}, batch {cfg.batch_size} x {self.world}',
             'code_version': code_version(),
             'exported_at': datetime.datetime.now(datetime.timezone.utc).isoformat(timespec='seconds'),
