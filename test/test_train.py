@@ -66,6 +66,25 @@ def test_sample_layout_geometry_and_determinism():
     assert a['src_count'].tolist() == [4, 4]                      # full windows by default
 
 
+def test_run_played_backwards_keeps_time_moving_forward():
+    """Folder runs are sometimes played backwards (another plausible trajectory). Their stamps must still
+    increase, or the filter resets on "time went backwards" at every step and K-Net learns nothing there."""
+    from dpv_sensor.data.synthetic import render_sequence
+    from dpv_sensor.nets.model import DPVNet
+    from dpv_sensor.training.dataset import sample_from_sequence
+    layout = WindowLayout(steps=3, window=5, ref_position='last')
+    seq = render_sequence(TRAIN_SEED_BASE + 3, 30, width=64, height=48, lazy=True)
+    ids = list(range(0, 3 * layout.num_keyframes, 3))[::-1]
+    smp = sample_from_sequence(seq, ids, layout, np.random.default_rng(0))
+    st = smp['stamps'].numpy()
+    assert st[0] == 0 and np.all(np.diff(st) > 0)
+    assert np.allclose(np.diff(st), 3 / 30, atol=1e-4)           # the spacing of the frames, mirrored
+    model = DPVNet('lite')
+    with torch.no_grad():
+        _, stats = loop.run_unrolled(model, {k: v[None] for k, v in smp.items()}, model.depth_planes())
+    assert stats['resets'] == 0
+
+
 def test_stream_start_runs_use_growing_source_counts():
     causal = SceneStream(_small_stream(steps=3, ref_positions=('last',), startup_prob=1.0))
     smp = causal.make_sample(0)

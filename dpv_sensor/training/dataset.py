@@ -232,9 +232,11 @@ def sample_from_sequence(seq, frame_ids: Seq[int], layout: WindowLayout, rng: np
     poses = T_first_world[None] @ T_world
     if hasattr(seq, 'stamp'):
         stamps = np.asarray([float(seq.stamp(i)) for i in frame_ids])
-        stamps = stamps - stamps[0]
     else:
         stamps = np.asarray(frame_ids, dtype=np.float64) / 30.0
+    # time since the first keyframe; a run played backwards gets its time mirrored, so it still moves
+    # forward: the filter resets on time going backwards, which would cut every unrolled step of that run
+    stamps = np.abs(stamps - stamps[0])
     ref_idx, src_idx = layout.indices()
     return {
         'images': torch.from_numpy(np.ascontiguousarray(images)),

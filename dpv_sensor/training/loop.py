@@ -1077,14 +1077,19 @@ class Trainer:
                                     enabled=self.amp_dtype is not None):
                     loss, stats = net(batch)
                 self.optimizer.zero_grad(set_to_none=True)
-                self.scaler.scale(loss).backward()
-                self.scaler.unscale_(self.optimizer)
-                gnorm = torch.nn.utils.clip_grad_norm_(self.model.parameters(), cfg.clip)
-                if torch.isfinite(gnorm):
-                    self.scaler.step(self.optimizer)
-                else:
-                    self._log(f'step {self.step}: non-finite gradient, update skipped')
-                self.scaler.update()
+                if loss.requires_grad:
+                    self.scaler.scale(loss).backward()
+                    self.scaler.unscale_(self.optimizer)
+                    gnorm = torch.nn.utils.clip_grad_norm_(self.model.parameters(), cfg.clip)
+                    if torch.isfinite(gnorm):
+                        self.scaler.step(self.optimizer)
+                    else:
+                        self._log(f'step {self.step}: non-finite gradient, update skipped')
+                    self.scaler.update()
+                else:   # only frozen sub-networks shaped this loss (e.g. --train-modules knet, every step reset)
+                    gnorm = torch.zeros(())
+                    self._log(f'step {self.step}: the loss reaches no trained sub-network '
+                              f'({stats.get("resets", 0)} filter resets), update skipped')
                 self.step += 1
                 self.samples_seen += cfg.batch_size
                 t2 = time.time()
