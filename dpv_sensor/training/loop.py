@@ -19,11 +19,16 @@ gives the feature extractor a direct gradient that does not have to pass through
 calibrated likelihood. It speeds up learning in a short CPU budget; ``--aux-weight 0`` gives the
 paper's loss exactly.
 
+Partial fine-tuning (``train_modules``, e.g. ``('knet',)``): only the named sub-networks of DPVNet get
+updated; the others are frozen. Without features and cost_volume, D-Net runs without autograd and the
+auxiliary term is dropped, which makes long unrolls of K-Net affordable on a CPU.
+
 Optimiser: AdamW, lr 1e-3 with linear warm-up and cosine decay, weight decay only on conv
 weights, gradient-norm clipping. The paper used Adam at 1e-5 for 20 epochs on a GPU over tens of
 thousands of real frames; with a CPU budget of a few thousand steps of batch 2-4, 1e-5 would barely
 move the weights, and our nets have no batch norm but Fixup-like scaled initialisation, which is
-stable at 1e-3 with clipping. AMP (bfloat16, or float16 with a GradScaler) is used only on CUDA.
+stable at 1e-3 with clipping. AMP: bfloat16 (or float16 with a GradScaler) on CUDA, bfloat16 on CPUs with
+native kernels (see :func:`resolve_amp`).
 
 Checkpoints (every ``ckpt_every`` steps, and at the end/interrupt) are directories
 ``<run>/checkpoints/step_XXXXXXX/`` with ``model.safetensors`` (weights), ``optimizer.safetensors``
