@@ -221,19 +221,73 @@ def test_train_modules_knet_updates_only_knet(tmp_path):
 
 
 def test_selection_metric_names():
-    assert loop.parse_select_metric('abs_rel_knet') == ('abs_rel', 'knet', 'clean')
-    assert loop.parse_select_metric('confident_half_ratio_global_noisy') == ('confident_half_ratio', 'global', 'noisy')
-    assert loop.parse_select_metric('nll_full_knet_both') == ('nll_full', 'knet', 'both')
-    for bad in ('abs_rel', 'abs_rel_kalman', 'abs_rel_knet_noisier', '_knet'):
+    assert loop.parse_select_metric('abs_rel_knet') == ('abs_rel', 'knet', 'clean', False)
+    assert loop.parse_select_metric('confident_half_ratio_global_noisy') == ('confident_half_ratio', 'global', 'noisy', False)
+    assert loop.parse_select_metric('nll_full_knet_both') == ('nll_full', 'knet', 'both', False)
+    assert loop.parse_select_metric('stream_abs_rel_knet_both') == ('abs_rel', 'knet', 'both', True)
+    assert loop.parse_select_metric('stream_delta1_global') == ('delta1', 'global', 'clean', True)
+    for bad in ('abs_rel', 'abs_rel_kalman', 'abs_rel_knet_noisier', '_knet', 'stream_knet', 'stream_'):
         with pytest.raises(ValueError):
             loop.parse_select_metric(bad)
     with pytest.raises(ValueError, match='val_pose_noise'):
         loop.parse_select_metric('abs_rel_knet_both', noisy_validation=False)
-    m = {'net_knet': {'abs_rel': 0.1}, 'noisy_net_knet': {'abs_rel': 0.3}}
+    with pytest.raises(ValueError, match='val_stream_seeds'):
+        loop.parse_select_metric('stream_abs_rel_knet', stream_validation=False)
+    with pytest.raises(ValueError, match='val_stream_pose_noise'):
+        loop.parse_select_metric('stream_abs_rel_knet_noisy', stream_noisy_validation=False)
+    # the window validation's noisy poses are not needed for a streaming score, and the other way round
+    assert loop.parse_select_metric('stream_abs_rel_knet_both', noisy_validation=False).stream
+    m = {'net_knet': {'abs_rel': 0.1}, 'noisy_net_knet': {'abs_rel': 0.3},
+         'stream_net_knet': {'abs_rel': 0.2}, 'stream_noisy_net_knet': {'abs_rel': 0.6}}
     assert loop.select_score(m, 'abs_rel_knet') == 0.1
     assert loop.select_score(m, 'abs_rel_knet_noisy') == 0.3
     assert loop.select_score(m, 'abs_rel_knet_both') == pytest.approx(0.2)
     assert loop.select_score(m, 'abs_rel_global') is None
+    assert loop.select_score(m, 'stream_abs_rel_knet') == 0.2
+    assert loop.select_score(m, 'stream_abs_rel_knet_both') == pytest.approx(0.4)
+    assert loop.select_score(m, 'stream_abs_rel_global_both') is None
+    # a run asks for the validations its selection metric needs
+    with pytest.raises(ValueError, match='val_stream_seeds'):
+        loop.TrainConfig(select_metric='stream_abs_rel_knet').check()
+    with pytest.raises(ValueError, match='held-out'):
+        loop.TrainConfig(val_stream_seeds=(100,)).check()
+    cfg = loop.TrainConfig(val_stream_seeds=(20, 21), select_metric='stream_abs_rel_global_both').check()
+    assert cfg.stream_spec().modes == ('knet', 'global') and cfg.stream_spec().noisy
+    assert loop.TrainConfig.from_json(json.loads(json.dumps(cfg.to_json()))) == cfg
+
+
+def test_streaming_validation_scores_whole_sequences_through_the_estimator(tmp_path):
+    """--val-stream-seeds: every validation also streams rendered held-out sequences frame by frame through the
+    Estimator (GT and noisy poses), reports stream_[noisy_]net_knet, selects on it, plots it and leaves the model
+    in training mode."""
+    from dpv_sensor.evaluation import EvalOptions, evaluate_sequence
+    from dpv_sensor.data.synthetic import render_sequence
+    from dpv_sensor.tools import train as tool
+    a = tool.build_parser().parse_args(['--val-stream-seeds', '20-21', '--val-stream-frames', '30',
+                                        '--select-metric', 'stream_abs_rel_knet_both'])
+    c = tool.config_from_args(a)
+    assert c.val_stream_seeds == (20, 21) and c.val_stream_frames == 30 and c.val_stream_pose_noise == (0.03, 0.5)
+    cfg = dataclasses.replace(_tiny_config(tmp_path, steps=1), val_stream_seeds=(20,), val_stream_frames=16,
+                              select_metric='stream_abs_rel_knet_both')
+    t = loop.Trainer(cfg, quiet=True)
+    t.model.train()
+    metrics = t.validate()
+    assert t.model.training
+    clean, noisy = metrics['stream_net_knet'], metrics['stream_noisy_net_knet']
+    assert 'net_knet' in metrics and 'stream_net_global' not in metrics
+    for m in (clean, noisy):
+        assert m['frames'] > 0 and len(m['per_seed']) == 1 and 0 < m['abs_rel'] < 10
+    assert clean['abs_rel'] != noisy['abs_rel']
+    # the same number as scoring the sequence directly through the evaluation API
+    seq = render_sequence(20, 16, width=320, height=240, lazy=True)
+    direct = evaluate_sequence(seq, {'filter_mode': 'knet', 'pose_source': 'gt'},
+                               options=EvalOptions(seed=20, progress=False), model=t.model)
+    assert clean['abs_rel'] == pytest.approx(direct['metric']['frame_mean']['abs_rel'], rel=1e-6)
+    row = json.loads((tmp_path / 'run' / 'val.jsonl').read_text().splitlines()[-1])
+    assert row['score'] == pytest.approx((clean['abs_rel'] + noisy['abs_rel']) / 2)
+    assert t.best == pytest.approx(row['score'])
+    assert t.metadata(metrics)['training_data']['validation_stream']['seeds'] == [20]
+    assert (tmp_path / 'run' / 'loss_curves.png').is_file()
 
 
 def test_amp_resolution_per_device():

@@ -105,10 +105,20 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--no-augment', action='store_true', help='disable photometric augmentation')
     p.add_argument('--select-metric', default=d.select_metric,
                    help='validation score deciding exports, lower is better: <metric>_<mode> (GT poses), '
-                        '<metric>_<mode>_noisy (the --val-pose-noise validation) or <metric>_<mode>_both (their mean)')
+                        '<metric>_<mode>_noisy (the --val-pose-noise validation) or <metric>_<mode>_both (their mean); '
+                        'prefixed stream_, the same from the streaming validation (--val-stream-seeds)')
     p.add_argument('--val-pose-noise', type=float, nargs=2, default=list(d.val_pose_noise), metavar=('REL_T', 'ROT_DEG'),
                    help='also validate with odometry-like poses: relative translation error and rotation error (deg) '
                         'per keyframe step, accumulating (0 0 = off); reported as noisy_net_<mode>')
+    p.add_argument('--val-stream-seeds', default='',
+                   help="also stream these held-out seeds (e.g. '20-25') frame by frame through the estimator at "
+                        "every validation, as the node runs the weights; reported as stream_net_<mode> and "
+                        "stream_noisy_net_<mode>, selectable as stream_<metric>_<mode>[_noisy|_both] "
+                        "(10-15 s per 60-frame sequence and pose source with lite on one core)")
+    p.add_argument('--val-stream-frames', type=int, default=d.val_stream_frames, help='frames per streamed sequence')
+    p.add_argument('--val-stream-pose-noise', type=float, nargs=2, default=list(d.val_stream_pose_noise),
+                   metavar=('REL_T', 'ROT_DEG'),
+                   help='odometry-like pose errors per frame of the streaming validation\'s noisy pass (0 0 = off)')
     p.add_argument('--max-minutes', type=float, default=0.0, help='stop with a checkpoint after this wall time')
     p.add_argument('--quiet', action='store_true', help='no progress bar or log lines')
     return p
@@ -126,7 +136,8 @@ def config_from_args(a: argparse.Namespace) -> TrainConfig:
         val_every=a.val_every, val_seeds=_parse_seeds(a.val_seeds), val_keyframes=a.val_keyframes,
         val_gap=a.val_gap, val_width=a.val_width, val_height=a.val_height, folders=tuple(a.folders),
         folder_prob=a.folder_prob, augment=not a.no_augment, select_metric=a.select_metric,
-        val_pose_noise=tuple(a.val_pose_noise),
+        val_pose_noise=tuple(a.val_pose_noise), val_stream_seeds=_parse_seeds(a.val_stream_seeds),
+        val_stream_frames=a.val_stream_frames, val_stream_pose_noise=tuple(a.val_stream_pose_noise),
         init_weights=a.init_weights, max_minutes=a.max_minutes, startup_prob=a.startup_prob,
         pose_noise_prob=a.pose_noise_prob, pose_noise_rot_deg=a.pose_noise_rot_deg,
         pose_noise_trans_rel=a.pose_noise_trans_rel, train_modules=tuple(a.train_modules)).check()

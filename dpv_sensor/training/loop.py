@@ -40,7 +40,10 @@ Validation (every ``val_every`` steps = one "epoch"; rank 0) runs held-out synth
 never produced by the training stream) through the same unrolled pipeline in the filter modes
 none / global / knet and reports abs_rel, delta1, the confident-half ratio and the NLL of the GT
 before the filter (D-Net measurement) and after it; the classical ZNCC model is scored once on the
-same windows for comparison. Plots: ``<run>/loss_curves.png``, ``<run>/val_montage_XXXXXXX.png``.
+same windows for comparison. With ``val_stream_seeds`` it also streams whole held-out sequences
+through the product's Estimator (:mod:`.stream_validation`; GT and odometry-like poses), which is how
+the node uses the weights: ``stream_abs_rel_knet_both`` and the like select exports on that.
+Plots: ``<run>/loss_curves.png``, ``<run>/val_montage_XXXXXXX.png``.
 Whenever the validation score improves, the weights are exported atomically (temp file + rename)
 to the export path with metadata via :func:`dpv_sensor.nets.checkpoint.save_checkpoint`.
 
@@ -60,7 +63,7 @@ import shutil
 import subprocess
 import sys
 import time
-from typing import Dict, List, Optional, Sequence as Seq, Tuple
+from typing import Dict, List, NamedTuple, Optional, Sequence as Seq, Tuple
 
 import numpy as np
 import torch
@@ -71,6 +74,7 @@ from .. import dpv as dpvops
 from .. import geometry
 from .dataset import (TRAIN_SEED_BASE, VAL_SEEDS, Augment, SceneStream, StreamConfig, WindowLayout,
                       check_not_heldout, sample_from_sequence)
+from .stream_validation import STREAM_PREFIX, StreamValidationSpec, StreamValidator, stream_metric_key
 from ..nets.model import cpu_bf16_fast
 
 __all__ = ['TrainConfig', 'UnrolledModel', 'Trainer', 'train', 'run_unrolled', 'measure_steps',
@@ -137,6 +141,9 @@ class TrainConfig:
     pose_noise_trans_rel: float = 0.05    # their largest translation error per step (fraction of the step)
     max_minutes: float = 0.0              # stop (with a checkpoint) after this wall time; 0 = no limit
     train_modules: Tuple[str, ...] = ()   # sub-networks the optimiser updates (see MODULES); () = all of them
+    val_stream_seeds: Tuple[int, ...] = ()          # also stream these held-out seeds through the Estimator
+    val_stream_frames: int = 60                     # frames per streamed sequence (320x240, 30 Hz)
+    val_stream_pose_noise: Tuple[float, float] = (0.03, 0.5)   # its noisy-pose pass ((0, 0): GT poses only)
 
     def resolved_export(self) -> str:
         if self.export_path:
@@ -150,6 +157,8 @@ class TrainConfig:
         d['extra_sizes'] = [list(s) for s in self.extra_sizes]
         d['val_pose_noise'] = list(self.val_pose_noise)
         d['train_modules'] = list(self.train_modules)
+        d['val_stream_seeds'] = list(self.val_stream_seeds)
+        d['val_stream_pose_noise'] = list(self.val_stream_pose_noise)
         return d
 
     @classmethod
@@ -166,6 +175,10 @@ class TrainConfig:
             kw['val_pose_noise'] = tuple(float(v) for v in kw['val_pose_noise'])
         if 'train_modules' in kw:
             kw['train_modules'] = tuple(kw['train_modules'])
+        if 'val_stream_seeds' in kw:
+            kw['val_stream_seeds'] = tuple(int(v) for v in kw['val_stream_seeds'])
+        if 'val_stream_pose_noise' in kw:
+            kw['val_stream_pose_noise'] = tuple(float(v) for v in kw['val_stream_pose_noise'])
         return cls(**kw)
 
     def layout(self) -> WindowLayout:
@@ -193,11 +206,28 @@ class TrainConfig:
             raise ValueError('width and height must be multiples of 4')
         if len(self.val_pose_noise) != 2 or min(self.val_pose_noise) < 0:
             raise ValueError(f'val_pose_noise must be (relative translation, rotation deg) >= 0, got {self.val_pose_noise}')
-        parse_select_metric(self.select_metric, noisy_validation=max(self.val_pose_noise) > 0)
+        spec = self.stream_spec()
+        parse_select_metric(self.select_metric, noisy_validation=max(self.val_pose_noise) > 0,
+                            stream_validation=spec.enabled, stream_noisy_validation=spec.noisy)
         unknown = set(self.train_modules) - set(MODULES)
         if unknown:
             raise ValueError(f'train_modules: unknown {sorted(unknown)}; choose from {MODULES}')
         return self
+
+    def stream_spec(self) -> StreamValidationSpec:
+        """The streaming validation (:mod:`.stream_validation`); its filter modes are knet plus the
+        selection metric's mode."""
+        modes = ['knet']
+        sel = self.select_metric
+        if sel.startswith(STREAM_PREFIX):
+            try:
+                mode = parse_select_metric(sel).mode
+            except ValueError:
+                mode = 'knet'
+            if mode not in modes:
+                modes.append(mode)
+        return StreamValidationSpec(seeds=tuple(self.val_stream_seeds), frames=int(self.val_stream_frames),
+                                    pose_noise=tuple(self.val_stream_pose_noise), modes=tuple(modes)).check()
 
     def trains(self, module: str) -> bool:
         return not self.train_modules or module in self.train_modules
@@ -208,9 +238,22 @@ class TrainConfig:
         return self.trains('features') or self.trains('cost_volume')
 
 
-def parse_select_metric(name: str, noisy_validation: bool = True) -> Tuple[str, str, str]:
-    """``<metric>_<mode>[_noisy|_both]`` -> (metric, filter mode, poses): e.g. ``abs_rel_knet`` (GT poses),
-    ``abs_rel_knet_noisy`` (the noisy-pose validation) or ``abs_rel_knet_both`` (the mean of the two)."""
+class SelectMetric(NamedTuple):
+    metric: str         # a key of the validation entries, e.g. abs_rel
+    mode: str           # filter mode
+    poses: str          # 'clean' (GT poses), 'noisy' or 'both' (the mean of the two)
+    stream: bool        # from the streaming validation (stream_* entries) instead of the window validation
+
+
+def parse_select_metric(name: str, noisy_validation: bool = True, stream_validation: bool = True,
+                        stream_noisy_validation: bool = True) -> SelectMetric:
+    """``[stream_]<metric>_<mode>[_noisy|_both]`` -> :class:`SelectMetric`: e.g. ``abs_rel_knet`` (GT poses),
+    ``abs_rel_knet_noisy`` (the noisy-pose validation), ``abs_rel_knet_both`` (the mean of the two), and
+    ``stream_abs_rel_knet_both`` for the same from the streaming validation (``val_stream_seeds``).
+    The flags say which validations the run has; naming a missing one is an error."""
+    stream = name.startswith(STREAM_PREFIX)
+    if stream:
+        name = name[len(STREAM_PREFIX):]
     parts = name.rsplit('_', 2)
     poses = 'clean'
     if len(parts) == 3 and parts[2] in ('noisy', 'both'):
@@ -219,17 +262,25 @@ def parse_select_metric(name: str, noisy_validation: bool = True) -> Tuple[str, 
         metric, mode = name.rsplit('_', 1) if '_' in name else (name, '')
     if mode not in FILTER_MODES or not metric:
         raise ValueError(f'select_metric {name!r}: expected <metric>_<{"|".join(FILTER_MODES)}>[_noisy|_both]')
-    if poses != 'clean' and not noisy_validation:
+    if stream and not stream_validation:
+        raise ValueError(f'select_metric {STREAM_PREFIX}{name!r} needs the streaming validation (val_stream_seeds)')
+    if stream and poses != 'clean' and not stream_noisy_validation:
+        raise ValueError(f'select_metric {STREAM_PREFIX}{name!r} needs the streaming validation\'s noisy poses '
+                         '(val_stream_pose_noise > 0)')
+    if not stream and poses != 'clean' and not noisy_validation:
         raise ValueError(f'select_metric {name!r} needs the noisy-pose validation (val_pose_noise > 0)')
-    return metric, mode, poses
+    return SelectMetric(metric, mode, poses, stream)
 
 
 def select_score(metrics: Dict, name: str) -> Optional[float]:
     """The validation score ``name`` (see :func:`parse_select_metric`) from :meth:`Trainer.validate`'s metrics;
     None when it is missing."""
-    metric, mode, poses = parse_select_metric(name)
-    keys = {'clean': [f'net_{mode}'], 'noisy': [f'noisy_net_{mode}'],
-            'both': [f'net_{mode}', f'noisy_net_{mode}']}[poses]
+    metric, mode, poses, stream = parse_select_metric(name)
+    if stream:
+        clean, noisy = stream_metric_key(mode, noisy=False), stream_metric_key(mode, noisy=True)
+    else:
+        clean, noisy = f'net_{mode}', f'noisy_net_{mode}'
+    keys = {'clean': [clean], 'noisy': [noisy], 'both': [clean, noisy]}[poses]
     vals = [metrics.get(k, {}).get(metric) for k in keys]
     if any(v is None for v in vals):
         return None
@@ -600,6 +651,11 @@ def plot_curves(history: Dict, path: str, reference: Optional[Dict] = None) -> N
             yn = np.array([v['metrics'].get(f'noisy_net_{mode}', {}).get('abs_rel', np.nan) for v in va], np.float64)
             if np.isfinite(yn).any():
                 axes[1].plot(steps, yn, 'x--', color=colour, label=f'net {mode}, noisy poses')
+            for key, marker in ((stream_metric_key(mode, False), 'D-'), (stream_metric_key(mode, True), 'D:')):
+                ys = np.array([v['metrics'].get(key, {}).get('abs_rel', np.nan) for v in va], np.float64)
+                if np.isfinite(ys).any():
+                    axes[1].plot(steps, ys, marker, color=colour, mfc='none',
+                                 label=f'net {mode}, streamed' + (', noisy poses' if 'noisy' in key else ''))
             y2 = [v['metrics'].get(f'net_{mode}', {}).get('nll_full', np.nan) for v in va]
             axes[2].plot(steps, y2, 'o-', color=colour, label=f'net {mode} (full res)')
         y3 = [v['metrics'].get('net_knet', {}).get('nll_meas_q', np.nan) for v in va]
@@ -901,6 +957,7 @@ class Trainer:
             self.ddp = DDP(self.unrolled, device_ids=[self.device.index] if self.device.type == 'cuda' else None)
         self._val_batches = None
         self._noisy_val_batches = None
+        self.stream_validator = StreamValidator(cfg.stream_spec())
 
     # -- helpers --------------------------------------------------------------------------------
     def _log(self, msg: str) -> None:
@@ -963,6 +1020,10 @@ class Trainer:
             'samples_seen': self.samples_seen,
             'validation_seeds': list(cfg.val_seeds),
             'validation_pose_noise': list(cfg.val_pose_noise),
+            'validation_stream': ({'seeds': list(cfg.val_stream_seeds), 'frames': cfg.val_stream_frames,
+                                   'pose_noise': list(cfg.val_stream_pose_noise),
+                                   'how': 'every frame through dpv_sensor.estimator.Estimator (node defaults)'}
+                                  if cfg.val_stream_seeds else None),
             'selection_metric': cfg.select_metric,
             'held_out_seed_range': [VAL_SEEDS.start, VAL_SEEDS.stop - 1],
             'mixed_folders': [os.path.basename(os.path.normpath(f)) for f in cfg.folders],
@@ -1020,6 +1081,10 @@ class Trainer:
             noisy = evaluate_batches(self.model, self.noisy_val_batches(), self.depths, self.device)
             noisy.pop('examples')
             metrics.update({f'noisy_{k}': v for k, v in noisy.items()})
+        window_keys = list(metrics)
+        if self.stream_validator.spec.enabled:
+            metrics.update(self.stream_validator(self.model, self.device,
+                                                 progress=lambda m: self._log(f'streaming validation {m}')))
         score = select_score(metrics, cfg.select_metric)
         entry = {'step': self.step, 'metrics': metrics, 'score': score, 'seconds': time.time() - t0}
         self.history['val'].append(entry)
@@ -1027,7 +1092,8 @@ class Trainer:
         self._log(f'validation step {self.step}: ' + ', '.join(
             f"{k}: abs_rel {v['abs_rel']:.4f} d1 {v['delta1']:.3f} nll(meas1/4 {v['nll_meas_q']:.3f} "
             f"filt1/4 {v['nll_filtered_q']:.3f} full {v['nll_full']:.3f}) conf-half {v['confident_half_ratio']:.2f}"
-            for k, v in metrics.items()) + f' ({entry["seconds"]:.0f} s)')
+            for k, v in metrics.items() if k in window_keys) + f' ({entry["seconds"]:.0f} s)'
+            + (f'; {cfg.select_metric} {score:.4f}' if score is not None else ''))
         d_min, d_max = self.preset.d_min, self.preset.d_max
         save_montage(examples, str(self.run_dir / f'val_montage_{self.step:07d}.png'), d_min, d_max,
                      title=f'step {self.step}, held-out seed {cfg.val_seeds[0]}, last keyframe')
@@ -1051,6 +1117,16 @@ class Trainer:
         return metrics
 
     # -- training -------------------------------------------------------------------------------
+    def _all_ranks_have_grad(self, loss: torch.Tensor) -> bool:
+        """Whether every rank's loss reaches a trained sub-network. A rank that skipped backward alone
+        would leave the others waiting in DDP's gradient all-reduce, so the skip is collective."""
+        has = bool(loss.requires_grad)
+        if self.world > 1:
+            flag = torch.tensor([1.0 if has else 0.0], device=self.device)
+            torch.distributed.all_reduce(flag, op=torch.distributed.ReduceOp.MIN)
+            has = bool(flag.item() > 0.5)
+        return has
+
     def train(self) -> Dict:
         from tqdm import tqdm
         cfg = self.cfg
@@ -1082,7 +1158,7 @@ class Trainer:
                                     enabled=self.amp_dtype is not None):
                     loss, stats = net(batch)
                 self.optimizer.zero_grad(set_to_none=True)
-                if loss.requires_grad:
+                if self._all_ranks_have_grad(loss):
                     self.scaler.scale(loss).backward()
                     self.scaler.unscale_(self.optimizer)
                     gnorm = torch.nn.utils.clip_grad_norm_(self.model.parameters(), cfg.clip)
@@ -1091,7 +1167,8 @@ class Trainer:
                     else:
                         self._log(f'step {self.step}: non-finite gradient, update skipped')
                     self.scaler.update()
-                else:   # only frozen sub-networks shaped this loss (e.g. --train-modules knet, every step reset)
+                else:   # only frozen sub-networks shaped this loss (here or on another rank), e.g.
+                    # --train-modules knet with every unrolled step a filter reset
                     gnorm = torch.zeros(())
                     self._log(f'step {self.step}: the loss reaches no trained sub-network '
                               f'({stats.get("resets", 0)} filter resets), update skipped')
