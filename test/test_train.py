@@ -394,3 +394,32 @@ def test_train_step_benchmark_times_every_precision_on_the_same_batches(capsys):
     assert [r['dtype'] for r in rows] == ['float32', 'bfloat16']
     assert all(r['s_per_step'] > 0 and len(r['losses']) == 1 for r in rows)
     assert rows[1]['losses'][0] == pytest.approx(rows[0]['losses'][0], rel=0.02)
+
+
+def test_seed_lists_parse_and_refuse_garbage():
+    from dpv_sensor.training.dataset import parse_seeds
+    assert parse_seeds('0-2,7') == (0, 1, 2, 7) and parse_seeds('') == () and parse_seeds(' 5 ') == (5,)
+    with pytest.raises(ValueError, match='seed list'):
+        parse_seeds('a-b')
+
+
+def test_selection_benchmark_scores_weight_files_like_the_streaming_validation(tmp_path, capsys):
+    """benchmarks.selection: the figures equal the trainer's streaming validation of the same weights, are
+    written as JSON and printed as a table; seeds outside the held-out range are refused."""
+    from dpv_sensor.benchmarks import selection
+    from dpv_sensor.nets.checkpoint import save_checkpoint
+    from dpv_sensor.nets.model import DPVNet
+    from dpv_sensor.training.stream_validation import StreamValidationSpec, StreamValidator
+    torch.manual_seed(3)
+    model = DPVNet('lite').eval()
+    w = tmp_path / 'w.safetensors'
+    save_checkpoint(str(w), model, metadata={"steps": 7})
+    out = tmp_path / 'sel.json'
+    assert selection.main(['--weights', str(w), '--seeds', '21', '--frames', '14', '--pose-noise', '0', '0',
+                           '--threads', '1', '--out', str(out)]) == 0
+    res = json.loads(out.read_text())['results'][str(w)]
+    assert res['steps'] == 7 and 'stream_noisy_net_knet' not in res
+    direct = StreamValidator(StreamValidationSpec(seeds=(21,), frames=14, pose_noise=(0.0, 0.0)))(model)
+    assert res['stream_net_knet']['abs_rel'] == pytest.approx(direct['stream_net_knet']['abs_rel'], rel=1e-6)
+    assert f"| {w} | 7 | knet | {res['stream_net_knet']['abs_rel']:.4f} |" in capsys.readouterr().out
+    assert selection.main(['--weights', str(w), '--seeds', '100']) == 2

@@ -357,7 +357,7 @@ def format_table(result: Dict) -> str:
 
 
 def main(argv: Optional[List[str]] = None) -> Dict:
-    from ..tools.train import _parse_seeds
+    from ..training.dataset import parse_seeds
     ap = argparse.ArgumentParser(prog='python -m dpv_sensor.benchmarks.calibration',
                                  description=__doc__.split('\n\n')[0],
                                  formatter_class=argparse.ArgumentDefaultsHelpFormatter)
@@ -387,8 +387,8 @@ def main(argv: Optional[List[str]] = None) -> Dict:
     from .heldout import load_model
     weights = a.weights or str(default_weights_path('lite'))
     model, meta = load_model(weights)
-    res = run(model, synthetic_seeds=_parse_seeds(a.synthetic_seeds), sun3d_windows=a.sun3d_windows,
-              width=a.width, height=a.height, tune_seeds=_parse_seeds(a.tune_seeds),
+    res = run(model, synthetic_seeds=parse_seeds(a.synthetic_seeds), sun3d_windows=a.sun3d_windows,
+              width=a.width, height=a.height, tune_seeds=parse_seeds(a.tune_seeds),
               temperatures=[float(x) for x in a.temperatures.split(',') if x.strip()],
               num_keyframes=a.keyframes, skip_sun3d=a.skip_sun3d, data_dir=a.data, out=a.out,
               progress=not a.no_progress, readout=a.readout, confidence=a.confidence)

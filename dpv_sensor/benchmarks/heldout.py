@@ -99,9 +99,10 @@ def main():
     seqs = [(n, Sequence(f'{DATA}/{n}')) for n in a.seqs]
     if a.synthetic_seeds:
         from dpv_sensor.data.synthetic import render_sequence
-        lo, hi = (int(x) for x in a.synthetic_seeds.split('-'))
-        for s in range(lo, hi + 1):
-            assert s < 100, 'only held-out seeds'
+        from dpv_sensor.training.dataset import VAL_SEEDS, parse_seeds
+        for s in parse_seeds(a.synthetic_seeds):
+            if s not in VAL_SEEDS:
+                ap.error(f'synthetic seed {s} is not held out ({VAL_SEEDS}): training draws seeds outside it')
             seqs.append((f'synthetic_seed{s}', render_sequence(s, a.synthetic_frames, width=320, height=240, lazy=True)))
     results = {'weights': a.weights, 'steps': meta.get('steps'), 'window_mode': a.window_mode, 'readout': a.readout,
                'confidence': a.confidence, 'pose_noise': a.pose_noise, 'sequences': {}}

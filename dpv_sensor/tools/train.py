@@ -25,22 +25,9 @@ import signal
 import sys
 from typing import List, Optional
 
-from ..training.dataset import TRAIN_SEED_BASE
+from ..training.dataset import TRAIN_SEED_BASE, parse_seeds
 from ..training.loop import MODULES, TrainConfig, latest_checkpoint
 from dpv_sensor.tools import tool_argv
-
-
-def _parse_seeds(text: str):
-    """'0-5' or '0,3,7' -> tuple of ints."""
-    out = []
-    for part in text.split(','):
-        part = part.strip()
-        if '-' in part:
-            a, b = part.split('-')
-            out.extend(range(int(a), int(b) + 1))
-        elif part:
-            out.append(int(part))
-    return tuple(out)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -133,10 +120,10 @@ def config_from_args(a: argparse.Namespace) -> TrainConfig:
         gap_max=a.gap_max, lr=a.lr, min_lr_ratio=a.min_lr_ratio, warmup=a.warmup, weight_decay=a.weight_decay,
         clip=a.clip, aux_weight=a.aux_weight, seed=a.seed, seed_base=a.seed_base, num_workers=a.num_workers,
         threads=a.threads, device=a.device, amp=a.amp, ckpt_every=a.ckpt_every, log_every=a.log_every,
-        val_every=a.val_every, val_seeds=_parse_seeds(a.val_seeds), val_keyframes=a.val_keyframes,
+        val_every=a.val_every, val_seeds=parse_seeds(a.val_seeds), val_keyframes=a.val_keyframes,
         val_gap=a.val_gap, val_width=a.val_width, val_height=a.val_height, folders=tuple(a.folders),
         folder_prob=a.folder_prob, augment=not a.no_augment, select_metric=a.select_metric,
-        val_pose_noise=tuple(a.val_pose_noise), val_stream_seeds=_parse_seeds(a.val_stream_seeds),
+        val_pose_noise=tuple(a.val_pose_noise), val_stream_seeds=parse_seeds(a.val_stream_seeds),
         val_stream_frames=a.val_stream_frames, val_stream_pose_noise=tuple(a.val_stream_pose_noise),
         init_weights=a.init_weights, max_minutes=a.max_minutes, startup_prob=a.startup_prob,
         pose_noise_prob=a.pose_noise_prob, pose_noise_rot_deg=a.pose_noise_rot_deg,

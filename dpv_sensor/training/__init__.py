@@ -5,6 +5,8 @@
   cuts it into runs of consecutive keyframes with five-frame windows; optional TartanAir mixing.
 - :mod:`dpv_sensor.training.loop`: the unrolled filter loss, the training loop (AdamW, AMP on CUDA,
   clipping, resumable safetensors checkpoints, validation, plots, atomic weight export, DDP).
+- :mod:`dpv_sensor.training.stream_validation`: optional validation that streams whole held-out
+  sequences through the product's ``Estimator`` (as the node runs the weights).
 
 The console entry point is :mod:`dpv_sensor.tools.train` (``ros2 run dpv_sensor train``).
 """

@@ -44,7 +44,25 @@ TRAIN_SEED_BASE = 1_000_000
 VAL_SEEDS = range(0, 100)
 
 __all__ = ['TRAIN_SEED_BASE', 'VAL_SEEDS', 'WindowLayout', 'Augment', 'StreamConfig',
-           'SceneStream', 'sample_from_sequence', 'scale_K_np', 'resize_crop', 'check_not_heldout']
+           'SceneStream', 'sample_from_sequence', 'scale_K_np', 'resize_crop', 'check_not_heldout', 'parse_seeds']
+
+
+def parse_seeds(text: str) -> Tuple[int, ...]:
+    """Seed list from the command line: '0-5' or '0,3,7' or '0-2,7' -> (0, 1, 2, 7); '' -> ()."""
+    out: List[int] = []
+    for part in str(text).split(','):
+        part = part.strip()
+        if not part:
+            continue
+        try:
+            if '-' in part:
+                a, b = part.split('-')
+                out.extend(range(int(a), int(b) + 1))
+            else:
+                out.append(int(part))
+        except ValueError:
+            raise ValueError(f'seed list {text!r}: expected e.g. 0-5 or 0,3,7') from None
+    return tuple(out)
 
 
 @dataclasses.dataclass(frozen=True)

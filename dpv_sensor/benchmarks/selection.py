@@ -1,0 +1,93 @@
+"""Checkpoint selection: score weight files on whole held-out sequences streamed through the estimator.
+
+The same figures as the trainer's ``--val-stream-seeds`` validation (:mod:`dpv_sensor.training.stream_validation`):
+each rendered seed is pushed frame by frame through ``Estimator`` with the node's defaults, once with the GT poses
+and once with odometry-like poses (``--pose-noise``, seeded per sequence), and scored with frame-mean abs_rel.
+Use seeds that are never trained on and never reported (the README uses 20-25 for picking exports and 50-57
+for reporting), and pick by the mean of the two columns.
+
+    .venv/bin/python -m dpv_sensor.benchmarks.selection --weights A.safetensors B.safetensors --seeds 20-25 \
+        [--frames 60] [--pose-noise 0.03 0.5] [--modes knet] [--threads 2] [--out selection.json]
+
+Prints a table (weights, abs_rel with GT poses, with noisy poses, their mean, delta1, confident-half ratios).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from typing import Dict, List, Optional
+
+import numpy as np
+import torch
+
+from dpv_sensor.training.dataset import parse_seeds
+from dpv_sensor.training.stream_validation import StreamValidationSpec, StreamValidator, stream_metric_key
+
+
+def score_weights(paths: List[str], spec: StreamValidationSpec, progress=None) -> Dict[str, Dict]:
+    """{path: {stream_[noisy_]net_<mode>: metrics, 'steps': steps in the metadata}} (sequences rendered once)."""
+    from dpv_sensor.benchmarks.heldout import load_model
+    validator = StreamValidator(spec)
+    out: Dict[str, Dict] = {}
+    for p in paths:
+        model, meta = load_model(p)
+        t0 = time.time()
+        res = validator(model, 'cpu', progress=progress)
+        res['steps'] = meta.get('steps')
+        res['seconds'] = round(time.time() - t0, 1)
+        out[p] = res
+    return out
+
+
+def markdown_table(results: Dict[str, Dict], modes) -> str:
+    """One row per weights and mode: abs_rel with GT / noisy poses and their mean, delta1, confident-half."""
+    lines = ['| weights | steps | mode | abs_rel GT poses | abs_rel noisy poses | mean | δ1 GT / noisy | conf½ GT / noisy |',
+             '|---|---|---|---|---|---|---|---|']
+    for p, r in results.items():
+        for mode in modes:
+            g, n = r.get(stream_metric_key(mode, False)), r.get(stream_metric_key(mode, True))
+            if g is None:
+                continue
+            both = [g] + ([n] if n else [])
+
+            def cell(k, digits):
+                return ' / '.join(f'{e[k]:.{digits}f}' for e in both)
+
+            mean = float(np.mean([e['abs_rel'] for e in both]))
+            lines.append(f"| {p} | {r.get('steps')} | {mode} | {g['abs_rel']:.4f} | "
+                         f"{n['abs_rel'] if n else float('nan'):.4f} | {mean:.4f} | {cell('delta1', 3)} | "
+                         f"{cell('confident_half_ratio', 2)} |")
+    return '\n'.join(lines)
+
+
+def main(argv: Optional[List[str]] = None) -> int:
+    ap = argparse.ArgumentParser(prog='selection', description=__doc__.split('\n\n')[0])
+    ap.add_argument('--weights', nargs='+', required=True, help='exported .safetensors (or a run dir\'s best_model)')
+    ap.add_argument('--seeds', default='20-25', help='held-out rendered seeds (0..99), never reported')
+    ap.add_argument('--frames', type=int, default=60, help='frames per sequence (320x240, 30 Hz)')
+    ap.add_argument('--pose-noise', type=float, nargs=2, default=[0.03, 0.5], metavar=('REL_T', 'ROT_DEG'),
+                    help='odometry-like pose errors per frame of the noisy pass (0 0: GT poses only)')
+    ap.add_argument('--modes', nargs='+', default=['knet'], help='filter modes')
+    ap.add_argument('--threads', type=int, default=2)
+    ap.add_argument('--out', default=None, help='write the results as JSON here')
+    a = ap.parse_args(argv)
+    torch.set_num_threads(a.threads)
+    try:
+        spec = StreamValidationSpec(seeds=parse_seeds(a.seeds), frames=a.frames, pose_noise=tuple(a.pose_noise),
+                                    modes=tuple(a.modes)).check()
+    except ValueError as e:
+        print(f'selection: {e}', file=sys.stderr)
+        return 2
+    res = score_weights(a.weights, spec, progress=lambda m: print(m, flush=True))
+    if a.out:
+        with open(a.out, 'w') as f:
+            json.dump({'seeds': list(spec.seeds), 'frames': spec.frames, 'pose_noise': list(spec.pose_noise),
+                       'results': res}, f, indent=1)
+    print(markdown_table(res, spec.modes))
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
