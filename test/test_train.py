@@ -366,7 +366,7 @@ def test_cli_parses_and_refuses_sun3d(tmp_path):
 
 def test_training_runs_without_ros_gtsam_or_rosbags(tmp_path):
     """A GPU machine with only PyTorch, numpy, scipy and OpenCV must be able to train: block the ROS, gtsam, bag and
-    Open3D imports and run two tiny steps (pose-noise augmentation included)."""
+    Open3D imports and run two tiny steps (pose-noise augmentation and the streaming validation included)."""
     import subprocess
     import sys
     code = (
@@ -376,7 +376,8 @@ def test_training_runs_without_ros_gtsam_or_rosbags(tmp_path):
         f"sys.argv = ['train', '--preset', 'lite', '--run-dir', {str(tmp_path / 'run')!r}, '--export', "
         f"{str(tmp_path / 'w.safetensors')!r}, '--width', '64', '--height', '48', '--batch-size', '1', '--unroll', '2', "
         "'--steps', '2', '--val-every', '2', '--val-seeds', '0', '--val-keyframes', '6', '--threads', '1', "
-        "'--num-workers', '0', '--quiet', '--pose-noise-prob', '1.0']\n"
+        "'--num-workers', '0', '--quiet', '--pose-noise-prob', '1.0', '--val-stream-seeds', '20', "
+        "'--val-stream-frames', '12', '--select-metric', 'stream_abs_rel_knet_both']\n"
         "from dpv_sensor.tools import train\n"
         "sys.exit(train.main())\n")
     res = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True, timeout=300)
