@@ -288,6 +288,14 @@ def test_streaming_validation_scores_whole_sequences_through_the_estimator(tmp_p
     assert t.best == pytest.approx(row['score'])
     assert t.metadata(metrics)['training_data']['validation_stream']['seeds'] == [20]
     assert (tmp_path / 'run' / 'loss_curves.png').is_file()
+    # a streaming validation that fails is logged and skipped: the run goes on, nothing is exported on it
+    def broken(*a, **k):
+        raise RuntimeError('estimator exploded')
+    t.stream_validator = broken
+    t.stream_validator.spec = t.cfg.stream_spec()
+    best = t.best
+    metrics = t.validate()
+    assert 'net_knet' in metrics and 'stream_net_knet' not in metrics and t.best == best
 
 
 def test_amp_resolution_per_device():
@@ -424,3 +432,7 @@ def test_selection_benchmark_scores_weight_files_like_the_streaming_validation(t
     assert res['stream_net_knet']['abs_rel'] == pytest.approx(direct['stream_net_knet']['abs_rel'], rel=1e-6)
     assert f"| {w} | 7 | knet | {res['stream_net_knet']['abs_rel']:.4f} |" in capsys.readouterr().out
     assert selection.main(['--weights', str(w), '--seeds', '100']) == 2
+    bad = tmp_path / 'bad.safetensors'
+    bad.write_bytes(b'not a safetensors file')
+    assert selection.main(['--weights', str(bad), '--seeds', '21', '--frames', '14']) == 2
+    assert 'cannot load weights' in capsys.readouterr().err

@@ -32,7 +32,10 @@ def score_weights(paths: List[str], spec: StreamValidationSpec, progress=None) -
     validator = StreamValidator(spec)
     out: Dict[str, Dict] = {}
     for p in paths:
-        model, meta = load_model(p)
+        try:
+            model, meta = load_model(p)
+        except Exception as e:
+            raise ValueError(f'cannot load weights {p}: {type(e).__name__}: {e}') from None
         t0 = time.time()
         res = validator(model, 'cpu', progress=progress)
         res['steps'] = meta.get('steps')
@@ -80,7 +83,11 @@ def main(argv: Optional[List[str]] = None) -> int:
     except ValueError as e:
         print(f'selection: {e}', file=sys.stderr)
         return 2
-    res = score_weights(a.weights, spec, progress=lambda m: print(m, flush=True))
+    try:
+        res = score_weights(a.weights, spec, progress=lambda m: print(m, flush=True))
+    except ValueError as e:
+        print(f'selection: {e}', file=sys.stderr)
+        return 2
     if a.out:
         with open(a.out, 'w') as f:
             json.dump({'seeds': list(spec.seeds), 'frames': spec.frames, 'pose_noise': list(spec.pose_noise),
