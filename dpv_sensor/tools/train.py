@@ -101,7 +101,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="also stream these held-out seeds (e.g. '20-25') frame by frame through the estimator at "
                         "every validation, as the node runs the weights; reported as stream_net_<mode> and "
                         "stream_noisy_net_<mode>, selectable as stream_<metric>_<mode>[_noisy|_both] "
-                        "(10-15 s per 60-frame sequence and pose source with lite on one core)")
+                        "(5-8 s per 60-frame sequence and pose source with lite on one core)")
     p.add_argument('--val-stream-frames', type=int, default=d.val_stream_frames, help='frames per streamed sequence')
     p.add_argument('--val-stream-pose-noise', type=float, nargs=2, default=list(d.val_stream_pose_noise),
                    metavar=('REL_T', 'ROT_DEG'),
