@@ -8,6 +8,8 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import pathlib
+import time
 
 import numpy as np
 import pytest
@@ -436,3 +438,59 @@ def test_selection_benchmark_scores_weight_files_like_the_streaming_validation(t
     bad.write_bytes(b'not a safetensors file')
     assert selection.main(['--weights', str(bad), '--seeds', '21', '--frames', '14']) == 2
     assert 'cannot load weights' in capsys.readouterr().err
+
+
+def _all_ranks_worker(rank, world, port, flags, out_dir):
+    import os
+    os.environ.update(MASTER_ADDR='127.0.0.1', MASTER_PORT=str(port))
+    torch.distributed.init_process_group('gloo', rank=rank, world_size=world)
+    try:
+        res = [loop.all_ranks(f[rank], 'cpu', world) for f in flags]
+        (out_dir / f'rank{rank}.json').write_text(json.dumps(res))
+    finally:
+        torch.distributed.destroy_process_group()
+
+
+def test_update_skip_is_agreed_by_every_rank(tmp_path):
+    """A loss without gradient on one rank must skip the update on all of them (else DDP's all-reduce hangs)."""
+    import socket
+    import torch.multiprocessing as mp
+    with socket.socket() as s:
+        s.bind(('127.0.0.1', 0))
+        port = s.getsockname()[1]
+    flags = [(True, True), (True, False), (False, True), (False, False)]
+    ctx = mp.spawn(_all_ranks_worker, args=(2, port, flags, tmp_path), nprocs=2, join=False)
+    deadline = time.time() + 120
+    while not ctx.join(timeout=5):
+        if time.time() > deadline:
+            for p in ctx.processes:
+                p.kill()
+            pytest.fail('the ranks did not agree within 120 s (a hang in the all-reduce)')
+    for r in (0, 1):
+        assert json.loads((tmp_path / f'rank{r}.json').read_text()) == [True, False, False, False]
+    assert loop.all_ranks(True, 'cpu', 1) and not loop.all_ranks(False, 'cpu', 1)
+
+
+def test_distributed_training_under_torchrun_on_cpu(tmp_path):
+    """`torchrun --nproc_per_node 2` (Gloo on the CPU): both ranks train on disjoint scene seeds (two per step),
+    only rank 0 validates and writes files, and the export says so."""
+    import subprocess
+    import sys
+    from dpv_sensor.nets.checkpoint import load_checkpoint
+    cmd = [sys.executable, '-m', 'torch.distributed.run', '--standalone', '--nproc_per_node', '2',
+           '-m', 'dpv_sensor.tools.train', '--preset', 'lite', '--run-dir', str(tmp_path / 'run'),
+           '--export', str(tmp_path / 'w.safetensors'), '--width', '64', '--height', '48', '--batch-size', '1',
+           '--unroll', '2', '--steps', '3', '--val-every', '3', '--val-seeds', '0', '--val-keyframes', '6',
+           '--threads', '1', '--num-workers', '0', '--quiet', '--ckpt-every', '3', '--device', 'cpu']
+    res = subprocess.run(cmd, capture_output=True, text=True, timeout=300, cwd=str(pathlib.Path(__file__).parents[1]))
+    assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-3000:]
+    finals = [json.loads(l) for l in res.stdout.splitlines() if l.startswith('{"step"')]
+    assert sorted(f['step'] for f in finals) == [3, 3]
+    assert sum(f['best'] is not None for f in finals) == 1          # only rank 0 validates
+    state = json.loads((loop.latest_checkpoint(str(tmp_path / 'run')) / 'state.json').read_text())
+    assert state['world_size'] == 2 and state['samples_seen'] == 3
+    assert [v['step'] for v in state['history']['val']] == [0, 3]
+    _, meta = load_checkpoint(str(tmp_path / 'w.safetensors'))
+    assert 'x 2' in meta['optimizer']
+    lo, hi = meta['training_data']['train_seed_range']
+    assert lo == TRAIN_SEED_BASE and hi - lo == 2 * max(1, meta['training_data']['samples_seen'])

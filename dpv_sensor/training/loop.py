@@ -832,6 +832,15 @@ def _dist_env() -> Tuple[int, int, int]:
     return world, rank, local
 
 
+def all_ranks(flag: bool, device, world: int) -> bool:
+    """``flag`` and-ed over the ranks of the process group (just ``flag`` when ``world`` is 1)."""
+    if world <= 1:
+        return bool(flag)
+    t = torch.tensor([1.0 if flag else 0.0], device=device)
+    torch.distributed.all_reduce(t, op=torch.distributed.ReduceOp.MIN)
+    return bool(t.item() > 0.5)
+
+
 def _lr_at(cfg: TrainConfig, step: int) -> float:
     if step < cfg.warmup:
         return cfg.lr * (step + 1) / cfg.warmup
@@ -1123,12 +1132,7 @@ class Trainer:
     def _all_ranks_have_grad(self, loss: torch.Tensor) -> bool:
         """Whether every rank's loss reaches a trained sub-network. A rank that skipped backward alone
         would leave the others waiting in DDP's gradient all-reduce, so the skip is collective."""
-        has = bool(loss.requires_grad)
-        if self.world > 1:
-            flag = torch.tensor([1.0 if has else 0.0], device=self.device)
-            torch.distributed.all_reduce(flag, op=torch.distributed.ReduceOp.MIN)
-            has = bool(flag.item() > 0.5)
-        return has
+        return all_ranks(bool(loss.requires_grad), self.device, self.world)
 
     def train(self) -> Dict:
         from tqdm import tqdm
