@@ -150,35 +150,23 @@ class TrainConfig:
             return self.export_path
         return str(pathlib.Path(__file__).resolve().parents[1] / 'weights' / f'{self.preset}.safetensors')
 
+    # tuple-valued fields (lists in JSON) and how their items are read back
+    _TUPLE_FIELDS = {'val_seeds': int, 'folders': str, 'extra_sizes': tuple, 'val_pose_noise': float,
+                     'train_modules': str, 'val_stream_seeds': int, 'val_stream_pose_noise': float}
+
     def to_json(self) -> Dict:
         d = dataclasses.asdict(self)
-        d['val_seeds'] = list(self.val_seeds)
-        d['folders'] = list(self.folders)
-        d['extra_sizes'] = [list(s) for s in self.extra_sizes]
-        d['val_pose_noise'] = list(self.val_pose_noise)
-        d['train_modules'] = list(self.train_modules)
-        d['val_stream_seeds'] = list(self.val_stream_seeds)
-        d['val_stream_pose_noise'] = list(self.val_stream_pose_noise)
+        for k, item in self._TUPLE_FIELDS.items():
+            d[k] = [list(v) if item is tuple else v for v in getattr(self, k)]
         return d
 
     @classmethod
     def from_json(cls, d: Dict) -> 'TrainConfig':
         known = {f.name for f in dataclasses.fields(cls)}
         kw = {k: v for k, v in d.items() if k in known}
-        if 'val_seeds' in kw:
-            kw['val_seeds'] = tuple(kw['val_seeds'])
-        if 'folders' in kw:
-            kw['folders'] = tuple(kw['folders'])
-        if 'extra_sizes' in kw:
-            kw['extra_sizes'] = tuple(tuple(s) for s in kw['extra_sizes'])
-        if 'val_pose_noise' in kw:
-            kw['val_pose_noise'] = tuple(float(v) for v in kw['val_pose_noise'])
-        if 'train_modules' in kw:
-            kw['train_modules'] = tuple(kw['train_modules'])
-        if 'val_stream_seeds' in kw:
-            kw['val_stream_seeds'] = tuple(int(v) for v in kw['val_stream_seeds'])
-        if 'val_stream_pose_noise' in kw:
-            kw['val_stream_pose_noise'] = tuple(float(v) for v in kw['val_stream_pose_noise'])
+        for k, item in cls._TUPLE_FIELDS.items():
+            if k in kw:
+                kw[k] = tuple(item(v) for v in kw[k])
         return cls(**kw)
 
     def layout(self) -> WindowLayout:
