@@ -438,6 +438,9 @@ def test_selection_benchmark_scores_weight_files_like_the_streaming_validation(t
     bad.write_bytes(b'not a safetensors file')
     assert selection.main(['--weights', str(bad), '--seeds', '21', '--frames', '14']) == 2
     assert 'cannot load weights' in capsys.readouterr().err
+    if not torch.cuda.is_available():
+        assert selection.main(['--weights', str(w), '--seeds', '21', '--frames', '14', '--device', 'cuda']) == 2
+        assert 'CUDA is not available' in capsys.readouterr().err
 
 
 def _all_ranks_worker(rank, world, port, flags, out_dir):
