@@ -105,7 +105,9 @@ class StreamValidator:
     def __call__(self, model, device='cpu', progress=None) -> Dict[str, Dict]:
         """``{stream_[noisy_]net_<mode>: metrics}`` for ``model`` on ``device`` (see module docstring).
 
-        progress: an optional callable(str) told about each sequence (the trainer logs through it)."""
+        progress: an optional callable(str) told the result of each (pose source, mode) pass over the
+        sequences (the trainer logs through it). The estimator takes the depth planes from the model, so any
+        preset works; the paper preset wants ``device='cuda'``."""
         from ..evaluation import EvalOptions, evaluate_sequence
         if not self.spec.enabled:
             return {}
