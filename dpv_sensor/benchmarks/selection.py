@@ -75,19 +75,15 @@ def main(argv: Optional[List[str]] = None) -> int:
     ap.add_argument('--modes', nargs='+', default=['knet'], help='filter modes')
     ap.add_argument('--threads', type=int, default=2)
     ap.add_argument('--device', default='cpu', help="torch device of the estimator: cpu, cuda, cuda:N (the paper "
-                                                     "preset needs a GPU: about 2.5 s a keyframe on a 2-core CPU)")
+                                                     "preset wants a GPU: 2.5 s a keyframe in float32 on a 2-core CPU)")
     ap.add_argument('--out', default=None, help='write the results as JSON here')
     a = ap.parse_args(argv)
     torch.set_num_threads(a.threads)
     try:
         spec = StreamValidationSpec(seeds=parse_seeds(a.seeds), frames=a.frames, pose_noise=tuple(a.pose_noise),
                                     modes=tuple(a.modes)).check()
-    except ValueError as e:
-        print(f'selection: {e}', file=sys.stderr)
-        return 2
-    try:
         res = score_weights(a.weights, spec, progress=lambda m: print(m, flush=True), device=a.device)
-    except ValueError as e:
+    except ValueError as e:        # bad seeds / modes, weights that do not load, a device that is missing
         print(f'selection: {e}', file=sys.stderr)
         return 2
     if a.out:
