@@ -231,7 +231,8 @@ def _resize_image(img: np.ndarray, hw: Tuple[int, int]) -> np.ndarray:
     return cv2.resize(img, (int(hw[1]), int(hw[0])), interpolation=cv2.INTER_AREA if shrink else cv2.INTER_LINEAR)
 
 
-def _input_poses(seq, options: EvalOptions) -> List[np.ndarray]:
+def input_poses(seq, options: EvalOptions) -> List[np.ndarray]:
+    """The poses the estimator is fed: GT, or (``pose_source='noisy'``) an odometry-like corruption of them."""
     gt = [np.asarray(seq.pose(i), np.float64) for i in range(len(seq))]
     if options.pose_source == 'gt':
         return gt
@@ -260,7 +261,7 @@ def run_sequence(seq, config, options: Optional[EvalOptions] = None, *, model=No
         from .poses import WindowPoseRefiner
         pose_refiner = WindowPoseRefiner()
     est = Estimator(config, model=model, pose_refiner=pose_refiner)
-    poses_in = _input_poses(seq, options)
+    poses_in = input_poses(seq, options)
     K = np.asarray(seq.K, np.float64)
     index_of: Dict[float, int] = {}
     records: List[KeyframeRecord] = []
@@ -437,7 +438,8 @@ def write_report(out_dir, acc: M.MetricAccumulator, records: SequenceT[KeyframeR
     return files
 
 
-def _depth_limits(options: EvalOptions, status: Dict[str, Any]) -> Tuple[Optional[float], Optional[float]]:
+def depth_limits(options: EvalOptions, status: Dict[str, Any]) -> Tuple[Optional[float], Optional[float]]:
+    """(min, max) GT depth that is scored: the options' limits, else the estimator's depth range."""
     lo = options.min_depth if options.min_depth is not None else status.get('d_min')
     hi = options.max_depth if options.max_depth is not None else status.get('d_max')
     return lo, hi
@@ -460,7 +462,7 @@ def evaluate_sequence(seq, overrides: Optional[Dict[str, Any]] = None, out_dir=N
     t0 = time.perf_counter()
     records, status = run_sequence(seq, config, options, model=model)
     wall = time.perf_counter() - t0
-    lo, hi = _depth_limits(options, status)
+    lo, hi = depth_limits(options, status)
     acc = score_records(records, min_depth=lo, max_depth=hi, occlusion_tol=options.occlusion_tol,
                         progress=options.progress)
     seq_name = str(seq) if isinstance(seq, (str, pathlib.Path)) else getattr(seq, 'name', 'in-memory')

@@ -251,7 +251,7 @@ def test_selection_metric_names():
     # a run asks for the validations its selection metric needs
     with pytest.raises(ValueError, match='val_stream_seeds'):
         loop.TrainConfig(select_metric='stream_abs_rel_knet').check()
-    with pytest.raises(ValueError, match='held-out'):
+    with pytest.raises(ValueError, match='not held out'):
         loop.TrainConfig(val_stream_seeds=(100,)).check()
     cfg = loop.TrainConfig(val_stream_seeds=(20, 21), select_metric='stream_abs_rel_global_both').check()
     assert cfg.stream_spec().modes == ('knet', 'global') and cfg.stream_spec().noisy

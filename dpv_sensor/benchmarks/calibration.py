@@ -57,7 +57,8 @@ import torch
 
 from .. import dpv as dpvops
 from ..classical import ClassicalMeasurement
-from ..training.dataset import TRAIN_SEED_BASE, VAL_SEEDS, WindowLayout, sample_from_sequence
+from ..training.dataset import (TRAIN_SEED_BASE, VAL_SEEDS, WindowLayout, check_heldout_seeds,
+                                sample_from_sequence)
 from ..training.loop import TrainConfig, _json_safe, evaluate_batches, render_validation_batches
 
 __all__ = ['run', 'main', 'sun3d_batches', 'tune_temperature', 'format_table', 'DEFAULT_TEMPERATURES',
@@ -235,9 +236,7 @@ def run(model, *, synthetic_seeds: Seq[int] = tuple(range(6)), sun3d_windows: in
     from tqdm import tqdm
     t_start = time.time()
     check_tune_seeds(tune_seeds)
-    for s in synthetic_seeds:
-        if s not in VAL_SEEDS:
-            raise ValueError(f'synthetic seed {s} is not held out ({VAL_SEEDS.start}..{VAL_SEEDS.stop - 1})')
+    check_heldout_seeds(synthetic_seeds)
     if width % 4 or height % 4:
         raise ValueError(f'width and height must be multiples of 4, got {width}x{height}')
     tc = TrainConfig()

@@ -99,10 +99,12 @@ def main():
     seqs = [(n, Sequence(f'{DATA}/{n}')) for n in a.seqs]
     if a.synthetic_seeds:
         from dpv_sensor.data.synthetic import render_sequence
-        from dpv_sensor.training.dataset import VAL_SEEDS, parse_seeds
-        for s in parse_seeds(a.synthetic_seeds):
-            if s not in VAL_SEEDS:
-                ap.error(f'synthetic seed {s} is not held out ({VAL_SEEDS}): training draws seeds outside it')
+        from dpv_sensor.training.dataset import check_heldout_seeds, parse_seeds
+        try:
+            seeds = check_heldout_seeds(parse_seeds(a.synthetic_seeds))
+        except ValueError as e:
+            ap.error(str(e))
+        for s in seeds:
             seqs.append((f'synthetic_seed{s}', render_sequence(s, a.synthetic_frames, width=320, height=240, lazy=True)))
     results = {'weights': a.weights, 'steps': meta.get('steps'), 'window_mode': a.window_mode, 'readout': a.readout,
                'confidence': a.confidence, 'pose_noise': a.pose_noise, 'sequences': {}}

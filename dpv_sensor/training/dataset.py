@@ -44,7 +44,7 @@ TRAIN_SEED_BASE = 1_000_000
 VAL_SEEDS = range(0, 100)
 
 __all__ = ['TRAIN_SEED_BASE', 'VAL_SEEDS', 'WindowLayout', 'Augment', 'StreamConfig',
-           'SceneStream', 'sample_from_sequence', 'scale_K_np', 'resize_crop', 'check_not_heldout', 'parse_seeds']
+           'SceneStream', 'sample_from_sequence', 'scale_K_np', 'resize_crop', 'check_not_heldout', 'check_heldout_seeds', 'parse_seeds']
 
 
 def parse_seeds(text: str) -> Tuple[int, ...]:
@@ -63,6 +63,16 @@ def parse_seeds(text: str) -> Tuple[int, ...]:
         except ValueError:
             raise ValueError(f'seed list {text!r}: expected e.g. 0-5 or 0,3,7') from None
     return tuple(out)
+
+
+def check_heldout_seeds(seeds, what: str = 'synthetic seed') -> Tuple[int, ...]:
+    """``seeds`` as a tuple; ValueError naming the first one outside ``VAL_SEEDS`` (training draws those)."""
+    seeds = tuple(int(s) for s in seeds)
+    for s in seeds:
+        if s not in VAL_SEEDS:
+            raise ValueError(f'{what} {s} is not held out ({VAL_SEEDS.start}..{VAL_SEEDS.stop - 1}): '
+                             f'training draws seeds outside that range')
+    return seeds
 
 
 @dataclasses.dataclass(frozen=True)

@@ -27,7 +27,7 @@ from typing import Dict, List, Optional, Sequence as Seq, Tuple
 
 import numpy as np
 
-from .dataset import VAL_SEEDS
+from .dataset import check_heldout_seeds
 
 __all__ = ['StreamValidationSpec', 'StreamValidator', 'stream_metric_key']
 
@@ -64,9 +64,7 @@ class StreamValidationSpec:
 
     def check(self) -> 'StreamValidationSpec':
         from ..estimator import FILTER_MODES
-        for s in self.seeds:
-            if s not in VAL_SEEDS:
-                raise ValueError(f'streaming validation seed {s} is outside the held-out range {VAL_SEEDS}')
+        check_heldout_seeds(self.seeds, 'streaming validation seed')
         if self.enabled and self.frames < 10:
             raise ValueError(f'streaming validation needs at least 10 frames per sequence, got {self.frames}')
         if len(self.size) != 2 or min(self.size) < 32:
