@@ -75,6 +75,7 @@ def test_breakdown_groups_on_a_frame_with_one_wrong_block():
     for group in g.values():
         assert sum(r['pixel_fraction'] for r in group.values()) == pytest.approx(1.0)
         assert sum(r['error_share'] for r in group.values()) == pytest.approx(1.0)
+    assert 'texture' not in g                    # no image given
     cells = np.array(s['cells_abs_rel'])
     assert cells[0, 0] == pytest.approx(0.5) and cells[1, 0] == pytest.approx(0.5 * 16 / 48)   # cells are 6 x 8 px
     assert np.count_nonzero(cells) == 2
@@ -84,6 +85,23 @@ def test_breakdown_groups_on_a_frame_with_one_wrong_block():
     acc2 = eb.ErrorBreakdown(0.3, 3.0)
     acc2.add(pred2, gt)
     assert acc2.summary()['pixels'] == 40 * 32 and 'views' not in acc2.summary()['groups']
+
+
+def test_texture_thirds_put_a_flat_wall_in_the_weak_third():
+    """Left half a uniform grey wall, right half a 4-px checkerboard; the prediction is 20 % off on a block inside
+    the wall, far from the checkerboard: the weak third holds all of the error."""
+    gt = np.full((48, 64), 2.0)
+    image = np.full((48, 64, 3), 128, np.uint8)
+    image[:, 32:] = np.where(((np.arange(32)[None, :] // 4) + (np.arange(48)[:, None] // 4)) % 2 == 0, 30, 220)[..., None]
+    assert eb.local_texture(image)[:, :24].max() == 0.0 and eb.local_texture(image)[:, 36:].min() > 0.1
+    pred = gt.copy()
+    pred[10:30, 4:20] *= 1.2
+    acc = eb.ErrorBreakdown(0.3, 8.0)
+    acc.add(pred, gt, image_hw3=image)
+    t = acc.summary()['groups']['texture']
+    assert t['weak']['error_share'] == pytest.approx(1.0) and t['weak']['pixel_fraction'] >= 1 / 3
+    assert t['strong']['abs_rel'] == 0.0
+    assert sum(r['pixel_fraction'] for r in t.values()) == pytest.approx(1.0)
 
 
 def test_cli_streams_rendered_seeds_and_writes_json_and_png(tmp_path, capsys):
@@ -101,7 +119,7 @@ def test_cli_streams_rendered_seeds_and_writes_json_and_png(tmp_path, capsys):
     assert eb.main(['--weights', str(w), '--seeds', '22', '--frames', '14', '--threads', '1', '--out', str(out)]) == 0
     s = json.loads((out / 'error_breakdown.json').read_text())
     assert (out / 'error_breakdown.png').stat().st_size > 10_000
-    assert set(s['groups']) == {'gt_depth', 'edge', 'size', 'views'} and s['seeds'] == [22]
+    assert set(s['groups']) == {'gt_depth', 'edge', 'size', 'texture', 'views'} and s['seeds'] == [22]
     assert 'pixel-pooled abs_rel' in capsys.readouterr().out
     summ = evaluate_sequence(render_sequence(22, 14, width=320, height=240, lazy=True), {'filter_mode': 'knet'},
                              options=EvalOptions(seed=22, progress=False), model=model)

@@ -9,6 +9,8 @@ put into these groups (abs_rel = |d - d_gt| / d_gt, pooled over pixels):
 * ``gt_depth``: bands of the GT depth in metres (labels ``lo-hi``);
 * ``edge``: within ``edge_radius`` px of a GT depth jump of more than 10 % (occlusion edges) or not;
 * ``size``: ``gross`` (abs_rel > 0.25, i.e. outside delta < 1.25) or ``fine``;
+* ``texture``: the frame's scored pixels in thirds of local image texture (mean gradient magnitude of the grey
+  image over 7 x 7 px): ``weak`` / ``mid`` / ``strong`` (ties at a threshold go to the lower third);
 * ``views``: in how many of the *other keyframes of the window* (the sources of its plane sweep; past ones in
   ``causal`` mode, both sides in ``centered`` mode) the pixel's GT 3-D point lies inside the image. ``0`` means
   no source could have seen it (new content at the leading edge of the motion); occlusion is not checked.
@@ -85,6 +87,17 @@ def keyframe_frames(poses_in: Sequence[np.ndarray], config) -> List[int]:
     return [i for i, T in enumerate(poses_in) if sel.decide(np.asarray(T, np.float64)).is_keyframe]
 
 
+def local_texture(image_hw3: np.ndarray, size: int = 7) -> np.ndarray:
+    """Mean gradient magnitude of the grey image (0..1 scale) over ``size`` x ``size`` px: how much texture a
+    matching window around each pixel holds."""
+    img = np.asarray(image_hw3, np.float64)
+    grey = img.mean(axis=-1) if img.ndim == 3 else img
+    if np.issubdtype(np.asarray(image_hw3).dtype, np.integer):
+        grey = grey / 255.0
+    gy, gx = np.gradient(grey)
+    return ndimage.uniform_filter(np.hypot(gx, gy), size=size)
+
+
 def window_others(keyframes: Sequence[int], pos: int, window_size: int, window_mode: str) -> List[int]:
     """The other keyframes (items of ``keyframes``) in the window of keyframe ``keyframes[pos]``: the sources of
     its plane sweep; ``window_size - 1`` past ones in ``causal`` mode, half on each side in ``centered`` mode."""
@@ -97,7 +110,7 @@ def window_others(keyframes: Sequence[int], pos: int, window_size: int, window_m
 class ErrorBreakdown:
     """Pools abs_rel sums and pixel counts per group label (see the module docstring)."""
 
-    GROUPS = ('gt_depth', 'edge', 'size', 'views')
+    GROUPS = ('gt_depth', 'edge', 'size', 'texture', 'views')
 
     def __init__(self, min_depth: float = 0.3, max_depth: float = 8.0, edge_radius: int = 4, grid: int = GRID):
         self.min_depth, self.max_depth, self.edge_radius, self.grid = min_depth, max_depth, edge_radius, grid
@@ -111,8 +124,10 @@ class ErrorBreakdown:
         s[0] += float(err_n.sum())
         s[1] += int(err_n.size)
 
-    def add(self, pred_hw: np.ndarray, gt_hw: np.ndarray, views_hw: Optional[np.ndarray] = None) -> None:
-        """One frame: prediction and GT in metres at the same size; ``views_hw`` from :func:`views_of_window`."""
+    def add(self, pred_hw: np.ndarray, gt_hw: np.ndarray, views_hw: Optional[np.ndarray] = None,
+            image_hw3: Optional[np.ndarray] = None) -> None:
+        """One frame: prediction and GT in metres at the same size; ``views_hw`` from :func:`views_of_window`;
+        ``image_hw3`` the keyframe's image at that size (for the texture group)."""
         m = M.evaluation_mask(pred_hw, gt_hw, self.min_depth, self.max_depth)
         gt = np.asarray(gt_hw, np.float64)
         err = np.zeros(gt.shape)
@@ -132,6 +147,12 @@ class ErrorBreakdown:
         self._add('edge', 'flat', err[m & ~edge])
         self._add('size', 'gross', err[m & (err > GROSS_ABS_REL)])
         self._add('size', 'fine', err[m & (err <= GROSS_ABS_REL)])
+        if image_hw3 is not None and m.any():
+            tex = local_texture(image_hw3)
+            lo, hi = np.quantile(tex[m], [1 / 3, 2 / 3])
+            self._add('texture', 'weak', err[m & (tex <= lo)])
+            self._add('texture', 'mid', err[m & (tex > lo) & (tex <= hi)])
+            self._add('texture', 'strong', err[m & (tex > hi)])
         if views_hw is not None:
             for label, sel in (('0', views_hw == 0), ('1', views_hw == 1), ('2+', views_hw >= 2)):
                 self._add('views', label, err[m & sel])
@@ -204,7 +225,7 @@ def breakdown_sequences(model, seeds: Sequence[int], *, frames: int = 60, mode: 
         seq = render_sequence(seed, frames, width=320, height=240, lazy=True)
         opts = EvalOptions(seed=seed, progress=False, pose_source='noisy' if noisy else 'gt',
                            pose_noise=tuple(pose_noise))
-        records, status = run_sequence(seq, config, opts, model=model, keep_images=False)
+        records, status = run_sequence(seq, config, opts, model=model)
         if acc is None:
             acc = ErrorBreakdown(*depth_limits(opts, status))
         keyframes = keyframe_frames(input_poses(seq, opts), config)
@@ -215,7 +236,7 @@ def breakdown_sequences(model, seeds: Sequence[int], *, frames: int = 60, mode: 
         for r in records:
             others = window_others(keyframes, position[r.index], config.window_size, window_mode)
             views = views_of_window(r.gt_depth_hw, r.K_33, r.gt_T_world_cam_44, [seq.pose(j) for j in others])
-            acc.add(r.depth_hw, r.gt_depth_hw, views)
+            acc.add(r.depth_hw, r.gt_depth_hw, views, r.image_hw3)
         if progress:
             progress(f'seed {seed}: {len(records)} keyframes, pooled abs_rel so far {acc.total[0] / max(acc.total[1], 1):.4f}')
     if acc is None:
