@@ -65,11 +65,12 @@ def test_breakdown_groups_on_a_frame_with_one_wrong_block():
     n = 48 * 64
     assert s['pixels'] == n and s['abs_rel'] == pytest.approx(64 * 0.5 / n)
     g = s['groups']
-    assert g['size']['gross']['pixel_fraction'] == pytest.approx(64 / n) and g['size']['gross']['abs_rel'] == pytest.approx(0.5)
+    gross, unseen = g['size']['gross'], g['views']['0']
+    assert gross['pixel_fraction'] == pytest.approx(64 / n) and gross['abs_rel'] == pytest.approx(0.5)
     assert g['size']['gross']['error_share'] == pytest.approx(1.0) and g['size']['fine']['abs_rel'] == 0.0
     assert g['gt_depth']['1-1.5']['error_share'] == pytest.approx(1.0)
     assert g['gt_depth']['3-4']['pixel_fraction'] == pytest.approx(0.5)
-    assert g['views']['0']['error_share'] == pytest.approx(1.0) and g['views']['0']['abs_rel'] == pytest.approx(64 * 0.5 / (48 * 8))
+    assert unseen['error_share'] == pytest.approx(1.0) and unseen['abs_rel'] == pytest.approx(64 * 0.5 / (48 * 8))
     # the GT jump between columns 31 and 32 is the only edge; dilated by 2 px it covers columns 29..34
     assert g['edge']['edge']['pixel_fraction'] == pytest.approx(6 * 48 / n) and g['edge']['edge']['abs_rel'] == 0.0
     for group in g.values():
@@ -92,7 +93,8 @@ def test_texture_thirds_put_a_flat_wall_in_the_weak_third():
     the wall, far from the checkerboard: the weak third holds all of the error."""
     gt = np.full((48, 64), 2.0)
     image = np.full((48, 64, 3), 128, np.uint8)
-    image[:, 32:] = np.where(((np.arange(32)[None, :] // 4) + (np.arange(48)[:, None] // 4)) % 2 == 0, 30, 220)[..., None]
+    checker = ((np.arange(32)[None, :] // 4) + (np.arange(48)[:, None] // 4)) % 2 == 0
+    image[:, 32:] = np.where(checker, 30, 220)[..., None]
     assert eb.local_texture(image)[:, :24].max() == 0.0 and eb.local_texture(image)[:, 36:].min() > 0.1
     pred = gt.copy()
     pred[10:30, 4:20] *= 1.2
@@ -124,6 +126,17 @@ def test_cli_streams_rendered_seeds_and_writes_json_and_png(tmp_path, capsys):
     summ = evaluate_sequence(render_sequence(22, 14, width=320, height=240, lazy=True), {'filter_mode': 'knet'},
                              options=EvalOptions(seed=22, progress=False), model=model)
     assert s['abs_rel'] == pytest.approx(summ['metric']['pixel_weighted']['abs_rel'], rel=1e-4)
+    # a sequence folder (the format of ../shared/data) gives the same figures as the rendered seed it holds
+    from dpv_sensor.data.sequence import write_sequence
+    folder = write_sequence(tmp_path / 'seq22', render_sequence(22, 14, width=320, height=240), lossless=True)
+    assert eb.main(['--weights', str(w), '--seeds', '', '--seqs', str(folder), '--threads', '1',
+                    '--out', str(tmp_path / 'eb2')]) == 0
+    s2 = json.loads((tmp_path / 'eb2' / 'error_breakdown.json').read_text())
+    assert s2['seqs'] == [str(folder)] and s2['abs_rel'] == pytest.approx(s['abs_rel'], rel=2e-3)
+    assert eb.main(['--weights', str(w), '--seeds', '', '--seqs', str(tmp_path / 'missing')]) == 2
+    assert 'cannot read sequence folder' in capsys.readouterr().err
+    assert eb.main(['--weights', str(w), '--seeds', '']) == 2
+    assert 'no sequences given' in capsys.readouterr().err
     assert eb.main(['--weights', str(w), '--seeds', '120']) == 2
     assert 'not held out' in capsys.readouterr().err
     bad = tmp_path / 'bad.safetensors'

@@ -1,9 +1,9 @@
-"""Where the depth error comes from: abs_rel split by image position, GT depth, occlusion edges, error size and
-whether the window's other keyframes saw the pixel at all.
+"""Where the depth error comes from: abs_rel split by image position, GT depth, occlusion edges, error size, image
+texture and whether the window's other keyframes saw the pixel at all.
 
-Rendered sequences (held-out seeds, never trained on) are streamed frame by frame through ``Estimator`` with the
-node's defaults, as in :mod:`dpv_sensor.benchmarks.selection`, and every scored pixel of every keyframe output is
-put into these groups (abs_rel = |d - d_gt| / d_gt, pooled over pixels):
+Rendered sequences (held-out seeds, never trained on) and sequence folders (``--seqs``, e.g. SUN3D) are streamed
+frame by frame through ``Estimator`` with the node's defaults, as in :mod:`dpv_sensor.benchmarks.selection`, and
+every scored pixel of every keyframe output is put into these groups (abs_rel = |d - d_gt| / d_gt, pooled over pixels):
 
 * ``cell``: an 8 x 8 grid over the image (drawn as a heat map);
 * ``gt_depth``: bands of the GT depth in metres (labels ``lo-hi``);
@@ -18,7 +18,8 @@ put into these groups (abs_rel = |d - d_gt| / d_gt, pooled over pixels):
 Each group reports per label the fraction of pixels, their abs_rel and their share of the total error.
 
     .venv/bin/python -m dpv_sensor.benchmarks.error_breakdown --weights dpv_sensor/weights/lite.safetensors \
-        --seeds 20-25 [--frames 60] [--mode knet] [--window-mode causal] [--pose-noise REL_T ROT_DEG] \
+        --seeds 20-25 [--seqs FOLDER ...] [--frames 60] [--mode knet] [--window-mode causal] \
+        [--pose-noise REL_T ROT_DEG] \
         [--threads 2] [--out DIR]
 
 ``--out`` writes ``error_breakdown.json`` and ``error_breakdown.png`` (heat map and the groups as bars).
@@ -203,7 +204,8 @@ def plot(summary: Dict, path, title: Optional[str] = None) -> pathlib.Path:
         ax.set_xticks(range(len(names)))
         ax.set_xticklabels([f"{n}\n{labels[n]['pixel_fraction']:.0%} px" for n in names], fontsize=7)
         ax.axhline(summary['abs_rel'], color='k', lw=0.8, ls='--')
-        ax.set_title({'gt_depth': 'GT depth (m)', 'views': 'seen by how many window keyframes'}.get(g, g), fontsize=9)
+        titles = {'gt_depth': 'GT depth (m)', 'views': 'seen by how many window keyframes'}
+        ax.set_title(titles.get(g, g), fontsize=9)
         ax.grid(axis='y', alpha=0.3)
     axes[1].set_ylabel('abs_rel (dashed: all pixels)')
     if title:
@@ -212,17 +214,16 @@ def plot(summary: Dict, path, title: Optional[str] = None) -> pathlib.Path:
     return _save(fig, path, 110)
 
 
-def breakdown_sequences(model, seeds: Sequence[int], *, frames: int = 60, mode: str = 'knet',
+def breakdown_sequences(model, sequences: Sequence[Tuple[str, object, int]], *, mode: str = 'knet',
                         window_mode: str = 'causal', pose_noise: Tuple[float, float] = (0.0, 0.0),
                         device: str = 'cpu', progress=None) -> Dict:
-    """Stream rendered seeds through the estimator (node defaults plus mode / window_mode) and break down the error."""
-    from dpv_sensor.data.synthetic import render_sequence
+    """Stream ``(name, sequence, seed)`` items through the estimator (node defaults plus mode / window_mode; GT
+    poses, or odometry-like ones seeded by ``seed`` when ``pose_noise`` is set) and break down the error."""
     from dpv_sensor.evaluation import EvalOptions, build_config, depth_limits, input_poses, run_sequence
     noisy = pose_noise[0] > 0 or pose_noise[1] > 0
     config, _ = build_config({'filter_mode': mode, 'window_mode': window_mode, 'device': str(device)})
     acc: Optional[ErrorBreakdown] = None
-    for seed in seeds:
-        seq = render_sequence(seed, frames, width=320, height=240, lazy=True)
+    for name, seq, seed in sequences:
         opts = EvalOptions(seed=seed, progress=False, pose_source='noisy' if noisy else 'gt',
                            pose_noise=tuple(pose_noise))
         records, status = run_sequence(seq, config, opts, model=model)
@@ -231,23 +232,25 @@ def breakdown_sequences(model, seeds: Sequence[int], *, frames: int = 60, mode: 
         keyframes = keyframe_frames(input_poses(seq, opts), config)
         position = {f: p for p, f in enumerate(keyframes)}
         if any(r.reset_reason for r in records[1:]) or any(r.index not in position for r in records):
-            raise ValueError(f'seed {seed}: the estimator restarted mid-stream or chose other keyframes than an unbroken stream '
-                             f'would; the window views cannot be reconstructed')
+            raise ValueError(f'{name}: the estimator restarted mid-stream or chose other keyframes than an unbroken '
+                             f'stream would; the window views cannot be reconstructed')
         for r in records:
             others = window_others(keyframes, position[r.index], config.window_size, window_mode)
             views = views_of_window(r.gt_depth_hw, r.K_33, r.gt_T_world_cam_44, [seq.pose(j) for j in others])
             acc.add(r.depth_hw, r.gt_depth_hw, views, r.image_hw3)
         if progress:
-            progress(f'seed {seed}: {len(records)} keyframes, pooled abs_rel so far {acc.total[0] / max(acc.total[1], 1):.4f}')
+            so_far = acc.total[0] / max(acc.total[1], 1)
+            progress(f'{name}: {len(records)} keyframes, pooled abs_rel so far {so_far:.4f}')
     if acc is None:
-        raise ValueError('no seeds given')
+        raise ValueError('no sequences given (--seeds and --seqs are both empty)')
     return acc.summary()
 
 
 def main(argv: Optional[List[str]] = None) -> int:
     ap = argparse.ArgumentParser(prog='error_breakdown', description=__doc__.split('\n\n')[0])
     ap.add_argument('--weights', default='dpv_sensor/weights/lite.safetensors')
-    ap.add_argument('--seeds', default='20-25', help='held-out rendered seeds (0..99)')
+    ap.add_argument('--seeds', default='20-25', help="held-out rendered seeds (0..99); '' for none")
+    ap.add_argument('--seqs', nargs='*', default=[], help='sequence folders with GT depth and poses (../shared/data)')
     ap.add_argument('--frames', type=int, default=60, help='frames per sequence (320x240, 30 Hz)')
     ap.add_argument('--mode', default='knet', help='filter_mode')
     ap.add_argument('--window-mode', default='causal', choices=('causal', 'centered'))
@@ -258,21 +261,30 @@ def main(argv: Optional[List[str]] = None) -> int:
     a = ap.parse_args(argv)
     import torch
     from dpv_sensor.benchmarks.heldout import load_model
+    from dpv_sensor.data.sequence import Sequence as SequenceFolder
+    from dpv_sensor.data.synthetic import render_sequence
     from dpv_sensor.training.dataset import check_heldout_seeds, parse_seeds
     torch.set_num_threads(a.threads)
     try:
         seeds = check_heldout_seeds(parse_seeds(a.seeds))
+        items = [(f'synthetic seed {s}', render_sequence(s, a.frames, width=320, height=240, lazy=True), s)
+                 for s in seeds]
+        for folder in a.seqs:
+            try:
+                items.append((folder, SequenceFolder(folder), 0))
+            except Exception as e:
+                raise ValueError(f'cannot read sequence folder {folder}: {type(e).__name__}: {e}') from None
         try:
             model, _ = load_model(a.weights)
         except Exception as e:
             raise ValueError(f'cannot load weights {a.weights}: {type(e).__name__}: {e}') from None
-        summary = breakdown_sequences(model, seeds, frames=a.frames, mode=a.mode, window_mode=a.window_mode,
+        summary = breakdown_sequences(model, items, mode=a.mode, window_mode=a.window_mode,
                                       pose_noise=tuple(a.pose_noise), progress=lambda m: print(m, flush=True))
     except ValueError as e:
         print(f'error_breakdown: {e}', file=sys.stderr)
         return 2
-    summary.update(weights=a.weights, seeds=list(seeds), frames=a.frames, mode=a.mode, window_mode=a.window_mode,
-                   pose_noise=list(a.pose_noise))
+    summary.update(weights=a.weights, seeds=list(seeds), seqs=list(a.seqs), frames=a.frames, mode=a.mode,
+                   window_mode=a.window_mode, pose_noise=list(a.pose_noise))
     print(markdown(summary))
     if a.out:
         out = pathlib.Path(a.out)
@@ -280,7 +292,8 @@ def main(argv: Optional[List[str]] = None) -> int:
         with open(out / 'error_breakdown.json', 'w') as f:
             json.dump(summary, f, indent=1)
         plot(summary, out / 'error_breakdown.png',
-             title=f'{pathlib.Path(a.weights).name}, seeds {a.seeds}, {a.mode}, {a.window_mode}')
+             title=f'{pathlib.Path(a.weights).name}, seeds {a.seeds or "-"} '
+                   f'{" ".join(pathlib.Path(f).name for f in a.seqs)}, {a.mode}, {a.window_mode}')
         print(f'wrote {out}/error_breakdown.json and .png')
     return 0
 
