@@ -443,6 +443,30 @@ def test_selection_benchmark_scores_weight_files_like_the_streaming_validation(t
         assert 'CUDA is not available' in capsys.readouterr().err
 
 
+def test_selection_paired_differences_by_hand():
+    """Per-seed scores are the mean of the GT and noisy abs_rel; differences are paired by seed."""
+    from dpv_sensor.benchmarks import selection
+
+    def res(gt, noisy=None):
+        r = {'stream_net_knet': {'per_seed': gt}}
+        if noisy is not None:
+            r['stream_noisy_net_knet'] = {'per_seed': noisy}
+        return r
+    results = {'A': res([0.10, 0.20, 0.30], [0.30, 0.40, 0.50]),      # scores 0.20 0.30 0.40
+               'B': res([0.10, 0.10, 0.30], [0.30, 0.30, 0.70]),      # scores 0.20 0.20 0.50: d = 0, -0.1, +0.1
+               'C': res([0.15, 0.25, 0.35], [0.25, 0.35, 0.45])}      # scores 0.20 0.30 0.40: d = 0 everywhere
+    rows = selection.paired_differences(results)
+    assert [r['weights'] for r in rows] == ['B', 'C'] and rows[0]['base'] == 'A'
+    assert rows[0]['mean_diff'] == pytest.approx(0.0, abs=1e-12) and rows[0]['std_err'] == pytest.approx(0.1 / 3 ** 0.5)
+    assert rows[0]['seeds_better'] == 1 and rows[0]['seeds'] == 3
+    assert rows[1]['mean_diff'] == pytest.approx(0.0, abs=1e-12) and rows[1]['std_err'] == pytest.approx(0.0, abs=1e-12)
+    assert '| B | +0.0000 | 0.0577 | 1 of 3 |' in selection.difference_table(rows, 'knet')
+    # GT poses only: the GT column alone; a single file: nothing to compare
+    only_gt = selection.paired_differences({'A': res([0.1, 0.2]), 'B': res([0.2, 0.2])})
+    assert only_gt[0]['mean_diff'] == pytest.approx(0.05) and only_gt[0]['seeds_better'] == 0
+    assert selection.paired_differences({'A': res([0.1])}) == [] and selection.difference_table([], 'knet') == ''
+
+
 def _all_ranks_worker(rank, world, port, flags, out_dir):
     import os
     os.environ.update(MASTER_ADDR='127.0.0.1', MASTER_PORT=str(port))

@@ -9,7 +9,10 @@ for reporting), and pick by the mean of the two columns.
     .venv/bin/python -m dpv_sensor.benchmarks.selection --weights A.safetensors B.safetensors --seeds 20-25 \
         [--frames 60] [--pose-noise 0.03 0.5] [--modes knet] [--threads 2] [--device cpu] [--out selection.json]
 
-Prints a table (weights, abs_rel with GT poses, with noisy poses, their mean, delta1, confident-half ratios).
+Prints a table (weights, abs_rel with GT poses, with noisy poses, their mean, delta1, confident-half ratios) and,
+with several weights, each one's paired difference from the first: the mean over seeds of its per-seed score minus
+the first's (score = the mean of the GT and noisy abs_rel of that seed), with its standard error and how many seeds
+it wins. A difference within about two standard errors is noise: six seeds rarely separate 0.004.
 """
 from __future__ import annotations
 
@@ -65,6 +68,42 @@ def markdown_table(results: Dict[str, Dict], modes) -> str:
     return '\n'.join(lines)
 
 
+def per_seed_scores(result: Dict, mode: str) -> np.ndarray:
+    """Per-seed score of one weights file: abs_rel with GT poses, averaged with the noisy-pose one when present."""
+    cols = [np.asarray(result[k]['per_seed'], np.float64) for k in (stream_metric_key(mode, False),
+                                                                      stream_metric_key(mode, True)) if k in result]
+    if not cols:
+        raise KeyError(f'no per-seed scores for mode {mode!r}')
+    return np.mean(cols, axis=0)
+
+
+def paired_differences(results: Dict[str, Dict], mode: str = 'knet') -> List[Dict]:
+    """For each weights file after the first: mean per-seed score difference to the first (negative = better),
+    its standard error (NaN with one seed) and the number of seeds where it is lower."""
+    names = list(results)
+    if len(names) < 2:
+        return []
+    base = per_seed_scores(results[names[0]], mode)
+    rows = []
+    for name in names[1:]:
+        d = np.round(per_seed_scores(results[name], mode) - base, 9)   # per-seed figures carry 4 decimals
+        se = float(d.std(ddof=1) / np.sqrt(d.size)) if d.size > 1 else float('nan')
+        rows.append({'weights': name, 'base': names[0], 'mean_diff': float(d.mean()) + 0.0, 'std_err': se,
+                     'seeds_better': int((d < 0).sum()), 'seeds': int(d.size)})
+    return rows
+
+
+def difference_table(rows: List[Dict], mode: str) -> str:
+    if not rows:
+        return ''
+    lines = [f'paired difference from {rows[0]["base"]} ({mode}, per-seed mean of GT and noisy abs_rel; '
+             f'negative = better):', '', '| weights | difference | standard error | seeds better |', '|---|---|---|---|']
+    for r in rows:
+        lines.append(f"| {r['weights']} | {r['mean_diff']:+.4f} | {r['std_err']:.4f} | "
+                     f"{r['seeds_better']} of {r['seeds']} |")
+    return '\n'.join(lines)
+
+
 def main(argv: Optional[List[str]] = None) -> int:
     ap = argparse.ArgumentParser(prog='selection', description=__doc__.split('\n\n')[0])
     ap.add_argument('--weights', nargs='+', required=True, help='exported .safetensors (or a run dir\'s best_model)')
@@ -86,11 +125,16 @@ def main(argv: Optional[List[str]] = None) -> int:
     except ValueError as e:        # bad seeds / modes, weights that do not load, a device that is missing
         print(f'selection: {e}', file=sys.stderr)
         return 2
+    diffs = {mode: paired_differences(res, mode) for mode in spec.modes}
     if a.out:
         with open(a.out, 'w') as f:
             json.dump({'seeds': list(spec.seeds), 'frames': spec.frames, 'pose_noise': list(spec.pose_noise),
-                       'results': res}, f, indent=1)
+                       'results': res, 'paired_differences': diffs}, f, indent=1)
     print(markdown_table(res, spec.modes))
+    for mode, rows in diffs.items():
+        if rows:
+            print()
+            print(difference_table(rows, mode))
     return 0
 
 
