@@ -210,6 +210,27 @@ def _bilinear_valid(img: np.ndarray, u: np.ndarray, v: np.ndarray) -> Tuple[np.n
     return val, ok
 
 
+def reproject(depth_hw: np.ndarray, K_a: np.ndarray, K_b: np.ndarray, T_b_a: np.ndarray,
+              size_b_hw: Tuple[int, int]) -> Tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Move every pixel of camera a, at ``depth_hw`` (metres; use 0 where there is none), into camera b.
+
+    Returns flat arrays over a's pixels (row-major): b's pixel coordinates u, v, the depth z in b, and whether
+    the point lies in front of b (z > 1e-6) and inside its ``(H, W)`` image (``0..W-1`` x ``0..H-1``)."""
+    H, W = np.shape(depth_hw)
+    Hb, Wb = size_b_hw
+    T_b_a = np.asarray(T_b_a, np.float64)
+    v, u = np.mgrid[0:H, 0:W].astype(np.float64)
+    rays = np.linalg.inv(np.asarray(K_a, np.float64)) @ np.stack([u.ravel(), v.ravel(), np.ones(H * W)])
+    X = rays * np.asarray(depth_hw, np.float64).ravel()[None]
+    Xb = T_b_a[:3, :3] @ X + T_b_a[:3, 3:4]
+    z = Xb[2]
+    zs = np.where(z > 1e-6, z, 1.0)
+    p = np.asarray(K_b, np.float64) @ Xb
+    ub, vb = p[0] / zs, p[1] / zs
+    inside = (z > 1e-6) & (ub >= 0) & (ub <= Wb - 1) & (vb >= 0) & (vb <= Hb - 1)
+    return ub, vb, z, inside
+
+
 def temporal_consistency(depth_a: np.ndarray, depth_b: np.ndarray, K_a: np.ndarray, K_b: np.ndarray,
                          T_world_a: np.ndarray, T_world_b: np.ndarray, *,
                          gt_a: Optional[np.ndarray] = None, gt_b: Optional[np.ndarray] = None,
@@ -232,18 +253,9 @@ def temporal_consistency(depth_a: np.ndarray, depth_b: np.ndarray, K_a: np.ndarr
     H, W = da.shape
     Hb, Wb = db.shape
     T_b_a = np.linalg.inv(np.asarray(T_world_b, np.float64)) @ np.asarray(T_world_a, np.float64)
-    v, u = np.mgrid[0:H, 0:W].astype(np.float64)
-    rays = np.linalg.inv(np.asarray(K_a, np.float64)) @ np.stack([u.ravel(), v.ravel(), np.ones(H * W)])
 
     def move(depth_flat):
-        X = rays * depth_flat[None]
-        Xb = T_b_a[:3, :3] @ X + T_b_a[:3, 3:4]
-        z = Xb[2]
-        zs = np.where(z > 1e-6, z, 1.0)
-        p = np.asarray(K_b, np.float64) @ Xb
-        ub, vb = p[0] / zs, p[1] / zs
-        inside = (z > 1e-6) & (ub >= 0) & (ub <= Wb - 1) & (vb >= 0) & (vb <= Hb - 1)
-        return ub, vb, z, inside
+        return reproject(depth_flat.reshape(H, W), K_a, K_b, T_b_a, (Hb, Wb))
 
     flat = da.ravel()
     have = pred_valid_mask(flat)

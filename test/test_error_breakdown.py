@@ -19,13 +19,14 @@ def _pose(x=0.0, z=0.0):
 
 
 def test_views_of_a_sideways_step_leave_the_leading_columns_unseen():
-    """Plane at 2 m, fx 100: a camera 0.2 m to the right of the other sees u in the other at u + 100*0.2/2 = u + 10,
-    so the last 10 of 64 columns lie outside the other image; a second, identical other camera doubles the count."""
+    """Plane at 2 m, fx 100: a camera 0.205 m to the right of the other sees u in the other at
+    u + 100*0.205/2 = u + 10.25, so columns 53..63 (u + 10.25 > 63) lie outside the other image; a second,
+    identical other camera doubles the count."""
     gt = np.full((48, 64), 2.0)
     K = _K()
-    views = eb.views_of_window(gt, K, _pose(0.2), [_pose(0.0)])
-    assert (views[:, :54] == 1).all() and (views[:, 54:] == 0).all()
-    views2 = eb.views_of_window(gt, K, _pose(0.2), [_pose(0.0), _pose(0.0)])
+    views = eb.views_of_window(gt, K, _pose(0.205), [_pose(0.0)])
+    assert (views[:, :53] == 1).all() and (views[:, 53:] == 0).all()
+    views2 = eb.views_of_window(gt, K, _pose(0.205), [_pose(0.0), _pose(0.0)])
     assert (views2 == 2 * views).all()
     # a camera behind the plane's far side (moved 3 m forward, past the plane) sees nothing; no GT -> 0
     assert (eb.views_of_window(gt, K, _pose(0.0), [_pose(0.0, z=3.0)]) == 0).all()

@@ -44,27 +44,18 @@ GRID = 8
 
 def views_of_window(gt_depth_hw: np.ndarray, K_33: np.ndarray, T_world_cam_44: np.ndarray,
                     others_T_world_cam: Sequence[np.ndarray]) -> np.ndarray:
-    """Per pixel, how many of the other cameras (same K and image size) have its GT 3-D point in their image.
-
-    A point counts as in view when it lies more than 5 cm in front of the camera and projects inside
-    ``[0, W-1] x [0, H-1]``. Pixels without GT (0 / NaN) count 0. Occlusion is not checked.
-    """
+    """Per pixel, how many of the other cameras (same K and image size) have its GT 3-D point in their image
+    (in front of the camera, inside ``[0, W-1] x [0, H-1]``; :func:`dpv_sensor.metrics.reproject`). Pixels without
+    GT (0 / NaN) count 0. Occlusion is not checked."""
     gt = np.asarray(gt_depth_hw, np.float64)
-    H, W = gt.shape
-    K = np.asarray(K_33, np.float64)
-    valid = np.isfinite(gt) & (gt > 0)
+    valid = M.gt_valid_mask(gt)
     z = np.where(valid, gt, 0.0)
-    v, u = np.mgrid[0:H, 0:W].astype(np.float64)
-    pts_cam = np.stack([(u - K[0, 2]) / K[0, 0] * z, (v - K[1, 2]) / K[1, 1] * z, z, np.ones_like(z)], axis=-1)
-    pts_world = pts_cam @ np.asarray(T_world_cam_44, np.float64).T
-    count = np.zeros((H, W), np.int32)
+    count = np.zeros(gt.shape, np.int32)
+    T_world_cam = np.asarray(T_world_cam_44, np.float64)
     for T_other in others_T_world_cam:
-        p = pts_world @ np.linalg.inv(np.asarray(T_other, np.float64)).T
-        zc = p[..., 2]
-        with np.errstate(divide='ignore', invalid='ignore'):
-            uo = K[0, 0] * p[..., 0] / zc + K[0, 2]
-            vo = K[1, 1] * p[..., 1] / zc + K[1, 2]
-            count += valid & (zc > 0.05) & (uo >= 0) & (uo <= W - 1) & (vo >= 0) & (vo <= H - 1)
+        T_other_cam = np.linalg.inv(np.asarray(T_other, np.float64)) @ T_world_cam
+        inside = M.reproject(z, K_33, K_33, T_other_cam, gt.shape)[3].reshape(gt.shape)
+        count += valid & inside
     return count
 
 
