@@ -44,7 +44,8 @@ TRAIN_SEED_BASE = 1_000_000
 VAL_SEEDS = range(0, 100)
 
 __all__ = ['TRAIN_SEED_BASE', 'VAL_SEEDS', 'WindowLayout', 'Augment', 'StreamConfig',
-           'SceneStream', 'sample_from_sequence', 'scale_K_np', 'resize_crop', 'check_not_heldout', 'check_heldout_seeds', 'parse_seeds']
+           'SceneStream', 'sample_from_sequence', 'scale_K_np', 'resize_crop', 'check_not_heldout',
+           'check_heldout_seeds', 'parse_seeds']
 
 
 def parse_seeds(text: str) -> Tuple[int, ...]:
