@@ -30,6 +30,7 @@ from typing import Tuple
 import torch
 import torch.nn.functional as F
 
+from . import params as _params
 from .dpv import depth_planes
 from .geometry import plane_sweep_warp, scale_intrinsics
 
@@ -88,7 +89,8 @@ class ClassicalMeasurement:
             get scores near 0 and hence near-uniform, low-confidence DPVs.
     """
 
-    def __init__(self, d_min: float = 0.3, d_max: float = 8.0, num_planes: int = 64,
+    def __init__(self, d_min: float = _params.default('d_min'), d_max: float = _params.default('d_max'),
+                 num_planes: int = _params.default('num_planes'),
                  temperature: float = 0.07, patch: int = 5, downscale: int = 4, eps: float = 1e-4,
                  aggregate: int = 5):
         if patch < 1 or patch % 2 == 0:

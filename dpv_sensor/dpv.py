@@ -12,6 +12,7 @@ from typing import Optional
 
 import torch
 
+from . import params as _params
 from .geometry import inverse_depth_index
 
 __all__ = [
@@ -157,8 +158,8 @@ _READOUT_FN = {'mean': expected_depth, 'median': median_depth, 'relative': relat
 # Chosen on training scenes (rendered training seeds, TartanAir hospital); the held-out figures are in the
 # README. A classical NCC volume is nearly flat on weak texture, and reweighting a flat DPV by 1/d (or
 # taking its median) moves those pixels to the nearest planes, where its mean stays mid-range.
-DEFAULT_READOUT = 'auto'
-READOUT_CHOICES = ('auto',) + READOUTS      # what depth_readout accepts (params.py lists the same)
+DEFAULT_READOUT = _params.default('depth_readout')
+READOUT_CHOICES = _params.choices('depth_readout')      # what depth_readout accepts (the settings table's list)
 
 
 def resolve_readout(readout: str, learned: bool) -> str:
@@ -240,8 +241,8 @@ def ratio_confidence(logp_bdhw: torch.Tensor, depths_d: torch.Tensor, depth_bhw:
     return _mass_in_index_window(logp_bdhw, lo, hi)
 
 
-CONFIDENCES = ('plane', 'ratio')
-DEFAULT_CONFIDENCE = 'ratio'
+CONFIDENCES = _params.choices('confidence')
+DEFAULT_CONFIDENCE = _params.default('confidence')
 
 
 def published_confidence(logp_bdhw: torch.Tensor, depths_d: torch.Tensor, depth_bhw: torch.Tensor,

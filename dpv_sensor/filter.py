@@ -36,6 +36,7 @@ from typing import Callable, List, Optional
 
 import torch
 
+from . import params as _params
 from .dpv import LOG_FLOOR, clamp_log
 from .geometry import invert_se3, rotation_angle, warp_volume
 
@@ -92,7 +93,7 @@ class DPVFilter:
         log_floor: lowest log-probability kept (energies are capped at -log_floor).
     """
 
-    def __init__(self, mode: str = 'global', damping: float = 0.8,
+    def __init__(self, mode: str = 'global', damping: float = _params.default('damping'),
                  knet: Optional[Callable[[torch.Tensor, Optional[torch.Tensor]], torch.Tensor]] = None,
                  max_time_gap: float = 1.0, max_translation: float = 1.0, max_rotation_deg: float = 30.,
                  log_floor: float = LOG_FLOOR):

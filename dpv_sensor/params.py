@@ -1,14 +1,24 @@
-"""The node's parameters: one typed, range-checked table (no ROS import).
+"""The settings tables: every setting's description, default, range and choices, written once.
 
-The node declares exactly these (with descriptors built from this table), `config/dpv_sensor.yaml` documents
-them with the same defaults (a test keeps the two in step), and `validate()` rejects bad values at start with a
-message naming the parameter, the value and the allowed range.
+``SPECS`` are the node's ROS parameters, in two scopes: ``estimator`` (fields of ``EstimatorConfig``, the
+streaming core and its pose source: the same names offline, in ``evaluate --config`` and in the node) and
+``node`` (topics, QoS, encodings, the odometry buffer, camera intrinsics: fields of :class:`NodeConfig`).
+``LIBRARY_SPECS`` are estimator settings that are not node parameters (window size, volume scale, coverage,
+autocast dtype). From this one table come: the node's parameter declarations (``node.declare_parameters``),
+``EstimatorConfig`` and ``NodeConfig`` (:func:`make_config_class`), ``config/dpv_sensor.yaml``
+(:func:`yaml_text`; a test keeps the file equal to it), the ``key=value`` parser of the tools
+(:func:`parse_assignments`), and validation (:func:`check_value`, :func:`validate`), so a bad value is refused
+with the same message by the node, the estimator and ``evaluate``. No ROS import here.
 """
 from __future__ import annotations
 
+import dataclasses
 import math
+import textwrap
 from dataclasses import dataclass
-from typing import Any, Sequence
+from typing import Any, Iterable, Sequence
+
+SCOPES = ('estimator', 'node', 'library')
 
 
 @dataclass(frozen=True)
@@ -20,10 +30,15 @@ class ParamSpec:
     min_value: float | None = None
     max_value: float | None = None
     length: int | None = None  # fixed length of an array parameter
+    scope: str = 'estimator'   # one of SCOPES
 
     @property
     def kind(self) -> type:
         return type(self.default)
+
+    def fresh_default(self) -> Any:
+        """The default (a new list for array settings)."""
+        return list(self.default) if isinstance(self.default, list) else self.default
 
 
 IDENTITY_POSE = [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0]
@@ -90,15 +105,15 @@ SPECS: tuple[ParamSpec, ...] = (
     ParamSpec('odometry', 'topic', 'Pose source: topic (nav_msgs/Odometry on `odom`) or none (visual alignment).',
               choices=('topic', 'none')),
     ParamSpec('T_base_camera', list(IDENTITY_POSE), 'Static camera pose in the odometry child frame: '
-              '[x, y, z, qx, qy, qz, qw] (identity: odometry already tracks the optical frame).', length=7),
+              '[x, y, z, qx, qy, qz, qw] (identity: odometry already tracks the optical frame).', length=7, scope='node'),
     ParamSpec('odom_wait_timeout', 0.5, 'How long an image waits for odometry that brackets its stamp (s).',
-              min_value=0.0, max_value=60.0),
+              min_value=0.0, max_value=60.0, scope='node'),
     ParamSpec('max_odom_gap', 0.5, 'Largest gap between the two odometry messages an image pose is '
-              'interpolated from (s).', min_value=0.0, max_value=60.0),
+              'interpolated from (s).', min_value=0.0, max_value=60.0, scope='node'),
     ParamSpec('odom_max_speed', 10.0, 'An odometry step faster than this (m/s, and over 0.1 m) is a teleport: the '
-              'pose buffer restarts and so does the estimator. 0 disables.', min_value=0.0, max_value=1e4),
+              'pose buffer restarts and so does the estimator. 0 disables.', min_value=0.0, max_value=1e4, scope='node'),
     ParamSpec('odom_max_rate_deg', 720.0, 'An odometry step turning faster than this (deg/s, and over 10 deg) is a '
-              'teleport (as odom_max_speed). 0 disables.', min_value=0.0, max_value=1e6),
+              'teleport (as odom_max_speed). 0 disables.', min_value=0.0, max_value=1e6, scope='node'),
     ParamSpec('pose_refinement', 'off', 'Sliding-window pose refinement with gtsam: off or window.',
               choices=('off', 'window')),
     ParamSpec('odom_sigma_rot_deg', 0.5, 'Pose refinement: rotation std of the odometry between two keyframes '
@@ -109,14 +124,14 @@ SPECS: tuple[ParamSpec, ...] = (
               'part proportional to the distance travelled (0.03 = 3 %).', min_value=0.0, max_value=10.0),
     # --- camera -------------------------------------------------------------------------------------------
     ParamSpec('camera_info_source', 'topic', 'Intrinsics from the camera_info topic or from the fx/fy/cx/cy '
-              'parameters.', choices=('topic', 'parameters')),
-    ParamSpec('fx', 0.0, 'Focal length x (px) when camera_info_source is parameters.', min_value=0.0),
-    ParamSpec('fy', 0.0, 'Focal length y (px).', min_value=0.0),
-    ParamSpec('cx', 0.0, 'Principal point x (px).', min_value=0.0),
-    ParamSpec('cy', 0.0, 'Principal point y (px).', min_value=0.0),
+              'parameters.', choices=('topic', 'parameters'), scope='node'),
+    ParamSpec('fx', 0.0, 'Focal length x (px) when camera_info_source is parameters.', min_value=0.0, scope='node'),
+    ParamSpec('fy', 0.0, 'Focal length y (px).', min_value=0.0, scope='node'),
+    ParamSpec('cx', 0.0, 'Principal point x (px).', min_value=0.0, scope='node'),
+    ParamSpec('cy', 0.0, 'Principal point y (px).', min_value=0.0, scope='node'),
     # --- output -------------------------------------------------------------------------------------------
     ParamSpec('depth_encoding', '32FC1', 'depth/image encoding: 32FC1 metres (NaN = none) or 16UC1 millimetres '
-              '(0 = none), REP 118.', choices=('32FC1', '16UC1')),
+              '(0 = none), REP 118.', choices=('32FC1', '16UC1'), scope='node'),
     ParamSpec('output_resolution', 'input', 'Output image size: input (the camera\'s) or processing.',
               choices=('input', 'processing')),
     ParamSpec('confidence', 'ratio', 'What the confidence image holds: ratio (the probability under the DPV that '
@@ -129,61 +144,231 @@ SPECS: tuple[ParamSpec, ...] = (
               min_value=0.0, max_value=1.0),
     # --- transport ----------------------------------------------------------------------------------------
     ParamSpec('input_reliability', 'best_effort', 'QoS reliability of the subscriptions (sensor data default).',
-              choices=('best_effort', 'reliable')),
-    ParamSpec('input_depth', 5, 'QoS history depth of the subscriptions.', min_value=1, max_value=1000),
+              choices=('best_effort', 'reliable'), scope='node'),
+    ParamSpec('input_depth', 5, 'QoS history depth of the subscriptions.', min_value=1, max_value=1000, scope='node'),
     ParamSpec('output_reliability', 'reliable', 'QoS reliability of the publishers.',
-              choices=('best_effort', 'reliable')),
-    ParamSpec('output_depth', 5, 'QoS history depth of the publishers.', min_value=1, max_value=1000),
-    ParamSpec('diagnostics_period', 1.0, 'Seconds between /diagnostics messages.', min_value=0.05, max_value=60.0),
+              choices=('best_effort', 'reliable'), scope='node'),
+    ParamSpec('output_depth', 5, 'QoS history depth of the publishers.', min_value=1, max_value=1000, scope='node'),
+    ParamSpec('diagnostics_period', 1.0, 'Seconds between /diagnostics messages.', min_value=0.05, max_value=60.0, scope='node'),
 )
 
-SPEC_BY_NAME = {s.name: s for s in SPECS}
+
+# Estimator settings that are not node parameters (library knobs with sensible defaults).
+LIBRARY_SPECS: tuple[ParamSpec, ...] = (
+    ParamSpec('window_size', 5, 'Keyframes in a window (paper: 5; odd for the centered window).',
+              min_value=2, max_value=31, scope='library'),
+    ParamSpec('classical_downscale', 4, 'Volume resolution of the classical model: image size / this.',
+              min_value=1, max_value=16, scope='library'),
+    ParamSpec('min_coverage', 0.5, 'Fraction of a ray\'s plane samples that must project into at least one '
+              'source view for the pixel to get an estimate.', min_value=1e-6, max_value=1.0, scope='library'),
+    ParamSpec('amp_dtype', 'bfloat16', 'Autocast dtype of the networks on CUDA, or none.',
+              choices=('bfloat16', 'float16', 'none'), scope='library'),
+)
+
+SPEC_BY_NAME = {s.name: s for s in SPECS + LIBRARY_SPECS}
+ESTIMATOR_SPECS = tuple(s for s in SPECS + LIBRARY_SPECS if s.scope in ('estimator', 'library'))
+NODE_SPECS = tuple(s for s in SPECS if s.scope == 'node')
 
 
 class ParameterError(ValueError):
     """A parameter value outside its type, choices or range."""
 
 
-def defaults() -> dict[str, Any]:
-    return {s.name: (list(s.default) if isinstance(s.default, list) else s.default) for s in SPECS}
+def spec(name: str) -> ParamSpec:
+    try:
+        return SPEC_BY_NAME[name]
+    except KeyError:
+        raise ParameterError(f"unknown setting '{name}'; known: {', '.join(sorted(SPEC_BY_NAME))}") from None
 
 
-def validate(values: dict[str, Any]) -> dict[str, Any]:
-    """Check every known parameter; return the values with ints promoted where a float is expected.
+def default(name: str) -> Any:
+    """The one default of a setting."""
+    return spec(name).fresh_default()
 
-    Raises ParameterError naming the first offending parameter.
-    """
-    out = dict(values)
-    for spec in SPECS:
-        if spec.name not in values:
-            raise ParameterError(f"parameter '{spec.name}' is missing")
-        value = values[spec.name]
-        kind = spec.kind
-        if kind is float and isinstance(value, int) and not isinstance(value, bool):
-            value = float(value)
-        if kind is list:
-            if not isinstance(value, (list, tuple)) or (spec.length and len(value) != spec.length):
-                raise ParameterError(f"parameter '{spec.name}' must be a list of {spec.length} numbers, got {value!r}")
-            value = [float(v) for v in value]
-            if not all(math.isfinite(v) for v in value):
-                raise ParameterError(f"parameter '{spec.name}' has a non-finite entry: {value!r}")
-        elif not isinstance(value, kind) or (kind is int and isinstance(value, bool)):
-            raise ParameterError(f"parameter '{spec.name}' must be {kind.__name__}, got {value!r}")
-        if spec.choices is not None and value not in spec.choices:
-            raise ParameterError(f"parameter '{spec.name}' = {value!r} is not one of {list(spec.choices)}")
-        if kind in (int, float):
-            if not math.isfinite(value):
-                raise ParameterError(f"parameter '{spec.name}' = {value!r} is not finite")
-            if spec.min_value is not None and value < spec.min_value:
-                raise ParameterError(f"parameter '{spec.name}' = {value!r} is below its minimum {spec.min_value}")
-            if spec.max_value is not None and value > spec.max_value:
-                raise ParameterError(f"parameter '{spec.name}' = {value!r} is above its maximum {spec.max_value}")
-        out[spec.name] = value
-    if out['d_min'] >= out['d_max']:
-        raise ParameterError(f"d_min ({out['d_min']}) must be below d_max ({out['d_max']})")
-    if out['camera_info_source'] == 'parameters' and min(out['fx'], out['fy']) <= 0.0:
+
+def choices(name: str) -> tuple:
+    """The choices of a setting (its one list)."""
+    return tuple(spec(name).choices or ())
+
+
+def defaults(specs: Iterable[ParamSpec] = SPECS) -> dict[str, Any]:
+    """{name: default} of the node's parameters (or of ``specs``)."""
+    return {s.name: s.fresh_default() for s in specs}
+
+
+def check_value(s: ParamSpec, value: Any) -> Any:
+    """``value`` checked against its spec (type, choices, range); ints promoted where a float is expected.
+    Raises ParameterError with the one message every front end shows."""
+    kind = s.kind
+    if kind is float and isinstance(value, int) and not isinstance(value, bool):
+        value = float(value)
+    if kind is list:
+        if not isinstance(value, (list, tuple)) or (s.length and len(value) != s.length):
+            raise ParameterError(f"parameter '{s.name}' must be a list of {s.length} numbers, got {value!r}")
+        value = [float(v) for v in value]
+        if not all(math.isfinite(v) for v in value):
+            raise ParameterError(f"parameter '{s.name}' has a non-finite entry: {value!r}")
+    elif not isinstance(value, kind) or (kind is int and isinstance(value, bool)):
+        raise ParameterError(f"parameter '{s.name}' must be {kind.__name__}, got {value!r}")
+    if s.choices is not None and value not in s.choices:
+        raise ParameterError(f"parameter '{s.name}' = {value!r} is not one of {list(s.choices)}")
+    if kind in (int, float):
+        if not math.isfinite(value):
+            raise ParameterError(f"parameter '{s.name}' = {value!r} is not finite")
+        if s.min_value is not None and value < s.min_value:
+            raise ParameterError(f"parameter '{s.name}' = {value!r} is below its minimum {s.min_value}")
+        if s.max_value is not None and value > s.max_value:
+            raise ParameterError(f"parameter '{s.name}' = {value!r} is above its maximum {s.max_value}")
+    return value
+
+
+def check_relations(values: dict[str, Any]) -> None:
+    """The rules between settings, for whichever of them ``values`` holds."""
+    if 'd_min' in values and 'd_max' in values and values['d_min'] >= values['d_max']:
+        raise ParameterError(f"d_min ({values['d_min']}) must be below d_max ({values['d_max']})")
+    if values.get('camera_info_source') == 'parameters' and min(values['fx'], values['fy']) <= 0.0:
         raise ParameterError("camera_info_source is 'parameters' but fx/fy are not set (> 0)")
-    q = out['T_base_camera'][3:]
-    if abs(math.sqrt(sum(c * c for c in q)) - 1.0) > 1e-3:
-        raise ParameterError(f"T_base_camera quaternion {q} is not unit length")
+    if 'T_base_camera' in values:
+        q = values['T_base_camera'][3:]
+        if abs(math.sqrt(sum(c * c for c in q)) - 1.0) > 1e-3:
+            raise ParameterError(f"T_base_camera quaternion {q} is not unit length")
+    if 'window_size' in values and 'window_mode' in values and values['window_mode'] == 'centered' \
+            and values['window_size'] % 2 != 1:
+        raise ParameterError(f"window_size {values['window_size']} does not fit window_mode 'centered' (odd)")
+
+
+def validate(values: dict[str, Any], specs: Sequence[ParamSpec] = SPECS) -> dict[str, Any]:
+    """Check every setting of ``specs`` (all must be present) and the relations between them; return the values
+    with ints promoted where a float is expected. Raises ParameterError naming the first offending setting."""
+    out = dict(values)
+    for s in specs:
+        if s.name not in values:
+            raise ParameterError(f"parameter '{s.name}' is missing")
+        out[s.name] = check_value(s, values[s.name])
+    check_relations(out)
     return out
+
+
+# ------------------------------------------------------------------------------------------------------
+# config classes built from the table
+# ------------------------------------------------------------------------------------------------------
+
+def make_config_class(name: str, specs: Sequence[ParamSpec], doc: str, namespace: dict | None = None) -> type:
+    """A dataclass with one field per spec (default from the table) plus ``validate()`` (table checks and
+    relations; returns self), ``from_params(values)`` (the fields named in ``values``, others default; validated)
+    and ``as_dict()``. ``namespace``: extra methods / properties."""
+
+    def validate_(self):
+        values = validate({s.name: getattr(self, s.name) for s in specs}, specs)
+        for k, v in values.items():
+            setattr(self, k, v)
+        return self
+
+    @classmethod
+    def from_params(cls, values: dict[str, Any]):
+        names = {s.name for s in specs}
+        return cls(**{k: v for k, v in values.items() if k in names}).validate()
+
+    def as_dict(self) -> dict[str, Any]:
+        return {s.name: getattr(self, s.name) for s in specs}
+
+    fields = [(s.name, s.kind, dataclasses.field(default_factory=s.fresh_default) if s.kind is list
+               else dataclasses.field(default=s.default)) for s in specs]
+    ns = {'validate': validate_, 'from_params': from_params, 'as_dict': as_dict, 'SPECS': tuple(specs),
+          '__doc__': doc}
+    ns.update(namespace or {})
+    return dataclasses.make_dataclass(name, fields, namespace=ns)
+
+
+NodeConfig = make_config_class('NodeConfig', NODE_SPECS, """The node's own settings (topics, QoS, encodings,
+odometry buffer, camera intrinsics): the ``node`` scope of the table, one field per setting.""")
+NodeConfig.__module__ = __name__
+
+
+# ------------------------------------------------------------------------------------------------------
+# key=value parsing (the tools' --config / --param)
+# ------------------------------------------------------------------------------------------------------
+
+def parse_value(text: str, like: Any) -> Any:
+    """Parse ``text`` as the type of ``like`` (bool: true/false/1/0/yes/no/on/off; list: comma-separated floats,
+    brackets optional)."""
+    if isinstance(like, bool):
+        low = text.strip().lower()
+        if low in ('true', '1', 'yes', 'on'):
+            return True
+        if low in ('false', '0', 'no', 'off'):
+            return False
+        raise ValueError(f'{text!r} is not a boolean')
+    if isinstance(like, int):
+        return int(text)
+    if isinstance(like, float):
+        return float(text)
+    if isinstance(like, (list, tuple)):
+        return [float(x) for x in text.strip().strip('[]').split(',') if x.strip()]
+    return text
+
+
+def split_assignment(item: str, sep: str = '=') -> tuple[str, str]:
+    """``'key=value'`` (or ``'key:=value'``) -> (key, value); ValueError when there is no separator."""
+    for s in (':=', sep):
+        if s in item:
+            key, value = item.split(s, 1)
+            return key.strip(), value.strip()
+    raise ValueError(f'expected key=value, got {item!r}')
+
+
+def parse_assignments(items: Iterable[str], known: dict[str, Any] | None = None) -> dict[str, Any]:
+    """``['filter_mode=global', 'damping=0.5']`` -> typed dict. ``known``: {key: value of its type}; default
+    every setting of the table. Unknown keys raise ValueError."""
+    known = {n: s.default for n, s in SPEC_BY_NAME.items()} if known is None else known
+    out: dict[str, Any] = {}
+    for item in items:
+        key, value = split_assignment(item)
+        if key not in known:
+            raise ValueError(f'unknown configuration key {key!r}; known: {", ".join(sorted(known))}')
+        out[key] = parse_value(value, known[key])
+    return out
+
+
+# ------------------------------------------------------------------------------------------------------
+# the documented YAML
+# ------------------------------------------------------------------------------------------------------
+
+def _yaml_scalar(value: Any) -> str:
+    if isinstance(value, bool):
+        return 'true' if value else 'false'
+    if isinstance(value, str):
+        return '"' + value.replace('\\', '\\\\').replace('"', '\\"') + '"'
+    if isinstance(value, list):
+        return '[' + ', '.join(_yaml_scalar(v) for v in value) + ']'
+    return repr(value)
+
+
+def _constraint(s: ParamSpec) -> str:
+    if s.choices:
+        return ' (one of ' + ', '.join(map(str, s.choices)) + ')'
+    if s.min_value is not None or s.max_value is not None:
+        lo = '-inf' if s.min_value is None else format(s.min_value, 'g')
+        hi = 'inf' if s.max_value is None else format(s.max_value, 'g')
+        return f' (range [{lo}, {hi}])'
+    return ''
+
+
+def yaml_text() -> str:
+    """config/dpv_sensor.yaml as generated from the table: every node parameter with its default, keyed
+    ``/**:`` so that the file applies to the node under any name and namespace."""
+    lines = ['# dpv_sensor node parameters (ros2 run dpv_sensor node --ros-args --params-file config/dpv_sensor.yaml).',
+             '# Every parameter the node declares is listed here with its default; ranges are checked at start.',
+             '# Generated from dpv_sensor/params.py (python -m dpv_sensor.params > config/dpv_sensor.yaml).',
+             '# Keyed /** so that it applies to the node in any namespace and under any node name.',
+             '/**:', '  ros__parameters:']
+    for s in SPECS:
+        text = s.description + _constraint(s)
+        lines += textwrap.wrap(text, width=112, initial_indent='    # ', subsequent_indent='    # ',
+                               break_on_hyphens=False)
+        lines.append(f'    {s.name}: {_yaml_scalar(s.default)}')
+    return '\n'.join(lines) + '\n'
+
+
+if __name__ == '__main__':
+    print(yaml_text(), end='')

@@ -63,6 +63,8 @@ from typing import Callable, Dict, Hashable, List, Optional, Sequence, Tuple
 import gtsam
 import numpy as np
 
+from dpv_sensor import params as _params
+
 from dpv_sensor.data.trajectory import corrupt_trajectory  # noqa: F401  (re-exported: experiments and tests)
 from dpv_sensor.photometric import (AlignmentConfig, AlignmentResult, Aligner, ImagePyramid,
                                    inverse_depth_std_from_confidence, pose_error)
@@ -120,9 +122,9 @@ class PoseRefinerConfig:
     """
     alignment: AlignmentConfig = field(default_factory=lambda: AlignmentConfig(
         finest_level=1, num_levels=3, max_pixels=2000, step_tolerance=5e-4))
-    odom_sigma_rot_deg: float = 0.5
-    odom_sigma_trans_m: float = 0.002
-    odom_sigma_trans_rel: float = 0.03
+    odom_sigma_rot_deg: float = _params.default('odom_sigma_rot_deg')
+    odom_sigma_trans_m: float = _params.default('odom_sigma_trans_m')
+    odom_sigma_trans_rel: float = _params.default('odom_sigma_trans_rel')
     prior_sigma_rot_deg: float = 1e-3
     prior_sigma_trans_m: float = 1e-5
     photometric_huber_k: float = 3.0

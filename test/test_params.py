@@ -11,7 +11,7 @@ CONFIG = pathlib.Path(__file__).resolve().parents[1] / 'config' / 'dpv_sensor.ya
 
 def test_yaml_documents_every_parameter_with_its_default():
     doc = yaml.safe_load(CONFIG.read_text())
-    values = doc['dpv_sensor']['ros__parameters']
+    values = doc['/**']['ros__parameters']      # keyed /**: applies in any namespace, under any node name
     assert set(values) == {s.name for s in P.SPECS}
     for spec in P.SPECS:
         assert values[spec.name] == spec.default, spec.name
@@ -33,6 +33,10 @@ def test_validation_names_the_parameter_and_the_problem(name, value, message):
     values[name] = value
     with pytest.raises(P.ParameterError, match=message.replace('(', r'\(').replace('[', r'\[')):
         P.validate(values)
+
+
+def test_yaml_is_generated_from_the_table():
+    assert CONFIG.read_text() == P.yaml_text(), 'regenerate: python -m dpv_sensor.params > config/dpv_sensor.yaml'
 
 
 def test_ints_are_accepted_for_floats():

@@ -36,6 +36,8 @@ import numpy as np
 from scipy import ndimage
 
 from dpv_sensor import metrics as M
+from dpv_sensor import params as P
+from dpv_sensor.cli import add_setting
 
 GROSS_ABS_REL = 0.25
 DEPTH_BANDS_M = (0.3, 1.0, 1.5, 2.0, 3.0, 4.0, 8.0)
@@ -206,7 +208,7 @@ def plot(summary: Dict, path, title: Optional[str] = None) -> pathlib.Path:
 
 
 def breakdown_sequences(model, sequences: Sequence[Tuple[str, object, int]], *, mode: str = 'knet',
-                        window_mode: str = 'causal', pose_noise: Tuple[float, float] = (0.0, 0.0),
+                        window_mode: str = P.default('window_mode'), pose_noise: Tuple[float, float] = (0.0, 0.0),
                         device: str = 'cpu', progress=None) -> Dict:
     """Stream ``(name, sequence, seed)`` items through the estimator (node defaults plus mode / window_mode; GT
     poses, or odometry-like ones seeded by ``seed`` when ``pose_noise`` is set) and break down the error."""
@@ -244,7 +246,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     ap.add_argument('--seqs', nargs='*', default=[], help='sequence folders with GT depth and poses (../shared/data)')
     ap.add_argument('--frames', type=int, default=60, help='frames per sequence (320x240, 30 Hz)')
     ap.add_argument('--mode', default='knet', help='filter_mode')
-    ap.add_argument('--window-mode', default='causal', choices=('causal', 'centered'))
+    add_setting(ap, 'window_mode')
     ap.add_argument('--pose-noise', type=float, nargs=2, default=[0.0, 0.0], metavar=('REL_T', 'ROT_DEG'),
                     help='odometry-like pose errors per frame instead of GT poses (default: GT poses)')
     ap.add_argument('--threads', type=int, default=2)

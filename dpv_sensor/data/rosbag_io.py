@@ -23,6 +23,7 @@ from typing import Any, Iterable, Iterator
 import numpy as np
 
 from dpv_sensor import msgs as M
+from dpv_sensor import params as P
 from dpv_sensor.pose_buffer import PoseBuffer, interpolate_pose, make_pose, pose7_to_matrix
 
 NS = 1_000_000_000
@@ -436,7 +437,7 @@ def find_topic(topics: dict, wanted: str, suffix: str, msgtype: str) -> str | No
 def export_depth_bag(path, out_dir, *, depth_topic: str = DEPTH_TOPIC, confidence_topic: str = CONFIDENCE_TOPIC,
                      info_topic: str = DEPTH_INFO_TOPIC, image_topic: str | None = IMAGE_TOPIC,
                      odom_topic: str | None = ODOM_TOPIC, pose_topic: str | None = None, T_base_camera=None,
-                     max_odom_gap: float = 0.5, progress: bool = True) -> dict:
+                     max_odom_gap: float = P.default('max_odom_gap'), progress: bool = True) -> dict:
     """A recorded bag of the node's outputs -> a sequence-folder-like directory.
 
     Writes depth/NNNNNN.png (uint16 mm, 0 = none), confidence/NNNNNN.png (uint16, confidence * 65535),

@@ -34,6 +34,8 @@ import logging
 import pathlib
 import sys
 from typing import List, Optional
+
+from dpv_sensor.cli import add_config
 from dpv_sensor.tools import tool_argv
 
 
@@ -55,9 +57,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = sub.add_parser('sequence', help='run the estimator over a posed RGB-D sequence and score it')
     s.add_argument('source', help='sequence folder, or synthetic:SEED[:FRAMES]')
-    s.add_argument('--config', nargs='*', default=[], metavar='KEY=VALUE',
-                   help='node parameters (config/dpv_sensor.yaml names) and estimator fields, e.g. '
-                        'filter_mode=global processing_width=160; also pose_source=gt|noisy')
+    add_config(s, '; also pose_source=gt|noisy')
     s.add_argument('--compare', nargs='*', default=[], metavar='KEY=V1,V2',
                    help='evaluate every combination of these values, e.g. filter_mode=none,global,knet '
                         'measurement=classical,network preset=lite,paper pose_source=gt,noisy')

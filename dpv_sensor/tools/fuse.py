@@ -21,6 +21,8 @@ import json
 import pathlib
 import sys
 from typing import List, Optional
+
+from dpv_sensor.cli import add_config
 from dpv_sensor.tools import tool_argv
 
 
@@ -43,7 +45,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = sub.add_parser('sequence', help='run the estimator over a sequence, then fuse')
     s.add_argument('source', help='sequence folder, or synthetic:SEED[:FRAMES]')
-    s.add_argument('--config', nargs='*', default=[], metavar='KEY=VALUE', help='node parameters (see evaluate)')
+    add_config(s)
     s.add_argument('--width', type=int, default=None)
     s.add_argument('--height', type=int, default=None)
     s.add_argument('--start', type=int, default=0)

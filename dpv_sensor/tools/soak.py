@@ -27,6 +27,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from dpv_sensor.cli import add_setting
 from dpv_sensor.tools.node_process import ClientNode, node_command
 
 REPO = pathlib.Path(__file__).resolve().parents[2]
@@ -347,9 +348,9 @@ def main(argv=None) -> int:
     parser.add_argument('--height', type=int, default=240)
     parser.add_argument('--seed', type=int, default=5)
     parser.add_argument('--odom-rate', type=float, default=100.0)
-    parser.add_argument('--measurement', default='auto', choices=('auto', 'network', 'classical'))
-    parser.add_argument('--processing-width', type=int, default=320)
-    parser.add_argument('--processing-height', type=int, default=256)
+    add_setting(parser, 'measurement')
+    add_setting(parser, 'processing_width')
+    add_setting(parser, 'processing_height')
     parser.add_argument('--threads', type=int, default=0, help='OMP_NUM_THREADS for the node (0: torch default)')
     parser.add_argument('--param', nargs='+', metavar='NAME:=VALUE', help='more node parameters')
     parser.add_argument('--work-dir', help='where the bag and the node log go (default: a temp dir)')

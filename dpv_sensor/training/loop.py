@@ -71,6 +71,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from .. import dpv as dpvops
+from .. import params as _params
 from .. import geometry
 from .dataset import (TRAIN_SEED_BASE, VAL_SEEDS, Augment, SceneStream, StreamConfig, WindowLayout,
                       check_not_heldout, sample_from_sequence)
@@ -315,7 +316,7 @@ def measure_steps(model, batch: Dict[str, torch.Tensor], steps: Optional[Seq[int
     return out
 
 
-def make_filter(model, mode: str, damping: float = 0.8):
+def make_filter(model, mode: str, damping: float = _params.default('damping')):
     """A fresh DPVFilter in ``mode`` (K-Net = the model's, so gradients reach it)."""
     from ..filter import DPVFilter
     # generous reset thresholds: training windows never need a reset (and a reset would cut the unroll)
@@ -445,7 +446,7 @@ def _np(x: torch.Tensor) -> np.ndarray:
 def evaluate_batches(model, batches: List[Dict[str, torch.Tensor]], depths_d: torch.Tensor, device,
                      modes: Seq[str] = FILTER_MODES, classical=None, keep_last: bool = True,
                      curves: bool = False, readout: str = dpvops.DEFAULT_READOUT,
-                     confidence: str = dpvops.DEFAULT_CONFIDENCE, confidence_ratio: float = 1.25) -> Dict:
+                     confidence: str = dpvops.DEFAULT_CONFIDENCE, confidence_ratio: float = _params.default('confidence_ratio')) -> Dict:
     """Score the model (and optionally a classical measurement model) on validation batches.
 
     Depth and confidence come from the DPVs with ``readout`` (:func:`dpv_sensor.dpv.depth_estimate`;
