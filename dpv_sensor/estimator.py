@@ -112,22 +112,23 @@ import torch
 import torch.nn.functional as F
 
 from . import dpv as dpv_ops
+from . import params as P
 from . import geometry
-from .filter import jump_limit
+from .continuity import DUPLICATE, stream_break, time_order
 from .frame import DepthOutput, Frame
-from .geometry import scale_intrinsics_np
-from .keyframes import WINDOW_MODES, Keyframe, KeyframeSelector, KeyframeWindow, pose_delta
+from .geometry import resample_to_camera, scale_intrinsics_np  # noqa: F401  (resample_to_camera: used here)
+from .keyframes import WINDOW_MODES, Keyframe, KeyframeSelector, KeyframeWindow  # noqa: F401
 from .nets.model import cpu_bf16_fast
 
-__all__ = ['EstimatorConfig', 'Estimator', 'PoseRefinementRequest', 'default_weights_path', 'evaluate_offline',
+__all__ = ['EstimatorConfig', 'Estimator', 'PoseRefinementRequest', 'default_weights_path',
            'MEASUREMENTS', 'FILTER_MODES']
 
 LOG = logging.getLogger('dpv_sensor.estimator')
 
-MEASUREMENTS = ('auto', 'network', 'classical')
-FILTER_MODES = ('none', 'bayes', 'global', 'knet')
-OUTPUT_RESOLUTIONS = ('input', 'processing')
-CPU_PRECISIONS = ('auto', 'float32', 'bfloat16')
+MEASUREMENTS = P.choices('measurement')
+FILTER_MODES = P.choices('filter_mode')
+OUTPUT_RESOLUTIONS = P.choices('output_resolution')
+CPU_PRECISIONS = P.choices('cpu_precision')
 # planes sampled per ray for the "seen by some source view" mask (see Estimator._coverage)
 COVERAGE_PLANES = 16
 
@@ -143,109 +144,19 @@ def default_weights_path(preset: str) -> pathlib.Path:
 # configuration
 # ------------------------------------------------------------------------------------------------------
 
-@dataclass
-class EstimatorConfig:
-    """Everything the estimator needs; :meth:`from_params` maps the node's parameters (params.py).
+def _processing_size(self) -> Tuple[int, int]:
+    """(width, height) the images are resized to."""
+    return int(self.processing_width), int(self.processing_height)
 
-    The fields down to ``pose_refinement`` are node parameters (same names, same meaning; see
-    ``config/dpv_sensor.yaml``). The rest are library-level knobs with sensible defaults:
-    ``window_size`` (keyframes in a window, paper: 5), ``classical_downscale`` (volume = image / this),
-    ``min_coverage`` (fraction of a ray's planes that must project into at least one source view for the
-    pixel to get an estimate), ``amp_dtype`` (autocast dtype of the networks on CUDA, or ``'none'``).
-    ``torch_threads`` > 0 is applied with ``torch.set_num_threads`` when the Estimator is built (it is
-    process-wide); 0 leaves torch's setting alone.
-    """
-    preset: str = 'lite'
-    weights: str = ''
-    measurement: str = 'auto'
-    device: str = 'cpu'
-    torch_threads: int = 0
-    processing_width: int = 320
-    processing_height: int = 256
-    d_min: float = 0.3
-    d_max: float = 8.0
-    num_planes: int = 64
-    filter_mode: str = 'knet'
-    depth_readout: str = dpv_ops.DEFAULT_READOUT
-    confidence: str = dpv_ops.DEFAULT_CONFIDENCE
-    confidence_ratio: float = 1.25
-    damping: float = 0.8
-    reset_time_gap: float = 1.0
-    reset_translation: float = 1.0
-    reset_rotation_deg: float = 45.0
-    window_mode: str = 'causal'
-    keyframe_translation: float = 0.05
-    keyframe_rotation_deg: float = 5.0
-    keyframe_max_interval: int = 5
-    publish_between_keyframes: bool = False
-    output_resolution: str = 'input'
-    min_confidence: float = 0.0
-    pose_refinement: str = 'off'
-    cpu_precision: str = 'auto'
-    # --- not node parameters -------------------------------------------------------------------------
-    window_size: int = 5
-    classical_downscale: int = 4
-    min_coverage: float = 0.5
-    amp_dtype: str = 'bfloat16'
 
-    @classmethod
-    def from_params(cls, values: Dict[str, Any]) -> 'EstimatorConfig':
-        """Config from the node's parameter dict (``params.validate`` output).
-
-        Only the keys that are fields of this class are used (transport, QoS and camera parameters
-        belong to the node); missing keys keep the field defaults. The result is validated.
-        """
-        names = {f.name for f in dataclasses.fields(cls)}
-        cfg = cls(**{k: v for k, v in values.items() if k in names})
-        return cfg.validate()
-
-    def validate(self) -> 'EstimatorConfig':
-        """Raise ValueError naming the first inconsistent field; returns self."""
-        def one_of(name, choices):
-            if getattr(self, name) not in choices:
-                raise ValueError(f'{name} = {getattr(self, name)!r} is not one of {list(choices)}')
-        one_of('measurement', MEASUREMENTS)
-        one_of('filter_mode', FILTER_MODES)
-        one_of('depth_readout', dpv_ops.READOUT_CHOICES)
-        one_of('confidence', dpv_ops.CONFIDENCES)
-        if not (1.0 < self.confidence_ratio <= 10.0):
-            raise ValueError(f'confidence_ratio must lie in (1, 10], got {self.confidence_ratio}')
-        one_of('window_mode', WINDOW_MODES)
-        one_of('output_resolution', OUTPUT_RESOLUTIONS)
-        one_of('pose_refinement', ('off', 'window'))
-        one_of('cpu_precision', CPU_PRECISIONS)
-        one_of('amp_dtype', ('bfloat16', 'float16', 'none'))
-        if min(self.processing_width, self.processing_height) < 8:
-            raise ValueError(f'processing size {self.processing_width}x{self.processing_height} is too small')
-        if not (0 < self.d_min < self.d_max):
-            raise ValueError(f'need 0 < d_min < d_max, got {self.d_min}, {self.d_max}')
-        if not (0 <= int(self.torch_threads) <= 64):
-            raise ValueError(f'torch_threads must lie in [0, 64] (0 = torch default), got {self.torch_threads}')
-        if self.num_planes < 2:
-            raise ValueError(f'num_planes must be >= 2, got {self.num_planes}')
-        if not (0.0 <= self.damping <= 1.0):
-            raise ValueError(f'damping must lie in [0, 1], got {self.damping}')
-        for name in ('reset_time_gap', 'reset_translation', 'reset_rotation_deg', 'keyframe_translation',
-                     'keyframe_rotation_deg'):
-            if not (getattr(self, name) >= 0.0):
-                raise ValueError(f'{name} must be >= 0, got {getattr(self, name)}')
-        if self.keyframe_max_interval < 1:
-            raise ValueError(f'keyframe_max_interval must be >= 1, got {self.keyframe_max_interval}')
-        if self.window_size < 2 or (self.window_mode == 'centered' and self.window_size % 2 != 1):
-            raise ValueError(f'window_size {self.window_size} does not fit window_mode {self.window_mode!r} '
-                             '(>= 2; odd for centered)')
-        if self.classical_downscale < 1:
-            raise ValueError('classical_downscale must be >= 1')
-        if not (0.0 <= self.min_confidence <= 1.0):
-            raise ValueError(f'min_confidence must lie in [0, 1], got {self.min_confidence}')
-        if not (0.0 < self.min_coverage <= 1.0):
-            raise ValueError(f'min_coverage must lie in (0, 1], got {self.min_coverage}')
-        return self
-
-    @property
-    def processing_size(self) -> Tuple[int, int]:
-        """(width, height) the images are resized to."""
-        return int(self.processing_width), int(self.processing_height)
+EstimatorConfig = P.make_config_class('EstimatorConfig', P.ESTIMATOR_SPECS, """Everything the estimator and its
+pose source need: one field per ``estimator`` / ``library`` setting of the table in ``dpv_sensor.params``
+(description, default, range and choices live there, once). :meth:`from_params` takes the fields from the
+node's parameter dict (other keys are ignored); :meth:`validate` applies the table's checks, with the same
+messages as the node and ``evaluate``. ``torch_threads`` > 0 is applied with ``torch.set_num_threads`` when the
+Estimator is built (it is process-wide); 0 leaves torch's setting alone.""",
+                                       {'processing_size': property(_processing_size)})
+EstimatorConfig.__module__ = __name__
 
 
 @dataclass
@@ -298,35 +209,6 @@ def _is_rigid(T_44: np.ndarray, tol: float = 1e-3) -> bool:
     R = T_44[:3, :3]
     return (np.allclose(R.T @ R, np.eye(3), atol=tol) and abs(np.linalg.det(R) - 1.0) < tol
             and np.allclose(T_44[3], [0.0, 0.0, 0.0, 1.0], atol=tol))
-
-
-def resample_to_camera(x_bchw: torch.Tensor, K_src_33, K_dst_33, dst_hw: Tuple[int, int],
-                       mode: str = 'bilinear') -> torch.Tensor:
-    """Resample a map defined on camera grid ``K_src`` (its own size) onto grid ``K_dst`` of size dst_hw.
-
-    Both grids belong to the same pinhole camera (they differ only in scale and offset, e.g. an image
-    and its resized copy, or an image and its DPV's stride-4 grid), so destination pixel u reads source
-    coordinate ``u_src = fx_src/fx_dst * (u - cx_dst) + cx_src`` (same for v). Sampled with
-    ``grid_sample(align_corners=True)`` on pixel-centre coordinates, borders clamped. ``mode``:
-    'bilinear' or 'nearest'.
-    """
-    Ks = torch.as_tensor(K_src_33, dtype=torch.float64).reshape(3, 3)
-    Kd = torch.as_tensor(K_dst_33, dtype=torch.float64).reshape(3, 3)
-    B, C, Hs, Ws = x_bchw.shape
-    Hd, Wd = int(dst_hw[0]), int(dst_hw[1])
-    ax = float(Ks[0, 0] / Kd[0, 0])
-    ay = float(Ks[1, 1] / Kd[1, 1])
-    bx = float(Ks[0, 2]) - ax * float(Kd[0, 2])
-    by = float(Ks[1, 2]) - ay * float(Kd[1, 2])
-    dt, dev = (x_bchw.dtype if x_bchw.is_floating_point() else torch.float32), x_bchw.device
-    u = torch.arange(Wd, dtype=torch.float64) * ax + bx
-    v = torch.arange(Hd, dtype=torch.float64) * ay + by
-    gx = (2.0 * u / max(Ws - 1, 1) - 1.0).to(dt)
-    gy = (2.0 * v / max(Hs - 1, 1) - 1.0).to(dt)
-    gyy, gxx = torch.meshgrid(gy, gx, indexing='ij')
-    grid = torch.stack([gxx, gyy], -1)[None].expand(B, Hd, Wd, 2).to(dev)
-    src = x_bchw if x_bchw.is_floating_point() else x_bchw.to(dt)
-    return F.grid_sample(src, grid, mode=mode, padding_mode='border', align_corners=True)
 
 
 # ------------------------------------------------------------------------------------------------------
@@ -592,7 +474,7 @@ class Estimator:
         K_in = np.asarray(frame.K_33, dtype=np.float64)
         size = (int(image.shape[1]), int(image.shape[0]))
         stamp = float(frame.stamp)
-        if self._last_frame is not None and stamp == self._last_frame[0]:
+        if self._last_frame is not None and time_order(self._last_frame[0], stamp) == DUPLICATE:
             self._frames_dropped += 1
             self._last_drop_reason = f'duplicate stamp {stamp:.6f} s (same as the previous frame)'
             return None
@@ -645,34 +527,10 @@ class Estimator:
 
     def _stream_reset_reason(self, stamp: float, T: np.ndarray, size, K_in,
                              sensor_gap_s: Optional[float] = None) -> Optional[str]:
-        """Why the stream must restart at this frame (see the module docs, step 1), or None."""
-        if self._last_frame is None:
-            return None
+        """Why the stream must restart at this frame (``continuity.stream_break``), or None."""
         cfg = self.config
-        last_stamp, last_T, last_size, last_K = self._last_frame
-        if stamp < last_stamp:
-            return f'time went backwards ({stamp:.6f} s after {last_stamp:.6f} s)'
-        if size != last_size:
-            return f'image size changed from {last_size[0]}x{last_size[1]} to {size[0]}x{size[1]}'
-        if not np.allclose(K_in, last_K, rtol=1e-6, atol=1e-6):
-            return 'camera intrinsics changed'
-        elapsed = stamp - last_stamp
-        if sensor_gap_s is not None:
-            gap, where = float(sensor_gap_s), 'in the camera stream'
-        else:
-            gap, where = elapsed, 'since the previous frame'
-        if cfg.reset_time_gap > 0 and gap > cfg.reset_time_gap:
-            return f'time gap {gap:.3f} s {where} > reset_time_gap {cfg.reset_time_gap:g} s'
-        dt, dr = pose_delta(last_T, T)
-        lim_t = jump_limit(cfg.reset_translation, elapsed)
-        lim_r = jump_limit(cfg.reset_rotation_deg, elapsed)
-        if cfg.reset_translation > 0 and dt > lim_t:
-            return (f'camera jumped {dt:.3f} m in {elapsed:.3f} s > {lim_t:.3f} m '
-                    f'(reset_translation {cfg.reset_translation:g} m per second, at least that)')
-        if cfg.reset_rotation_deg > 0 and dr > lim_r:
-            return (f'camera turned {dr:.1f} deg in {elapsed:.3f} s > {lim_r:.1f} deg '
-                    f'(reset_rotation_deg {cfg.reset_rotation_deg:g} deg per second, at least that)')
-        return None
+        return stream_break(self._last_frame, stamp, T, size, K_in, sensor_gap_s, reset_time_gap=cfg.reset_time_gap,
+                            reset_translation=cfg.reset_translation, reset_rotation_deg=cfg.reset_rotation_deg)
 
     # ------------------------------------------------------------------ keyframes
     def _prepare(self, image: np.ndarray, K_in: np.ndarray) -> Tuple[torch.Tensor, np.ndarray]:
@@ -926,58 +784,3 @@ class Estimator:
         out.timings_ms = {'between': self._ms(t), 'total': self._ms(t0)}
         self._last_timings = dict(out.timings_ms)
         return out
-
-
-# ------------------------------------------------------------------------------------------------------
-# offline evaluation
-# ------------------------------------------------------------------------------------------------------
-
-def evaluate_offline(sequence, config: EstimatorConfig, *, model=None, pose_refiner=None,
-                     max_frames: Optional[int] = None, min_depth: Optional[float] = None,
-                     max_depth: Optional[float] = None, keyframes_only: bool = True,
-                     keep_outputs: bool = False, input_poses=None) -> Dict[str, Any]:
-    """Run a sequence through an :class:`Estimator` and score every output against the GT depth.
-
-    ``sequence``: anything with ``len``, ``K``, ``image(i)``, ``depth(i)`` (metres, 0 = invalid),
-    ``pose(i)`` and ``stamp(i)`` (``data.sequence.Sequence``, the synthetic renderer's sequences).
-    Frames are pushed in order with their GT poses, or with ``input_poses[i]`` (T_world_cam per frame, e.g.
-    :func:`dpv_sensor.data.trajectory.corrupt_trajectory` of the GT: odometry-like poses). Each output is matched to its frame by stamp and
-    scored with ``metrics.MetricAccumulator`` (GT resized with nearest neighbour when the output is at
-    the processing size); the GT range defaults to the estimator's depth planes [d_min, d_max].
-
-    Returns ``{'rows': [per output: index, stamp, is_keyframe, abs_rel, rmse, delta1, ..., coverage,
-    ms_* (median-scaled), ause, mean_confidence, time_ms], 'summary': MetricAccumulator.summary(),
-    'status': Estimator.status, 'outputs': [DepthOutput] (only with keep_outputs)}``.
-    Only keyframe outputs are scored unless ``keyframes_only=False``.
-    """
-    from .metrics import MetricAccumulator
-    est = Estimator(config, model=model, pose_refiner=pose_refiner)
-    lo = est.d_min if min_depth is None else min_depth
-    hi = est.d_max if max_depth is None else max_depth
-    acc = MetricAccumulator(min_depth=lo, max_depth=hi)
-    n = len(sequence) if max_frames is None else min(len(sequence), int(max_frames))
-    index_of = {}
-    K = np.asarray(sequence.K, dtype=np.float64)
-    if input_poses is not None and len(input_poses) < n:
-        raise ValueError(f'input_poses has {len(input_poses)} poses for {n} frames')
-    outputs = []
-    for i in range(n):
-        stamp = float(sequence.stamp(i))
-        index_of[stamp] = i
-        T = sequence.pose(i) if input_poses is None else input_poses[i]
-        out = est.push(Frame(stamp=stamp, image=sequence.image(i), K_33=K, T_world_cam_44=T, frame_id='camera'))
-        if out is None or (keyframes_only and not out.is_keyframe):
-            continue
-        j = index_of[out.stamp]
-        gt = np.asarray(sequence.depth(j), dtype=np.float32)
-        if gt.shape != out.depth_hw.shape:
-            gt = cv2.resize(gt, (out.depth_hw.shape[1], out.depth_hw.shape[0]),
-                            interpolation=cv2.INTER_NEAREST_EXACT)
-        acc.add(out.depth_hw, gt, out.confidence_hw, index=j, stamp=out.stamp, is_keyframe=out.is_keyframe,
-                time_ms=out.timings_ms.get('total', float('nan')))
-        if keep_outputs:
-            outputs.append(out)
-    result = {'rows': acc.rows, 'summary': acc.summary(), 'status': est.status}
-    if keep_outputs:
-        result['outputs'] = outputs
-    return result

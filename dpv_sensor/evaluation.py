@@ -133,49 +133,20 @@ class KeyframeRecord:
 # Configuration
 # ----------------------------------------------------------------------------------------------
 
-def parse_value(text: str, like: Any) -> Any:
-    """Parse ``text`` as the type of ``like`` (bool: true/false/1/0/yes/no; list: comma-separated floats)."""
-    if isinstance(like, bool):
-        low = text.strip().lower()
-        if low in ('true', '1', 'yes', 'on'):
-            return True
-        if low in ('false', '0', 'no', 'off'):
-            return False
-        raise ValueError(f'{text!r} is not a boolean')
-    if isinstance(like, int):
-        return int(text)
-    if isinstance(like, float):
-        return float(text)
-    if isinstance(like, (list, tuple)):
-        return [float(x) for x in text.replace('[', '').replace(']', '').split(',') if x.strip()]
-    return text
+parse_value = P.parse_value
 
 
 def _known_keys() -> Dict[str, Any]:
-    """Every key a configuration may set, with a value of its type: node parameters, the estimator's
-    extra fields, and the evaluation keys."""
-    from .estimator import EstimatorConfig
-    keys: Dict[str, Any] = dict(P.defaults())
-    for f in dataclasses.fields(EstimatorConfig):
-        if f.name not in keys:
-            keys[f.name] = f.default
+    """Every key a configuration may set, with a value of its type: every setting of the table (node
+    parameters and the estimator's library settings) and the evaluation keys."""
+    keys: Dict[str, Any] = {name: spec.default for name, spec in P.SPEC_BY_NAME.items()}
     keys['pose_source'] = 'gt'
     return keys
 
 
 def parse_overrides(items: Iterable[str]) -> Dict[str, Any]:
     """``['filter_mode=global', 'damping=0.5']`` -> typed dict; unknown keys raise ValueError."""
-    known = _known_keys()
-    out: Dict[str, Any] = {}
-    for item in items:
-        if '=' not in item:
-            raise ValueError(f'expected key=value, got {item!r}')
-        key, value = item.split('=', 1)
-        key = key.strip()
-        if key not in known:
-            raise ValueError(f'unknown configuration key {key!r}; known: {", ".join(sorted(known))}')
-        out[key] = parse_value(value.strip(), known[key])
-    return out
+    return P.parse_assignments(items, _known_keys())
 
 
 def build_config(overrides: Optional[Dict[str, Any]] = None):
@@ -184,11 +155,11 @@ def build_config(overrides: Optional[Dict[str, Any]] = None):
     Evaluation keys (``pose_source``) are ignored here. Raises ``params.ParameterError`` / ValueError.
     """
     from .estimator import EstimatorConfig
-    values = P.defaults()
+    values = P.defaults(P.SPECS + P.LIBRARY_SPECS)
     for k, v in (overrides or {}).items():
         if k not in EVAL_KEYS:
             values[k] = v
-    values = P.validate(values)
+    values = P.validate(values, P.SPECS + P.LIBRARY_SPECS)
     return EstimatorConfig.from_params(values), values
 
 
@@ -249,18 +220,17 @@ def run_sequence(seq, config, options: Optional[EvalOptions] = None, *, model=No
                  keep_images: bool = True) -> Tuple[List[KeyframeRecord], Dict[str, Any]]:
     """Push the (prepared) sequence through an estimator; return (keyframe records, estimator status).
 
-    config: an ``EstimatorConfig``. With ``config.pose_refinement == 'window'`` and no ``pose_refiner``
-    given, a default :class:`~dpv_sensor.poses.WindowPoseRefiner` is used. ``model``: a DPVNet to use
+    config: an ``EstimatorConfig``; the pose source comes from it (``pipeline.PoseSource``): with
+    ``pose_refinement='window'`` and no ``pose_refiner`` given, a WindowPoseRefiner with the config's sigmas,
+    with ``odometry='none'`` visual odometry instead of the sequence's poses. ``model``: a DPVNet to use
     instead of loading weights (see ``Estimator``).
     """
-    from .estimator import Estimator
     from .frame import Frame
+    from .pipeline import Pipeline
     options = (options or EvalOptions()).validate()
     seq = prepare_sequence(seq, options)
-    if pose_refiner is None and getattr(config, 'pose_refinement', 'off') == 'window':
-        from .poses import WindowPoseRefiner
-        pose_refiner = WindowPoseRefiner()
-    est = Estimator(config, model=model, pose_refiner=pose_refiner)
+    pipe = Pipeline(config, model=model, pose_refiner=pose_refiner)
+    est = pipe.estimator
     poses_in = input_poses(seq, options)
     K = np.asarray(seq.K, np.float64)
     index_of: Dict[float, int] = {}
@@ -272,8 +242,8 @@ def run_sequence(seq, config, options: Optional[EvalOptions] = None, *, model=No
     for i in iterator:
         stamp = float(seq.stamp(i))
         index_of[stamp] = i
-        out = est.push(Frame(stamp=stamp, image=seq.image(i), K_33=K, T_world_cam_44=poses_in[i],
-                             frame_id='camera'))
+        out = pipe.push(Frame(stamp=stamp, image=seq.image(i), K_33=K, T_world_cam_44=poses_in[i],
+                              frame_id='camera')).output
         if out is None or not out.is_keyframe:
             continue
         j = index_of[out.stamp]
@@ -286,7 +256,7 @@ def run_sequence(seq, config, options: Optional[EvalOptions] = None, *, model=No
             T_world_cam_44=None if out.T_world_cam_44 is None else np.asarray(out.T_world_cam_44),
             image_hw3=image, reset_reason=out.reset_reason,
             time_ms=float(out.timings_ms.get('total', float('nan')))))
-    status = dict(est.status)
+    status = dict(pipe.status)
     status['depth_range'] = list(status.get('depth_range', (est.d_min, est.d_max)))
     status['d_min'], status['d_max'] = float(est.d_min), float(est.d_max)
     return records, status

@@ -3,7 +3,7 @@
 Everything here is torch, batched, differentiable and dtype/device agnostic (float32 by default,
 float64 for gradchecks, CPU or CUDA alike). No ROS import, no numpy in the hot paths.
 
-Conventions (see notes/CONTEXT.md):
+Conventions:
 - OpenCV camera axes (x right, y down, z forward); z-depth in metres.
 - ``T_a_b`` (4x4, batched ``..._b44``) maps points in frame b to frame a: ``X_a = R X_b + t``.
 - Pixel centres at integer coordinates; ``grid_sample`` with ``align_corners=True`` on
@@ -14,6 +14,7 @@ Conventions (see notes/CONTEXT.md):
 """
 from __future__ import annotations
 
+import math
 from typing import Optional, Sequence, Tuple
 
 import numpy as np
@@ -497,3 +498,52 @@ def warp_image_with_depth(src_bchw: torch.Tensor, depth_bhw: torch.Tensor, K_ref
                            align_corners=True)
     valid = valid.reshape(B, H, W)
     return warped * valid[:, None].to(dt), valid
+
+
+# ------------------------------------------------------------------------------------------------------
+# numpy twins and resampling
+# ------------------------------------------------------------------------------------------------------
+
+def pose_delta_np(T_world_a_44: np.ndarray, T_world_b_44: np.ndarray) -> Tuple[float, float]:
+    """Translation (metres) and rotation angle (degrees) of the relative motion between two poses.
+
+    Both are ``T_world_cam`` (camera-to-world). The translation is the distance between the camera
+    centres; the angle is that of ``R_a^T R_b`` (in [0, 180]).
+    """
+    Ta = np.asarray(T_world_a_44, dtype=np.float64)
+    Tb = np.asarray(T_world_b_44, dtype=np.float64)
+    translation = float(np.linalg.norm(Tb[:3, 3] - Ta[:3, 3]))
+    R = Ta[:3, :3].T @ Tb[:3, :3]
+    # atan2 form: accurate for small and large angles alike.
+    v = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    angle = math.atan2(0.5 * float(np.linalg.norm(v)), 0.5 * (float(np.trace(R)) - 1.0))
+    return translation, math.degrees(angle)
+
+
+def resample_to_camera(x_bchw: torch.Tensor, K_src_33, K_dst_33, dst_hw: Tuple[int, int],
+                       mode: str = 'bilinear') -> torch.Tensor:
+    """Resample a map defined on camera grid ``K_src`` (its own size) onto grid ``K_dst`` of size dst_hw.
+
+    Both grids belong to the same pinhole camera (they differ only in scale and offset, e.g. an image
+    and its resized copy, or an image and its DPV's stride-4 grid), so destination pixel u reads source
+    coordinate ``u_src = fx_src/fx_dst * (u - cx_dst) + cx_src`` (same for v). Sampled with
+    ``grid_sample(align_corners=True)`` on pixel-centre coordinates, borders clamped. ``mode``:
+    'bilinear' or 'nearest'.
+    """
+    Ks = torch.as_tensor(K_src_33, dtype=torch.float64).reshape(3, 3)
+    Kd = torch.as_tensor(K_dst_33, dtype=torch.float64).reshape(3, 3)
+    B, C, Hs, Ws = x_bchw.shape
+    Hd, Wd = int(dst_hw[0]), int(dst_hw[1])
+    ax = float(Ks[0, 0] / Kd[0, 0])
+    ay = float(Ks[1, 1] / Kd[1, 1])
+    bx = float(Ks[0, 2]) - ax * float(Kd[0, 2])
+    by = float(Ks[1, 2]) - ay * float(Kd[1, 2])
+    dt, dev = (x_bchw.dtype if x_bchw.is_floating_point() else torch.float32), x_bchw.device
+    u = torch.arange(Wd, dtype=torch.float64) * ax + bx
+    v = torch.arange(Hd, dtype=torch.float64) * ay + by
+    gx = (2.0 * u / max(Ws - 1, 1) - 1.0).to(dt)
+    gy = (2.0 * v / max(Hs - 1, 1) - 1.0).to(dt)
+    gyy, gxx = torch.meshgrid(gy, gx, indexing='ij')
+    grid = torch.stack([gxx, gyy], -1)[None].expand(B, Hd, Wd, 2).to(dev)
+    src = x_bchw if x_bchw.is_floating_point() else x_bchw.to(dt)
+    return F.grid_sample(src, grid, mode=mode, padding_mode='border', align_corners=True)

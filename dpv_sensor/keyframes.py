@@ -23,32 +23,18 @@ the reference and source keyframes of a plane sweep:
 """
 from __future__ import annotations
 
-import math
 from collections import deque
 from dataclasses import dataclass, field
 from typing import Any, Dict, List, Optional, Tuple
 
 import numpy as np
 
+from . import params as _params
+from .geometry import pose_delta_np as pose_delta  # noqa: F401  (the one home: geometry)
+
 __all__ = ['pose_delta', 'KeyframeDecision', 'KeyframeSelector', 'Keyframe', 'KeyframeWindow', 'WINDOW_MODES']
 
-WINDOW_MODES = ('causal', 'centered')
-
-
-def pose_delta(T_world_a_44: np.ndarray, T_world_b_44: np.ndarray) -> Tuple[float, float]:
-    """Translation (metres) and rotation angle (degrees) of the relative motion between two poses.
-
-    Both are ``T_world_cam`` (camera-to-world). The translation is the distance between the camera
-    centres; the angle is that of ``R_a^T R_b`` (in [0, 180]).
-    """
-    Ta = np.asarray(T_world_a_44, dtype=np.float64)
-    Tb = np.asarray(T_world_b_44, dtype=np.float64)
-    translation = float(np.linalg.norm(Tb[:3, 3] - Ta[:3, 3]))
-    R = Ta[:3, :3].T @ Tb[:3, :3]
-    # atan2 form: accurate for small and large angles alike.
-    v = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
-    angle = math.atan2(0.5 * float(np.linalg.norm(v)), 0.5 * (float(np.trace(R)) - 1.0))
-    return translation, math.degrees(angle)
+WINDOW_MODES = _params.choices('window_mode')
 
 
 @dataclass(frozen=True)

@@ -13,7 +13,8 @@ import pytest
 import torch
 
 from dpv_sensor import params as P
-from dpv_sensor.estimator import Estimator, EstimatorConfig, PoseRefinementRequest, evaluate_offline
+from dpv_sensor.estimator import Estimator, EstimatorConfig, PoseRefinementRequest
+from dpv_sensor.pipeline import evaluate_offline
 from dpv_sensor.frame import DepthOutput, Frame
 from dpv_sensor.keyframes import KeyframeSelector, KeyframeWindow, pose_delta
 

@@ -21,8 +21,9 @@ import numpy as np
 import torch
 
 from dpv_sensor.data.sequence import Sequence
-from dpv_sensor.dpv import CONFIDENCES, DEFAULT_CONFIDENCE, DEFAULT_READOUT, READOUT_CHOICES
-from dpv_sensor.estimator import EstimatorConfig, evaluate_offline
+from dpv_sensor.cli import add_setting
+from dpv_sensor.estimator import EstimatorConfig
+from dpv_sensor.pipeline import evaluate_offline
 from dpv_sensor.metrics import MetricAccumulator
 
 # ../shared/data beside the checkout (development machines only)
@@ -81,11 +82,9 @@ def main():
     ap.add_argument('--synthetic-seeds', default='', help="e.g. '0-9' (held-out synthetic seeds)")
     ap.add_argument('--synthetic-frames', type=int, default=60)
     ap.add_argument('--modes', nargs='*', default=['none', 'global', 'knet'])
-    ap.add_argument('--window-mode', default='causal')
-    ap.add_argument('--readout', default=DEFAULT_READOUT, choices=READOUT_CHOICES,
-                    help='depth readout (the node parameter depth_readout; auto resolves per model)')
-    ap.add_argument('--confidence', default=DEFAULT_CONFIDENCE, choices=CONFIDENCES,
-                    help='confidence definition (the node parameter confidence)')
+    add_setting(ap, 'window_mode')
+    add_setting(ap, 'depth_readout', '--readout', dest='readout')
+    add_setting(ap, 'confidence')
     ap.add_argument('--no-classical', action='store_true')
     ap.add_argument('--pose-noise', type=float, nargs=2, default=None, metavar=('REL_T', 'ROT_DEG'),
                     help='feed odometry-like poses instead of GT: per frame a translation error of REL_T of the '

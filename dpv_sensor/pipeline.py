@@ -1,0 +1,192 @@
+"""The sensor pipeline below the node: the pose source and the estimator, as the node and the offline tools run it.
+
+No ROS here. ``Pipeline(config).push(frame) -> PushResult`` is what the node calls per image (after converting the
+message and looking the odometry pose up) and what ``evaluation.run_sequence`` / ``estimator.evaluate_offline``
+call per frame of a sequence, so odometry-free mode, pose refinement and their tracking-loss rules behave the same
+online and offline.
+
+The pose source (:class:`PoseSource`), built from the :class:`~dpv_sensor.estimator.EstimatorConfig`:
+
+* ``odometry='topic'``: the frame's pose is the odometry pose the caller gives (``Frame.T_world_cam_44``);
+* ``odometry='none'``: :class:`~dpv_sensor.poses.VisualOdometry` tracks every frame against the latest keyframe
+  depth; when it loses tracking the frame is dropped (``PushResult.drop``) and the pipeline restarts;
+* ``pose_refinement='window'``: :class:`~dpv_sensor.poses.WindowPoseRefiner`, with the sigmas of the config
+  (``odom_sigma_rot_deg``, ``odom_sigma_trans_m``, ``odom_sigma_trans_rel``), refines the keyframe poses of each
+  window inside the estimator (its tracking loss restarts the filter there).
+
+The stream-continuity rules are in ``dpv_sensor.continuity`` (applied by the estimator on every pushed frame).
+"""
+from __future__ import annotations
+
+import collections
+from dataclasses import dataclass
+from typing import Any, Dict, Optional
+
+import cv2
+import numpy as np
+
+from .estimator import Estimator, EstimatorConfig
+from .frame import DepthOutput, Frame
+
+__all__ = ['PoseSource', 'Pipeline', 'PushResult', 'VO_LOST', 'evaluate_offline']
+
+VO_LOST = 'visual_odometry_lost'
+
+
+@dataclass
+class PushResult:
+    """What one pushed frame gave: the output that became ready (or None); ``drop`` / ``detail``: why the frame
+    was dropped before the estimator (a counter name and its message); ``is_keyframe``: the frame became one."""
+    output: Optional[DepthOutput] = None
+    drop: Optional[str] = None
+    detail: Optional[str] = None
+    is_keyframe: bool = False
+
+
+class PoseSource:
+    """Odometry, the refinement window, visual odometry and their tracking loss (see the module docstring)."""
+
+    def __init__(self, config: EstimatorConfig, pose_refiner=None):
+        self.config = config
+        self.refiner = pose_refiner
+        if self.refiner is None and config.pose_refinement == 'window':
+            from .poses import PoseRefinerConfig, WindowPoseRefiner
+            self.refiner = WindowPoseRefiner(PoseRefinerConfig.from_params(config.as_dict()))
+        self.visual_odometry = None
+        if config.odometry == 'none':
+            from .poses import VisualOdometry
+            self.visual_odometry = VisualOdometry()
+
+    def frame_pose(self, frame: Frame):
+        """(T_world_cam or None, lost reason or None) of a frame: the given pose, or visual odometry's."""
+        if self.visual_odometry is None:
+            return frame.T_world_cam_44, None
+        vo = self.visual_odometry.track(frame.image, frame.K_33, float(frame.stamp))
+        if not vo.tracking_ok:
+            return None, str(vo.reason)
+        return vo.T_world_cam_44, None
+
+    def keyframe_output(self, out: DepthOutput, image: Optional[np.ndarray], K_in_33) -> None:
+        """A keyframe's depth became ready: visual odometry tracks against it from now on."""
+        if self.visual_odometry is None or image is None or not out.is_keyframe:
+            return
+        h, w = out.depth_hw.shape
+        K_depth = None if (h, w) == image.shape[:2] else np.asarray(out.K_33, dtype=np.float64)
+        self.visual_odometry.set_keyframe(image, K_in_33, out.T_world_cam_44, out.depth_hw, out.confidence_hw,
+                                          K_depth_33=K_depth, stamp=float(out.stamp))
+
+    def reset(self) -> None:
+        if self.refiner is not None and callable(getattr(self.refiner, 'reset', None)):
+            self.refiner.reset()
+        if self.visual_odometry is not None:
+            self.visual_odometry.reset()
+
+    @property
+    def tracking(self) -> Optional[str]:
+        """'ok', 'lost: <reason>' of the refiner, or None without one."""
+        if self.refiner is None:
+            return None
+        last = getattr(self.refiner, 'last_result', None)
+        return 'ok' if last is None or last.tracking_ok else f'lost: {last.reason}'
+
+
+class Pipeline:
+    """Pose source + estimator. ``model`` / ``pose_refiner`` / ``logger``: as for :class:`Estimator`."""
+
+    def __init__(self, config: Optional[EstimatorConfig] = None, *, model=None, pose_refiner=None, logger=None):
+        config = (config or EstimatorConfig()).validate()
+        self.pose_source = PoseSource(config, pose_refiner)
+        self.estimator = Estimator(config, model=model, pose_refiner=self.pose_source.refiner, logger=logger)
+        self.config = self.estimator.config
+        # keyframe images and intrinsics by stamp: a (centered) keyframe's output comes later than its frame
+        self._keyframe_images: collections.OrderedDict = collections.OrderedDict()
+
+    @property
+    def status(self) -> dict:
+        st = dict(self.estimator.status)
+        tracking = self.pose_source.tracking
+        if tracking is not None:
+            st['pose_refinement_tracking'] = tracking
+        return st
+
+    def push(self, frame: Frame) -> PushResult:
+        T, lost = self.pose_source.frame_pose(frame)
+        if lost is not None:
+            self.reset(f'visual odometry lost: {lost}')
+            return PushResult(drop=VO_LOST, detail=lost)
+        if T is not frame.T_world_cam_44:
+            frame = Frame(stamp=frame.stamp, image=frame.image, K_33=frame.K_33, T_world_cam_44=T,
+                          frame_id=frame.frame_id, sensor_gap_s=frame.sensor_gap_s)
+        before = int(self.estimator.status.get('keyframes', 0))
+        out = self.estimator.push(frame)
+        is_keyframe = int(self.estimator.status.get('keyframes', 0)) > before
+        if is_keyframe and self.pose_source.visual_odometry is not None:
+            self._keyframe_images[float(frame.stamp)] = (frame.image, np.asarray(frame.K_33, dtype=np.float64))
+            while len(self._keyframe_images) > 2 * int(self.config.window_size) + 6:
+                self._keyframe_images.popitem(last=False)
+        if out is not None and out.is_keyframe and self.pose_source.visual_odometry is not None:
+            image, K_in = self._keyframe_images.get(float(out.stamp), (None, None))
+            self.pose_source.keyframe_output(out, image, K_in)
+        return PushResult(output=out, is_keyframe=is_keyframe)
+
+    def reset(self, reason: str) -> None:
+        """Restart the estimator (window, keyframes, filter) and the pose source."""
+        self.estimator.reset(reason)
+        self.pose_source.reset()
+        self._keyframe_images.clear()
+
+
+# ------------------------------------------------------------------------------------------------------
+# offline evaluation
+# ------------------------------------------------------------------------------------------------------
+
+def evaluate_offline(sequence, config: EstimatorConfig, *, model=None, pose_refiner=None,
+                     max_frames: Optional[int] = None, min_depth: Optional[float] = None,
+                     max_depth: Optional[float] = None, keyframes_only: bool = True,
+                     keep_outputs: bool = False, input_poses=None) -> Dict[str, Any]:
+    """Run a sequence through a :class:`Pipeline` and score every output against the GT depth.
+
+    ``sequence``: anything with ``len``, ``K``, ``image(i)``, ``depth(i)`` (metres, 0 = invalid),
+    ``pose(i)`` and ``stamp(i)`` (``data.sequence.Sequence``, the synthetic renderer's sequences).
+    Frames are pushed in order with their GT poses, or with ``input_poses[i]`` (T_world_cam per frame, e.g.
+    :func:`dpv_sensor.data.trajectory.corrupt_trajectory` of the GT: odometry-like poses). Each output is matched to its frame by stamp and
+    scored with ``metrics.MetricAccumulator`` (GT resized with nearest neighbour when the output is at
+    the processing size); the GT range defaults to the estimator's depth planes [d_min, d_max].
+
+    Returns ``{'rows': [per output: index, stamp, is_keyframe, abs_rel, rmse, delta1, ..., coverage,
+    ms_* (median-scaled), ause, mean_confidence, time_ms], 'summary': MetricAccumulator.summary(),
+    'status': Estimator.status, 'outputs': [DepthOutput] (only with keep_outputs)}``.
+    Only keyframe outputs are scored unless ``keyframes_only=False``.
+    """
+    from .metrics import MetricAccumulator
+    pipe = Pipeline(config, model=model, pose_refiner=pose_refiner)
+    est = pipe.estimator
+    lo = est.d_min if min_depth is None else min_depth
+    hi = est.d_max if max_depth is None else max_depth
+    acc = MetricAccumulator(min_depth=lo, max_depth=hi)
+    n = len(sequence) if max_frames is None else min(len(sequence), int(max_frames))
+    index_of = {}
+    K = np.asarray(sequence.K, dtype=np.float64)
+    if input_poses is not None and len(input_poses) < n:
+        raise ValueError(f'input_poses has {len(input_poses)} poses for {n} frames')
+    outputs = []
+    for i in range(n):
+        stamp = float(sequence.stamp(i))
+        index_of[stamp] = i
+        T = sequence.pose(i) if input_poses is None else input_poses[i]
+        out = pipe.push(Frame(stamp=stamp, image=sequence.image(i), K_33=K, T_world_cam_44=T, frame_id='camera')).output
+        if out is None or (keyframes_only and not out.is_keyframe):
+            continue
+        j = index_of[out.stamp]
+        gt = np.asarray(sequence.depth(j), dtype=np.float32)
+        if gt.shape != out.depth_hw.shape:
+            gt = cv2.resize(gt, (out.depth_hw.shape[1], out.depth_hw.shape[0]),
+                            interpolation=cv2.INTER_NEAREST_EXACT)
+        acc.add(out.depth_hw, gt, out.confidence_hw, index=j, stamp=out.stamp, is_keyframe=out.is_keyframe,
+                time_ms=out.timings_ms.get('total', float('nan')))
+        if keep_outputs:
+            outputs.append(out)
+    result = {'rows': acc.rows, 'summary': acc.summary(), 'status': pipe.status}
+    if keep_outputs:
+        result['outputs'] = outputs
+    return result
