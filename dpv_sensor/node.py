@@ -21,7 +21,8 @@ the motion against the elapsed time, so a slow machine that pushes a frame every
 Every output carries exactly the input image's header (stamp and frame_id). The worker builds the estimator when
 the node starts ('ready' is logged once topics and parameters are up, 'estimator ready' once the model is loaded);
 if it cannot be built (e.g. measurement=network without weights) the node exits with code 2.
-SIGINT / SIGTERM stop the node cleanly (exit 0), also while it is still starting.
+SIGINT / SIGTERM stop the node cleanly (exit 0), also while it is still starting: the entry point
+(dpv_sensor.entry) installs the handlers before this module's heavy imports.
 
 Bad input never stops the node: each kind of fault (unsupported encoding, inconsistent image, size change,
 missing or zero camera_info, NaN odometry, odometry gap or timeout, time going backwards, an exception inside the
@@ -29,16 +30,39 @@ estimator) is counted, reported in /diagnostics and logged with a specific, rate
 """
 from __future__ import annotations
 
-import argparse
+if __name__ == '__main__':     # python -m dpv_sensor.node: signal handlers before the heavy imports below
+    from dpv_sensor.entry import prepare as _prepare
+    _prepare()
+
 import collections
-import logging
 import sys
 import threading
 import time
 import traceback
 from dataclasses import dataclass
 
+import cv2
+import numpy as np
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from geometry_msgs.msg import PoseStamped
+from nav_msgs.msg import Odometry
+from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
+from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.signals import SignalHandlerOptions
+from sensor_msgs.msg import CameraInfo, Image, PointCloud2
+
+from dpv_sensor import continuity
+from dpv_sensor import msgs as M
 from dpv_sensor import params as P
+from dpv_sensor.estimator import EstimatorConfig
+from dpv_sensor.frame import Frame
+from dpv_sensor.node_support import FaultLog, Incoming, LogBridge, Mailbox, RateMeter, max_gap, merge_incoming
+from dpv_sensor.pipeline import VO_LOST, Pipeline
+from dpv_sensor.pose_buffer import PoseBuffer, pose7_to_matrix
 
 NODE_NAME = 'dpv_sensor'
 NS = 1_000_000_000
@@ -59,7 +83,6 @@ ODOM_INVALID = 'odometry_invalid_bracket'
 TIME_BACKWARDS = 'time_backwards'
 DUPLICATE_STAMP = 'duplicate_stamp'
 ESTIMATOR_EXCEPTION = 'estimator_exception'
-VO_LOST = 'visual_odometry_lost'
 PUBLISH_ERROR = 'publish_error'
 UNKNOWN_OUTPUT = 'unknown_output_stamp'
 INTERNAL_ERROR = 'internal_error'
@@ -91,7 +114,6 @@ def self_check() -> int:
 
 
 def _descriptor(spec: P.ParamSpec):
-    from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor)
     desc = ParameterDescriptor(name=spec.name, description=spec.description, read_only=True)
     if spec.choices:
         desc.additional_constraints = 'one of: ' + ', '.join(map(str, spec.choices))
@@ -107,208 +129,24 @@ def _descriptor(spec: P.ParamSpec):
 
 
 def declare_parameters(node) -> dict:
-    """Declare every parameter of params.SPECS on `node` and return their validated values."""
-    from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
+    """Declare every parameter of params.SPECS on `node` and return their validated values.
+
+    A value rclpy refuses (type or range of the descriptor) is checked again with the table, so the node gives
+    the same message as the estimator and the tools."""
     for spec in P.SPECS:
         try:
             node.declare_parameter(spec.name, spec.default, _descriptor(spec))
         except (InvalidParameterTypeException, InvalidParameterValueException) as exc:
+            override = getattr(node, '_parameter_overrides', {}).get(spec.name)
+            if override is not None:
+                P.check_value(spec, override.value)         # raises the table's message
             raise P.ParameterError(f"parameter '{spec.name}' rejected: {exc}") from None
     values = {spec.name: node.get_parameter(spec.name).value for spec in P.SPECS}
     return P.validate(values)
 
 
-def _node_base():
-    from rclpy.node import Node
-    return Node
-
-
 class StartupError(RuntimeError):
     """The node cannot start (e.g. the estimator cannot be built with the given parameters)."""
-
-
-# --------------------------------------------------------------------------------------------------------------
-# small plumbing pieces (no ROS)
-# --------------------------------------------------------------------------------------------------------------
-class Mailbox:
-    """One-slot hand-over from the callback thread to the worker: a newer item replaces a waiting one.
-
-    merge: optional `merge(dropped_item, new_item) -> item` called (under the lock) when a waiting item is replaced,
-    so the new item can inherit what the dropped one knew (the node carries the stream's longest image gap)."""
-
-    def __init__(self, merge=None):
-        self._item = None
-        self._cv = threading.Condition()
-        self._merge = merge
-        self.replaced = 0
-        self.closed = False
-
-    def put(self, item) -> bool:
-        """Store `item`; returns True when it replaced (dropped) an item the worker had not taken yet."""
-        with self._cv:
-            dropped = self._item is not None
-            if dropped:
-                self.replaced += 1
-                if self._merge is not None:
-                    item = self._merge(self._item, item)
-            self._item = item
-            self._cv.notify()
-            return dropped
-
-    def take(self, timeout: float):
-        """The waiting item (removing it), or None after `timeout` s / when closed."""
-        with self._cv:
-            if self._item is None and not self.closed:
-                self._cv.wait(timeout)
-            item, self._item = self._item, None
-            return item
-
-    def close(self) -> None:
-        with self._cv:
-            self.closed = True
-            self._cv.notify_all()
-
-
-class RateMeter:
-    """Events per second over a sliding window of monotonic times."""
-
-    def __init__(self, window_s: float = 5.0):
-        self.window_s = window_s
-        self._t: collections.deque[float] = collections.deque()
-        self._lock = threading.Lock()
-
-    def tick(self, t: float | None = None) -> None:
-        with self._lock:
-            self._t.append(time.monotonic() if t is None else t)
-            self._trim()
-
-    def _trim(self):
-        now = time.monotonic()
-        while self._t and now - self._t[0] > self.window_s:
-            self._t.popleft()
-
-    def rate(self) -> float:
-        with self._lock:
-            self._trim()
-            if len(self._t) < 2:
-                return 0.0
-            span = max(self._t[-1] - self._t[0], 1e-6)
-            return (len(self._t) - 1) / span
-
-    def last(self) -> float | None:
-        with self._lock:
-            return self._t[-1] if self._t else None
-
-
-class FaultLog:
-    """Per-kind counters and rate-limited log messages.
-
-    Messages are limited per key (the kind, or a finer key such as 'image_size_change:640x480->320x240'): at most
-    `burst` messages per key in any `period_s` window; the ones held back are counted and the number is appended to
-    the next message of that key that gets through.
-    """
-
-    def __init__(self, logger, period_s: float = 5.0, burst: int = 3):
-        self.logger = logger
-        self.period_s = period_s
-        self.burst = burst
-        self.counts: collections.Counter = collections.Counter()
-        self._recent: dict[str, collections.deque] = {}
-        self._suppressed: collections.Counter = collections.Counter()
-        self._lock = threading.Lock()
-
-    def report(self, kind: str, message: str, level: str = 'warn', count: bool = True, key: str | None = None,
-               period_s: float | None = None) -> bool:
-        """Count one fault of `kind` and log `message` unless rate-limited; returns True when it was logged.
-        `period_s` overrides the limiter window for this key."""
-        now = time.monotonic()
-        key = key or kind
-        period = self.period_s if period_s is None else period_s
-        with self._lock:
-            if count:
-                self.counts[kind] += 1
-            recent = self._recent.setdefault(key, collections.deque())
-            while recent and now - recent[0] >= period:
-                recent.popleft()
-            if len(recent) >= self.burst:
-                self._suppressed[key] += 1
-                return False
-            recent.append(now)
-            suppressed, self._suppressed[key] = self._suppressed[key], 0
-        if suppressed:
-            message += f' ({suppressed} more like this were not logged)'
-        # one call site per severity: rclpy loggers refuse a severity change at the same call site
-        if level == 'error':
-            self.logger.error(message)
-        elif level == 'info':
-            self.logger.info(message)
-        else:
-            self.logger.warning(message)
-        return True
-
-
-class _LoggerAdapter:
-    """A logging.Logger-like front for an rclpy logger (what Estimator(logger=...) expects)."""
-
-    def __init__(self, rcl_logger):
-        self._log = rcl_logger
-
-    def debug(self, msg, *args, **kw):
-        self._log.debug(str(msg) % args if args else str(msg))
-
-    def info(self, msg, *args, **kw):
-        self._log.info(str(msg) % args if args else str(msg))
-
-    def warning(self, msg, *args, **kw):
-        self._log.warning(str(msg) % args if args else str(msg))
-
-    warn = warning
-
-    def error(self, msg, *args, **kw):
-        self._log.error(str(msg) % args if args else str(msg))
-
-    def exception(self, msg, *args, **kw):
-        self.error((str(msg) % args if args else str(msg)) + '\n' + traceback.format_exc())
-
-
-class _ForwardHandler(logging.Handler):
-    """Python logging records of dpv_sensor.* -> the node's rclpy logger."""
-
-    def __init__(self, rcl_logger):
-        super().__init__(level=logging.INFO)
-        self._log = rcl_logger
-
-    def emit(self, record):
-        try:
-            msg = f'[{record.name}] {record.getMessage()}'
-            if record.levelno >= logging.ERROR:
-                self._log.error(msg)
-            elif record.levelno >= logging.WARNING:
-                self._log.warning(msg)
-            else:
-                self._log.info(msg)
-        except Exception:  # logging must never raise into the algorithm
-            pass
-
-
-def _max_gap(a: int | None, b: int | None) -> int | None:
-    """The larger of two image gaps (ns); None = unknown, ignored."""
-    return b if a is None else a if b is None else max(a, b)
-
-
-@dataclass
-class _Incoming:
-    msg: object          # sensor_msgs/Image as received
-    receipt_mono: float  # time.monotonic() at receipt
-    receipt_ns: int      # wall clock (ns) at receipt
-    gap_ns: int | None = None  # longest stamp interval between consecutive received images up to this one, since
-    #                            the previous item the worker took (None: first image, or time went backwards)
-
-
-def _merge_incoming(dropped: _Incoming, new: _Incoming) -> _Incoming:
-    """Mailbox merge: the image replacing a dropped one inherits the dropped one's stream gap."""
-    new.gap_ns = _max_gap(dropped.gap_ns, new.gap_ns)
-    return new
 
 
 @dataclass
@@ -326,43 +164,24 @@ class _FrameMeta:
 # --------------------------------------------------------------------------------------------------------------
 # the node
 # --------------------------------------------------------------------------------------------------------------
-class DepthCameraNode(_node_base()):
+class DepthCameraNode(Node):
     """The virtual depth camera on the ROS graph (parameters, topics, diagnostics)."""
 
     def __init__(self, **kwargs):
-        # everything imported before the node joins the graph, so it is up moments after it is visible
-        import numpy as np
-        from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
-        from sensor_msgs.msg import CameraInfo, Image, PointCloud2
-        from nav_msgs.msg import Odometry
-        from geometry_msgs.msg import PoseStamped
-        from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue  # noqa: F401
-        from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor  # noqa: F401
-        from rclpy.exceptions import InvalidParameterTypeException  # noqa: F401
-
-        from dpv_sensor import msgs as M
-        from dpv_sensor.frame import Frame  # noqa: F401
-        from dpv_sensor.pose_buffer import PoseBuffer, pose7_to_matrix
-
         super().__init__(NODE_NAME, **kwargs)
 
-        self._np = np
-        self._M = M
         self.config = cfg = declare_parameters(self)
         log = self.get_logger()
         self.faults = FaultLog(log)
         self.dropped: collections.Counter = collections.Counter()
         self._stats_lock = threading.Lock()
-        self._py_log_handler = _ForwardHandler(log)
-        logging.getLogger('dpv_sensor').addHandler(self._py_log_handler)
-        logging.getLogger('dpv_sensor').setLevel(logging.INFO)
+        self._log_bridge = LogBridge(log).attach()
 
         # --- the estimator is built by the worker thread (loading weights / CUDA can take seconds; the node
         # meanwhile buffers odometry, keeps the newest image and reports 'starting' in /diagnostics) ----------
-        self.pose_refiner = None
-        self.visual_odometry = None
-        self.estimator = None
+        self.pipeline: Pipeline | None = None
         self.fatal_error: str | None = None
+        self.failed = threading.Event()           # set by the worker when the pipeline cannot be built
         self._estimator_lock = threading.RLock()
 
         # --- pose buffer and camera intrinsics -------------------------------------------------------------
@@ -419,7 +238,7 @@ class DepthCameraNode(_node_base()):
         self._last_push_ms = 0.0
 
         # --- worker ---------------------------------------------------------------------------------------------
-        self._mailbox = Mailbox(merge=_merge_incoming)
+        self._mailbox = Mailbox(merge=merge_incoming)
         self._last_received_stamp_ns = None   # header stamp of the newest image received (callback thread only)
         self._gap_carry_ns = None             # longest image gap since the last push (worker thread only)
         self._stop = threading.Event()
@@ -445,53 +264,43 @@ class DepthCameraNode(_node_base()):
             f"odom='{self.sub_odom.topic_name if self.sub_odom else 'none'}'")
 
     # ------------------------------------------------------------------------------------------ construction
-    def _make_estimator(self):
-        from dpv_sensor.estimator import Estimator, EstimatorConfig
+    def _make_pipeline(self) -> Pipeline:
         try:
-            return Estimator(EstimatorConfig.from_params(self.config), pose_refiner=self.pose_refiner,
-                             logger=_LoggerAdapter(self.get_logger()))
+            return Pipeline(EstimatorConfig.from_params(self.config))
         except Exception as exc:
             raise StartupError(f'cannot build the estimator: {type(exc).__name__}: {exc}') from exc
 
     def _build(self) -> bool:
-        """Worker start: pose refiner / visual odometry when asked for, then the estimator. On failure the node
-        shuts down (main() exits with code 2 and the reason)."""
-        cfg = self.config
+        """Worker start: the pipeline (pose source and estimator). On failure the node reports a fatal error:
+        ``failed`` is set and the spin loop in :func:`run` stops (exit code 2 with the reason). The worker never
+        shuts the context down itself: the main thread owns it."""
         try:
-            if cfg['pose_refinement'] == 'window':
-                from dpv_sensor.poses import PoseRefinerConfig, WindowPoseRefiner
-                self.pose_refiner = WindowPoseRefiner(PoseRefinerConfig.from_params(cfg))
-            if cfg['odometry'] == 'none':
-                from dpv_sensor.poses import VisualOdometry
-                self.visual_odometry = VisualOdometry()
-            estimator = self._make_estimator()
+            pipeline = self._make_pipeline()
         except Exception as exc:
             self.fatal_error = str(exc) if isinstance(exc, StartupError) else \
                 f'cannot start: {type(exc).__name__}: {exc}'
             self.get_logger().error(self.fatal_error)
-            try:
-                self.context.try_shutdown()
-            except Exception:
-                pass
+            self.failed.set()
             return False
         with self._estimator_lock:
-            self.estimator = estimator
-        st = estimator.status
+            self.pipeline = pipeline
+        st = pipeline.status
         self.get_logger().info(
             f"estimator ready: measurement={st.get('measurement')} ({st.get('measurement_reason')}) "
             f"device={st.get('device')} filter={st.get('filter_mode')} window={st.get('window_mode')} "
             f"planes={st.get('num_planes')} depth range={st.get('depth_range')}")
         return True
 
-    def close(self) -> None:
-        """Stop the worker and release resources before the node is destroyed."""
+    def close(self) -> bool:
+        """Stop the worker and release resources before the node is destroyed; True when the worker stopped."""
         self._stop.set()
         self._mailbox.close()
         with self._inputs_cv:
             self._inputs_cv.notify_all()
         if self._worker.is_alive():
             self._worker.join(timeout=10.0)
-        logging.getLogger('dpv_sensor').removeHandler(self._py_log_handler)
+        self._log_bridge.detach()
+        return not self._worker.is_alive()
 
     # ------------------------------------------------------------------------------------------ callbacks
     def _on_image(self, msg) -> None:
@@ -499,19 +308,18 @@ class DepthCameraNode(_node_base()):
         self._last_image_mono = time.monotonic()
         self.in_rate.tick(self._last_image_mono)
         try:
-            stamp_ns = self._M.stamp_to_ns(msg.header.stamp)
+            stamp_ns = M.stamp_to_ns(msg.header.stamp)
         except Exception:   # a malformed header is reported by the worker; no gap to measure here
             stamp_ns = None
         last, self._last_received_stamp_ns = self._last_received_stamp_ns, stamp_ns
         gap_ns = stamp_ns - last if stamp_ns is not None and last is not None and stamp_ns > last else None
-        if self._mailbox.put(_Incoming(msg, time.monotonic(), time.time_ns(), gap_ns)):
+        if self._mailbox.put(Incoming(msg, time.monotonic(), time.time_ns(), gap_ns)):
             with self._stats_lock:
                 self.dropped[BUSY] += 1
             self.faults.report(BUSY, 'estimator busy: dropping an older image that was still waiting (newest wins; '
                                'the count is in /diagnostics)', level='info', count=False, period_s=60.0)
 
     def _on_camera_info(self, msg) -> None:
-        M = self._M
         try:
             K, size = M.camera_info_to_K(msg)
         except M.BadCameraInfo as exc:
@@ -527,7 +335,6 @@ class DepthCameraNode(_node_base()):
             self._inputs_cv.notify_all()
 
     def _on_odom(self, msg) -> None:
-        M = self._M
         stamp_ns = M.stamp_to_ns(msg.header.stamp)
         try:
             T = M.odometry_to_matrix(msg)
@@ -569,19 +376,19 @@ class DepthCameraNode(_node_base()):
         self._node_resets += 1
         with self._estimator_lock:
             try:
-                self.estimator.reset(reason)
+                self.pipeline.reset(reason)
             except Exception as exc:
-                self.get_logger().error(f'estimator.reset failed ({type(exc).__name__}: {exc}); rebuilding it')
-                self.estimator = self._make_estimator()
-        if self.pose_refiner is not None:
-            self.pose_refiner.reset()
-        if self.visual_odometry is not None:
-            self.visual_odometry.reset()
+                self.get_logger().error(f'pipeline reset failed ({type(exc).__name__}: {exc}); rebuilding it')
+                self.pipeline = self._make_pipeline()
+        self._forget()
+
+    def _forget(self) -> None:
+        """The node's own stream state after a restart: the carried image gap and the recent frame headers."""
         self._gap_carry_ns = None
         self._keyframe_meta.clear()
         self._frame_meta.clear()
 
-    def _wait_for_inputs(self, item: _Incoming, stamp_ns: int):
+    def _wait_for_inputs(self, item: Incoming, stamp_ns: int):
         """Wait (at most odom_wait_timeout after the image arrived) for camera_info and a pose at `stamp_ns`.
 
         Returns (K, camera_info size, T_world_cam | None, None) when both are there, else (None, None, None, why):
@@ -604,56 +411,65 @@ class DepthCameraNode(_node_base()):
             with self._inputs_cv:
                 self._inputs_cv.wait(min(max(deadline - time.monotonic(), 0.0), 0.05))
 
-    def _process(self, item: _Incoming) -> None:
-        np, M = self._np, self._M
-        cfg = self.config
-        msg = item.msg
-        stamp_ns = M.stamp_to_ns(msg.header.stamp)
-        frame_id = msg.header.frame_id
+    def _process(self, item: Incoming) -> None:
+        """One image, in named steps; each step reports and counts its own drops and returns None for them."""
+        stamp_ns = M.stamp_to_ns(item.msg.header.stamp)
         # the stream's longest image gap since the last push: images dropped here (bad input, no pose) count too
-        self._gap_carry_ns = _max_gap(self._gap_carry_ns, item.gap_ns)
+        self._gap_carry_ns = max_gap(self._gap_carry_ns, item.gap_ns)
+        rgb = self._decode(item.msg, stamp_ns)
+        if rgb is None or not self._check_continuity(stamp_ns, (rgb.shape[1], rgb.shape[0])):
+            return
+        inputs = self._camera_and_pose(item, stamp_ns, (rgb.shape[1], rgb.shape[0]))
+        if inputs is None:
+            return
+        out = self._estimate(item, stamp_ns, rgb, *inputs)
+        if out is not None:
+            self._publish_output(out, rgb, stamp_ns)
 
-        # 1. decode
+    def _decode(self, msg, stamp_ns: int):
+        """The image as HxWx3 uint8 RGB, or None (unsupported encoding, inconsistent image)."""
         try:
-            rgb = M.image_to_rgb(msg)
+            return M.image_to_rgb(msg)
         except M.UnsupportedEncoding as exc:
             self._drop(UNSUPPORTED_ENCODING)
             self.faults.report(UNSUPPORTED_ENCODING, f'dropping image at {stamp_ns / NS:.3f} s: {exc}')
-            return
         except M.BadImage as exc:
             self._drop(BAD_IMAGE)
             self.faults.report(BAD_IMAGE, f'dropping image at {stamp_ns / NS:.3f} s: {exc}')
-            return
+        return None
 
-        # 2. stream continuity: time and size
-        if self._last_stamp_ns is not None:
-            if stamp_ns < self._last_stamp_ns:
-                epoch = self.pose_buffer.epoch
-                self.faults.report(TIME_BACKWARDS, f'time went backwards: image stamp {stamp_ns / NS:.3f} s after '
-                                   f'{self._last_stamp_ns / NS:.3f} s; resetting the estimator and the pose buffer '
-                                   '(bag restarted or simulator reset?)', key='time_backwards:image')
-                if epoch == self._last_epoch:   # odometry has not jumped back (yet): its samples are stale
-                    self.pose_buffer.clear('image time went backwards')
-                self._reset_estimator(f'time went backwards ({stamp_ns / NS:.3f} s after '
-                                      f'{self._last_stamp_ns / NS:.3f} s)')
-                self._last_size = None
-            elif stamp_ns == self._last_stamp_ns:
-                self._drop(DUPLICATE_STAMP)
-                self.faults.report(DUPLICATE_STAMP, f'dropping image at {stamp_ns / NS:.3f} s: same stamp as the '
-                                   'previous image')
-                return
+    def _check_continuity(self, stamp_ns: int, size) -> bool:
+        """The stream rules of ``continuity`` on the received images (before the pose lookup: a stream that went
+        backwards restarts the odometry buffer too). False: drop the image (a duplicate stamp)."""
+        order = continuity.time_order(self._last_stamp_ns, stamp_ns)
+        if order == continuity.BACKWARDS:
+            last = self._last_stamp_ns
+            epoch = self.pose_buffer.epoch
+            self.faults.report(TIME_BACKWARDS, f'time went backwards: image stamp {stamp_ns / NS:.3f} s after '
+                               f'{last / NS:.3f} s; resetting the estimator and the pose buffer '
+                               '(bag restarted or simulator reset?)', key='time_backwards:image')
+            if epoch == self._last_epoch:   # odometry has not jumped back (yet): its samples are stale
+                self.pose_buffer.clear('image time went backwards')
+            self._reset_estimator(continuity.backwards_reason(last / NS, stamp_ns / NS, digits=3))
+            self._last_size = None
+        elif order == continuity.DUPLICATE:
+            self._drop(DUPLICATE_STAMP)
+            self.faults.report(DUPLICATE_STAMP, f'dropping image at {stamp_ns / NS:.3f} s: same stamp as the '
+                               'previous image')
+            return False
         self._last_stamp_ns = stamp_ns
         self._last_epoch = self.pose_buffer.epoch
-        size = (rgb.shape[1], rgb.shape[0])
-        if self._last_size is not None and size != self._last_size:
+        changed = continuity.size_change(self._last_size, size)
+        if changed is not None:
             change = f'{self._last_size[0]}x{self._last_size[1]}->{size[0]}x{size[1]}'
-            self.faults.report(SIZE_CHANGE, f'image size changed from {self._last_size[0]}x{self._last_size[1]} '
-                               f'to {size[0]}x{size[1]}; resetting the estimator', key=f'{SIZE_CHANGE}:{change}')
-            self._reset_estimator(f'image size changed from {self._last_size[0]}x{self._last_size[1]} to '
-                                  f'{size[0]}x{size[1]}')
+            self.faults.report(SIZE_CHANGE, f'{changed}; resetting the estimator', key=f'{SIZE_CHANGE}:{change}')
+            self._reset_estimator(changed)
         self._last_size = size
+        return True
 
-        # 3. intrinsics and pose
+    def _camera_and_pose(self, item: Incoming, stamp_ns: int, size):
+        """(K of the image size, odometry pose or None without odometry), or None when the image must be dropped
+        (no camera_info yet, no odometry in time, an odometry gap ...). Resets on an odometry teleport."""
         K, info_size, pose, why = self._wait_for_inputs(item, stamp_ns)
         if K is None:
             if why is None:
@@ -664,71 +480,61 @@ class DepthCameraNode(_node_base()):
             elif why.reason == 'future':
                 self._drop(ODOM_TIMEOUT)
                 self.faults.report(ODOM_TIMEOUT, f'dropping image at {stamp_ns / NS:.3f} s: no odometry at or after '
-                                   f"its stamp within odom_wait_timeout {cfg['odom_wait_timeout']:g} s ({why.detail})")
+                                   f"its stamp within odom_wait_timeout {self.config['odom_wait_timeout']:g} s "
+                                   f'({why.detail})')
             else:
                 kind, label = {'gap': (ODOM_GAP, 'odometry gap'), 'too old': (ODOM_TOO_OLD, 'odometry too old'),
                                'nan': (ODOM_INVALID, 'invalid odometry around the image')}[why.reason]
                 self._drop(kind)
                 self.faults.report(kind, f'dropping image at {stamp_ns / NS:.3f} s ({label}): {why.detail}')
-            return
+            return None
         if info_size != (0, 0) and info_size != size:
             self.faults.report(CAMERA_INFO_MISMATCH, f'camera_info is for {info_size[0]}x{info_size[1]} but the image '
                                f'is {size[0]}x{size[1]}; scaling K to the image size')
             K = M.scale_K(K, info_size, size)
-        T_world_cam = pose
         if pose is not None and self.pose_buffer.jumps != self._last_jumps:
             # the pose comes from after an odometry teleport: the belief is in the old frame
             self._last_jumps = self.pose_buffer.jumps
             self._reset_estimator('odometry jumped')
-        if self.visual_odometry is not None:
-            vo = self.visual_odometry.track(rgb, K, stamp_ns / NS)
-            if not vo.tracking_ok:
-                self._drop(VO_LOST)
-                self.faults.report(VO_LOST, f'visual odometry lost at {stamp_ns / NS:.3f} s: {vo.reason}; '
-                                   'resetting the estimator')
-                self._reset_estimator(f'visual odometry lost: {vo.reason}')
-                return
-            T_world_cam = vo.T_world_cam_44
+        return K, pose
 
-        # 4. estimate
-        from dpv_sensor.frame import Frame
+    def _estimate(self, item: Incoming, stamp_ns: int, rgb, K, pose):
+        """Push the frame through the pipeline; the output that became ready, or None."""
+        frame_id = item.msg.header.frame_id
         stamp_s = stamp_ns / NS
-        meta = _FrameMeta(stamp_ns, frame_id, rgb, K, size[0], size[1], item.receipt_mono, item.receipt_ns)
+        meta = _FrameMeta(stamp_ns, frame_id, rgb, K, rgb.shape[1], rgb.shape[0], item.receipt_mono, item.receipt_ns)
         gap_ns, self._gap_carry_ns = self._gap_carry_ns, None
-        frame = Frame(stamp=stamp_s, image=rgb, K_33=K, T_world_cam_44=T_world_cam, frame_id=frame_id,
+        frame = Frame(stamp=stamp_s, image=rgb, K_33=K, T_world_cam_44=pose, frame_id=frame_id,
                       sensor_gap_s=None if gap_ns is None else gap_ns / NS)
         t0 = time.perf_counter()
         with self._estimator_lock:
-            keyframes_before = self._status_int('keyframes')
             try:
-                out = self.estimator.push(frame)
+                result = self.pipeline.push(frame)
             except Exception as exc:
-                out = None
+                result = None
                 self._on_estimator_exception(exc)
-            is_keyframe = self._status_int('keyframes') > keyframes_before
+        if result is not None and result.drop == VO_LOST:
+            self._drop(VO_LOST)
+            self.faults.report(VO_LOST, f'visual odometry lost at {stamp_s:.3f} s: {result.detail}; '
+                               'resetting the estimator')
+            self._node_resets += 1
+            self._forget()
+            return None
+        is_keyframe = result is not None and result.is_keyframe
         self._last_push_ms = (time.perf_counter() - t0) * 1000.0
         self.process_ms.append(self._last_push_ms)
         if is_keyframe:
             self.keyframe_ms.append(self._last_push_ms)
         self.n_processed += 1
         self._remember(stamp_s, meta, is_keyframe)
-        if out is None:
-            return
+        return None if result is None else result.output
 
-        # 5. publish
+    def _publish_output(self, out, rgb, stamp_ns: int) -> None:
         try:
-            self._publish(out, current=(stamp_s, rgb))
+            self._publish(out, current=(stamp_ns / NS, rgb))
         except Exception as exc:
             self.faults.report(PUBLISH_ERROR, f'could not publish the output for {out.stamp:.3f} s: '
                                f'{type(exc).__name__}: {exc}', level='error')
-
-    def _status_int(self, key: str) -> int:
-        if self.estimator is None:
-            return 0
-        try:
-            return int(self.estimator.status.get(key, 0))
-        except Exception:
-            return 0
 
     def _on_estimator_exception(self, exc: Exception) -> None:
         first = self.faults.counts[ESTIMATOR_EXCEPTION] == 0
@@ -738,10 +544,10 @@ class DepthCameraNode(_node_base()):
         self.faults.report(ESTIMATOR_EXCEPTION, text, level='error')
         self._reset_estimator(f'exception: {type(exc).__name__}: {exc}')
 
-    def _remember(self, stamp_s: float, meta: _FrameMeta, is_keyframe: bool) -> None:
+    def _remember(self, stamp_s: float, meta: '_FrameMeta', is_keyframe: bool) -> None:
         """Keep the headers (and, for keyframes, the images) of recent frames: a centered window publishes a
         keyframe's output two keyframes later and it must carry that frame's exact header."""
-        window = int(getattr(getattr(self.estimator, 'config', None), 'window_size', 5))
+        window = int(getattr(getattr(self.pipeline, 'config', None), 'window_size', 5))
         store, cap = (self._keyframe_meta, 2 * window + 6) if is_keyframe else (self._frame_meta, 8)
         if not is_keyframe:
             meta = _FrameMeta(**{**meta.__dict__, 'rgb': None})
@@ -762,7 +568,6 @@ class DepthCameraNode(_node_base()):
         """Publish one DepthOutput with the exact header of the input frame it belongs to.
 
         current: (stamp in s, rgb) of the frame just pushed (its colours when the output is for it)."""
-        np, M = self._np, self._M
         cfg = self.config
         meta = self._lookup(float(out.stamp))
         if meta is None:
@@ -783,17 +588,12 @@ class DepthCameraNode(_node_base()):
         if self.pub_points.get_subscription_count() > 0 and rgb_src is not None:
             rgb = rgb_src
             if rgb.shape[:2] != (h, w):
-                import cv2
                 rgb = cv2.resize(rgb, (w, h), interpolation=cv2.INTER_AREA)
             self.pub_points.publish(M.depth_to_pointcloud(depth, rgb, K_out, header))
             self.n_points += 1
         if self.pub_pose is not None and out.T_world_cam_44 is not None:
             self.pub_pose.publish(M.matrix_to_pose_stamped(out.T_world_cam_44, M.make_header(meta.stamp_ns,
                                                                                              self._odom_frame)))
-        if self.visual_odometry is not None and out.is_keyframe and rgb_src is not None:
-            K_depth = None if (h, w) == rgb_src.shape[:2] else K_out
-            self.visual_odometry.set_keyframe(rgb_src, meta.K_in, out.T_world_cam_44, out.depth_hw,
-                                              out.confidence_hw, K_depth_33=K_depth, stamp=float(out.stamp))
         now_ns = time.time_ns()
         self.n_published += 1
         self.n_keyframes_published += int(bool(out.is_keyframe))
@@ -804,7 +604,6 @@ class DepthCameraNode(_node_base()):
     def _output_K(self, out, meta: _FrameMeta, out_wh) -> 'np.ndarray':
         """K of the output image: the input K scaled (in float64) from the input size to the output size. The
         estimator's own K_33 (computed in float32 on its device) must agree; if it does not, it is used as is."""
-        np, M = self._np, self._M
         K_est = np.asarray(out.K_33, dtype=np.float64)
         in_wh = (meta.in_w, meta.in_h)
         K = np.array(meta.K_in, dtype=np.float64) if in_wh == tuple(out_wh) else M.scale_K(meta.K_in, in_wh, out_wh)
@@ -818,11 +617,10 @@ class DepthCameraNode(_node_base()):
     # ------------------------------------------------------------------------------------------ diagnostics
     def diagnostics_values(self) -> dict:
         """Everything /diagnostics reports, as a flat {key: value} dict."""
-        np = self._np
         with self._stats_lock:
             dropped = dict(self.dropped)
         try:
-            st = dict(self.estimator.status) if self.estimator is not None else \
+            st = dict(self.pipeline.status) if self.pipeline is not None else \
                 {'measurement': 'starting', 'tracking': 'building the estimator'}
         except Exception as exc:
             st = {'status_error': str(exc)}
@@ -864,9 +662,8 @@ class DepthCameraNode(_node_base()):
         notes = st.get('notes') or []
         if notes:
             values['estimator_notes'] = ' | '.join(notes)
-        if self.pose_refiner is not None:
-            last = getattr(self.pose_refiner, 'last_result', None)
-            values['pose_refinement_tracking'] = 'ok' if last is None or last.tracking_ok else f'lost: {last.reason}'
+        if 'pose_refinement_tracking' in st:
+            values['pose_refinement_tracking'] = st['pose_refinement_tracking']
         values['pose_buffer_size'] = len(self.pose_buffer)
         # matched publishers of the inputs, as this node's subscriptions see them (0: nothing arrives)
         values['publishers.image'] = self.sub_image.get_publisher_count()
@@ -877,7 +674,6 @@ class DepthCameraNode(_node_base()):
         return values
 
     def _publish_diagnostics(self) -> None:
-        from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
         try:
             values = self.diagnostics_values()
         except Exception as exc:
@@ -914,58 +710,39 @@ class DepthCameraNode(_node_base()):
         self.pub_diag.publish(arr)
 
 
-def main(argv: list[str] | None = None) -> int:
-    argv = sys.argv if argv is None else argv
-    parser = argparse.ArgumentParser(
-        prog='node', description='dpv_sensor: virtual RGB-D camera from monocular RGB + odometry. '
-        'ROS arguments go after --ros-args, e.g. --ros-args --params-file config/dpv_sensor.yaml')
-    parser.add_argument('--check', action='store_true', help='import all dependencies, validate defaults, exit')
-    import rclpy.utilities
-    own_args = rclpy.utilities.remove_ros_args(argv)[1:]
-    args = parser.parse_args(own_args)
-    if args.check:
-        return self_check()
-
-    # before any thread exists (DDS, the worker, OpenMP): they then share two malloc arenas (see process_memory)
-    from dpv_sensor.process_memory import limit_malloc_arenas
-    arenas_note = limit_malloc_arenas()
-
-    import signal as signal_module
-
-    import rclpy
-    from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
-    from rclpy.signals import SignalHandlerOptions
-
-    # Import the heavy estimator stack (torch, OpenCV) before the node joins the graph, so that a node visible
-    # in the graph is ready within moments.
-    import dpv_sensor.estimator  # noqa: F401
-
-    # SIGINT / SIGTERM only set a flag: a signal that arrives while the node is being built lets it finish
-    # building (and log 'ready') and then stop cleanly; the spin loop below checks the flag every 0.1 s.
-    stop = threading.Event()
-
-    def on_signal(_signum, _frame):
-        stop.set()
-
+def run(argv: list[str], stop: threading.Event) -> int:
+    """Build the node and spin it until ``stop`` is set (SIGINT / SIGTERM, see ``dpv_sensor.entry``) or the worker
+    reports that the pipeline cannot be built. Returns the exit code: 0, or 2 for a refused parameter or a failed
+    start (with the one message on stderr). Only this thread creates and shuts down the ROS context."""
+    from dpv_sensor import entry
+    # capped by the entry point before any thread existed (DDS, the worker, OpenMP; see process_memory)
+    arenas_note = entry.ARENAS_NOTE
+    if arenas_note is None:
+        from dpv_sensor.process_memory import limit_malloc_arenas
+        arenas_note = limit_malloc_arenas()
+    if stop.is_set():
+        return 0
     rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
-    previous = {sig: signal_module.signal(sig, on_signal) for sig in (signal_module.SIGINT, signal_module.SIGTERM)}
     node = None
     executor = None
+    code = 0
     try:
+        if stop.is_set():
+            return 0
         node = DepthCameraNode()
         node.get_logger().info(arenas_note)
         executor = SingleThreadedExecutor()
         executor.add_node(node)
-        while not stop.is_set() and rclpy.ok():
+        while not stop.is_set() and not node.failed.is_set() and rclpy.ok():
             executor.spin_once(timeout_sec=0.1)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except P.ParameterError as exc:
         print(f'[{NODE_NAME}] invalid parameter: {exc}', file=sys.stderr)
-        return 2
+        code = 2
     except StartupError as exc:
         print(f'[{NODE_NAME}] {exc}', file=sys.stderr)
-        return 2
+        code = 2
     finally:
         if executor is not None:
             executor.shutdown()
@@ -974,13 +751,18 @@ def main(argv: list[str] | None = None) -> int:
             node.destroy_node()
         if rclpy.ok():
             rclpy.shutdown()
-        for sig, handler in previous.items():
-            signal_module.signal(sig, handler)
     if node is not None and node.fatal_error:
         print(f'[{NODE_NAME}] {node.fatal_error}', file=sys.stderr)
         return 2
-    return 0
+    return code
+
+
+def main(argv: list[str] | None = None) -> int:
+    """The entry point (``dpv_sensor.entry.main``: signal handlers first, then this module)."""
+    from dpv_sensor.entry import main as entry_main
+    return entry_main(argv, run=run)
 
 
 if __name__ == '__main__':
-    sys.exit(main())
+    from dpv_sensor.entry import exit_process
+    exit_process(main())

@@ -31,7 +31,7 @@ def test_node_joins_graph_and_stops_cleanly(observer, sig):
 
 
 @pytest.mark.parametrize('override,message', [
-    ('damping:=3.0', "parameter 'damping' rejected"),
+    ('damping:=3.0', "parameter 'damping' = 3.0 is above its maximum 1.0"),
     ('filter_mode:=kalman', "parameter 'filter_mode' = 'kalman' is not one of"),
     ('d_min:=9.0', 'd_min (9.0) must be below d_max (8.0)'),
 ])

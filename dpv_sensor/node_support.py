@@ -1,0 +1,179 @@
+"""Small plumbing pieces of the node, without ROS: the one-slot mailbox between the callback thread and the
+worker, a rate meter, the fault log (per-kind counters and rate-limited messages), the one logging bridge from
+Python logging to the node's logger, and the record of a received image."""
+from __future__ import annotations
+
+import collections
+import logging
+import threading
+import time
+from dataclasses import dataclass
+
+__all__ = ['Mailbox', 'RateMeter', 'FaultLog', 'LogBridge', 'Incoming', 'merge_incoming', 'max_gap']
+
+
+class Mailbox:
+    """One-slot hand-over from the callback thread to the worker: a newer item replaces a waiting one.
+
+    merge: optional `merge(dropped_item, new_item) -> item` called (under the lock) when a waiting item is replaced,
+    so the new item can inherit what the dropped one knew (the node carries the stream's longest image gap)."""
+
+    def __init__(self, merge=None):
+        self._item = None
+        self._cv = threading.Condition()
+        self._merge = merge
+        self.replaced = 0
+        self.closed = False
+
+    def put(self, item) -> bool:
+        """Store `item`; returns True when it replaced (dropped) an item the worker had not taken yet."""
+        with self._cv:
+            dropped = self._item is not None
+            if dropped:
+                self.replaced += 1
+                if self._merge is not None:
+                    item = self._merge(self._item, item)
+            self._item = item
+            self._cv.notify()
+            return dropped
+
+    def take(self, timeout: float):
+        """The waiting item (removing it), or None after `timeout` s / when closed."""
+        with self._cv:
+            if self._item is None and not self.closed:
+                self._cv.wait(timeout)
+            item, self._item = self._item, None
+            return item
+
+    def close(self) -> None:
+        with self._cv:
+            self.closed = True
+            self._cv.notify_all()
+
+
+class RateMeter:
+    """Events per second over a sliding window of monotonic times."""
+
+    def __init__(self, window_s: float = 5.0):
+        self.window_s = window_s
+        self._t: collections.deque[float] = collections.deque()
+        self._lock = threading.Lock()
+
+    def tick(self, t: float | None = None) -> None:
+        with self._lock:
+            self._t.append(time.monotonic() if t is None else t)
+            self._trim()
+
+    def _trim(self):
+        now = time.monotonic()
+        while self._t and now - self._t[0] > self.window_s:
+            self._t.popleft()
+
+    def rate(self) -> float:
+        with self._lock:
+            self._trim()
+            if len(self._t) < 2:
+                return 0.0
+            span = max(self._t[-1] - self._t[0], 1e-6)
+            return (len(self._t) - 1) / span
+
+    def last(self) -> float | None:
+        with self._lock:
+            return self._t[-1] if self._t else None
+
+
+class FaultLog:
+    """Per-kind counters and rate-limited log messages.
+
+    Messages are limited per key (the kind, or a finer key such as 'image_size_change:640x480->320x240'): at most
+    `burst` messages per key in any `period_s` window; the ones held back are counted and the number is appended to
+    the next message of that key that gets through.
+    """
+
+    def __init__(self, logger, period_s: float = 5.0, burst: int = 3):
+        self.logger = logger
+        self.period_s = period_s
+        self.burst = burst
+        self.counts: collections.Counter = collections.Counter()
+        self._recent: dict[str, collections.deque] = {}
+        self._suppressed: collections.Counter = collections.Counter()
+        self._lock = threading.Lock()
+
+    def report(self, kind: str, message: str, level: str = 'warn', count: bool = True, key: str | None = None,
+               period_s: float | None = None) -> bool:
+        """Count one fault of `kind` and log `message` unless rate-limited; returns True when it was logged.
+        `period_s` overrides the limiter window for this key."""
+        now = time.monotonic()
+        key = key or kind
+        period = self.period_s if period_s is None else period_s
+        with self._lock:
+            if count:
+                self.counts[kind] += 1
+            recent = self._recent.setdefault(key, collections.deque())
+            while recent and now - recent[0] >= period:
+                recent.popleft()
+            if len(recent) >= self.burst:
+                self._suppressed[key] += 1
+                return False
+            recent.append(now)
+            suppressed, self._suppressed[key] = self._suppressed[key], 0
+        if suppressed:
+            message += f' ({suppressed} more like this were not logged)'
+        # one call site per severity: rclpy loggers refuse a severity change at the same call site
+        if level == 'error':
+            self.logger.error(message)
+        elif level == 'info':
+            self.logger.info(message)
+        else:
+            self.logger.warning(message)
+        return True
+
+
+class LogBridge(logging.Handler):
+    """The one logging bridge: Python logging records of dpv_sensor.* (the estimator, the pose source, ...) ->
+    the node's rclpy logger. ``attach()`` / ``detach()`` add and remove it on the ``dpv_sensor`` logger."""
+
+    def __init__(self, rcl_logger):
+        super().__init__(level=logging.INFO)
+        self._log = rcl_logger
+
+    def emit(self, record):
+        try:
+            msg = f'[{record.name}] {record.getMessage()}'
+            if record.levelno >= logging.ERROR:
+                self._log.error(msg)
+            elif record.levelno >= logging.WARNING:
+                self._log.warning(msg)
+            else:
+                self._log.info(msg)
+        except Exception:  # logging must never raise into the algorithm
+            pass
+
+    def attach(self) -> 'LogBridge':
+        root = logging.getLogger('dpv_sensor')
+        root.addHandler(self)
+        root.setLevel(logging.INFO)
+        return self
+
+    def detach(self) -> None:
+        logging.getLogger('dpv_sensor').removeHandler(self)
+
+
+def max_gap(a: int | None, b: int | None) -> int | None:
+    """The larger of two image gaps (ns); None = unknown, ignored."""
+    return b if a is None else a if b is None else max(a, b)
+
+
+@dataclass
+class Incoming:
+    msg: object          # sensor_msgs/Image as received
+    receipt_mono: float  # time.monotonic() at receipt
+    receipt_ns: int      # wall clock (ns) at receipt
+    gap_ns: int | None = None  # longest stamp interval between consecutive received images up to this one, since
+    #                            the previous item the worker took (None: first image, or time went backwards)
+
+
+def merge_incoming(dropped: Incoming, new: Incoming) -> Incoming:
+    """Mailbox merge: the image replacing a dropped one inherits the dropped one's stream gap."""
+    new.gap_ns = max_gap(dropped.gap_ns, new.gap_ns)
+    return new

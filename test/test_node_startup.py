@@ -1,0 +1,73 @@
+"""Start-up of the node process: a start that cannot succeed always exits 2 with its one message, and SIGINT or
+SIGTERM at any moment of the start-up (or later) gives exit 0 without a traceback, for both entry points
+(`python -m dpv_sensor.node` and the console script `ros2 run dpv_sensor node` runs)."""
+import concurrent.futures
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+
+from ros_helpers import REPO
+
+MODULE = [sys.executable, '-m', 'dpv_sensor.node']
+# what the console script setuptools writes for `ros2 run dpv_sensor node` does
+CONSOLE = [sys.executable, '-c', 'import sys; from dpv_sensor.entry import console_main; sys.exit(console_main())']
+MISSING_WEIGHTS = ['--ros-args', '-p', 'measurement:=network', '-p', 'weights:=/nonexistent/x.safetensors']
+
+
+def _default_signals():
+    # a background job of a non-interactive shell starts with SIGINT ignored, and children inherit that
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+
+
+def _spawn(cmd):
+    env = dict(os.environ, PYTHONUNBUFFERED='1')
+    return subprocess.Popen(cmd, cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                            preexec_fn=_default_signals)
+
+
+def _run_to_end(cmd, timeout=180.0):
+    proc = _spawn(cmd)
+    try:
+        out, _ = proc.communicate(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        out, _ = proc.communicate()
+        return -9, out
+    return proc.returncode, out
+
+
+def test_missing_weights_with_network_measurement_exits_2_every_time():
+    """20 starts (both entry points, four at a time): the worker's failure never races the main thread."""
+    cmds = [(MODULE if i % 2 == 0 else CONSOLE) + MISSING_WEIGHTS for i in range(20)]
+    with concurrent.futures.ThreadPoolExecutor(max_workers=4) as pool:
+        results = list(pool.map(_run_to_end, cmds))
+    bad = [(i, code, out) for i, (code, out) in enumerate(results)
+           if code != 2 or 'Traceback' in out or 'cannot build the estimator' not in out]
+    assert not bad, '\n\n'.join(f'run {i}: exit {code}\n{out}' for i, code, out in bad[:3])
+    for _code, out in results:
+        assert 'nonexistent/x.safetensors' in out
+
+
+@pytest.mark.parametrize('delay', [0.2, 0.5, 1.0, 1.5, 3.0])
+@pytest.mark.parametrize('sig', [signal.SIGINT, signal.SIGTERM], ids=['SIGINT', 'SIGTERM'])
+def test_signal_during_start_up_exits_0_without_traceback(sig, delay):
+    cmd = (MODULE if delay in (0.2, 1.0, 3.0) else CONSOLE)
+    proc = _spawn(cmd)
+    time.sleep(delay)
+    sent = proc.poll() is None
+    if sent:
+        proc.send_signal(sig)
+    try:
+        out, _ = proc.communicate(timeout=60.0)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        out, _ = proc.communicate()
+        pytest.fail(f'no exit within 60 s of {sig.name} at {delay} s:\n{out}')
+    assert sent, f'the node exited on its own before the signal:\n{out}'
+    assert proc.returncode == 0, f'{sig.name} at {delay} s: exit {proc.returncode}\n{out}'
+    assert 'Traceback' not in out and 'KeyboardInterrupt' not in out, out
