@@ -98,7 +98,6 @@ normalisations stay float32.
 """
 from __future__ import annotations
 
-import dataclasses
 import logging
 import math
 import pathlib
@@ -109,7 +108,6 @@ from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
 import cv2
 import numpy as np
 import torch
-import torch.nn.functional as F
 
 from . import dpv as dpv_ops
 from . import params as P

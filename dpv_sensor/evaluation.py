@@ -6,7 +6,7 @@ Two ways in, one way out:
    :class:`~dpv_sensor.data.sequence.Sequence`, e.g. from the synthetic renderer): frames are pushed in
    order into :class:`~dpv_sensor.estimator.Estimator` with poses from the chosen *pose source*
    (``gt``: the sequence's poses; ``noisy``: the GT trajectory with odometry-like drift from
-   :func:`dpv_sensor.poses.corrupt_trajectory`); with ``pose_refinement=window`` a
+   :func:`dpv_sensor.data.trajectory.corrupt_trajectory`); with ``pose_refinement=window`` a
    :class:`dpv_sensor.poses.WindowPoseRefiner` is plugged in. Every keyframe output is matched to its frame
    by stamp and kept as a :class:`KeyframeRecord` (prediction, confidence, K, poses, GT depth, image).
 2. **Score recorded outputs**: a rosbag2 of the node's ``depth/image`` (+ ``confidence/image``,
@@ -54,12 +54,13 @@ import cv2
 import numpy as np
 
 from . import metrics as M
+from .common import to_jsonable
 from . import params as P
 
 LOG = logging.getLogger('dpv_sensor.evaluation')
 
 __all__ = ['POSE_SOURCES', 'EVAL_KEYS', 'EvalOptions', 'KeyframeRecord', 'parse_value', 'parse_overrides',
-           'build_config', 'load_sequence', 'prepare_sequence', 'run_sequence', 'score_records',
+           'build_config', 'load_sequence', 'load_source', 'prepare_sequence', 'run_sequence', 'score_records',
            'summarize', 'write_report', 'evaluate_sequence', 'compare', 'variants_from_specs',
            'markdown_table', 'records_from_bag', 'records_from_export', 'evaluate_records', 'to_jsonable']
 
@@ -173,6 +174,20 @@ def load_sequence(seq) -> Any:
         from .data.sequence import Sequence
         return Sequence(seq)
     return seq
+
+
+def load_source(text: str, width: Optional[int], height: Optional[int]):
+    """A sequence folder path, or ``synthetic:SEED[:FRAMES]`` rendered in memory."""
+    if text.startswith('synthetic:'):
+        from .data.synthetic import render_sequence
+        parts = text.split(':')
+        seed = int(parts[1])
+        frames = int(parts[2]) if len(parts) > 2 else 60
+        return render_sequence(seed, frames, width=width or 320, height=height or 240)
+    path = pathlib.Path(text)
+    if not path.is_dir():
+        raise ValueError(f'{path} is not a sequence folder')
+    return path
 
 
 def prepare_sequence(seq, options: EvalOptions):
@@ -307,23 +322,6 @@ def score_records(records: SequenceT[KeyframeRecord], *, min_depth: Optional[flo
                 row['temporal_pixels'] = n
         prev = r
     return acc
-
-
-def to_jsonable(obj):
-    """numpy scalars/arrays -> Python, NaN/inf -> None (strict JSON), tuples -> lists, recursively."""
-    if isinstance(obj, dict):
-        return {str(k): to_jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [to_jsonable(v) for v in obj]
-    if isinstance(obj, np.ndarray):
-        return to_jsonable(obj.tolist())
-    if isinstance(obj, np.generic):
-        return to_jsonable(obj.item())
-    if isinstance(obj, float):
-        return obj if math.isfinite(obj) else None
-    if isinstance(obj, pathlib.PurePath):
-        return str(obj)
-    return obj
 
 
 def summarize(acc: M.MetricAccumulator, records: SequenceT[KeyframeRecord], *,

@@ -27,6 +27,8 @@ from typing import Any, Dict, Iterable, Optional, Sequence
 
 import numpy as np
 
+from .common import to_jsonable
+
 __all__ = ['FusionFrame', 'FusionConfig', 'TiledTSDF', 'open3d', 'prepare_depth', 'integrate', 'mesh_arrays',
            'mesh_distances', 'fusion_report', 'frames_from_records', 'write_mesh']
 
@@ -300,19 +302,6 @@ def frames_from_records(records, poses: str = 'gt', use_images: bool = True):
     return pred, gt
 
 
-def _jsonable(obj):
-    """Strict JSON: NaN/inf -> None, numpy -> Python."""
-    if isinstance(obj, dict):
-        return {str(k): _jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_jsonable(v) for v in obj]
-    if isinstance(obj, np.generic):
-        obj = obj.item()
-    if isinstance(obj, float) and not np.isfinite(obj):
-        return None
-    return obj
-
-
 def write_mesh(path, mesh) -> pathlib.Path:
     """Write a mesh (.ply, binary) and return its path."""
     o3d = open3d()
@@ -358,5 +347,5 @@ def fusion_report(pred_frames: Sequence[FusionFrame], gt_frames: Sequence[Fusion
         if masked_mesh is not None:
             report['files']['mesh_pred_masked'] = str(write_mesh(out_dir / 'mesh_pred_masked.ply', masked_mesh))
         with open(out_dir / 'fusion.json', 'w') as f:
-            json.dump(_jsonable(report), f, indent=2)
+            json.dump(to_jsonable(report), f, indent=2)
     return report

@@ -18,7 +18,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from dpv_sensor.pose_buffer import make_pose, matrix_to_quat
+from dpv_sensor.geometry import make_pose, matrix_to_quat, scale_intrinsics_np
 
 NS = 1_000_000_000
 
@@ -291,15 +291,7 @@ def has_distortion(msg) -> bool:
 def scale_K(K_33, from_wh: tuple[int, int], to_wh: tuple[int, int]) -> np.ndarray:
     """Intrinsics of an image resized from `from_wh` to `to_wh` (pixel centres at integers:
     fx' = fx*sx, cx' = (cx + 0.5)*sx - 0.5, same for y)."""
-    sx = to_wh[0] / from_wh[0]
-    sy = to_wh[1] / from_wh[1]
-    K = np.array(K_33, dtype=np.float64)
-    K[0, 0] *= sx
-    K[0, 1] *= sx
-    K[1, 1] *= sy
-    K[0, 2] = (K[0, 2] + 0.5) * sx - 0.5
-    K[1, 2] = (K[1, 2] + 0.5) * sy - 0.5
-    return K
+    return scale_intrinsics_np(K_33, to_wh[0] / from_wh[0], to_wh[1] / from_wh[1])
 
 
 def K_to_camera_info(K_33, width: int, height: int, header, frame_id: str | None = None,

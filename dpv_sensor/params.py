@@ -314,7 +314,7 @@ def split_assignment(item: str, sep: str = '=') -> tuple[str, str]:
         if s in item:
             key, value = item.split(s, 1)
             return key.strip(), value.strip()
-    raise ValueError(f'expected key=value, got {item!r}')
+    raise ValueError(f'expected key=value (KEY=VALUE or KEY:=VALUE), got {item!r}')
 
 
 def parse_assignments(items: Iterable[str], known: dict[str, Any] | None = None) -> dict[str, Any]:

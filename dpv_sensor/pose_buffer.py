@@ -32,6 +32,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+# the pose maths has one home, geometry.py; these names are this module's vocabulary (bag I/O, the node)
+from .geometry import interpolate_pose, make_pose, matrix_to_quat, quat_to_matrix, slerp  # noqa: F401
+
 NS = 1_000_000_000
 
 # A step between consecutive odometry samples is only a teleport when it is also larger than these.
@@ -48,63 +51,6 @@ NAN = 'nan'
 # --------------------------------------------------------------------------------------------------------------
 # quaternion / SE(3) helpers (float64 numpy)
 # --------------------------------------------------------------------------------------------------------------
-def quat_to_matrix(q_xyzw) -> np.ndarray:
-    """3x3 rotation of a quaternion (x, y, z, w); normalised first."""
-    x, y, z, w = np.asarray(q_xyzw, dtype=np.float64) / np.linalg.norm(q_xyzw)
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-    ])
-
-
-def matrix_to_quat(R_33) -> np.ndarray:
-    """Unit quaternion (x, y, z, w), w >= 0, of a rotation matrix (Shepperd's method)."""
-    m = np.asarray(R_33, dtype=np.float64)
-    tr = m[0, 0] + m[1, 1] + m[2, 2]
-    cands = np.array([1.0 + tr, 1.0 + m[0, 0] - m[1, 1] - m[2, 2],
-                      1.0 - m[0, 0] + m[1, 1] - m[2, 2], 1.0 - m[0, 0] - m[1, 1] + m[2, 2]])
-    i = int(np.argmax(cands))
-    s = 2.0 * math.sqrt(max(cands[i], 1e-300))
-    if i == 0:
-        q = [(m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s, s / 4]
-    elif i == 1:
-        q = [s / 4, (m[0, 1] + m[1, 0]) / s, (m[0, 2] + m[2, 0]) / s, (m[2, 1] - m[1, 2]) / s]
-    elif i == 2:
-        q = [(m[0, 1] + m[1, 0]) / s, s / 4, (m[1, 2] + m[2, 1]) / s, (m[0, 2] - m[2, 0]) / s]
-    else:
-        q = [(m[0, 2] + m[2, 0]) / s, (m[1, 2] + m[2, 1]) / s, s / 4, (m[1, 0] - m[0, 1]) / s]
-    q = np.array(q)
-    q /= np.linalg.norm(q)
-    return -q if q[3] < 0 else q
-
-
-def slerp(q0_xyzw, q1_xyzw, alpha: float) -> np.ndarray:
-    """Spherical linear interpolation along the shortest arc (alpha 0 -> q0, 1 -> q1)."""
-    q0 = np.asarray(q0_xyzw, dtype=np.float64)
-    q1 = np.asarray(q1_xyzw, dtype=np.float64)
-    q0 = q0 / np.linalg.norm(q0)
-    q1 = q1 / np.linalg.norm(q1)
-    dot = float(np.dot(q0, q1))
-    if dot < 0.0:
-        q1, dot = -q1, -dot
-    dot = min(dot, 1.0)
-    theta = math.acos(dot)
-    if math.sin(theta) < 1e-9:
-        q = (1.0 - alpha) * q0 + alpha * q1
-    else:
-        q = (math.sin((1.0 - alpha) * theta) * q0 + math.sin(alpha * theta) * q1) / math.sin(theta)
-    return q / np.linalg.norm(q)
-
-
-def make_pose(t_xyz, q_xyzw) -> np.ndarray:
-    """4x4 float64 transform from a translation and a quaternion (x, y, z, w)."""
-    T = np.eye(4)
-    T[:3, :3] = quat_to_matrix(q_xyzw)
-    T[:3, 3] = np.asarray(t_xyz, dtype=np.float64)
-    return T
-
-
 def pose7_to_matrix(pose7) -> np.ndarray:
     """[x, y, z, qx, qy, qz, qw] (the T_base_camera parameter form) -> 4x4."""
     p = [float(v) for v in pose7]
@@ -117,14 +63,6 @@ def matrix_to_pose7(T_44) -> list[float]:
     """4x4 -> [x, y, z, qx, qy, qz, qw]."""
     T = np.asarray(T_44, dtype=np.float64)
     return [*map(float, T[:3, 3]), *map(float, matrix_to_quat(T[:3, :3]))]
-
-
-def interpolate_pose(T0_44, T1_44, alpha: float) -> np.ndarray:
-    """SLERP rotation + linear translation between two 4x4 poses (alpha 0 -> T0, 1 -> T1)."""
-    T0 = np.asarray(T0_44, dtype=np.float64)
-    T1 = np.asarray(T1_44, dtype=np.float64)
-    q = slerp(matrix_to_quat(T0[:3, :3]), matrix_to_quat(T1[:3, :3]), alpha)
-    return make_pose(T0[:3, 3] + alpha * (T1[:3, 3] - T0[:3, 3]), q)
 
 
 def is_valid_pose(T_44) -> bool:

@@ -65,13 +65,12 @@ import numpy as np
 
 from dpv_sensor import params as _params
 
-from dpv_sensor.data.trajectory import corrupt_trajectory  # noqa: F401  (re-exported: experiments and tests)
 from dpv_sensor.photometric import (AlignmentConfig, AlignmentResult, Aligner, ImagePyramid,
                                    inverse_depth_std_from_confidence, pose_error)
 
 __all__ = ['PoseRefinerConfig', 'WindowKeyframe', 'RefinementResult', 'WindowPoseRefiner',
            'VisualOdometryConfig', 'VOResult', 'VisualOdometry', 'odometry_between_sigmas',
-           'relative_pose_errors', 'corrupt_trajectory']
+           'relative_pose_errors']
 
 
 # ------------------------------------------------------------------------------------------------------------------

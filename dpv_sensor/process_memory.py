@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import ctypes
 import os
+from typing import Optional
 
 M_ARENA_MAX = -8          # glibc <malloc.h>
 DEFAULT_ARENAS = 2
@@ -32,3 +33,15 @@ def limit_malloc_arenas(n: int = DEFAULT_ARENAS) -> str:
     if mallopt(M_ARENA_MAX, int(n)) != 1:
         return 'malloc arenas: left as they are (mallopt(M_ARENA_MAX) refused)'
     return f'malloc arenas: at most {int(n)} (set MALLOC_ARENA_MAX to override)'
+
+
+def proc_status_kib(pid: int | str, key: str) -> Optional[int]:
+    """A field of /proc/<pid>/status in kB (e.g. VmRSS, VmHWM; pid 'self' for this process), or None."""
+    try:
+        with open(f'/proc/{pid}/status') as f:
+            for line in f:
+                if line.startswith(key + ':'):
+                    return int(line.split()[1])
+    except OSError:
+        return None
+    return None

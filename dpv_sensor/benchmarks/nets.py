@@ -42,7 +42,7 @@ from typing import Dict, Iterable, Optional, Sequence, Tuple
 import torch
 
 from ..nets.model import DPVNet, count_macs, count_parameters
-from dpv_sensor.tools.node_process import proc_status_kib
+from dpv_sensor.process_memory import proc_status_kib
 
 __all__ = ['run', 'main', 'parse_size']
 

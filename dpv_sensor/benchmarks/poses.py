@@ -8,7 +8,7 @@
 Parts:
 
 * ``synthetic`` - rendered sequences (``data.synthetic.render_sequence``), keyframes every ``--every`` frames,
-  odometry corrupted per keyframe (``poses.corrupt_trajectory``: ``--trans-noise`` (3 %) of each keyframe step in
+  odometry corrupted per keyframe (``data.trajectory.corrupt_trajectory``: ``--trans-noise`` (3 %) of each keyframe step in
   a random direction, ``--rot-noise`` (0.5 deg) about a random axis, optional ``--scale-bias``). Runs the
   estimator (``estimator.Estimator``, causal window of 5 keyframes) three times - GT poses, noisy poses, noisy
   poses with the :class:`~dpv_sensor.poses.WindowPoseRefiner` hook - and reports the keyframe relative pose error

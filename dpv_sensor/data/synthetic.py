@@ -50,6 +50,7 @@ import cv2
 import numpy as np
 
 from dpv_sensor.data.sequence import Sequence, write_sequence
+from dpv_sensor.params import split_assignment
 from dpv_sensor.data.trajectory import HandheldTrajectory
 
 Range = Tuple[float, float]
@@ -1637,10 +1638,11 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     options = {}
     for item in args.set:
-        if '=' not in item:
-            parser.error(f'--set expects NAME=VALUE, got {item!r}')
-        k, v = item.split('=', 1)
-        options[k.strip()] = _parse_value(v.strip())
+        try:
+            k, v = split_assignment(item)
+        except ValueError as exc:
+            parser.error(f'--set: {exc}')
+        options[k] = _parse_value(v)
     if args.motion_blur:
         options['motion_blur'] = True
     if args.rolling_shutter:

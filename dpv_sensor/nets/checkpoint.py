@@ -24,13 +24,13 @@ import hashlib
 import json
 import os
 import struct
-import subprocess
 import tempfile
 from pathlib import Path
 from typing import Dict, Optional, Tuple, Union
 
 import torch
 
+from ..common import code_version
 from .presets import Preset, get_preset, preset_from_dict
 
 __all__ = ['CheckpointError', 'save_checkpoint', 'load_checkpoint', 'read_metadata', 'default_weights_path',
@@ -58,23 +58,6 @@ def default_weights_path(preset: Union[str, Preset]) -> Path:
     except (ImportError, ModuleNotFoundError, TypeError):    # pragma: no cover - very old Pythons
         base = Path(__file__).resolve().parents[1]
     return base / 'weights' / f'{name}.safetensors'
-
-
-def code_version() -> str:
-    """``dpv_sensor.__version__`` plus ``+g<short hash>`` (and ``.dirty``) when inside a git checkout."""
-    from .. import __version__
-    root = Path(__file__).resolve().parents[2]
-    try:
-        h = subprocess.run(['git', '-C', str(root), 'rev-parse', '--short', 'HEAD'], capture_output=True,
-                           text=True, timeout=5)
-        if h.returncode != 0 or not h.stdout.strip():
-            return __version__
-        d = subprocess.run(['git', '-C', str(root), 'status', '--porcelain', '--untracked-files=no'],
-                           capture_output=True, text=True, timeout=5)
-        dirty = '.dirty' if d.returncode == 0 and d.stdout.strip() else ''
-        return f'{__version__}+g{h.stdout.strip()}{dirty}'
-    except (OSError, subprocess.SubprocessError):
-        return __version__
 
 
 def _tensors_digest(tensors: Dict[str, torch.Tensor]) -> str:

@@ -16,7 +16,7 @@ Steps (each prints a progress line and its time):
 3. node    start the node as its own process (`python -m dpv_sensor.node --ros-args -p ... -r ...`) with a private
            ROS_DOMAIN_ID (localhost only) and ROS_LOG_DIR under OUT/logs; wait until its estimator is built and its
            subscriptions match the player's publishers.
-4. replay  play the bag into the node with dpv_sensor.tools.bag.BagPlayer and record the node's outputs
+4. replay  play the bag into the node with dpv_sensor.tools.ros_io.BagPlayer and record the node's outputs
            (depth/image, depth/camera_info, confidence/image, /diagnostics) with BagRecorder into OUT/output_bag.
            Pacing ("lockstep", the default): real time at most, and each image is held back until the node has
            finished every earlier one (its /diagnostics counters frames_processed + dropped_total, published every
@@ -64,7 +64,9 @@ import time
 from dataclasses import dataclass, field
 from typing import Any, Dict, List, Optional
 
-from dpv_sensor.tools.node_process import ClientNode, node_command, proc_status_kib
+from dpv_sensor.process_memory import proc_status_kib
+from dpv_sensor.tools.node_process import ClientNode, node_command
+from dpv_sensor.tools.ros_io import private_ros_env
 from dpv_sensor.tools import tool_argv
 
 REPO = pathlib.Path(__file__).resolve().parents[2]
@@ -120,24 +122,14 @@ def _as_number(text, default=None):
 def parse_params(items: List[str]) -> Dict[str, Any]:
     """['preset=lite', 'fx=525', 'T_base_camera=[0,0,0,0,0,0,1]'] -> typed node parameters (params.SPECS).
 
-    Accepts KEY=VALUE and KEY:=VALUE; unknown names raise ValueError listing the known ones."""
+    Accepts KEY=VALUE and KEY:=VALUE (``params.parse_assignments``); unknown names raise ValueError listing the
+    known ones."""
     from dpv_sensor import params as P
-    from dpv_sensor.evaluation import parse_value
-    out: Dict[str, Any] = {}
-    for item in items or []:
-        sep = ':=' if ':=' in item else '='
-        if sep not in item:
-            raise ValueError(f'--params expects KEY=VALUE, got {item!r}')
-        key, value = item.split(sep, 1)
-        key = key.strip()
-        spec = P.SPEC_BY_NAME.get(key)
-        if spec is None:
-            raise ValueError(f'unknown node parameter {key!r}; known: {", ".join(sorted(P.SPEC_BY_NAME))}')
-        try:
-            out[key] = parse_value(value.strip(), spec.default)
-        except ValueError as exc:
-            raise ValueError(f'parameter {key}: {exc}') from None
-    return out
+    known = {s.name: s.default for s in P.SPECS}
+    try:
+        return P.parse_assignments(items or [], known)
+    except ValueError as exc:
+        raise ValueError(f'--params: {exc}'.replace('unknown configuration key', 'unknown node parameter')) from None
 
 
 class Steps:
@@ -172,25 +164,8 @@ class Steps:
 
 
 # --------------------------------------------------------------------------------------------------------------
-# ROS environment
+# watching the node
 # --------------------------------------------------------------------------------------------------------------
-def private_ros_env(out: pathlib.Path, domain_id: Optional[int]) -> Dict[str, str]:
-    """Set (in os.environ, before rclpy starts) a DDS domain of our own, localhost-only discovery and ROS_LOG_DIR
-    under OUT/logs/ros; the node process inherits them. Returns what was set."""
-    if domain_id is None:
-        taken = os.environ.get('ROS_DOMAIN_ID')
-        rng = random.Random(os.getpid() ^ time.time_ns())
-        domain_id = rng.randint(1, 101)
-        while str(domain_id) == taken:
-            domain_id = rng.randint(1, 101)
-    env = {'ROS_DOMAIN_ID': str(int(domain_id)), 'ROS_LOG_DIR': str((out / 'logs' / 'ros').resolve())}
-    if 'ROS_LOCALHOST_ONLY' not in os.environ and 'ROS_AUTOMATIC_DISCOVERY_RANGE' not in os.environ:
-        env['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
-    os.environ.update(env)
-    pathlib.Path(env['ROS_LOG_DIR']).mkdir(parents=True, exist_ok=True)
-    return env
-
-
 class NodeMonitor:
     """The node's latest /diagnostics values (as a {key: str} dict), with a condition to wait on."""
 
@@ -366,7 +341,7 @@ def run_node_replay(steps: Steps, input_bag: pathlib.Path, output_bag: pathlib.P
     """Steps 3-5: start the node, replay `input_bag` through it while recording its outputs, stop it."""
     import subprocess
     from dpv_sensor.data import rosbag_io as R
-    from dpv_sensor.tools.bag import BagPlayer, BagRecorder
+    from dpv_sensor.tools.ros_io import BagPlayer, BagRecorder
 
     res = ReplayResult(lockstep=lockstep, rate=rate)
     bag_topics = R.bag_topics(input_bag)

@@ -94,20 +94,6 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-def load_source(text: str, width: Optional[int], height: Optional[int]):
-    """A sequence folder path, or ``synthetic:SEED[:FRAMES]`` rendered in memory."""
-    if text.startswith('synthetic:'):
-        from ..data.synthetic import render_sequence
-        parts = text.split(':')
-        seed = int(parts[1])
-        frames = int(parts[2]) if len(parts) > 2 else 60
-        return render_sequence(seed, frames, width=width or 320, height=height or 240)
-    path = pathlib.Path(text)
-    if not path.is_dir():
-        raise ValueError(f'{path} is not a sequence folder')
-    return path
-
-
 def _print_table(rows) -> None:
     from ..evaluation import markdown_table
     print(markdown_table(rows))
@@ -135,7 +121,7 @@ def main(argv: Optional[List[str]] = None) -> int:
                 occlusion_tol=a.occlusion_tol, progress=not a.quiet).validate()
             for v in variants:                   # fail early on a bad parameter value
                 E.build_config({**overrides, **v})
-            seq = load_source(a.source, a.width, a.height)
+            seq = E.load_source(a.source, a.width, a.height)
             if a.compare:
                 result = E.compare(seq, overrides, variants, out, options)
                 print(result['markdown'])

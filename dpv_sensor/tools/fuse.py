@@ -84,7 +84,6 @@ def main(argv: Optional[List[str]] = None) -> int:
     a = build_parser().parse_args(argv)
     from .. import evaluation as E
     from .. import fusion as F
-    from .evaluate import load_source
     out = pathlib.Path(a.out)
     try:
         if a.command == 'sequence':
@@ -97,7 +96,7 @@ def main(argv: Optional[List[str]] = None) -> int:
                                     start=a.start, max_frames=a.max_frames, progress=not a.quiet,
                                     pose_source=overrides.get('pose_source', 'gt')).validate()
             config, values = E.build_config(overrides)
-            records, status = E.run_sequence(load_source(a.source, a.width, a.height), config, options)
+            records, status = E.run_sequence(E.load_source(a.source, a.width, a.height), config, options)
             info = {'source': a.source, 'overrides': overrides, 'estimator_status': status}
         elif a.command == 'bag':
             offset = a.stamp_offset if a.stamp_offset == 'auto' else float(a.stamp_offset)

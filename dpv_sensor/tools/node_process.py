@@ -3,7 +3,7 @@ own, and reading its memory from /proc."""
 from __future__ import annotations
 
 import sys
-from typing import Any, Dict, List, Optional
+from typing import Any, Dict, List
 
 
 def node_command(params: Dict[str, Any], remaps: Dict[str, str]) -> List[str]:
@@ -20,18 +20,6 @@ def node_command(params: Dict[str, Any], remaps: Dict[str, str]) -> List[str]:
     for a, b in remaps.items():
         cmd += ['-r', f'{a}:={b}']
     return cmd
-
-
-def proc_status_kib(pid: int | str, key: str) -> Optional[int]:
-    """A field of /proc/<pid>/status in kB (e.g. VmRSS, VmHWM; pid 'self' for this process), or None."""
-    try:
-        with open(f'/proc/{pid}/status') as f:
-            for line in f:
-                if line.startswith(key + ':'):
-                    return int(line.split()[1])
-    except OSError:
-        return None
-    return None
 
 
 class ClientNode:

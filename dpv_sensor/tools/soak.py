@@ -9,7 +9,7 @@ end-to-end latency = (receipt time of an output) - (its image stamp). Reported a
   drops        the node's /diagnostics counters (dropped.* by reason, faults.*)
   memory       VmRSS of the node process (from /proc) after warm-up, at the end, and its maximum
 
-A tool, not a unit test: it takes minutes. `OutputCollector` is also used by the node tests.
+A tool, not a unit test: it takes minutes. Its `OutputCollector` (tools.ros_io) is also used by the node tests.
 """
 from __future__ import annotations
 
@@ -23,112 +23,16 @@ import sys
 import tempfile
 import threading
 import time
-from dataclasses import dataclass, field
 
 import numpy as np
 
+from dpv_sensor import params as P
 from dpv_sensor.cli import add_setting
 from dpv_sensor.tools.node_process import ClientNode, node_command
+from dpv_sensor.tools.ros_io import OutputCollector
 
 REPO = pathlib.Path(__file__).resolve().parents[2]
 NS = 1_000_000_000
-
-
-# --------------------------------------------------------------------------------------------------------------
-# watching the node's outputs
-# --------------------------------------------------------------------------------------------------------------
-@dataclass
-class Received:
-    """Everything that arrived for one output stamp (messages kept only with keep_messages)."""
-    stamp_ns: int
-    frame_id: str = ''
-    depth: object = None
-    confidence: object = None
-    camera_info: object = None
-    points: object = None
-    depth_wall_ns: int | None = None
-    topics: set = field(default_factory=set)
-
-
-class OutputCollector:
-    """Subscribes (reliable) to a node's outputs under `namespace` and groups them by header stamp.
-
-    Topics: depth/image, depth/camera_info, confidence/image, optionally points, and /diagnostics (the latest status
-    of the node named `diagnostics_name` is kept in `diagnostics`, as a {key: value} dict).
-    """
-
-    def __init__(self, node, namespace: str = '', points: bool = False, keep_messages: bool = True,
-                 diagnostics_name: str = 'dpv_sensor: depth camera', depth: int = 50):
-        from diagnostic_msgs.msg import DiagnosticArray
-        from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
-        from sensor_msgs.msg import CameraInfo, Image, PointCloud2
-        self.node = node
-        ns = namespace.rstrip('/')
-        qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth, reliability=ReliabilityPolicy.RELIABLE,
-                         durability=DurabilityPolicy.VOLATILE)
-        self.keep = keep_messages
-        self.by_stamp: dict[int, Received] = {}
-        self.order: list[int] = []               # depth stamps in arrival order
-        self.latency_ms: list[float] = []         # depth receipt (wall) - stamp, for rebased live stamps
-        self.diagnostics: dict = {}
-        self.diagnostics_level = None
-        self.diagnostics_message = ''
-        self.diagnostics_count = 0
-        self.diagnostics_name = diagnostics_name
-        self._lock = threading.Lock()
-        self.subs = [
-            node.create_subscription(Image, f'{ns}/depth/image', lambda m: self._on(m, 'depth'), qos),
-            node.create_subscription(Image, f'{ns}/confidence/image', lambda m: self._on(m, 'confidence'), qos),
-            node.create_subscription(CameraInfo, f'{ns}/depth/camera_info', lambda m: self._on(m, 'camera_info'), qos),
-            node.create_subscription(DiagnosticArray, '/diagnostics', self._on_diag, qos),
-        ]
-        self.points_sub = None
-        if points:
-            self.points_sub = node.create_subscription(PointCloud2, f'{ns}/points', lambda m: self._on(m, 'points'),
-                                                       qos)
-
-    def _on(self, msg, kind: str) -> None:
-        now = time.time_ns()
-        stamp = msg.header.stamp.sec * NS + msg.header.stamp.nanosec
-        with self._lock:
-            rec = self.by_stamp.get(stamp)
-            if rec is None:
-                rec = self.by_stamp[stamp] = Received(stamp, msg.header.frame_id)
-            rec.topics.add(kind)
-            if self.keep:
-                setattr(rec, kind, msg)
-            if kind == 'depth':
-                rec.depth_wall_ns = now
-                self.order.append(stamp)
-                self.latency_ms.append((now - stamp) / 1e6)
-            if not self.keep and len(self.by_stamp) > 1000:   # long runs: keep the bookkeeping bounded
-                for k in list(self.by_stamp)[:500]:
-                    del self.by_stamp[k]
-
-    def _on_diag(self, msg) -> None:
-        for st in msg.status:
-            if st.name == self.diagnostics_name:
-                with self._lock:
-                    self.diagnostics = {kv.key: kv.value for kv in st.values}
-                    self.diagnostics_level = int.from_bytes(st.level, 'little') if isinstance(st.level, bytes) \
-                        else int(st.level)
-                    self.diagnostics_message = st.message
-                    self.diagnostics_count += 1
-
-    def diag_int(self, key: str, default: int = 0) -> int:
-        try:
-            return int(self.diagnostics.get(key, default))
-        except (TypeError, ValueError):
-            return default
-
-    @property
-    def depth_count(self) -> int:
-        return len(self.order)
-
-    def complete(self) -> list[Received]:
-        """Outputs for which depth, confidence and camera_info all arrived, in arrival order of the depth."""
-        return [self.by_stamp[s] for s in self.order
-                if s in self.by_stamp and {'depth', 'confidence', 'camera_info'} <= self.by_stamp[s].topics]
 
 
 # --------------------------------------------------------------------------------------------------------------
@@ -197,7 +101,7 @@ def _percentile(values, q):
 
 def run_soak(args) -> dict:
     from dpv_sensor.data import rosbag_io as R
-    from dpv_sensor.tools.bag import BagPlayer
+    from dpv_sensor.tools.ros_io import BagPlayer
 
     work = pathlib.Path(args.work_dir or tempfile.mkdtemp(prefix='dpv_soak_'))
     work.mkdir(parents=True, exist_ok=True)
@@ -215,7 +119,7 @@ def run_soak(args) -> dict:
     params = {'measurement': args.measurement, 'device': 'cpu', 'processing_width': args.processing_width,
               'processing_height': args.processing_height, 'diagnostics_period': 1.0}
     for item in args.param or []:
-        k, v = item.split(':=', 1)
+        k, v = P.split_assignment(item)
         params[k] = v
     remaps = {'image': R.IMAGE_TOPIC, 'camera_info': R.CAMERA_INFO_TOPIC, 'odom': R.ODOM_TOPIC}
     env = {'OMP_NUM_THREADS': str(args.threads)} if args.threads else {}

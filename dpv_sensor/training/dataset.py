@@ -40,6 +40,8 @@ import numpy as np
 import torch
 from torch.utils.data import IterableDataset, get_worker_info
 
+from ..geometry import scale_intrinsics_np
+
 TRAIN_SEED_BASE = 1_000_000
 VAL_SEEDS = range(0, 100)
 
@@ -190,15 +192,7 @@ def check_not_heldout(folder: str) -> None:
         raise ValueError(f'{folder} is held-out evaluation data (SUN3D) and must never be trained on')
 
 
-def scale_K_np(K_33: np.ndarray, sx: float, sy: float) -> np.ndarray:
-    """Intrinsics after scaling the image by (sx, sy) (pixel centres at integers)."""
-    K = np.array(K_33, dtype=np.float64, copy=True)
-    K[0, 0] *= sx
-    K[1, 1] *= sy
-    K[0, 1] *= sx
-    K[0, 2] = (K[0, 2] + 0.5) * sx - 0.5
-    K[1, 2] = (K[1, 2] + 0.5) * sy - 0.5
-    return K
+scale_K_np = scale_intrinsics_np      # intrinsics after scaling the image by (sx, sy): geometry's one copy
 
 
 def resize_crop(image: np.ndarray, depth: np.ndarray, K_33: np.ndarray, scaled_wh: Tuple[int, int],
@@ -362,7 +356,7 @@ class SceneStream(IterableDataset):
 
     def _pose_noise(self, smp: Dict[str, torch.Tensor], rng: np.random.Generator) -> Dict[str, torch.Tensor]:
         """With probability ``pose_noise_prob``, replace the sample's poses by an odometry-like corruption of
-        them (:func:`dpv_sensor.poses.corrupt_trajectory`: per keyframe step a rotation error about a random axis
+        them (:func:`dpv_sensor.data.trajectory.corrupt_trajectory`: per keyframe step a rotation error about a random axis
         and a translation error in a random direction, accumulating along the run; magnitudes drawn uniformly up
         to ``pose_noise_rot_deg`` / ``pose_noise_trans_rel`` per sample). Images and depths stay exact, so the
         nets learn what real poses do to the plane sweep and to the warped prior (K-Net learns to damp it)."""

@@ -60,7 +60,6 @@ import math
 import os
 import pathlib
 import shutil
-import subprocess
 import sys
 import time
 from typing import Dict, List, NamedTuple, Optional, Sequence as Seq, Tuple
@@ -71,6 +70,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from .. import dpv as dpvops
+from ..common import code_version, to_jsonable
 from .. import params as _params
 from .. import geometry
 from .dataset import (TRAIN_SEED_BASE, VAL_SEEDS, Augment, SceneStream, StreamConfig, WindowLayout,
@@ -676,18 +676,7 @@ def _atomic_write_text(path: pathlib.Path, text: str) -> None:
     os.replace(tmp, path)
 
 
-def _json_safe(x):
-    if isinstance(x, dict):
-        return {str(k): _json_safe(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_json_safe(v) for v in x]
-    if isinstance(x, (np.floating, np.integer)):
-        return x.item()
-    if torch.is_tensor(x):
-        return x.item() if x.numel() == 1 else x.tolist()
-    if isinstance(x, float) and not math.isfinite(x):
-        return None
-    return x
+_json_safe = to_jsonable        # the one JSON sanitiser (dpv_sensor.common)
 
 
 def _optimizer_to_flat(optimizer: torch.optim.Optimizer) -> Tuple[Dict[str, torch.Tensor], Dict]:
@@ -779,19 +768,6 @@ def load_training_state(ckpt_dir, model: nn.Module, optimizer: Optional[torch.op
     if 'rng.cuda' in opt_t and torch.cuda.is_available():
         torch.cuda.set_rng_state(opt_t['rng.cuda'])
     return state
-
-
-def code_version() -> str:
-    """git commit of the source tree (+ '-dirty' when it has local changes), or 'unknown'."""
-    root = pathlib.Path(__file__).resolve().parents[2]
-    try:
-        rev = subprocess.run(['git', 'rev-parse', '--short', 'HEAD'], cwd=root, capture_output=True, text=True,
-                             timeout=10).stdout.strip()
-        dirty = subprocess.run(['git', 'status', '--porcelain', '--untracked-files=no'], cwd=root,
-                               capture_output=True, text=True, timeout=10).stdout.strip()
-        return (rev or 'unknown') + ('-dirty' if dirty else '')
-    except Exception:
-        return 'unknown'
 
 
 def export_weights(model: nn.Module, path: str, metadata: Dict) -> None:
