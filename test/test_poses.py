@@ -18,8 +18,9 @@ from synthetic_planes import Rect, intrinsics, render_scene, rot_x, rot_y, se3
 from dpv_sensor.geometry import backproject, se3_exp, warp_image_with_depth
 from dpv_sensor.photometric import (AlignmentConfig, align_photometric, inverse_depth_std_from_confidence,
                                    pose_error, resample_map, twist_to_gtsam_order)
+from dpv_sensor.data.trajectory import corrupt_trajectory
 from dpv_sensor.poses import (PoseRefinerConfig, VisualOdometry, VisualOdometryConfig, WindowKeyframe,
-                              WindowPoseRefiner, corrupt_trajectory, relative_pose_errors)
+                              WindowPoseRefiner, relative_pose_errors)
 
 
 
