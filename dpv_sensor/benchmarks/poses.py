@@ -54,12 +54,13 @@ from typing import Dict, List, Optional, Sequence as Seq
 import numpy as np
 import torch
 
+from dpv_sensor.data.trajectory import corrupt_trajectory
 from dpv_sensor.estimator import Estimator, EstimatorConfig
 from dpv_sensor.frame import Frame
 from dpv_sensor.metrics import MetricAccumulator
 from dpv_sensor.photometric import pose_error
 from dpv_sensor.poses import (PoseRefinerConfig, VisualOdometry, VisualOdometryConfig, WindowKeyframe,
-                              WindowPoseRefiner, corrupt_trajectory)
+                              WindowPoseRefiner)
 
 REPO = pathlib.Path(__file__).resolve().parents[2]
 SHARED_DATA = REPO.parent / 'shared' / 'data'
