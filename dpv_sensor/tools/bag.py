@@ -94,8 +94,13 @@ class BagPlayer:
         self.types = {t: all_topics[t][0] for t in self.topics}
         self.counts = {t: all_topics[t][1] for t in self.topics}
         self.classes = {t: ros_message_class(self.types[t]) for t in self.topics}
+        # DDS "publication matched" counts per topic, from the publishers' matched events: a subscription that the
+        # graph lists is not yet necessarily matched by our writer, and a volatile one would miss what we send
+        # before that. The events are delivered by whatever executor spins `node`.
+        self.matched = {t: 0 for t in self.topics}
         self.publishers = {t: node.create_publisher(self.classes[t], self.remap.get(t, t),
-                                                    qos_from_bag(qos.get(t), reliability, qos_depth))
+                                                    qos_from_bag(qos.get(t), reliability, qos_depth),
+                                                    event_callbacks=self._matched_callbacks(t))
                            for t in self.topics}
         self.stop_event = threading.Event()
         self.on_publish = None   # optional callback(topic, msg_or_None, bag_stamp_ns, published_stamp_ns)
@@ -107,13 +112,26 @@ class BagPlayer:
     def published_topic(self, bag_topic: str) -> str:
         return self.publishers[bag_topic].topic_name
 
+    def _matched_callbacks(self, topic: str):
+        from rclpy.event_handler import PublisherEventCallbacks
+
+        def on_matched(info) -> None:
+            self.matched[topic] = int(info.current_count)
+        return PublisherEventCallbacks(matched=on_matched)
+
+    def subscriber_count(self, topic: str) -> int:
+        """Subscriptions on a bag topic that are both in the graph and matched by its publisher (DDS)."""
+        return min(self.publishers[topic].get_subscription_count(), self.matched[topic])
+
     def wait_for_subscribers(self, topics=None, timeout: float = 10.0, spin=None, min_count: int = 1) -> list[str]:
-        """Wait until every topic in `topics` (bag names; default: all) has at least `min_count` matched
-        subscriptions, at most `timeout` s. Returns the topics still short of that (empty list: all matched)."""
+        """Wait until every topic in `topics` (bag names; default: all) has at least `min_count` subscriptions
+        matched by its publisher, at most `timeout` s. Returns the topics still short of that (empty list: all
+        matched). The matched events arrive through the executor of the player's node: pass `spin` (e.g.
+        ``lambda t: executor.spin_once(timeout_sec=t)``) unless another thread spins it."""
         wanted = list(topics) if topics else list(self.topics)
         deadline = time.monotonic() + timeout
         while True:
-            missing = [t for t in wanted if self.publishers[t].get_subscription_count() < min_count]
+            missing = [t for t in wanted if self.subscriber_count(t) < min_count]
             if not missing or time.monotonic() >= deadline or self.stop_event.is_set():
                 return missing
             if spin is not None:
@@ -313,17 +331,20 @@ def _cmd_play(args, ros_args) -> int:
     try:
         player = BagPlayer(node, args.bag, rate=args.rate, topics=args.topics, rebase_stamps=args.rebase_stamps,
                            loop=args.loop, reliability=args.qos_reliability)
+        executor = rclpy.executors.SingleThreadedExecutor(context=node.context)
+        executor.add_node(node)     # delivers the publishers' matched events while waiting for subscribers
         wait_topics = player.topics if args.wait_for == ['all'] else (args.wait_for or [])
         if wait_topics and args.wait_timeout > 0:
             print(f'waiting up to {args.wait_timeout:g} s for {args.wait_count} subscriber(s) on '
                   f'{", ".join(player.published_topic(t) for t in wait_topics)}', flush=True)
-            missing = player.wait_for_subscribers(wait_topics, args.wait_timeout, min_count=args.wait_count)
+            missing = player.wait_for_subscribers(wait_topics, args.wait_timeout, min_count=args.wait_count,
+                                                  spin=lambda t: executor.spin_once(timeout_sec=t))
             if missing:
                 print(f'no subscriber on {", ".join(player.published_topic(t) for t in missing)} after '
                       f'{args.wait_timeout:g} s; playing anyway', file=sys.stderr, flush=True)
         if args.delay > 0:
-            # DDS discovery is not symmetric: a subscriber may learn about our publishers a moment after we see it,
-            # and a volatile subscriber misses what is sent before that.
+            # Optional pause after the subscriptions matched, for consumers that need time to set up after
+            # subscribing (waiting for matched subscriptions already covers DDS discovery).
             time.sleep(args.delay)
         print(f'playing {args.bag} ({player.total_messages} messages) at {args.rate:g}x', flush=True)
         stats = player.play(progress=not args.no_progress, duration=args.duration)
@@ -437,8 +458,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "give a subset when some topics have no consumer)")
     p.add_argument('--wait-timeout', type=float, default=10.0, help='seconds to wait for subscribers (0: do not wait)')
     p.add_argument('--wait-count', type=int, default=1, help='subscribers each waited-for topic needs (default 1)')
-    p.add_argument('--delay', type=float, default=0.5,
-                   help='seconds to wait after the subscribers matched before the first message (default 0.5)')
+    p.add_argument('--delay', type=float, default=0.0,
+                   help='extra seconds to wait after the subscribers matched, before the first message (default 0)')
     p.add_argument('--rebase-stamps', action='store_true', help='shift header stamps so playback starts at now')
     p.add_argument('--loop', action='store_true', help='play again from the start until stopped')
     p.add_argument('--duration', type=float, help='stop after this many seconds')
