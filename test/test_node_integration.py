@@ -190,7 +190,9 @@ def test_replayed_bag_gives_depth_for_every_keyframe_with_exact_headers(scene, o
     # ---------------- node B: 16UC1 at the processing size, min_confidence, point cloud
     outs_b = b.complete()
     assert len(outs_b) >= 4
-    K_b = M.scale_K(seq.K, (W, H), (80, 64))
+    # 160x128 -> 80x64 halves the focal lengths; pixel centres sit at integers, so c' = (c + 0.5) / 2 - 0.5
+    (fx, fy), (cx, cy) = np.diag(seq.K)[:2], seq.K[:2, 2]
+    K_b = np.array([[fx / 2, 0.0, (cx + 0.5) / 2 - 0.5], [0.0, fy / 2, (cy + 0.5) / 2 - 0.5], [0.0, 0.0, 1.0]])
     for rec in outs_b:
         assert rec.stamp_ns in image_stamps and rec.frame_id == 'cam_optical'
         assert rec.depth.encoding == '16UC1'
