@@ -8,7 +8,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
-import os
 import pathlib
 import time
 
@@ -20,6 +19,8 @@ from dpv_sensor import dpv
 from dpv_sensor.training.dataset import (TRAIN_SEED_BASE, VAL_SEEDS, SceneStream, StreamConfig, WindowLayout,
                                          check_not_heldout)
 from dpv_sensor.training import loop
+
+from conftest import cpu_native_bf16
 
 
 def _small_stream(steps=2, w=64, h=48, **kw):
@@ -307,17 +308,10 @@ def test_streaming_validation_scores_whole_sequences_through_the_estimator(tmp_p
 def test_amp_resolution_per_device():
     cpu, cuda = torch.device('cpu'), torch.device('cuda')
     # the CPU autocasts to bfloat16 by default only where oneDNN has native kernels: judged here from the CPU's
-    # own flags (Linux), not from the function that makes the choice
-    flags = set()
-    if os.path.isfile('/proc/cpuinfo'):
-        for line in open('/proc/cpuinfo'):
-            if line.startswith('flags'):
-                flags = set(line.split(':', 1)[1].split())
-                break
-    if flags & {'avx512_bf16', 'amx_bf16'}:
-        assert loop.resolve_amp('auto', cpu) is torch.bfloat16
-    elif flags and 'avx512bw' not in flags:          # no AVX-512 at all: no bfloat16 kernels
-        assert loop.resolve_amp('auto', cpu) is None
+    # own flags, not from the function that makes the choice
+    native = cpu_native_bf16()
+    if native is not None:
+        assert loop.resolve_amp('auto', cpu) is (torch.bfloat16 if native else None)
     assert loop.resolve_amp('off', cpu) is None
     assert loop.resolve_amp('bf16', cpu) is torch.bfloat16
     with pytest.raises(ValueError, match='CUDA only'):
