@@ -3,7 +3,7 @@
 Everything here is torch, batched, differentiable and dtype/device agnostic (float32 by default,
 float64 for gradchecks, CPU or CUDA alike). No ROS import, no numpy in the hot paths.
 
-Conventions (see notes/CONTEXT.md):
+Conventions:
 - OpenCV camera axes (x right, y down, z forward); z-depth in metres.
 - ``T_a_b`` (4x4, batched ``..._b44``) maps points in frame b to frame a: ``X_a = R X_b + t``.
 - Pixel centres at integer coordinates; ``grid_sample`` with ``align_corners=True`` on

@@ -101,7 +101,7 @@ def test_render_batches_split_guard():
 def test_sun3d_tiny(model, tmp_path):
     for n in cal.SUN3D_SEQUENCES:
         if not (SHARED_DATA / n / 'poses.txt').is_file():
-            pytest.skip(f'{SHARED_DATA / n} is absent (../shared/data is only on development machines)')
+            pytest.skip(f'{SHARED_DATA / n} is absent (the shared data folder is only on development machines)')
     batches, info = cal.sun3d_batches([str(SHARED_DATA / cal.SUN3D_SEQUENCES[0])], 2, 8, W, H)
     assert len(batches) == 2 and info[0]['frames'] != info[1]['frames']
     assert batches[0]['images'].shape[-2:] == (H, W)

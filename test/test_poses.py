@@ -1,4 +1,4 @@
-"""Pose refinement (issue 6): photometric alignment, the gtsam sliding window, visual odometry.
+"""Pose refinement: photometric alignment, the gtsam sliding window, visual odometry.
 
 Scenes are the exact ray-cast textured rectangles of ``synthetic_planes.render_scene`` at 80x60 (exact images
 and depth, so errors come from the solver alone).

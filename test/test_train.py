@@ -1,4 +1,4 @@
-"""Training pipeline (issue 8): data stream, unrolled loss, checkpoints, resume, export.
+"""Training pipeline: data stream, unrolled loss, checkpoints, resume, export.
 
 Everything runs at tiny sizes (<= 64x48, a few steps) so the file stays well under a minute on a
 shared 2-core CPU; nothing here depends on long training.
