@@ -41,7 +41,7 @@ What happens to a pushed frame
      carries keyframe k's stamp, pose and size. The first output comes with the third keyframe
      (reference = first keyframe, sources = keyframes 2, 3). Keyframes still pending when the stream
      resets are dropped (their window can no longer be completed).
-4. **Pose refinement hook** (issue 6): when a ``pose_refiner`` callable is given, it is called before
+4. **Pose refinement hook**: when a ``pose_refiner`` callable is given, it is called before
    the plane sweep with a :class:`PoseRefinementRequest` (the window's keyframes, the reference index,
    the depth and confidence the filter predicts for the reference) and returns refined ``T_world_cam``
    poses for the window's keyframes (or None to keep them). Refined poses replace the keyframes' poses
@@ -159,7 +159,7 @@ EstimatorConfig.__module__ = __name__
 
 @dataclass
 class PoseRefinementRequest:
-    """What a pose refiner gets before the plane sweep of a window (issue 6, paper eq. 11).
+    """What a pose refiner gets before the plane sweep of a window (paper eq. 11).
 
     keyframes: the window's keyframes in time order (reference included; ``Keyframe.T_world_cam_44`` is
     the current pose estimate, ``image_b3hw`` / ``K_b33`` the processing-size image and intrinsics).
@@ -223,7 +223,7 @@ class Estimator:
             benchmarks, a model just trained); skips checkpoint loading. Ignored with
             ``measurement='classical'``.
         pose_refiner: optional callable ``(PoseRefinementRequest) -> list of T_world_cam | None``, called
-            before every plane sweep (issue 6). The node builds one when ``pose_refinement='window'``.
+            before every plane sweep. The node builds one when ``pose_refinement='window'``.
         logger: a ``logging.Logger``-like object (``warning``/``info``); default ``dpv_sensor.estimator``.
     """
 

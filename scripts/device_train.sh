@@ -1,15 +1,15 @@
 #!/usr/bin/env bash
-# One training run on a lent GPU machine, prepared to fit one call of the device tool's `run`
-# (10 minutes a call; leave ~2 for start-up, validation and the copy back).
+# One training run on a GPU machine, prepared to fit one 10-minute remote call
+# (leave ~2 minutes for start-up, validation and the copy back).
 #
 # There, python3 already holds PyTorch, numpy, scipy, OpenCV, safetensors, matplotlib and tqdm. Training needs
 # nothing else: no ROS, gtsam or bags (test_train.py checks that). The synthetic renderer feeds the GPU from the
-# CPU cores. ../shared does not travel, so this trains on rendered rooms only.
+# CPU cores. The shared development data does not travel, so this trains on rendered rooms only.
 #
-#   device command:  bash scripts/device_train.sh paper 7      # preset, minutes of training
+#   remote command:  bash scripts/device_train.sh paper 7      # preset, minutes of training
 #   CPU dry run:     OUT=/tmp/dev DEVICE=cpu SIZE=64x48 BATCH=1 WORKERS=1 bash scripts/device_train.sh lite 0.3
 #
-# Comes back under $OUT (at most 8 files of < 16 MiB, the tool's limits):
+# Comes back under $OUT (at most 8 files of < 16 MiB, what such a call returns):
 #   <preset>.safetensors.partNN   the exported best weights, split
 #                                 join them: cat <files_at>/<preset>.safetensors.part* > dpv_sensor/weights/<preset>.safetensors
 #   log.txt, train.jsonl, val.jsonl, loss_curves.png, val_montage_latest.png
@@ -17,7 +17,7 @@
 set -uo pipefail
 preset=${1:-paper}
 minutes=${2:-7}
-out=${OUT:?OUT must name the folder for the results (the device tool sets it)}
+out=${OUT:?OUT must name the folder for the results (the remote runner sets it)}
 device=${DEVICE:-cuda}
 size=${SIZE:-256x192}
 batch=${BATCH:-8}

@@ -21,11 +21,28 @@ if str(REPO) not in sys.path:
 os.environ['PYTHONPATH'] = os.pathsep.join([str(REPO)] + [p for p in os.environ.get('PYTHONPATH', '').split(os.pathsep) if p])
 
 
+def cpu_native_bf16():
+    """Whether this CPU has native bfloat16 kernels, from its own flags (Linux /proc/cpuinfo): True with
+    AVX512-BF16 or AMX-BF16, False without AVX-512 at all, None when the flags cannot tell (other systems, or
+    AVX-512 without BF16, where oneDNN's own check decides)."""
+    try:
+        text = pathlib.Path('/proc/cpuinfo').read_text()
+    except OSError:
+        return None
+    flags = next((set(line.split(':', 1)[1].split()) for line in text.splitlines() if line.startswith('flags')),
+                 set())
+    if flags & {'avx512_bf16', 'amx_bf16'}:
+        return True
+    if flags and 'avx512bw' not in flags:
+        return False
+    return None
+
+
 def shared_sequence(name: str) -> pathlib.Path:
-    """Path of a sequence in ../shared/data, or skip the test when the folder is absent."""
+    """Path of a sequence in the shared development data folder, or skip the test when the folder is absent."""
     path = SHARED_DATA / name
     if not (path / 'poses.txt').is_file():
-        pytest.skip(f'{path} is absent (../shared/data is only on development machines)')
+        pytest.skip(f'{path} is absent (the shared data folder is only on development machines)')
     return path
 
 

@@ -64,7 +64,11 @@ def test_estimator_keyframes_per_second(bench):
     for r in rows.values():
         assert r['keyframes_timed'] == 1
         assert r['push_ms_median'] > 0 and r['keyframes_per_s'] > 0
-        assert abs(r['keyframes_per_s'] * r['push_ms_median'] - 1000.0) < 1e-6
+        # one keyframe timed: the estimator's own clock (stages, 'total') runs inside the push timed from outside,
+        # and its stages run one after the other inside its total
+        st = r['stages_ms_median']
+        assert 0 < st['total'] <= r['push_ms_median'], (st, r['push_ms_median'])
+        assert 0 < sum(v for k, v in st.items() if k != 'total') <= st['total'] + 0.1, st
         assert r['rss_peak_mib'] > 0 and r['cuda_peak_mib'] is None
         assert r['stages_ms_median']
     assert rows['classical']['measurement'] == 'classical' and rows['lite']['measurement'] == 'network'

@@ -2,6 +2,7 @@
 import json
 import math
 
+import numpy as np
 import pytest
 import torch
 
@@ -43,7 +44,19 @@ def _check_rows(res, datasets):
             assert math.isfinite(r['nll_full']), r
         if r['mode'] == 'none':       # no filter: the belief is the measurement
             assert r['nll_filtered_q'] == pytest.approx(r['nll_meas_q'])
-        assert r['below_random'] in (True, False)
+        # 'below random' means below at every removed fraction: the share of such fractions is then 1
+        assert isinstance(r['below_random'], bool) and 0.0 <= r['below_random_share'] <= 1.0, r
+        assert r['below_random'] == (r['below_random_share'] == 1.0), r
+
+
+def test_below_random_hand_made_curves():
+    # the first point (nothing removed) is the same for both curves and is not judged
+    c = {'sparsification': np.array([1.0, 0.5, 0.2]), 'random': np.array([1.0, 0.8, 0.6])}
+    assert cal._below_random(c) == (True, 1.0)
+    c = {'sparsification': np.array([1.0, 0.9, 0.2, 0.7]), 'random': np.array([1.0, 0.8, 0.6, 0.6])}
+    assert cal._below_random(c) == (False, pytest.approx(1 / 3))
+    c = {'sparsification': np.array([1.0, np.nan]), 'random': np.array([1.0, 0.5])}
+    assert cal._below_random(c)[0] is None and cal._below_random(None)[0] is None
 
 
 def test_synthetic_tiny(model, tmp_path, capsys):
@@ -88,7 +101,7 @@ def test_render_batches_split_guard():
 def test_sun3d_tiny(model, tmp_path):
     for n in cal.SUN3D_SEQUENCES:
         if not (SHARED_DATA / n / 'poses.txt').is_file():
-            pytest.skip(f'{SHARED_DATA / n} is absent (../shared/data is only on development machines)')
+            pytest.skip(f'{SHARED_DATA / n} is absent (the shared data folder is only on development machines)')
     batches, info = cal.sun3d_batches([str(SHARED_DATA / cal.SUN3D_SEQUENCES[0])], 2, 8, W, H)
     assert len(batches) == 2 and info[0]['frames'] != info[1]['frames']
     assert batches[0]['images'].shape[-2:] == (H, W)

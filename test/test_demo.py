@@ -16,6 +16,7 @@ import os
 import re
 import subprocess
 import sys
+import time
 
 import cv2
 import pytest
@@ -35,7 +36,9 @@ def _run_demo(args, timeout=240):
 @pytest.fixture(scope='module')
 def demo_run(tmp_path_factory):
     out = tmp_path_factory.mktemp('demo') / 'out'
+    t0 = time.monotonic()
     proc = _run_demo(['--out', str(out), '--frames', '20', '--width', '96', '--height', '72', '--params'] + NODE)
+    proc.wall_s = time.monotonic() - t0
     return out, proc
 
 
@@ -60,7 +63,10 @@ def test_demo_runs_every_step_and_writes_its_files(demo_run):
     s = json.loads((out / 'summary.json').read_text())
     assert s['ok'] and s['failure'] is None
     assert [r['step'] for r in s['steps']] == ['render', 'bag', 'node', 'replay', 'stop', 'eval', 'fuse']
-    assert all(r['ok'] and r['seconds'] >= 0 for r in s['steps'])
+    assert all(r['ok'] for r in s['steps'])
+    # every step did some work, and the steps' times add up to no more than the wall time of the whole process
+    assert all(r['seconds'] > 0 for r in s['steps']), s['steps']
+    assert sum(r['seconds'] for r in s['steps']) <= proc.wall_s, (s['steps'], proc.wall_s)
     fu = s['fusion']['unmasked']
     assert fu['num_vertices'] > 0 and 0.0 <= fu['fscore'] <= 1.0
     for line in ('=== dpv_sensor demo finished', 'what ran', 'metrics', 'fusion', 'pictures'):

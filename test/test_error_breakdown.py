@@ -127,7 +127,7 @@ def test_cli_streams_rendered_seeds_and_writes_json_and_png(tmp_path, capsys):
     summ = evaluate_sequence(render_sequence(22, 14, width=320, height=240, lazy=True), {'filter_mode': 'knet'},
                              options=EvalOptions(seed=22, progress=False), model=model)
     assert s['abs_rel'] == pytest.approx(summ['metric']['pixel_weighted']['abs_rel'], rel=1e-4)
-    # a sequence folder (the format of ../shared/data) gives the same figures as the rendered seed it holds
+    # a sequence folder (the format of the shared development data) gives the same figures as the rendered seed it holds
     from dpv_sensor.data.sequence import write_sequence
     folder = write_sequence(tmp_path / 'seq22', render_sequence(22, 14, width=320, height=240), lossless=True)
     assert eb.main(['--weights', str(w), '--seeds', '', '--seqs', str(folder), '--threads', '1',

@@ -324,3 +324,42 @@ def test_predict_does_not_change_state(warm):
     p = f.predict(se3(t=(0.05, 0.0, 0.0)))
     assert p.shape == meas.shape and torch.allclose(f.logp_bdhw, before)
     assert torch.allclose(f.predict(se3()), meas)
+
+
+def _peaked_patch(k_plane, cols, D_=D, h=H, w=W, floor=-30.0):
+    """A DPV that is sure of plane ``k_plane`` on the columns ``cols`` and uniform elsewhere."""
+    logp = torch.full((1, D_, h, w), -math.log(D_), dtype=DT)
+    patch = torch.full((1, D_, h, len(cols)), floor, dtype=DT)
+    patch[:, k_plane] = 0.0
+    logp[..., cols] = dpv.normalize_log(patch)
+    return logp
+
+
+@pytest.mark.parametrize('use_step', [False, True])
+def test_prediction_moves_a_peaked_patch_by_the_hand_computed_shift(use_step):
+    """Camera A at the origin is sure of plane k (depth z_k) on columns 20..25. Camera B is A moved t m to the
+    right (world x), no rotation: a point at depth z seen at column u in A is at u - f * t / z in B, at the same
+    depth. With t = 6 z_k / f the patch must appear 6 columns to the left, on the same plane (pure translation
+    sideways keeps every depth), and the columns it left must lose the peak. (The farther planes of a moved ray
+    look into A's uniform columns, so the peak keeps 0.6-0.8 of the mass, not all of it.)"""
+    k, shift = 12, 6
+    z_k = float(PLANES[k])
+    f = float(K[0, 0, 0])
+    t = shift * z_k / f
+    cols = list(range(20, 26))
+    meas = _peaked_patch(k, cols)
+    filt = DPVFilter(mode='bayes', max_translation=10.0)
+    filt.step(meas, K, se3(), 0.0, PLANES)
+    T_b = se3(t=(t, 0.0, 0.0))
+    if use_step:
+        pred = filt.step(_peaked_patch(k, cols), K, T_b, 0.1, PLANES).predicted_logp_bdhw
+    else:
+        pred = filt.predict(T_b)
+    p = pred.exp()[0]                                  # (D, H, W)
+    moved = [c - shift for c in cols]                  # columns 14..19
+    left_behind = [c for c in cols if c not in moved]  # 20..25
+    assert float(p[k][:, moved].min()) > 0.5, 'the peak did not arrive where the hand-computed shift puts it'
+    assert int(p[:, :, moved].argmax(0).unique().numel()) == 1 and int(p[:, :, moved].argmax(0)[0, 0]) == k
+    assert float(p[k][:, left_behind + [moved[0] - 1]].max()) < 0.2, 'the peak stayed where it was or moved the wrong way'
+    # moved the other way (the inverted relative pose) it would sit on columns 26..31
+    assert float(p[k][:, [c + shift for c in cols]].max()) < 0.2

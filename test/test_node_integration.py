@@ -189,7 +189,9 @@ def test_replayed_bag_gives_depth_for_every_keyframe_with_exact_headers(scene, o
     # ---------------- node B: 16UC1 at the processing size, min_confidence, point cloud
     outs_b = b.complete()
     assert len(outs_b) >= 4
-    K_b = M.scale_K(seq.K, (W, H), (80, 64))
+    # 160x128 -> 80x64 halves the focal lengths; pixel centres sit at integers, so c' = (c + 0.5) / 2 - 0.5
+    (fx, fy), (cx, cy) = np.diag(seq.K)[:2], seq.K[:2, 2]
+    K_b = np.array([[fx / 2, 0.0, (cx + 0.5) / 2 - 0.5], [0.0, fy / 2, (cy + 0.5) / 2 - 0.5], [0.0, 0.0, 1.0]])
     for rec in outs_b:
         assert rec.stamp_ns in image_stamps and rec.frame_id == 'cam_optical'
         assert rec.depth.encoding == '16UC1'
@@ -212,9 +214,49 @@ def test_replayed_bag_gives_depth_for_every_keyframe_with_exact_headers(scene, o
         assert rgb[valid].max() > 0
 
 
+def test_intrinsics_from_parameters(scene, observer):
+    """`camera_info_source: parameters`: no camera_info subscription; the published depth/camera_info carries the
+    fx, fy, cx, cy given as parameters (this scene's camera: cx 76.8, cy 63.4, so a swap shows), and the depth
+    computed with them matches the rendered ground truth as well as with camera_info from the topic."""
+    seq, bag, summary = scene
+    fx, fy, cx, cy = (float(seq.K[0, 0]), float(seq.K[1, 1]), float(seq.K[0, 2]), float(seq.K[1, 2]))
+    assert abs(cx - cy) > 10.0
+    node, executor = observer
+    spin = lambda t: executor.spin_once(timeout_sec=t)  # noqa: E731
+    a = OutputCollector(node, diagnostics_name='dpv_sensor: depth camera')
+    params = {**COMMON, 'T_base_camera': T_BASE_CAMERA, 'camera_info_source': 'parameters',
+              'fx': fx, 'fy': fy, 'cx': cx, 'cy': cy}
+    proc = start_node(ros_args(params), env={'OMP_NUM_THREADS': '1'})
+    player = BagPlayer(node, bag, rate=0.3, topics=[R.IMAGE_TOPIC, R.ODOM_TOPIC])
+    played = {}
+    try:
+        ready = wait_for(lambda: a.diagnostics.get('measurement_model') == 'classical'
+                         and a.diag_int('publishers.image') == 1 and a.diag_int('publishers.odom') == 1
+                         and a.subs[0].get_publisher_count() == 1, timeout=60.0, spin=spin)
+        assert proc.poll() is None and ready, f'the node never got ready: {a.diagnostics}'
+        assert node.count_subscribers('/camera/camera_info') == 0, 'parameters mode subscribed to camera_info'
+        assert not player.wait_for_subscribers(timeout=10.0, spin=spin)
+        thread = threading.Thread(target=lambda: played.update(stats=player.play(duration=120.0)), daemon=True)
+        thread.start()
+        assert wait_for(lambda: len(a.complete()) >= 3, timeout=120.0, spin=spin), f'no outputs: {a.diagnostics}'
+    finally:
+        player.stop()
+        code, out = stop_process(proc)
+    assert code == 0 and 'Traceback' not in out, out
+    idx = {t: i for i, t in enumerate(summary.image_stamps_ns)}
+    errs = []
+    for rec in a.complete():
+        K, size = M.camera_info_to_K(rec.camera_info)
+        assert size == (W, H)
+        np.testing.assert_allclose(K, [[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]], rtol=1e-12)
+        errs.append(abs_rel(M.image_to_float(rec.depth), seq.depth(idx[rec.stamp_ns]), 0.3, 8.0)[0])
+    assert np.mean(errs) < 0.6, errs
+
+
 def test_bag_play_command_line_replays_exact_messages(tmp_path, observer):
-    """`bag play` as its own process: waits for the subscriber, keeps stamps and frame ids, follows ROS remapping,
-    uses the recorded (reliable) QoS, and --rebase-stamps shifts stamps to the wall clock keeping their spacing."""
+    """`bag play` as its own process: waits until its publisher matched the subscriber (no fixed delay), keeps
+    stamps and frame ids, follows ROS remapping, uses the recorded (reliable) QoS, and --rebase-stamps shifts stamps
+    to the wall clock keeping their spacing."""
     from sensor_msgs.msg import Image
     import time
     node, executor = observer
@@ -231,13 +273,13 @@ def test_bag_play_command_line_replays_exact_messages(tmp_path, observer):
         got.clear()
         t0 = time.time_ns()
         player = start_node(['play', str(tmp_path / 'bag'), '--topics', '/camera/image', '--wait-timeout', '30',
-                             '--delay', '2', '--rate', '2', '--no-progress'] + extra
+                             '--rate', '2', '--no-progress'] + extra
                             + ['--ros-args', '-r', '/camera/image:=/replayed'],
                             executable=[sys.executable, '-m', 'dpv_sensor.tools.bag'])
         finished = wait_for(lambda: player.poll() is not None and len(got) == n, timeout=60.0, spin=spin)
         code, out = stop_process(player)
         assert code == 0 and finished, f'{len(got)} of {n} images arrived\n{out}'
-        assert 'published 8 messages' in out
+        assert 'published 8 messages' in out and 'playing anyway' not in out, out
         stamps = [s for s, _m in got]
         expected = [50 * NS + i * NS // 20 for i in range(n)]
         if extra:

@@ -1,4 +1,4 @@
-"""The node's pose output over real DDS (issue 6): a rendered sequence replayed as a rosbag2 into two node processes.
+"""The node's pose output over real DDS: a rendered sequence replayed as a rosbag2 into two node processes.
 
 Node /ref runs with odometry and `pose_refinement: window` (odometry sigmas set through the parameters); node /vo runs
 without odometry (`odometry: none`, visual odometry + the same window). Checked:

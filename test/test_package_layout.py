@@ -20,7 +20,7 @@ def install_prefix(tmp_path_factory):
     # Build from a copy of the sources so colcon leaves nothing behind in the checkout.
     src = work / 'src' / 'dpv_sensor'
     shutil.copytree(REPO, src, ignore=shutil.ignore_patterns(
-        '.venv', '.git', 'build', 'install', 'log', 'out', '__pycache__', '*.egg-info', '.pytest_cache'))
+        '.venv', '.git', 'build', 'install', 'log', 'out', '__pycache__', '*.egg-info', '.pytest_cache', '.ruff'))
     env = dict(os.environ, PATH=f'{VENV_BIN}{os.pathsep}{os.environ["PATH"]}')
     result = subprocess.run(
         [colcon, '--log-base', str(work / 'log'), 'build', '--base-paths', str(work / 'src'),

@@ -1,5 +1,5 @@
 """Sequence folders: write/read round trip, resized views and their intrinsics, keyframe windows, and the
-real SUN3D fragment from ../shared/data (skipped when absent)."""
+real SUN3D fragment from the shared development data folder (skipped when absent)."""
 from __future__ import annotations
 
 import json

@@ -24,7 +24,7 @@ knet, R-Net), on windows laid out like the training validation (``TrainConfig``:
 
 * **synthetic**: held-out seeds (0..99, never trained on) rendered by
   :func:`~dpv_sensor.training.loop.render_validation_batches`, keyframes ``val_gap`` frames apart;
-* **SUN3D** (``../shared/data/sun3d_3dmatch_frag1`` and ``frag2``, when present; never trained on):
+* **SUN3D** (``sun3d_3dmatch_frag1`` and ``frag2`` of the shared development data folder, when present; never trained on):
   keyframes chosen by the estimator's own :class:`dpv_sensor.keyframes.KeyframeSelector` (its default
   5 cm / 5 deg / every 5th frame thresholds), ``--sun3d-windows`` runs of consecutive keyframes spread
   along each sequence, frames resized (stretched, like the estimator) to the evaluation size.

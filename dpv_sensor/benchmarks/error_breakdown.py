@@ -243,7 +243,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     ap = argparse.ArgumentParser(prog='error_breakdown', description=__doc__.split('\n\n')[0])
     ap.add_argument('--weights', default='dpv_sensor/weights/lite.safetensors')
     ap.add_argument('--seeds', default='20-25', help="held-out rendered seeds (0..99); '' for none")
-    ap.add_argument('--seqs', nargs='*', default=[], help='sequence folders with GT depth and poses (../shared/data)')
+    ap.add_argument('--seqs', nargs='*', default=[], help='sequence folders with GT depth and poses')
     ap.add_argument('--frames', type=int, default=60, help='frames per sequence (320x240, 30 Hz)')
     ap.add_argument('--mode', default='knet', help='filter_mode')
     add_setting(ap, 'window_mode')

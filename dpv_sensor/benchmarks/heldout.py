@@ -26,7 +26,7 @@ from dpv_sensor.estimator import EstimatorConfig
 from dpv_sensor.pipeline import evaluate_offline
 from dpv_sensor.metrics import MetricAccumulator
 
-# ../shared/data beside the checkout (development machines only)
+# the shared development data folder, a sibling of the checkout (development machines only)
 DATA = str(pathlib.Path(__file__).resolve().parents[2].parent / 'shared' / 'data')
 
 

@@ -1,4 +1,4 @@
-"""Acceptance experiments of issue 6 (sliding-window pose refinement, odometry-free mode).
+"""Pose-refinement experiments (sliding-window pose refinement, odometry-free mode).
 
     python -m dpv_sensor.benchmarks.poses                        # everything, CPU, prints tables
     python -m dpv_sensor.benchmarks.poses --parts synthetic sun3d --seeds 0 1 --frames 90
@@ -16,7 +16,7 @@ Parts:
   (metric and median-scaled), and the fraction of the noisy-to-GT abs_rel gap the refinement recovers. A
   ``refiner on GT depth`` row shows the RPE the window reaches when it aligns against the true depth (an upper
   bound for what the filter's predicted depth allows).
-* ``sun3d`` - the same on ``../shared/data/sun3d_3dmatch_frag1`` and ``frag2`` (skipped when absent).
+* ``sun3d`` - the same on ``sun3d_3dmatch_frag1`` and ``frag2`` of the shared development data folder (skipped when absent).
 * ``vo`` - odometry-free mode (``poses.VisualOdometry``, bootstrapped from a fronto-parallel plane, refined by the
   same window) on rendered sequences and SUN3D: metric and median-scaled abs_rel next to the GT-pose figures; a
   second run replaces the middle keyframe's image by noise (must lose tracking and publish nothing for it);
@@ -36,7 +36,7 @@ Parts:
   (``--measurement lite``: the lite network with random weights, the per-keyframe cost of a deployed lite
   model; ``classical``: the NCC fallback).
 
-Tracking loss is handled the way the estimator should (see the report of issue 6): when the refiner (or the VO)
+Tracking loss is handled the way the estimator should: when the refiner (or the VO)
 flags it, the estimator is reset and that keyframe's output is discarded.
 """
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Sequence folders: the one on-disk format for posed RGB-D datasets (see ../shared/data/README.md).
+"""Sequence folders: the one on-disk format for posed RGB-D datasets (the layout of the shared development data folder).
 
 Layout of a sequence folder::
 

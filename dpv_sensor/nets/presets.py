@@ -6,7 +6,7 @@ the registered presets; a customised copy is made with ``dataclasses.replace(pre
 checkpoint stores the full preset, so a custom one round-trips).
 
 Depth range (both presets): 0.3 m .. 8.0 m, i.e. the indoor range of an RGB-D camera. On the
-development data (../shared/data) the 0.1 % / 99.9 % GT depth percentiles are 0.97/4.3 m
+development data (the shared development data folder) the 0.1 % / 99.9 % GT depth percentiles are 0.97/4.3 m
 (sun3d frag1), 1.34/6.5 m (sun3d frag2) and 0.18/14.5 m (tartanair hospital, 1 %/99 %: 0.24/7.3 m),
 so 0.3..8 m covers > 98 % of the valid GT pixels while keeping the plane spacing (uniform in inverse
 depth: 1/0.3 - 1/8 = 3.21 m^-1 over D-1 intervals) fine enough for near objects.

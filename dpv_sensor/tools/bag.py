@@ -69,17 +69,20 @@ def _cmd_play(args, ros_args) -> int:
     try:
         player = BagPlayer(node, args.bag, rate=args.rate, topics=args.topics, rebase_stamps=args.rebase_stamps,
                            loop=args.loop, reliability=args.qos_reliability)
+        executor = rclpy.executors.SingleThreadedExecutor(context=node.context)
+        executor.add_node(node)     # delivers the publishers' matched events while waiting for subscribers
         wait_topics = player.topics if args.wait_for == ['all'] else (args.wait_for or [])
         if wait_topics and args.wait_timeout > 0:
             print(f'waiting up to {args.wait_timeout:g} s for {args.wait_count} subscriber(s) on '
                   f'{", ".join(player.published_topic(t) for t in wait_topics)}', flush=True)
-            missing = player.wait_for_subscribers(wait_topics, args.wait_timeout, min_count=args.wait_count)
+            missing = player.wait_for_subscribers(wait_topics, args.wait_timeout, min_count=args.wait_count,
+                                                  spin=lambda t: executor.spin_once(timeout_sec=t))
             if missing:
                 print(f'no subscriber on {", ".join(player.published_topic(t) for t in missing)} after '
                       f'{args.wait_timeout:g} s; playing anyway', file=sys.stderr, flush=True)
         if args.delay > 0:
-            # DDS discovery is not symmetric: a subscriber may learn about our publishers a moment after we see it,
-            # and a volatile subscriber misses what is sent before that.
+            # Optional pause after the subscriptions matched, for consumers that need time to set up after
+            # subscribing (waiting for matched subscriptions already covers DDS discovery).
             time.sleep(args.delay)
         print(f'playing {args.bag} ({player.total_messages} messages) at {args.rate:g}x', flush=True)
         stats = player.play(progress=not args.no_progress, duration=args.duration)
@@ -193,8 +196,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "give a subset when some topics have no consumer)")
     p.add_argument('--wait-timeout', type=float, default=10.0, help='seconds to wait for subscribers (0: do not wait)')
     p.add_argument('--wait-count', type=int, default=1, help='subscribers each waited-for topic needs (default 1)')
-    p.add_argument('--delay', type=float, default=0.5,
-                   help='seconds to wait after the subscribers matched before the first message (default 0.5)')
+    p.add_argument('--delay', type=float, default=0.0,
+                   help='extra seconds to wait after the subscribers matched, before the first message (default 0)')
     p.add_argument('--rebase-stamps', action='store_true', help='shift header stamps so playback starts at now')
     p.add_argument('--loop', action='store_true', help='play again from the start until stopped')
     p.add_argument('--duration', type=float, help='stop after this many seconds')

@@ -3,16 +3,16 @@
 Examples::
 
     # run the estimator over a sequence folder (GT poses) and score every keyframe
-    evaluate sequence ../shared/data/sun3d_3dmatch_frag1 --out eval/frag1
+    evaluate sequence DATA/sun3d_3dmatch_frag1 --out eval/frag1
     # node parameters with --config, a comparison table with --compare (cartesian product)
-    evaluate sequence ../shared/data/tartanair_hospital --config measurement=classical \\
+    evaluate sequence DATA/tartanair_hospital --config measurement=classical \\
         --compare filter_mode=none,global,knet --out eval/filters
     evaluate sequence synthetic:3:40 --width 160 --height 120 --compare pose_source=gt,noisy --out eval/poses
     # outputs recorded from the node (a rosbag2), or a folder written by `bag export`
-    evaluate bag run.mcap --gt ../shared/data/sun3d_3dmatch_frag1 --out eval/bag
-    evaluate export exported/ --gt ../shared/data/sun3d_3dmatch_frag1 --out eval/export
+    evaluate bag run.mcap --gt DATA/sun3d_3dmatch_frag1 --out eval/bag
+    evaluate export exported/ --gt DATA/sun3d_3dmatch_frag1 --out eval/export
 
-SOURCE for ``sequence`` is a sequence folder or ``synthetic:SEED[:FRAMES]`` (the synthetic renderer,
+(DATA: the shared development data folder, or any sequence folders.) SOURCE for ``sequence`` is a sequence folder or ``synthetic:SEED[:FRAMES]`` (the synthetic renderer,
 rendered at --width x --height, default 320x240, 60 frames).
 
 Depth range: GT pixels outside [--min-depth, --max-depth] are not scored and predictions are clipped to

@@ -2,9 +2,9 @@
 
 Examples::
 
-    fuse sequence ../shared/data/sun3d_3dmatch_frag1 --out fuse/frag1 --voxel 0.02 --min-confidence 0.5
+    fuse sequence DATA/sun3d_3dmatch_frag1 --out fuse/frag1 --voxel 0.02 --min-confidence 0.5
     fuse sequence synthetic:3:60 --width 160 --height 120 --config measurement=classical --out fuse/syn
-    fuse bag run.mcap --gt ../shared/data/sun3d_3dmatch_frag1 --out fuse/bag
+    fuse bag run.mcap --gt DATA/sun3d_3dmatch_frag1 --out fuse/bag
 
 Every keyframe depth map is integrated (Open3D TSDF, marching cubes) twice - all pixels, and only pixels
 with confidence >= --min-confidence - and the GT depth maps of the same frames once, all with the same

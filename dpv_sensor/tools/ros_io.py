@@ -86,8 +86,13 @@ class BagPlayer:
         self.types = {t: all_topics[t][0] for t in self.topics}
         self.counts = {t: all_topics[t][1] for t in self.topics}
         self.classes = {t: ros_message_class(self.types[t]) for t in self.topics}
+        # DDS "publication matched" counts per topic, from the publishers' matched events: a subscription that the
+        # graph lists is not yet necessarily matched by our writer, and a volatile one would miss what we send
+        # before that. The events are delivered by whatever executor spins `node`.
+        self.matched = {t: 0 for t in self.topics}
         self.publishers = {t: node.create_publisher(self.classes[t], self.remap.get(t, t),
-                                                    qos_from_bag(qos.get(t), reliability, qos_depth))
+                                                    qos_from_bag(qos.get(t), reliability, qos_depth),
+                                                    event_callbacks=self._matched_callbacks(t))
                            for t in self.topics}
         self.stop_event = threading.Event()
         self.on_publish = None   # optional callback(topic, msg_or_None, bag_stamp_ns, published_stamp_ns)
@@ -99,13 +104,26 @@ class BagPlayer:
     def published_topic(self, bag_topic: str) -> str:
         return self.publishers[bag_topic].topic_name
 
+    def _matched_callbacks(self, topic: str):
+        from rclpy.event_handler import PublisherEventCallbacks
+
+        def on_matched(info) -> None:
+            self.matched[topic] = int(info.current_count)
+        return PublisherEventCallbacks(matched=on_matched)
+
+    def subscriber_count(self, topic: str) -> int:
+        """Subscriptions on a bag topic that are both in the graph and matched by its publisher (DDS)."""
+        return min(self.publishers[topic].get_subscription_count(), self.matched[topic])
+
     def wait_for_subscribers(self, topics=None, timeout: float = 10.0, spin=None, min_count: int = 1) -> list[str]:
-        """Wait until every topic in `topics` (bag names; default: all) has at least `min_count` matched
-        subscriptions, at most `timeout` s. Returns the topics still short of that (empty list: all matched)."""
+        """Wait until every topic in `topics` (bag names; default: all) has at least `min_count` subscriptions
+        matched by its publisher, at most `timeout` s. Returns the topics still short of that (empty list: all
+        matched). The matched events arrive through the executor of the player's node: pass `spin` (e.g.
+        ``lambda t: executor.spin_once(timeout_sec=t)``) unless another thread spins it."""
         wanted = list(topics) if topics else list(self.topics)
         deadline = time.monotonic() + timeout
         while True:
-            missing = [t for t in wanted if self.publishers[t].get_subscription_count() < min_count]
+            missing = [t for t in wanted if self.subscriber_count(t) < min_count]
             if not missing or time.monotonic() >= deadline or self.stop_event.is_set():
                 return missing
             if spin is not None:
