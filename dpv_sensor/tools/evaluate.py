@@ -79,6 +79,9 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument('--depth-topic', default=None)
     b.add_argument('--confidence-topic', default=None)
     b.add_argument('--info-topic', default=None)
+    b.add_argument('--image-topic', default=None,
+                   help='camera images for --stamp-offset auto (default: the only sensor_msgs/Image topic that is '
+                        'not a node output)')
     b.add_argument('--stamp-offset', default='auto',
                    help="seconds subtracted from the bag stamps before matching, or 'auto' (the bag's first "
                         "camera image is GT frame 0)")
@@ -106,6 +109,14 @@ def load_source(text: str, width: Optional[int], height: Optional[int]):
     if not path.is_dir():
         raise ValueError(f'{path} is not a sequence folder')
     return path
+
+
+def bag_topics_line(info) -> str:
+    """Which bag topics were read (and how the camera image topic was chosen), for the user."""
+    image = (f"{info['image_topic']} ({info['image_topic_chosen_by']})" if info.get('image_topic')
+             else info.get('image_topic_chosen_by'))
+    return (f"topics: depth {info['depth_topic']}, confidence {info['confidence_topic']}, camera_info "
+            f"{info['info_topic']}, camera image {image}; stamp offset {info['stamp_offset']:.6f} s")
 
 
 def _print_table(rows) -> None:
@@ -151,8 +162,10 @@ def main(argv: Optional[List[str]] = None) -> int:
                 offset = a.stamp_offset if a.stamp_offset == 'auto' else float(a.stamp_offset)
                 records, info = E.records_from_bag(a.bag, a.gt, depth_topic=a.depth_topic,
                                                    confidence_topic=a.confidence_topic, info_topic=a.info_topic,
-                                                   stamp_offset=offset, tolerance=a.tolerance)
+                                                   image_topic=a.image_topic, stamp_offset=offset,
+                                                   tolerance=a.tolerance)
                 source = a.bag
+                print(bag_topics_line(info), flush=True)
             else:
                 records, info = E.records_from_export(a.folder, a.gt, stamp_offset=a.stamp_offset,
                                                       tolerance=a.tolerance)
