@@ -5,8 +5,9 @@ export PYTHONPATH := $(CURDIR)
 export ROS_LOG_DIR ?= $(CURDIR)/log/ros
 BAG ?=
 OUT ?= out/demo
-# `make demo BAG=run.mcap IMAGE_TOPIC=/cam/image_raw CAMERA_INFO_TOPIC=/cam/camera_info ODOM_TOPIC=/odom \
-#   GT=seq_folder PARAMS="T_base_camera=[0,0,0,0,0,0,1]"` runs the demo on your own bag (see tools/demo.py).
+# `make demo BAG=run.mcap GT=seq_folder PARAMS="T_base_camera=[0,0,0,0,0,0,1]"` runs the demo on your own bag (see
+# tools/demo.py); the image, camera_info and odometry topics are found by message type. IMAGE_TOPIC=,
+# CAMERA_INFO_TOPIC= and ODOM_TOPIC= choose among several topics of one type.
 IMAGE_TOPIC ?=
 CAMERA_INFO_TOPIC ?=
 ODOM_TOPIC ?=

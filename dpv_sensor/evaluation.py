@@ -617,14 +617,17 @@ def _records_from_arrays(items, gt, *, tolerance: float, stamp_offset: float,
 
 
 def records_from_bag(bag, gt, *, depth_topic: Optional[str] = None, confidence_topic: Optional[str] = None,
-                     info_topic: Optional[str] = None, stamp_offset: Union[float, str] = 'auto',
+                     info_topic: Optional[str] = None, image_topic: Optional[str] = None,
+                     stamp_offset: Union[float, str] = 'auto',
                      tolerance: float = 1e-3) -> Tuple[List[KeyframeRecord], Dict[str, Any]]:
     """Depth outputs recorded in a bag, matched by header stamp to the frames of the GT sequence ``gt``.
 
     Topics default to ``/depth/image``, ``/confidence/image``, ``/depth/camera_info`` (or the only topic of
     that type ending the same way, for a namespaced node). ``stamp_offset`` (s) is subtracted from the bag
     stamps before matching; ``'auto'``: when the bag also holds the camera images, the first image stamp is
-    taken to be GT frame 0 (a bag written by ``bag`` / ``write_sequence_bag`` from the sequence), else 0.
+    taken to be GT frame 0 (a bag written by ``bag`` / ``write_sequence_bag`` from the sequence), else 0. The camera
+    image topic is ``image_topic``, or the only sensor_msgs/Image topic besides the node's outputs
+    (``rosbag_io.detect_topic``; several: BagError listing them).
     A depth image matches a GT frame within ``tolerance`` seconds; unmatched ones are counted and skipped.
     Returns (records, info).
     """
@@ -640,9 +643,11 @@ def records_from_bag(bag, gt, *, depth_topic: Optional[str] = None, confidence_t
     infos = {s.stamp_ns: s.data for s in R.read_camera_infos(bag, i_topic)} if i_topic else {}
     if stamp_offset == 'auto':
         gt_seq = load_sequence(gt)
-        img_topic = R.find_topic(topics, R.IMAGE_TOPIC, 'image', R.IMAGE)
+        img_topic, img_how = R.detect_topic(topics, 'camera image', R.IMAGE, wanted=image_topic,
+                                            option='--image-topic, or --stamp-offset', exclude=(d_topic, c_topic),
+                                            required=False)
         offset = 0.0
-        if img_topic is not None and img_topic != d_topic and img_topic != c_topic:
+        if img_topic is not None:
             messages = R.read_messages(bag, [img_topic])
             try:
                 first = next(messages)[3]
@@ -653,9 +658,11 @@ def records_from_bag(bag, gt, *, depth_topic: Optional[str] = None, confidence_t
         gt = gt_seq
     else:
         offset = float(stamp_offset)
+        img_topic, img_how = None, 'not needed (stamp offset given)'
     items = ((s.stamp_ns / R.NS, s.data, conf.get(s.stamp_ns), infos.get(s.stamp_ns)) for s in depth)
     records, info = _records_from_arrays(items, gt, tolerance=tolerance, stamp_offset=offset)
     info.update({'bag': str(bag), 'depth_topic': d_topic, 'confidence_topic': c_topic, 'info_topic': i_topic,
+                 'image_topic': img_topic, 'image_topic_chosen_by': img_how, 'stamp_offset': offset,
                  'depth_messages': len(depth)})
     return records, info
 

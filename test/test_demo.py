@@ -6,8 +6,9 @@ One demo run (96x72, 20 frames, classical model, ~30 s on a busy 2-core CPU) is 
   and every depth output it published is in the recorded bag;
 - the headline metrics the demo prints are exactly what the `evaluate bag` tool prints for the recorded bag when
   run by hand (same table row, same summary.json numbers).
-Then the same input bag goes through `--bag` mode without ground truth (only the first 12 images): outputs are
-recorded and an image | depth | confidence montage is written.
+Then the same input bag, its topics renamed, goes through `--bag` mode without ground truth and without topic names
+(only the first 12 images): the topics are found by message type, outputs are recorded and an image | depth |
+confidence montage is written; with a second image topic the demo stops and lists both.
 """
 import contextlib
 import io
@@ -119,14 +120,44 @@ def test_printed_metrics_equal_evaluate_by_hand(demo_run, tmp_path):
     assert 'python -m dpv_sensor.tools.evaluate bag ' in proc.stdout and '--gt ' in proc.stdout
 
 
-def test_bag_mode_without_ground_truth(demo_run, tmp_path):
+def _renamed_bag(src, dst, names, extra_image=None):
+    """A copy of the bag ``src`` with its topics renamed (``names``: old -> new), optionally with one more image
+    topic (a copy of the images under ``extra_image``)."""
+    from dpv_sensor.data import rosbag_io as R
+    with R.BagWriter(dst) as bag:
+        for topic, msgtype, log_ns, msg in R.read_messages(src):
+            bag.write(names.get(topic, topic), msgtype, msg, log_ns)
+            if extra_image and msgtype == R.IMAGE:
+                bag.write(extra_image, msgtype, msg, log_ns)
+    return dst
+
+
+USER_NAMES = {'/camera/image': '/rover/cam0/rgb', '/camera/camera_info': '/rover/cam0/intrinsics',
+              '/odom': '/rover/wheel_odometry'}
+
+
+def test_make_demo_passes_no_topic_names_unless_given():
+    dry = subprocess.run(['make', '-n', 'demo', 'BAG=run.mcap'], cwd=REPO, capture_output=True, text=True)
+    assert dry.returncode == 0, dry.stderr
+    line = [ln for ln in dry.stdout.splitlines() if 'dpv_sensor.tools.demo' in ln]
+    assert len(line) == 1 and '--bag run.mcap' in line[0] and '-topic' not in line[0]
+    dry = subprocess.run(['make', '-n', 'demo', 'BAG=run.mcap', 'IMAGE_TOPIC=/a'], cwd=REPO, capture_output=True,
+                         text=True)
+    assert '--image-topic /a' in dry.stdout
+
+
+def test_bag_mode_finds_the_topics_by_type_without_ground_truth(demo_run, tmp_path):
     out, _ = demo_run
+    bag = _renamed_bag(out / 'input_bag', tmp_path / 'user_bag', USER_NAMES)
     mine = tmp_path / 'mine'
-    proc = _run_demo(['--out', str(mine), '--bag', str(out / 'input_bag'), '--image-topic', '/camera/image',
-                      '--camera-info-topic', '/camera/camera_info', '--odom-topic', '/odom', '--frames', '12',
-                      '--params'] + NODE)
+    proc = _run_demo(['--out', str(mine), '--bag', str(bag), '--frames', '12', '--params'] + NODE)
     assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert ('demo: input topics: image /rover/cam0/rgb (the only sensor_msgs/msg/Image topic), camera_info '
+            '/rover/cam0/intrinsics (the only sensor_msgs/msg/CameraInfo topic), odom /rover/wheel_odometry (the only '
+            'nav_msgs/msg/Odometry topic)') in proc.stdout
     s = json.loads((mine / 'summary.json').read_text())
+    assert s['input']['topics'] == {'image': '/rover/cam0/rgb', 'camera_info': '/rover/cam0/intrinsics',
+                                    'odom': '/rover/wheel_odometry'}
     assert s['node']['images_sent'] == 12 and s['node']['exit_code'] == 0
     assert s['outputs']['outputs'] == s['node']['recorded']['/depth/image'] >= 1
     assert 0.0 < s['outputs']['coverage_mean'] <= 1.0
@@ -135,11 +166,23 @@ def test_bag_mode_without_ground_truth(demo_run, tmp_path):
     assert [r['step'] for r in s['steps'] if not r.get('skipped')] == ['node', 'replay', 'stop', 'montage']
 
 
+def test_bag_mode_with_two_image_topics_lists_them(tmp_path, demo_run):
+    out, _ = demo_run
+    bag = _renamed_bag(out / 'input_bag', tmp_path / 'two', USER_NAMES, extra_image='/rover/cam1/rgb')
+    proc = _run_demo(['--out', str(tmp_path / 'x'), '--bag', str(bag)])
+    assert proc.returncode == 1
+    assert ('2 sensor_msgs/msg/Image topics could be the image: /rover/cam0/rgb [sensor_msgs/msg/Image, 20 '
+            'messages], /rover/cam1/rgb [sensor_msgs/msg/Image, 20 messages]; choose with --image-topic '
+            '(IMAGE_TOPIC= with make)') in proc.stdout
+    assert 'what ran' not in proc.stdout        # stopped before starting the node
+
+
 def test_bag_mode_names_missing_topics(tmp_path, demo_run):
     out, _ = demo_run
     proc = _run_demo(['--out', str(tmp_path / 'x'), '--bag', str(out / 'input_bag'), '--image-topic', '/nope'])
     assert proc.returncode == 1
-    assert "no topic '/nope'" in proc.stdout and '/camera/image [sensor_msgs/msg/Image]' in proc.stdout
+    assert "no topic '/nope' for image" in proc.stdout
+    assert '/camera/image [sensor_msgs/msg/Image, 20 messages]' in proc.stdout
 
 
 def test_parse_params_types_and_rejects_unknown_names():

@@ -7,6 +7,8 @@
 - `BagWriter`: a generic writer (rosbags messages or raw CDR bytes) — what `bag record` uses for a live graph.
 - Readers: `bag_topics`, `read_messages`, `read_images`, `read_depth_images`, `read_camera_infos`,
   `read_odometry` return numpy arrays with the exact header stamps (ns) and frame ids.
+- `detect_input_topics` / `detect_topic`: which topic is the image, camera_info, odometry - by message type, names
+  needed only to choose among several (shared by the demo, `bag` and `evaluate`).
 - `export_depth_bag`: a recorded depth/confidence bag -> a sequence-folder-like directory (depth PNG mm,
   confidence PNG, K.txt, stamps.txt, images and poses when the bag has them).
 
@@ -424,6 +426,92 @@ def read_poses(path, topic: str) -> list[Stamped]:
 
 
 # --------------------------------------------------------------------------------------------------------------
+# which topic is which: by message type
+# --------------------------------------------------------------------------------------------------------------
+#: The node's inputs: role -> message type.
+INPUT_TYPES = {'image': IMAGE, 'camera_info': CAMERA_INFO, 'odom': ODOMETRY}
+#: Image topics the node itself publishes (never a camera input; matched as name endings).
+OUTPUT_IMAGE_SUFFIXES = ('depth/image', 'confidence/image', 'rgb/image')
+
+
+def _namespace(topic: str) -> str:
+    return topic.rsplit('/', 1)[0]
+
+
+def _listing(topics: dict, names) -> str:
+    return ', '.join(f'{t} [{topics[t][0]}, {topics[t][1]} messages]' for t in sorted(names)) or 'none'
+
+
+def detect_topic(topics: dict, role: str, msgtype: str, *, wanted: str | None = None, option: str = '',
+                 exclude: Iterable[str] = (), near: str | None = None, required: bool = True
+                 ) -> tuple[str | None, str]:
+    """Choose the bag topic for one input ``role`` by message type; returns (topic, how it was chosen).
+
+    topics: ``bag_topics()`` output. ``wanted``: a name the user gave - used when the bag has it with type
+    ``msgtype``, else BagError. Without one: the only topic of ``msgtype`` (topics in ``exclude`` and node outputs
+    ending in ``OUTPUT_IMAGE_SUFFIXES`` left out); among several, the only one in the namespace of ``near`` (a
+    camera_info next to its image, as image_transport names them); else BagError listing the candidates and
+    naming ``option``, the setting that chooses. None topics: (None, 'absent') when not ``required``, else BagError.
+    """
+    hint = f'; choose with {option}' if option else ''
+    if wanted:
+        if wanted not in topics:
+            of_type = [t for t, (ty, _n) in topics.items() if ty == msgtype]
+            raise BagError(f'no topic {wanted!r} for {role} in the bag; {msgtype} topics: {_listing(topics, of_type)}'
+                           f' (all topics: {_listing(topics, topics)})')
+        if topics[wanted][0] != msgtype:
+            raise BagError(f'{wanted} carries {topics[wanted][0]}, {role} needs {msgtype}')
+        return wanted, 'named'
+    skip = set(exclude)
+    cands = sorted(t for t, (ty, _n) in topics.items()
+                   if ty == msgtype and t not in skip and not (msgtype == IMAGE and t.endswith(OUTPUT_IMAGE_SUFFIXES)))
+    if len(cands) == 1:
+        return cands[0], f'the only {msgtype} topic'
+    if not cands:
+        if not required:
+            return None, 'absent'
+        raise BagError(f'no {msgtype} topic for {role} in the bag{hint} (topics: {_listing(topics, topics)})')
+    if near is not None:
+        close = [t for t in cands if _namespace(t) == _namespace(near)]
+        if len(close) == 1:
+            return close[0], f'the only {msgtype} topic next to {near}'
+    raise BagError(f'{len(cands)} {msgtype} topics could be the {role}: {_listing(topics, cands)}{hint}')
+
+
+def detect_input_topics(path_or_topics, *, image: str | None = None, camera_info: str | None = None,
+                        odom: str | None = None, need: Iterable[str] = ('image', 'camera_info', 'odom'),
+                        options: dict | None = None) -> tuple[dict, dict]:
+    """The node's input topics in a bag (a path or ``bag_topics()`` output), found by message type.
+
+    image / camera_info / odom: names given by the user (checked; needed only to choose among several topics of
+    one type). need: the roles that must be found (others: found when present, else None); options: role -> the
+    setting that names it, quoted in errors. Returns ({role: topic or None}, {role: how it was chosen}).
+    The camera_info next to the chosen image wins among several.
+    """
+    topics = path_or_topics if isinstance(path_or_topics, dict) else bag_topics(path_or_topics)
+    given = {'image': image, 'camera_info': camera_info, 'odom': odom}
+    options = options or {}
+    need = set(need)
+    chosen: dict = {}
+    how: dict = {}
+    for role, msgtype in INPUT_TYPES.items():
+        try:
+            chosen[role], how[role] = detect_topic(
+                topics, role, msgtype, wanted=given[role], option=options.get(role, ''),
+                near=chosen.get('image') if role == 'camera_info' else None, required=role in need)
+        except BagError:
+            if role in need or given[role]:
+                raise
+            chosen[role], how[role] = None, 'several, none needed'
+    return chosen, how
+
+
+def describe_choice(chosen: dict, how: dict) -> str:
+    """One line: 'image /a (the only sensor_msgs/msg/Image topic), camera_info /b (named), ...'."""
+    return ', '.join(f'{role} {t} ({how[role]})' for role, t in chosen.items() if t is not None)
+
+
+# --------------------------------------------------------------------------------------------------------------
 # export
 # --------------------------------------------------------------------------------------------------------------
 def find_topic(topics: dict, wanted: str, suffix: str, msgtype: str) -> str | None:
@@ -435,8 +523,8 @@ def find_topic(topics: dict, wanted: str, suffix: str, msgtype: str) -> str | No
 
 
 def export_depth_bag(path, out_dir, *, depth_topic: str = DEPTH_TOPIC, confidence_topic: str = CONFIDENCE_TOPIC,
-                     info_topic: str = DEPTH_INFO_TOPIC, image_topic: str | None = IMAGE_TOPIC,
-                     odom_topic: str | None = ODOM_TOPIC, pose_topic: str | None = None, T_base_camera=None,
+                     info_topic: str = DEPTH_INFO_TOPIC, image_topic: str | None = 'auto',
+                     odom_topic: str | None = 'auto', pose_topic: str | None = None, T_base_camera=None,
                      max_odom_gap: float = P.default('max_odom_gap'), progress: bool = True) -> dict:
     """A recorded bag of the node's outputs -> a sequence-folder-like directory.
 
@@ -444,7 +532,9 @@ def export_depth_bag(path, out_dir, *, depth_topic: str = DEPTH_TOPIC, confidenc
     stamps.txt (s, the depth header stamps), stamps_ns.txt (exact), K.txt (from depth/camera_info; written for the
     first frame, with a warning in the summary when it changes), and, when the bag has them, images/NNNNNN.png (the
     colour image with the same stamp, resized to the depth size) and poses.txt (T_world_cam from `pose_topic`, or
-    interpolated from odometry composed with T_base_camera). Returns a summary dict (also written as export.json).
+    interpolated from odometry composed with T_base_camera). image_topic / odom_topic: 'auto' (default) = the only
+    camera Image / Odometry topic when the bag has one (``detect_topic``; several: BagError listing them), a name,
+    or None for none. Returns a summary dict (also written as export.json).
     """
     import cv2
     from dpv_sensor.data.sequence import depth_to_png_mm, write_intrinsics, write_poses
@@ -455,6 +545,15 @@ def export_depth_bag(path, out_dir, *, depth_topic: str = DEPTH_TOPIC, confidenc
         raise BagError(f'{path}: no depth topic {depth_topic!r} (topics: {sorted(topics)})')
     conf_topic = find_topic(topics, confidence_topic, 'confidence/image', IMAGE)
     info_t = find_topic(topics, info_topic, 'depth/camera_info', CAMERA_INFO)
+    how = {}
+    if image_topic is not None:
+        image_topic, how['image'] = detect_topic(
+            topics, 'colour image', IMAGE, wanted=None if image_topic == 'auto' else image_topic,
+            option='--image-topic', exclude=(depth_topic_found, conf_topic), required=False)
+    if odom_topic is not None:
+        odom_topic, how['odom'] = detect_topic(topics, 'odometry', ODOMETRY,
+                                               wanted=None if odom_topic == 'auto' else odom_topic,
+                                               option='--odom-topic', required=False)
     out = pathlib.Path(out_dir)
     (out / 'depth').mkdir(parents=True, exist_ok=True)
     depth = read_depth_images(path, depth_topic_found)
@@ -478,7 +577,8 @@ def export_depth_bag(path, out_dir, *, depth_topic: str = DEPTH_TOPIC, confidenc
     if images:
         (out / 'images').mkdir(exist_ok=True)
     summary = {'bag': str(path), 'depth_topic': depth_topic_found, 'confidence_topic': conf_topic,
-               'camera_info_topic': info_t, 'frames': 0, 'without_confidence': 0, 'without_image': 0,
+               'camera_info_topic': info_t, 'image_topic': image_topic, 'odom_topic': odom_topic,
+               'pose_topic': pose_topic if poses_src is not None and pose_topic else None, 'chosen_by': how, 'frames': 0, 'without_confidence': 0, 'without_image': 0,
                'without_pose': 0, 'K_changed': False}
     K0 = None
     stamps, poses = [], []
@@ -538,4 +638,13 @@ def export_depth_bag(path, out_dir, *, depth_topic: str = DEPTH_TOPIC, confidenc
 __all__ = ['BagError', 'BagSummary', 'BagWriter', 'ArraySequence', 'Stamped', 'ROSBAGS', 'typestore', 'qos_profile',
            'write_sequence_bag', 'odometry_stamps', 'bag_topics', 'bag_qos', 'read_messages', 'read_images',
            'read_depth_images', 'read_camera_infos', 'read_odometry', 'read_poses', 'export_depth_bag', 'find_topic',
+           'detect_topic', 'detect_input_topics', 'describe_choice', 'INPUT_TYPES', 'OUTPUT_IMAGE_SUFFIXES',
            'IMAGE_TOPIC', 'CAMERA_INFO_TOPIC', 'ODOM_TOPIC', 'DEPTH_TOPIC', 'CONFIDENCE_TOPIC', 'DEPTH_INFO_TOPIC']
+
+
+def export_topics_line(info) -> str:
+    """Which bag topics an export read (and how the camera image topic was chosen), for the user."""
+    image = (f"{info['image_topic']} ({info['image_topic_chosen_by']})" if info.get('image_topic')
+             else info.get('image_topic_chosen_by'))
+    return (f"topics: depth {info['depth_topic']}, confidence {info['confidence_topic']}, camera_info "
+            f"{info['info_topic']}, camera image {image}; stamp offset {info['stamp_offset']:.6f} s")

@@ -142,6 +142,10 @@ def _cmd_export(args) -> int:
                                  image_topic=args.image_topic, odom_topic=args.odom_topic, pose_topic=args.pose_topic,
                                  T_base_camera=args.T_base_camera, progress=not args.no_progress)
     print(f"exported {summary['frames']} frames from {summary['depth_topic']} to {args.out}")
+    how = summary['chosen_by']
+    for role, key in (('image', 'image_topic'), ('odom', 'odom_topic')):
+        if summary[key]:
+            print(f'  {role}: {summary[key]} ({how.get(role, "named")})')
     for key in ('without_confidence', 'without_image', 'without_pose'):
         if summary[key]:
             print(f'  {summary[key]} frames {key.replace("_", " ")}')
@@ -221,8 +225,11 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument('--depth-topic', default=R.DEPTH_TOPIC)
     e.add_argument('--confidence-topic', default=R.CONFIDENCE_TOPIC)
     e.add_argument('--camera-info-topic', default=R.DEPTH_INFO_TOPIC)
-    e.add_argument('--image-topic', default=R.IMAGE_TOPIC, help='colour images to export alongside (if recorded)')
-    e.add_argument('--odom-topic', default=R.ODOM_TOPIC, help='odometry for poses.txt (if recorded)')
+    e.add_argument('--image-topic', default='auto',
+                   help='colour images to export alongside (default: the only Image topic that is not a node output, '
+                        'if recorded)')
+    e.add_argument('--odom-topic', default='auto',
+                   help='odometry for poses.txt (default: the only Odometry topic, if recorded)')
     e.add_argument('--pose-topic', help='PoseStamped topic for poses.txt (instead of odometry)')
     e.add_argument('--T-base-camera', type=float, nargs=7, metavar='V')
     e.add_argument('--no-progress', action='store_true')

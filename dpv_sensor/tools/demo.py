@@ -2,7 +2,7 @@
 
     python -m dpv_sensor.tools.demo --out out/demo                       # synthetic scene (the default)
     python -m dpv_sensor.tools.demo --out out/mine --bag my_run.mcap \\
-        --image-topic /camera/color/image_raw --camera-info-topic /camera/color/camera_info --odom-topic /odom \\
+        [--image-topic /camera/color/image_raw --camera-info-topic /camera/color/camera_info --odom-topic /odom] \\
         [--gt SEQUENCE_FOLDER] [--params T_base_camera=[0,0,0,-0.5,0.5,-0.5,0.5] preset=lite ...]
 
 Steps (each prints a progress line and its time):
@@ -35,8 +35,10 @@ Steps (each prints a progress line and its time):
 8. summary what ran (measurement model, weights, preset, filter, frames, keyframes), the headline metrics, the
            fusion figures and where the pictures are; also OUT/summary.json.
 
-With --bag (a user's own recording): steps 1-2 are skipped, the topics come from --image-topic /
---camera-info-topic / --odom-topic (remapped onto the node's `image`, `camera_info`, `odom`), camera settings and
+With --bag (a user's own recording): steps 1-2 are skipped; the image, camera_info and odometry topics are found by
+message type (the only sensor_msgs/Image, CameraInfo and nav_msgs/Odometry topic; the camera_info next to the image
+among several) and printed; --image-topic / --camera-info-topic / --odom-topic choose among several (all are remapped
+onto the node's `image`, `camera_info`, `odom`). Camera settings and
 everything else go in as node parameters with --params (e.g. camera_info_source=parameters fx=... fy=... cx=...
 cy=..., odometry=none, T_base_camera=[x,y,z,qx,qy,qz,qw]). Without --gt there is nothing to score against: the
 outputs are still recorded, and OUT/montage.png shows image | depth | confidence for a few keyframes, with
@@ -658,9 +660,11 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument('--height', type=int, default=DEFAULT_HEIGHT, help=f'rendered height (default {DEFAULT_HEIGHT})')
     b = p.add_argument_group('your own bag')
     b.add_argument('--bag', help='a rosbag2 (directory or .mcap/.db3) with images, camera_info and odometry')
-    b.add_argument('--image-topic', default='/camera/image')
-    b.add_argument('--camera-info-topic', default='/camera/camera_info')
-    b.add_argument('--odom-topic', default='/odom')
+    b.add_argument('--image-topic', default=None,
+                   help='sensor_msgs/Image topic (default: the only one in the bag; needed to choose among several)')
+    b.add_argument('--camera-info-topic', default=None,
+                   help='sensor_msgs/CameraInfo topic (default: the only one, or the one next to the image)')
+    b.add_argument('--odom-topic', default=None, help='nav_msgs/Odometry topic (default: the only one in the bag)')
     b.add_argument('--gt', help='ground-truth sequence folder for --bag (enables evaluation and fusion)')
     b.add_argument('--stamp-offset', default='auto', help="passed to `evaluate bag` / `fuse bag` (default auto)")
     n = p.add_argument_group('node and replay')
@@ -752,24 +756,23 @@ def main(argv: Optional[List[str]] = None) -> int:
             if not input_bag.exists():
                 raise DemoError(f'{input_bag}: no such bag')
             bt = R.bag_topics(input_bag)
-            topics = {'image': a.image_topic,
-                      'camera_info': a.camera_info_topic if values['camera_info_source'] == 'topic' else None,
-                      'odom': a.odom_topic if values['odometry'] == 'topic' else None}
-            hints = {'image': '--image-topic', 'camera_info': '--camera-info-topic (or --params '
-                     'camera_info_source=parameters fx=.. fy=.. cx=.. cy=..)',
-                     'odom': '--odom-topic (or --params odometry=none for visual odometry)'}
-            types = {'image': R.IMAGE, 'camera_info': R.CAMERA_INFO, 'odom': R.ODOMETRY}
-            for name, t in topics.items():
-                if t is None:
-                    continue
-                if t not in bt:
-                    raise DemoError(f'{input_bag} has no topic {t!r} for {name}; set {hints[name]}. '
-                                    f'Topics in the bag: ' + ', '.join(f'{k} [{v[0]}]' for k, v in sorted(bt.items())))
-                if bt[t][0] != types[name]:
-                    raise DemoError(f'{t} carries {bt[t][0]}, the node needs {types[name]} for {name}')
+            need = ['image'] + (['camera_info'] if values['camera_info_source'] == 'topic' else []) + \
+                (['odom'] if values['odometry'] == 'topic' else [])
+            hints = {'image': '--image-topic (IMAGE_TOPIC= with make)',
+                     'camera_info': '--camera-info-topic (CAMERA_INFO_TOPIC= with make; or --params '
+                                    'camera_info_source=parameters fx=.. fy=.. cx=.. cy=..)',
+                     'odom': '--odom-topic (ODOM_TOPIC= with make; or --params odometry=none for visual odometry)'}
+            try:
+                topics, how = R.detect_input_topics(bt, image=a.image_topic, camera_info=a.camera_info_topic,
+                                                    odom=a.odom_topic, need=need, options=hints)
+            except R.BagError as exc:
+                raise DemoError(f'{input_bag}: {exc}') from None
+            topics = {role: (t if role in need else None) for role, t in topics.items()}
+            how = {role: h for role, h in how.items() if topics[role] is not None}
+            print(f'demo: input topics: {R.describe_choice(topics, how)}', flush=True)
             steps.skip('render', f'using your bag {_rel(input_bag)}')
             steps.skip('bag', f"{bt[topics['image']][1]} images on {topics['image']}")
-            summary['input'] = {'kind': 'bag', 'bag': str(input_bag), 'topics': topics,
+            summary['input'] = {'kind': 'bag', 'bag': str(input_bag), 'topics': topics, 'topics_chosen_by': how,
                                 'gt': str(gt_dir) if gt_dir else None}
 
         # ---------------------------------------------------------------- 3-5: node

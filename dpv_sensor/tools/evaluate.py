@@ -79,6 +79,9 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument('--depth-topic', default=None)
     b.add_argument('--confidence-topic', default=None)
     b.add_argument('--info-topic', default=None)
+    b.add_argument('--image-topic', default=None,
+                   help='camera images for --stamp-offset auto (default: the only sensor_msgs/Image topic that is '
+                        'not a node output)')
     b.add_argument('--stamp-offset', default='auto',
                    help="seconds subtracted from the bag stamps before matching, or 'auto' (the bag's first "
                         "camera image is GT frame 0)")
@@ -104,6 +107,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     a = build_parser().parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format='%(name)s: %(message)s')
     from .. import evaluation as E
+    from ..data import rosbag_io as R
     out = pathlib.Path(a.out)
     try:
         if a.command == 'sequence':
@@ -137,8 +141,10 @@ def main(argv: Optional[List[str]] = None) -> int:
                 offset = a.stamp_offset if a.stamp_offset == 'auto' else float(a.stamp_offset)
                 records, info = E.records_from_bag(a.bag, a.gt, depth_topic=a.depth_topic,
                                                    confidence_topic=a.confidence_topic, info_topic=a.info_topic,
-                                                   stamp_offset=offset, tolerance=a.tolerance)
+                                                   image_topic=a.image_topic, stamp_offset=offset,
+                                                   tolerance=a.tolerance)
                 source = a.bag
+                print(R.export_topics_line(info), flush=True)
             else:
                 records, info = E.records_from_export(a.folder, a.gt, stamp_offset=a.stamp_offset,
                                                       tolerance=a.tolerance)

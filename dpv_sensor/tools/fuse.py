@@ -57,6 +57,7 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument('bag')
     b.add_argument('--gt', required=True)
     b.add_argument('--stamp-offset', default='auto')
+    b.add_argument('--image-topic', default=None, help='camera images for --stamp-offset auto (see evaluate)')
     common(b)
 
     e = sub.add_parser('export', help='fuse a folder written by `bag export` (GT from --gt)')
@@ -84,6 +85,8 @@ def main(argv: Optional[List[str]] = None) -> int:
     a = build_parser().parse_args(argv)
     from .. import evaluation as E
     from .. import fusion as F
+    from ..data import rosbag_io as R
+    from ..data.rosbag_io import BagError
     out = pathlib.Path(a.out)
     try:
         if a.command == 'sequence':
@@ -100,7 +103,8 @@ def main(argv: Optional[List[str]] = None) -> int:
             info = {'source': a.source, 'overrides': overrides, 'estimator_status': status}
         elif a.command == 'bag':
             offset = a.stamp_offset if a.stamp_offset == 'auto' else float(a.stamp_offset)
-            records, info = E.records_from_bag(a.bag, a.gt, stamp_offset=offset)
+            records, info = E.records_from_bag(a.bag, a.gt, image_topic=a.image_topic, stamp_offset=offset)
+            print(R.export_topics_line(info), flush=True)
         else:
             records, info = E.records_from_export(a.folder, a.gt, stamp_offset=a.stamp_offset)
         if not records:
@@ -113,7 +117,7 @@ def main(argv: Optional[List[str]] = None) -> int:
         report['input'] = E.to_jsonable(info)
         with open(out / 'fusion.json', 'w') as f:
             json.dump(E.to_jsonable(report), f, indent=1)
-    except (ValueError, FileNotFoundError, ImportError) as exc:
+    except (ValueError, FileNotFoundError, ImportError, BagError) as exc:
         print(f'fuse: {exc}', file=sys.stderr)
         return 2
     _print_report(report)
