@@ -105,17 +105,20 @@ def sequence_folders(data: pathlib.Path) -> List[pathlib.Path]:
     return sorted(p for p in data.iterdir() if p.is_dir() and (p / 'poses.txt').is_file() and (p / 'K.txt').is_file())
 
 
-def rendered_sequence(out: pathlib.Path, seed: int, frames: int, progress: bool) -> pathlib.Path:
-    """The held-out rendered scene `seed` as a sequence folder under OUT/sequences (rendered once)."""
+def rendered_sequence(out: pathlib.Path, seed: int, frames: int, progress: bool,
+                      size: Tuple[int, int] = RENDER_SIZE) -> pathlib.Path:
+    """The held-out rendered scene `seed` as a sequence folder under OUT/sequences (rendered once; rendered again
+    when the frame count or the size asked for differ)."""
     folder = out / 'sequences' / f'synthetic_seed{seed}'
     done = folder / '.complete'
-    if done.is_file() and done.read_text().strip() == f'{frames} {RENDER_SIZE[0]}x{RENDER_SIZE[1]}':
+    tag = f'{frames} {size[0]}x{size[1]}'
+    if done.is_file() and done.read_text().strip() == tag:
         return folder
     from dpv_sensor.tools.demo import render_scene
     if folder.exists():
         shutil.rmtree(folder)
-    render_scene(folder, seed, frames, RENDER_SIZE[0], RENDER_SIZE[1], progress)
-    done.write_text(f'{frames} {RENDER_SIZE[0]}x{RENDER_SIZE[1]}')
+    render_scene(folder, seed, frames, size[0], size[1], progress)
+    done.write_text(tag)
     return folder
 
 
@@ -423,6 +426,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--sequences', nargs='*', default=None, help='only these sequence folders of --data')
     p.add_argument('--seeds', default='50-52', help="held-out rendered seeds, e.g. '50-52' or '50,53' ('' for none)")
     p.add_argument('--frames', type=int, default=RENDER_FRAMES, help=f'frames per rendered seed ({RENDER_FRAMES})')
+    p.add_argument('--render-size', default=f'{RENDER_SIZE[0]}x{RENDER_SIZE[1]}', metavar='WxH',
+                   help=f'size of the rendered seeds ({RENDER_SIZE[0]}x{RENDER_SIZE[1]})')
     p.add_argument('--noise-seeds', default='0-2', help="odometry noise seeds ('' for GT poses only)")
     p.add_argument('--no-gt', action='store_true', help='only the noisy pose sources')
     p.add_argument('--params', nargs='*', default=[], metavar='KEY=VALUE', help='node parameters over the defaults')
@@ -448,6 +453,10 @@ def main(argv: Optional[List[str]] = None) -> int:
         params = parse_params(a.params)
         seeds = check_heldout_seeds(parse_seeds(a.seeds))
         noise_seeds = list(parse_seeds(a.noise_seeds))
+        m = re.fullmatch(r'(\d+)x(\d+)', a.render_size)
+        if not m:
+            raise ValueError(f'--render-size expects WxH, got {a.render_size!r}')
+        render_size = (int(m.group(1)), int(m.group(2)))
     except ValueError as exc:
         ap.error(str(exc))
     out = pathlib.Path(a.out).resolve()
@@ -499,7 +508,8 @@ def main(argv: Optional[List[str]] = None) -> int:
                   f'({time.strftime("%H:%M:%S")}) ===', flush=True)
             try:
                 if folders[s] is None:
-                    folders[s] = rendered_sequence(out, int(s[len('synthetic_seed'):]), a.frames, progress)
+                    folders[s] = rendered_sequence(out, int(s[len('synthetic_seed'):]), a.frames, progress,
+                                                   render_size)
                 res = run_one(s, folders[s], src, params, out, min_depth=a.min_depth, max_depth=a.max_depth,
                               keep_bags=a.keep_bags, progress=progress)
             except KeyboardInterrupt:
