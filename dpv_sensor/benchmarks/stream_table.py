@@ -389,6 +389,19 @@ LEGEND = ('Frame means over the keyframe outputs recorded from the node (lockste
           'translation / rotation RPE on predicted depth ÷ on GT depth.')
 
 
+def run_details(runs: List[Dict[str, Any]]) -> str:
+    """Per run: frames, keyframes scored, images dropped, time (bag / node replay / scoring), the reset reasons."""
+    lines = ['| run | frames | keyframes | dropped | min (bag + node + scoring) | resets |',
+             '|---|---:|---:|---:|---|---|']
+    for r in runs:
+        t = r.get('timing') or {}
+        mins = ' + '.join(f"{(t.get(k) or 0) / 60:.1f}" for k in ('bag_s', 'node_s', 'score_s'))
+        reasons = '; '.join(r.get('output_reset_reasons') or []) or '-'
+        lines.append(f"| {r['sequence']} {r['pose_source']} | {r.get('frames')} | {r.get('keyframes_scored')} | "
+                     f"{_get(r, 'node', 'dropped_total')} | {(t.get('total_s') or 0) / 60:.1f} ({mins}) | {reasons} |")
+    return '\n'.join(lines)
+
+
 def write_table(out: pathlib.Path, runs, sequences, noise_seeds, params, command: str,
                 failures: Dict[str, str]) -> Tuple[str, Dict[str, Any]]:
     rows = table_rows(runs, sequences, noise_seeds, params)
@@ -400,7 +413,7 @@ def write_table(out: pathlib.Path, runs, sequences, noise_seeds, params, command
             + (f', {len(failures)} failed' if failures else '')
             + (f'; {sum(times) / 60:.0f} min of runs (median {np.median(times) / 60:.1f} min per run)' if times
                else '') + '.')
-    text = head + '\n\n' + md + '\n\n' + LEGEND + '\n'
+    text = head + '\n\n' + md + '\n\n' + LEGEND + '\n\n' + run_details(runs) + '\n'
     if failures:
         text += '\nFailed runs:\n' + ''.join(f'- {k}: {v}\n' for k, v in failures.items())
     (out / f'stream_table{_suffix(params)}.md').write_text(text)
