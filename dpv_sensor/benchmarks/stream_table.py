@@ -37,7 +37,8 @@ Resumable: every run is cached as ``OUT/runs/<sequence>__<pose>__<params>.json``
 file to redo that run); rendered seeds are cached under ``OUT/sequences``. Bags live under ``OUT/work/<run>`` while
 a run is in progress and are deleted after it (``--keep-bags`` keeps them). The table is rebuilt from every cached
 run of the requested set: ``OUT/stream_table.md`` and ``OUT/stream_table.json``; ``--table-only`` only rebuilds it.
-Exit code 0 when every requested run is in the table, 1 when a run failed (the others still ran), 2 for bad
+SIGINT or SIGTERM (``kill PID``, also for a run started with nohup) stops the run in progress and its node process;
+finished runs stay cached. Exit code 0 when every requested run is in the table, 1 when a run failed (the others still ran), 2 for bad
 arguments.
 """
 from __future__ import annotations
@@ -508,6 +509,14 @@ def main(argv: Optional[List[str]] = None) -> int:
 
     failures: Dict[str, str] = {}
     if not a.table_only:
+        # SIGINT and SIGTERM stop the current run cleanly (its node process included), also when the benchmark was
+        # started in the background, where the shell leaves SIGINT ignored; finished runs stay cached
+        import signal
+
+        def _stop(signum, frame):
+            raise KeyboardInterrupt
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+        signal.signal(signal.SIGTERM, _stop)
         if a.domain_id is None and os.environ.get('ROS_DOMAIN_ID', '').isdigit():
             a.domain_id = int(os.environ['ROS_DOMAIN_ID'])
         private_ros_env(out, a.domain_id)
