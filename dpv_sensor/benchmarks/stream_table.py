@@ -38,8 +38,8 @@ file to redo that run); rendered seeds are cached under ``OUT/sequences``. Bags 
 a run is in progress and are deleted after it (``--keep-bags`` keeps them). The table is rebuilt from every cached
 run of the requested set: ``OUT/stream_table.md`` and ``OUT/stream_table.json``; ``--table-only`` only rebuilds it.
 SIGINT or SIGTERM (``kill PID``, also for a run started with nohup) stops the run in progress and its node process;
-finished runs stay cached. Exit code 0 when every requested run is in the table, 1 when a run failed (the others still ran), 2 for bad
-arguments.
+finished runs stay cached. Exit code 0 when every requested run is in the table, 1 when a run failed (the others
+still ran), 2 for bad arguments.
 """
 from __future__ import annotations
 
@@ -435,7 +435,8 @@ def _suffix(params: Dict[str, Any]) -> str:
 # --------------------------------------------------------------------------------------------------------------
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog='stream_table', description=__doc__.split('\n\n')[0],
-                                epilog=__doc__.split('\n\n', 1)[1], formatter_class=argparse.RawDescriptionHelpFormatter)
+                                epilog=__doc__.split('\n\n', 1)[1],
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument('--data', default=None, help='folder of sequence folders (every one is replayed)')
     p.add_argument('--sequences', nargs='*', default=None, help='only these sequence folders of --data')
     p.add_argument('--seeds', default='50-52', help="held-out rendered seeds, e.g. '50-52' or '50,53' ('' for none)")
