@@ -36,7 +36,8 @@ Rows ``noisy`` are the mean over the noise seeds (with the spread of abs_rel); e
 Resumable: every run is cached as ``OUT/runs/<sequence>__<pose>__<params>.json`` and skipped when present (delete a
 file to redo that run); rendered seeds are cached under ``OUT/sequences``. Bags live under ``OUT/work/<run>`` while
 a run is in progress and are deleted after it (``--keep-bags`` keeps them). The table is rebuilt from every cached
-run of the requested set: ``OUT/stream_table.md`` and ``OUT/stream_table.json``; ``--table-only`` only rebuilds it.
+run of the requested set: ``OUT/stream_table.md`` and ``OUT/stream_table.json`` (``stream_table_<params>.*`` with
+``--params``); ``--table-only`` only rebuilds it.
 SIGINT or SIGTERM (``kill PID``, also for a run started with nohup) stops the run in progress and its node process;
 finished runs stay cached. Exit code 0 when every requested run is in the table, 1 when a run failed (the others
 still ran), 2 for bad arguments.
