@@ -381,7 +381,8 @@ def markdown(rows: List[Dict[str, Any]]) -> str:
     return '\n'.join(lines)
 
 
-LEGEND = ('Frame means over the keyframe outputs recorded from the node (lockstep replay, no image dropped). '
+LEGEND = ('Frame means over the keyframe outputs recorded from the node (lockstep replay: the node drops no image '
+          'once it has its first camera_info; the drops are listed per run below). '
           'poses: gt = the sequence\'s poses as odometry; noisy ×n = mean over n odometry noise seeds (2 % of each '
           'step, 0.1°/frame rotation random walk; abs_rel range over the seeds in brackets). ms = median-scaled. '
           'conf½ = abs_rel of the most confident half of each frame\'s pixels / abs_rel of all. resets = outputs '
