@@ -231,6 +231,11 @@ class DepthCameraNode(Node):
         self.n_received = self.n_processed = self.n_published = self.n_keyframes_published = 0
         self.n_points = 0
         self._node_resets = 0
+        # published outputs whose filter restarted (estimator, filter or pose-refinement restart; the first output of
+        # the stream, whose filter starts by definition, is not counted) and the reason of the latest one
+        self.n_output_resets = 0
+        self._last_output_reset = ''
+        self._last_keyframe_ms = None
         self._last_fault_total = 0
         self._last_exception_count = 0
         self._started_mono = time.monotonic()
@@ -525,6 +530,7 @@ class DepthCameraNode(Node):
         self.process_ms.append(self._last_push_ms)
         if is_keyframe:
             self.keyframe_ms.append(self._last_push_ms)
+            self._last_keyframe_ms = self._last_push_ms
         self.n_processed += 1
         self._remember(stamp_s, meta, is_keyframe)
         return None if result is None else result.output
@@ -594,6 +600,11 @@ class DepthCameraNode(Node):
         if self.pub_pose is not None and out.T_world_cam_44 is not None:
             self.pub_pose.publish(M.matrix_to_pose_stamped(out.T_world_cam_44, M.make_header(meta.stamp_ns,
                                                                                              self._odom_frame)))
+        reset_reason = getattr(out, 'reset_reason', None)
+        if reset_reason and not (self.n_published == 0 and reset_reason == 'first frame'):
+            self.n_output_resets += 1
+            self._last_output_reset = f'{out.stamp:.3f} s: {reset_reason}'
+            self.get_logger().info(f'output for {out.stamp:.3f} s follows a filter restart: {reset_reason}')
         now_ns = time.time_ns()
         self.n_published += 1
         self.n_keyframes_published += int(bool(out.is_keyframe))
@@ -641,6 +652,7 @@ class DepthCameraNode(Node):
             'stamp_age_ms_median': round(float(np.median(age)), 1) if age else 'n/a',
             'processing_ms_median': round(float(np.median(proc)), 1) if proc else 'n/a',
             'keyframe_ms_median': round(float(np.median(kf)), 1) if kf else 'n/a',
+            'keyframe_ms_last': round(self._last_keyframe_ms, 1) if self._last_keyframe_ms is not None else 'n/a',
             'dropped_total': sum(dropped.values()),
         }
         for reason, n in sorted(dropped.items()):
@@ -649,6 +661,8 @@ class DepthCameraNode(Node):
             values[f'faults.{kind}'] = n
         values['filter_resets'] = st.get('resets', self._node_resets)
         values['last_reset_reason'] = st.get('last_reset_reason') or ''
+        values['output_resets'] = self.n_output_resets
+        values['last_output_reset'] = self._last_output_reset
         values['measurement_model'] = st.get('measurement', 'unknown')
         values['measurement_reason'] = st.get('measurement_reason', '')
         values['device'] = st.get('device', self.config['device'])

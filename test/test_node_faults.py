@@ -166,6 +166,9 @@ def test_fault_bag_replays_without_crash_and_every_fault_is_reported(fault_bag, 
     assert re.search(r'time went backwards: image stamp 17499999\d\d\.\d+ s after 17500000\d\d\.\d+ s; resetting the '
                      r'estimator and the pose buffer', out)
     assert 'estimator reset: odometry jumped' in out               # no window spans the teleport
+    # outputs after those resets are counted (the stream's first output, whose filter starts, is not)
+    assert int(diag['output_resets']) >= 1 and 'follows a filter restart: ' in out, diag
+    assert 'first frame' not in diag['last_output_reset'] and diag['last_output_reset'], diag
     assert int(diag['faults.image_size_change']) == 4            # 160 -> 1x1 -> 160 ... 160 -> 80x64 -> 160
     assert out.count('Traceback') == 1, 'the estimator exception must be logged with its traceback exactly once'
     # corrupt weights: the estimator fell back to the classical model, visible in the log and in /diagnostics

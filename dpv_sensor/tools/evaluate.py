@@ -25,6 +25,11 @@ output_resolution=processing at the processing size (GT resized with nearest nei
 Writes to --out: frames.csv, summary.json, montage.png, sparsification.png (per configuration, in
 numbered sub-folders when comparing, plus compare.md / compare.json / compare_sparsification.png) and
 prints a short markdown table. Headline numbers are means over keyframes; ``ms`` = per-frame median-scaled.
+
+Consumer check (summary.json ``consumer_odometry``, columns ``odo t×`` / ``odo r×``): Open3D's RGB-D odometry
+between consecutive outputs, on the predicted depth and on the GT depth of the same frames (same colour images),
+scored against the GT relative poses; the ratio of the median translation / rotation errors (hybrid Jacobian,
+Open3D's default; the photometric-only 'color' Jacobian is reported too). ``--no-consumer-odometry`` skips it.
 """
 from __future__ import annotations
 
@@ -46,6 +51,10 @@ def _add_common(p: argparse.ArgumentParser) -> None:
     p.add_argument('--montage-frames', type=int, default=4, help='rows of montage.png')
     p.add_argument('--occlusion-tol', type=float, default=0.05,
                    help='relative GT agreement for "visible in both frames" (temporal consistency)')
+    p.add_argument('--no-consumer-odometry', action='store_true',
+                   help='skip the consumer check (Open3D RGB-D odometry between consecutive outputs on the predicted '
+                        'and on the GT depth; columns odo t× / odo r× = ratio of the median translation / rotation '
+                        'error)')
     p.add_argument('--quiet', action='store_true', help='no progress bars')
 
 
@@ -102,6 +111,22 @@ def _print_table(rows) -> None:
     print(markdown_table(rows))
 
 
+def _print_consumer(summary) -> None:
+    """One line per Open3D Jacobian: median RPE of the consumer odometry on predicted vs GT depth."""
+    co = summary.get('consumer_odometry') or {}
+    if 'error' in co:
+        print(f"\nconsumer odometry skipped: {co['error']}")
+    for j in (co.get('options') or {}).get('jacobians', []):
+        r = co[j]
+        p, g = r['predicted'], r['gt_depth']
+        print(f"\nconsumer odometry ({j}, {co['pairs']} pairs of consecutive outputs): median translation / rotation "
+              f"error {p['trans_m_median'] * 100:.2f} cm / {p['rot_deg_median']:.2f} deg on the predicted depth, "
+              f"{g['trans_m_median'] * 100:.2f} cm / {g['rot_deg_median']:.2f} deg on the GT depth: "
+              f"{r['ratio_trans']:.2f}x / {r['ratio_rot']:.2f}x", end='')
+    if co.get('options'):
+        print()
+
+
 def main(argv: Optional[List[str]] = None) -> int:
     argv = tool_argv(argv)
     a = build_parser().parse_args(argv)
@@ -122,7 +147,8 @@ def main(argv: Optional[List[str]] = None) -> int:
                 width=None if synthetic else a.width, height=None if synthetic else a.height,
                 start=a.start, max_frames=a.max_frames, pose_source=a.pose_source,
                 pose_noise=tuple(a.pose_noise), seed=a.seed, montage_frames=a.montage_frames,
-                occlusion_tol=a.occlusion_tol, progress=not a.quiet).validate()
+                occlusion_tol=a.occlusion_tol, progress=not a.quiet,
+                consumer_odometry=not a.no_consumer_odometry).validate()
             for v in variants:                   # fail early on a bad parameter value
                 E.build_config({**overrides, **v})
             seq = E.load_source(a.source, a.width, a.height)
@@ -133,10 +159,12 @@ def main(argv: Optional[List[str]] = None) -> int:
             else:
                 summary = E.evaluate_sequence(seq, overrides, out, options, name=pathlib.Path(a.source).name)
                 _print_table([E.table_row('config', summary)])
+                _print_consumer(summary)
                 print(f'\nwritten: {out}/summary.json, frames.csv, montage.png, sparsification.png')
         else:
             options = E.EvalOptions(min_depth=a.min_depth, max_depth=a.max_depth, montage_frames=a.montage_frames,
-                                    occlusion_tol=a.occlusion_tol, progress=not a.quiet).validate()
+                                    occlusion_tol=a.occlusion_tol, progress=not a.quiet,
+                                    consumer_odometry=not a.no_consumer_odometry).validate()
             if a.command == 'bag':
                 offset = a.stamp_offset if a.stamp_offset == 'auto' else float(a.stamp_offset)
                 records, info = E.records_from_bag(a.bag, a.gt, depth_topic=a.depth_topic,
@@ -156,6 +184,7 @@ def main(argv: Optional[List[str]] = None) -> int:
             summary = E.evaluate_records(records, out, options, source=str(source), extra={'input': info},
                                          name=pathlib.Path(source).name)
             _print_table([E.table_row(pathlib.Path(source).name, summary)])
+            _print_consumer(summary)
             print(f'\nmatched {info["matched"]} depth images ({info["unmatched"]} unmatched); written: {out}')
     except (ValueError, FileNotFoundError) as exc:
         print(f'evaluate: {exc}', file=sys.stderr)

@@ -41,6 +41,9 @@ def build_parser() -> argparse.ArgumentParser:
         q.add_argument('--threshold', type=float, default=0.05, help='distance for the within-fractions (m)')
         q.add_argument('--poses', choices=('gt', 'estimated'), default='gt', help='poses used for both meshes')
         q.add_argument('--no-color', action='store_true', help='do not colour the meshes')
+        q.add_argument('--consumer-odometry', action='store_true',
+                       help='also run the consumer check of `evaluate` (Open3D RGB-D odometry between consecutive '
+                            'depth maps, predicted vs GT depth) into fusion.json')
         q.add_argument('--quiet', action='store_true', help='no progress bars')
 
     s = sub.add_parser('sequence', help='run the estimator over a sequence, then fuse')
@@ -115,12 +118,17 @@ def main(argv: Optional[List[str]] = None) -> int:
         pred, gt = F.frames_from_records(records, poses=a.poses)
         report = F.fusion_report(pred, gt, cfg, out_dir=out, progress=not a.quiet)
         report['input'] = E.to_jsonable(info)
+        if a.consumer_odometry:
+            report['consumer_odometry'] = E.consumer_odometry(records, progress=not a.quiet)
         with open(out / 'fusion.json', 'w') as f:
             json.dump(E.to_jsonable(report), f, indent=1)
     except (ValueError, FileNotFoundError, ImportError, BagError) as exc:
         print(f'fuse: {exc}', file=sys.stderr)
         return 2
     _print_report(report)
+    if 'consumer_odometry' in report:
+        from .evaluate import _print_consumer
+        _print_consumer(report)
     print(f'\n{len(pred)} depth maps fused; written: {out}/mesh_pred.ply, mesh_pred_masked.ply, mesh_gt.ply, '
           'fusion.json')
     return 0

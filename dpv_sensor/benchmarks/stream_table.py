@@ -1,0 +1,565 @@
+"""The stream table: every sequence of a data folder and held-out rendered seeds through the node process.
+
+    python -m dpv_sensor.benchmarks.stream_table --data DATA_FOLDER --seeds 50-52 --out out/stream_table \\
+        [--noise-seeds 0-2] [--params window_mode=centered ...] [--sequences tum_fr1_rpy ...] [--frames 60]
+
+Each run is one (sequence, pose source, node parameters) replay exactly as ``make demo`` replays
+(dpv_sensor.tools.demo): the sequence is written as a rosbag2 (image + camera_info at the sequence's stamps,
+odometry at 100 Hz), the node is started as its own process at its defaults plus the demo's transport settings
+(reliable input, deep queue, diagnostics every 0.1 s) plus ``--params``, the bag is played in lockstep (no image
+dropped) while the outputs are recorded, and the recorded bag is scored with ``evaluate bag``'s code
+(dpv_sensor.evaluation.records_from_bag / evaluate_records).
+
+Pose sources: ``gt`` (the sequence's poses as odometry) and ``noisy<k>`` for each noise seed k (odometry-like drift:
+2 % of each step's translation in a random direction and a 0.1 deg rotation about a random axis per frame, chained:
+dpv_sensor.data.trajectory.corrupt_trajectory). Depth is always scored against the GT depth, and consumer odometry
+against the GT poses.
+
+Columns (frame means over the recorded keyframe outputs unless said otherwise):
+
+- abs_rel, d1: metric depth; ms abs_rel: per-frame median-scaled abs_rel; coverage: scored / valid GT pixels.
+- conf½: confident-half ratio, abs_rel of the most confident half of a frame's scored pixels / abs_rel of all of
+  them (dpv_sensor.metrics.confident_half_ratio), mean over frames (the pooled figure is in the JSON).
+- resets: published outputs whose filter restarted, whichever layer restarted it (estimator stream rules, the
+  filter's own jump rule between keyframes, a pose-refinement loss), the stream's first output not counted: the
+  node's ``output_resets`` diagnostics counter; the reasons are in the JSON.
+- kf ms: median time of the node's estimator on a keyframe image (from the ``keyframe_ms_last`` values of the
+  recorded /diagnostics: one per keyframe, since lockstep waits for the node to report each image).
+- const abs_rel, const d1: a constant depth equal to the median GT depth of the whole sequence (an oracle
+  constant), scored on the same keyframes and the same pixels as the prediction.
+- odo t×, odo r×: consumer odometry (dpv_sensor.evaluation.consumer_odometry): Open3D RGB-D odometry between
+  consecutive outputs on the predicted depth vs on the GT depth of the same frames; the ratio of the median
+  translation / rotation RPE (hybrid Jacobian, Open3D's default). col t×, col r×: the same with the photometric-only
+  Jacobian (the depth only warps), which stays accurate on GT depth where the hybrid one drifts.
+
+Rows ``noisy`` are the mean over the noise seeds (with the spread of abs_rel); each seed's numbers are in the JSON.
+
+Resumable: every run is cached as ``OUT/runs/<sequence>__<pose>__<params>.json`` and skipped when present (delete a
+file to redo that run); rendered seeds are cached under ``OUT/sequences``. Bags live under ``OUT/work/<run>`` while
+a run is in progress and are deleted after it (``--keep-bags`` keeps them). The table is rebuilt from every cached
+run of the requested set: ``OUT/stream_table.md`` and ``OUT/stream_table.json`` (``stream_table_<params>.*`` with
+``--params``); ``--table-only`` only rebuilds it.
+SIGINT or SIGTERM (``kill PID``, also for a run started with nohup) stops the run in progress and its node process;
+finished runs stay cached. Exit code 0 when every requested run is in the table, 1 when a run failed (the others
+still ran), 2 for bad arguments.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import pathlib
+import re
+import shutil
+import sys
+import time
+import traceback
+from typing import Any, Dict, List, Optional, Tuple
+
+import numpy as np
+
+# odometry-like noise of the table's noisy rows: translation error per step (fraction of the step), rotation error
+# per frame (deg)
+NOISE_TRANS_REL = 0.02
+NOISE_ROT_DEG = 0.1
+RENDER_FRAMES = 60
+RENDER_SIZE = (320, 240)
+RUN_VERSION = 1   # bump when a cached run's content changes meaning
+
+
+# --------------------------------------------------------------------------------------------------------------
+# inputs
+# --------------------------------------------------------------------------------------------------------------
+class PosedView:
+    """A sequence with its poses replaced (the odometry a bag is written with); everything else is the sequence's."""
+
+    def __init__(self, seq, poses):
+        self._seq = seq
+        self._poses = [np.asarray(T, np.float64) for T in poses]
+        if len(self._poses) != len(seq):
+            raise ValueError(f'{len(self._poses)} poses for a sequence of {len(seq)} frames')
+
+    def __len__(self):
+        return len(self._seq)
+
+    def pose(self, i):
+        return self._poses[i]
+
+    def __getattr__(self, name):
+        return getattr(self._seq, name)
+
+
+def odometry_poses(seq, pose_source: str) -> List[np.ndarray]:
+    """The poses written as odometry for a pose source: 'gt', or 'noisy<seed>' (corrupt_trajectory with the table's
+    noise, seeded)."""
+    gt = [np.asarray(seq.pose(i), np.float64) for i in range(len(seq))]
+    if pose_source == 'gt':
+        return gt
+    m = re.fullmatch(r'noisy(\d+)', pose_source)
+    if not m:
+        raise ValueError(f'pose source {pose_source!r} is neither gt nor noisy<seed>')
+    from dpv_sensor.data.trajectory import corrupt_trajectory
+    return corrupt_trajectory(gt, trans_noise_rel=NOISE_TRANS_REL, rot_noise_deg=NOISE_ROT_DEG, seed=int(m.group(1)))
+
+
+def sequence_folders(data: pathlib.Path) -> List[pathlib.Path]:
+    """Every sequence folder (one with poses.txt and K.txt) directly under `data`, sorted by name."""
+    return sorted(p for p in data.iterdir() if p.is_dir() and (p / 'poses.txt').is_file() and (p / 'K.txt').is_file())
+
+
+def rendered_sequence(out: pathlib.Path, seed: int, frames: int, progress: bool,
+                      size: Tuple[int, int] = RENDER_SIZE) -> pathlib.Path:
+    """The held-out rendered scene `seed` as a sequence folder under OUT/sequences (rendered once; rendered again
+    when the frame count or the size asked for differ)."""
+    folder = out / 'sequences' / f'synthetic_seed{seed}'
+    done = folder / '.complete'
+    tag = f'{frames} {size[0]}x{size[1]}'
+    if done.is_file() and done.read_text().strip() == tag:
+        return folder
+    from dpv_sensor.tools.demo import render_scene
+    if folder.exists():
+        shutil.rmtree(folder)
+    render_scene(folder, seed, frames, size[0], size[1], progress)
+    done.write_text(tag)
+    return folder
+
+
+def params_tag(params: Dict[str, Any]) -> str:
+    """A file-name-safe name of the --params overrides ('defaults' without any)."""
+    if not params:
+        return 'defaults'
+    text = ','.join(f'{k}={params[k]}' for k in sorted(params))
+    return re.sub(r'[^A-Za-z0-9=,._-]+', '_', text)
+
+
+def run_key(seq_name: str, pose_source: str, params: Dict[str, Any]) -> str:
+    return f'{seq_name}__{pose_source}__{params_tag(params)}'
+
+
+# --------------------------------------------------------------------------------------------------------------
+# scoring helpers
+# --------------------------------------------------------------------------------------------------------------
+def oracle_constant(seq, min_depth=None, max_depth=None) -> float:
+    """Median of every valid GT depth of the sequence (within the scored range)."""
+    from dpv_sensor.metrics import gt_valid_mask
+    vals = []
+    for i in range(len(seq)):
+        d = np.asarray(seq.depth(i), np.float32)
+        vals.append(d[gt_valid_mask(d, min_depth, max_depth)])
+    allv = np.concatenate(vals) if vals else np.zeros(0)
+    return float(np.median(allv)) if allv.size else float('nan')
+
+
+def constant_on_same_pixels(records, constant: float, min_depth=None, max_depth=None) -> Dict[str, Any]:
+    """A constant depth scored on the records' keyframes and exactly the pixels their predictions are scored on."""
+    from dpv_sensor.metrics import MetricAccumulator
+    acc = MetricAccumulator(min_depth=min_depth, max_depth=max_depth)
+    for r in records:
+        pred = np.where(np.isfinite(r.depth_hw), np.float32(constant), np.float32(np.nan))
+        acc.add(pred, r.gt_depth_hw)
+    fm = acc.summary()['metric']['frame_mean']
+    return {'constant_m': constant, 'abs_rel': fm['abs_rel'], 'delta1': fm['delta1'], 'rmse': fm['rmse']}
+
+
+def diagnostics_series(output_bag) -> List[Dict[str, str]]:
+    """The node's /diagnostics values ({key: str}) recorded in the output bag, in record order."""
+    from dpv_sensor.data import rosbag_io as R
+    from dpv_sensor.tools.demo import DIAGNOSTICS_SUFFIX
+    out = []
+    if '/diagnostics' not in R.bag_topics(output_bag):
+        return out
+    for _t, _ty, _log, msg in R.read_messages(output_bag, ['/diagnostics']):
+        for st in msg.status:
+            if st.name.endswith(DIAGNOSTICS_SUFFIX) and st.hardware_id.startswith('dpv_sensor'):
+                out.append({kv.key: kv.value for kv in st.values})
+    return out
+
+
+def keyframe_times_ms(series: List[Dict[str, str]]) -> Dict[int, float]:
+    """Estimator time of each keyframe image: {keyframe count: keyframe_ms_last} from the recorded diagnostics."""
+    from dpv_sensor.tools.demo import _as_number
+    out: Dict[int, float] = {}
+    for v in series:
+        k = _as_number(v.get('estimator_keyframes'))
+        ms = _as_number(v.get('keyframe_ms_last'))
+        if isinstance(k, int) and k > 0 and isinstance(ms, (int, float)):
+            out.setdefault(k, float(ms))
+    return out
+
+
+def reset_reasons(series: List[Dict[str, str]]) -> List[str]:
+    """The distinct `last_output_reset` values in the order they appeared (one per counted output reset, as long
+    as two resets are not reported by the same diagnostics message)."""
+    out: List[str] = []
+    for v in series:
+        r = v.get('last_output_reset') or ''
+        if r and (not out or out[-1] != r):
+            out.append(r)
+    return out
+
+
+def _f(v):
+    return v if isinstance(v, (int, float)) and not (isinstance(v, float) and not math.isfinite(v)) else None
+
+
+def _get(d, *path):
+    for p in path:
+        if not isinstance(d, dict) or p not in d:
+            return None
+        d = d[p]
+    return d
+
+
+# --------------------------------------------------------------------------------------------------------------
+# one run
+# --------------------------------------------------------------------------------------------------------------
+def run_one(seq_name: str, seq_dir: pathlib.Path, pose_source: str, user_params: Dict[str, Any],
+            out: pathlib.Path, *, min_depth=None, max_depth=None, keep_bags: bool = False, progress: bool = True,
+            start_timeout: float = 180.0, frame_timeout: float = 180.0) -> Dict[str, Any]:
+    """Replay one sequence with one pose source through the node and score it; returns the run's JSON dict."""
+    from dpv_sensor import evaluation as E
+    from dpv_sensor.data import rosbag_io as R
+    from dpv_sensor.data.sequence import Sequence
+    from dpv_sensor.tools import demo as D
+
+    key = run_key(seq_name, pose_source, user_params)
+    work = out / 'work' / key
+    if work.exists():
+        shutil.rmtree(work)
+    (work / 'logs').mkdir(parents=True)
+    input_bag, output_bag = work / 'input_bag', work / 'output_bag'
+    params = dict(D.DEMO_NODE_PARAMS)
+    params.update(user_params)
+    timing: Dict[str, float] = {}
+    t_all = time.perf_counter()
+
+    seq = Sequence(seq_dir)
+    t = time.perf_counter()
+    odom = PosedView(seq, odometry_poses(seq, pose_source))
+    bs = R.write_sequence_bag(input_bag, odom, odom_rate=D.ODOM_RATE_HZ, progress=progress)
+    timing['bag_s'] = round(time.perf_counter() - t, 1)
+
+    steps = D.Steps(3)
+    topics = {'image': R.IMAGE_TOPIC, 'camera_info': R.CAMERA_INFO_TOPIC, 'odom': R.ODOM_TOPIC}
+    t = time.perf_counter()
+    replay = D.run_node_replay(steps, input_bag, output_bag, topics=topics, params=params, log_dir=work / 'logs',
+                               lockstep=True, rate=1.0, start_timeout=start_timeout, frame_timeout=frame_timeout,
+                               max_images=0, progress=progress)
+    timing['node_s'] = round(time.perf_counter() - t, 1)
+    d = replay.diagnostics
+
+    t = time.perf_counter()
+    records, info = E.records_from_bag(output_bag, seq_dir)
+    if not records:
+        raise RuntimeError(f'no recorded depth image matched a GT frame ({info})')
+    options = E.EvalOptions(min_depth=min_depth, max_depth=max_depth, progress=progress,
+                            consumer_odometry=True).validate()
+    summary = E.evaluate_records(records, None, options, source=str(output_bag), extra={'input': info})
+    constant = constant_on_same_pixels(records, oracle_constant(seq, min_depth, max_depth), min_depth, max_depth)
+    series = diagnostics_series(output_bag)
+    kf_ms = keyframe_times_ms(series)
+    timing['score_s'] = round(time.perf_counter() - t, 1)
+    timing['total_s'] = round(time.perf_counter() - t_all, 1)
+
+    co = summary.get('consumer_odometry') or {}
+    kf_vals = list(kf_ms.values())
+    result = {
+        'version': RUN_VERSION, 'key': key, 'sequence': seq_name, 'sequence_folder': str(seq_dir),
+        'pose_source': pose_source, 'params': user_params, 'node_parameters': params,
+        'noise': None if pose_source == 'gt' else {'trans_rel': NOISE_TRANS_REL, 'rot_deg_per_frame': NOISE_ROT_DEG},
+        'frames': len(seq), 'size': list(seq.size) if hasattr(seq, 'size') else None,
+        'keyframes_scored': len(records),
+        'abs_rel': summary['metric']['frame_mean']['abs_rel'],
+        'delta1': summary['metric']['frame_mean']['delta1'],
+        'rmse': summary['metric']['frame_mean']['rmse'],
+        'ms_abs_rel': summary['median_scaled']['frame_mean']['abs_rel'],
+        'coverage': summary['coverage']['frame_mean'],
+        'confident_half_ratio': _get(summary, 'confidence', 'confident_half_ratio_frame_mean'),
+        'confident_half_ratio_pooled': _get(summary, 'confidence', 'confident_half_ratio_pooled'),
+        'ause': _get(summary, 'confidence', 'ause_frame_mean'),
+        'mean_confidence': _get(summary, 'confidence', 'mean_confidence'),
+        'temporal': _get(summary, 'temporal_consistency', 'pair_mean'),
+        'output_resets': int(D._as_number(d.get('output_resets'), -1)),
+        'output_reset_reasons': reset_reasons(series),
+        'estimator_resets': D._as_number(d.get('filter_resets')),
+        'last_estimator_reset_reason': d.get('last_reset_reason') or '',
+        'keyframe_ms_median': float(np.median(kf_vals)) if kf_vals else None,
+        'keyframe_ms_mean': float(np.mean(kf_vals)) if kf_vals else None,
+        'keyframes_timed': len(kf_vals),
+        'node_keyframe_ms_median_last50': D._as_number(d.get('keyframe_ms_median')),
+        'node_processing_ms_median': D._as_number(d.get('processing_ms_median')),
+        'constant': constant,
+        'consumer_odometry': co,
+        'consumer_ratio_trans': co.get('ratio_trans'),
+        'consumer_ratio_rot': co.get('ratio_rot'),
+        'node': {'images_in_bag': replay.images_in_bag, 'images_sent': replay.images_sent,
+                 'frames_received': d.get('frames_received'), 'frames_processed': d.get('frames_processed'),
+                 'keyframes': d.get('estimator_keyframes'), 'outputs_published': d.get('outputs_published'),
+                 'recorded': replay.recorded, 'dropped_total': d.get('dropped_total'),
+                 'faults': {k[7:]: v for k, v in d.items() if k.startswith('faults.')},
+                 'measurement_model': d.get('measurement_model'), 'measurement_reason': d.get('measurement_reason'),
+                 'filter_mode': d.get('filter_mode'), 'device': d.get('device'), 'precision': d.get('precision'),
+                 'exit_code': replay.node_exit_code, 'peak_rss_mib': replay.node_peak_rss_mib,
+                 'command': replay.node_command, 'warnings': replay.warnings},
+        'bag': {'frames': bs.frames, 'odometry': bs.odometry, 'duration_s': bs.duration_s},
+        'matching': info, 'min_depth': min_depth, 'max_depth': max_depth,
+        'timing': timing, 'finished': time.strftime('%Y-%m-%d %H:%M:%S'),
+    }
+    if not keep_bags:
+        shutil.rmtree(work, ignore_errors=True)
+    return E.to_jsonable(result)
+
+
+# --------------------------------------------------------------------------------------------------------------
+# the table
+# --------------------------------------------------------------------------------------------------------------
+COLUMNS = [   # (header, run key, format)
+    ('kf', 'keyframes_scored', '{:d}'),
+    ('abs_rel', 'abs_rel', '{:.3f}'),
+    ('d1', 'delta1', '{:.3f}'),
+    ('ms abs_rel', 'ms_abs_rel', '{:.3f}'),
+    ('conf½', 'confident_half_ratio', '{:.2f}'),
+    ('coverage', 'coverage', '{:.3f}'),
+    ('resets', 'output_resets', '{:g}'),
+    ('kf ms', 'keyframe_ms_median', '{:.0f}'),
+    ('const abs_rel', ('constant', 'abs_rel'), '{:.3f}'),
+    ('const d1', ('constant', 'delta1'), '{:.3f}'),
+    ('odo t×', 'consumer_ratio_trans', '{:.2f}'),
+    ('odo r×', 'consumer_ratio_rot', '{:.2f}'),
+    ('col t×', ('consumer_odometry', 'color', 'ratio_trans'), '{:.2f}'),
+    ('col r×', ('consumer_odometry', 'color', 'ratio_rot'), '{:.2f}'),
+]
+
+
+def _value(run: Dict[str, Any], key):
+    return _f(_get(run, *key) if isinstance(key, tuple) else run.get(key))
+
+
+def table_rows(runs: List[Dict[str, Any]], sequences: List[str], noise_seeds: List[int],
+               params: Dict[str, Any]) -> List[Dict[str, Any]]:
+    """One row per sequence and pose source ('gt'; 'noisy' = mean over the noise seeds that have run)."""
+    by_key = {r['key']: r for r in runs}
+    rows = []
+    for s in sequences:
+        gt = by_key.get(run_key(s, 'gt', params))
+        if gt is not None:
+            rows.append({'sequence': s, 'poses': 'gt', 'runs': 1,
+                         **{h: _value(gt, k) for h, k, _f_ in COLUMNS}})
+        noisy = [by_key[run_key(s, f'noisy{k}', params)] for k in noise_seeds
+                 if run_key(s, f'noisy{k}', params) in by_key]
+        if noisy:
+            row = {'sequence': s, 'poses': f'noisy ×{len(noisy)}', 'runs': len(noisy)}
+            for h, k, _f_ in COLUMNS:
+                vals = [v for v in (_value(r, k) for r in noisy) if v is not None]
+                row[h] = float(np.mean(vals)) if vals else None
+            if row['resets'] is not None:      # resets: the total over the seeds
+                row['resets'] = int(sum(_value(r, 'output_resets') or 0 for r in noisy))
+            ab = [v for v in (_value(r, 'abs_rel') for r in noisy) if v is not None]
+            row['abs_rel_range'] = [min(ab), max(ab)] if ab else None
+            rows.append(row)
+    return rows
+
+
+def markdown(rows: List[Dict[str, Any]]) -> str:
+    heads = ['sequence', 'poses'] + [h for h, _k, _f in COLUMNS]
+    fmts = {h: f for h, _k, f in COLUMNS}
+    lines = ['| ' + ' | '.join(heads) + ' |', '|' + '|'.join(['---'] * 2 + ['---:'] * len(COLUMNS)) + '|']
+    for r in rows:
+        cells = [r['sequence'], r['poses']]
+        for h in heads[2:]:
+            v = r.get(h)
+            if v is None:
+                cells.append('-')
+                continue
+            if h == 'kf' and r['runs'] > 1:
+                cells.append(f'{v:.0f}')
+            else:
+                cells.append(fmts[h].format(int(v) if fmts[h] == '{:d}' else v))
+            if h == 'abs_rel' and r.get('abs_rel_range'):
+                lo, hi = r['abs_rel_range']
+                if hi - lo >= 0.0005:
+                    cells[-1] += f' ({lo:.3f}–{hi:.3f})'
+        lines.append('| ' + ' | '.join(cells) + ' |')
+    return '\n'.join(lines)
+
+
+LEGEND = ('Frame means over the keyframe outputs recorded from the node (lockstep replay: the node drops no image '
+          'once it has its first camera_info; the drops are listed per run below). '
+          'poses: gt = the sequence\'s poses as odometry; noisy ×n = mean over n odometry noise seeds (2 % of each '
+          'step, 0.1°/frame rotation random walk; abs_rel range over the seeds in brackets). ms = median-scaled. '
+          'conf½ = abs_rel of the most confident half of each frame\'s pixels / abs_rel of all. resets = outputs '
+          'whose filter restarted (first output not counted; summed over the seeds). kf ms = median estimator time '
+          'per keyframe image in the node. const = the sequence\'s median GT depth as a constant, on the same '
+          'keyframes and pixels. odo t× / r× = Open3D RGB-D odometry (hybrid) between consecutive outputs: median '
+          'translation / rotation RPE on predicted depth ÷ on GT depth; col t× / r×: the same with the photometric-only '
+          '(color) Jacobian, steadier where the hybrid one drifts even on GT depth.')
+
+
+def run_details(runs: List[Dict[str, Any]]) -> str:
+    """Per run: frames, keyframes scored, images dropped, time (bag / node replay / scoring), the reset reasons."""
+    lines = ['| run | frames | keyframes | dropped | min (bag + node + scoring) | resets |',
+             '|---|---:|---:|---:|---|---|']
+    for r in runs:
+        t = r.get('timing') or {}
+        mins = ' + '.join(f"{(t.get(k) or 0) / 60:.1f}" for k in ('bag_s', 'node_s', 'score_s'))
+        reasons = '; '.join(r.get('output_reset_reasons') or []) or '-'
+        lines.append(f"| {r['sequence']} {r['pose_source']} | {r.get('frames')} | {r.get('keyframes_scored')} | "
+                     f"{_get(r, 'node', 'dropped_total')} | {(t.get('total_s') or 0) / 60:.1f} ({mins}) | {reasons} |")
+    return '\n'.join(lines)
+
+
+def write_table(out: pathlib.Path, runs, sequences, noise_seeds, params, command: str,
+                failures: Dict[str, str]) -> Tuple[str, Dict[str, Any]]:
+    rows = table_rows(runs, sequences, noise_seeds, params)
+    md = markdown(rows)
+    done = len(runs)
+    wanted = len(sequences) * (1 + len(noise_seeds))
+    times = [r['timing']['total_s'] for r in runs if _get(r, 'timing', 'total_s') is not None]
+    head = (f'Command: `{command}`\n\nParameters: {params_tag(params)}; {done} of {wanted} runs done'
+            + (f', {len(failures)} failed' if failures else '')
+            + (f'; {sum(times) / 60:.0f} min of runs (median {np.median(times) / 60:.1f} min per run)' if times
+               else '') + '.')
+    text = head + '\n\n' + md + '\n\n' + LEGEND + '\n\n' + run_details(runs) + '\n'
+    if failures:
+        text += '\nFailed runs:\n' + ''.join(f'- {k}: {v}\n' for k, v in failures.items())
+    (out / f'stream_table{_suffix(params)}.md').write_text(text)
+    data = {'command': command, 'params': params, 'sequences': sequences, 'noise_seeds': noise_seeds,
+            'rows': rows, 'runs': {r['key']: r for r in runs}, 'failures': failures}
+    from dpv_sensor.evaluation import to_jsonable
+    with open(out / f'stream_table{_suffix(params)}.json', 'w') as fh:
+        json.dump(to_jsonable(data), fh, indent=1)
+    return text, data
+
+
+def _suffix(params: Dict[str, Any]) -> str:
+    return '' if not params else '_' + params_tag(params)
+
+
+# --------------------------------------------------------------------------------------------------------------
+# main
+# --------------------------------------------------------------------------------------------------------------
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog='stream_table', description=__doc__.split('\n\n')[0],
+                                epilog=__doc__.split('\n\n', 1)[1],
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument('--data', default=None, help='folder of sequence folders (every one is replayed)')
+    p.add_argument('--sequences', nargs='*', default=None, help='only these sequence folders of --data')
+    p.add_argument('--seeds', default='50-52', help="held-out rendered seeds, e.g. '50-52' or '50,53' ('' for none)")
+    p.add_argument('--frames', type=int, default=RENDER_FRAMES, help=f'frames per rendered seed ({RENDER_FRAMES})')
+    p.add_argument('--render-size', default=f'{RENDER_SIZE[0]}x{RENDER_SIZE[1]}', metavar='WxH',
+                   help=f'size of the rendered seeds ({RENDER_SIZE[0]}x{RENDER_SIZE[1]})')
+    p.add_argument('--noise-seeds', default='0-2', help="odometry noise seeds ('' for GT poses only)")
+    p.add_argument('--no-gt', action='store_true', help='only the noisy pose sources')
+    p.add_argument('--params', nargs='*', default=[], metavar='KEY=VALUE', help='node parameters over the defaults')
+    p.add_argument('--out', default='out/stream_table', help='output folder (cache of runs, tables)')
+    p.add_argument('--min-depth', type=float, default=None, help='smallest GT depth scored (default: all valid)')
+    p.add_argument('--max-depth', type=float, default=None, help='largest GT depth scored (default: all valid)')
+    p.add_argument('--domain-id', type=int, default=None,
+                   help='ROS_DOMAIN_ID of the node and the player (default: $ROS_DOMAIN_ID, else a random one)')
+    p.add_argument('--keep-bags', action='store_true', help='keep the input / output bags of every run')
+    p.add_argument('--table-only', action='store_true', help='run nothing, rebuild the table from the cache')
+    p.add_argument('--quiet', action='store_true', help='no progress bars')
+    return p
+
+
+def main(argv: Optional[List[str]] = None) -> int:
+    from dpv_sensor.tools import tool_argv
+    from dpv_sensor.tools.demo import parse_params, private_ros_env
+    from dpv_sensor.training.dataset import check_heldout_seeds, parse_seeds
+    argv = tool_argv(argv)
+    ap = build_parser()
+    a = ap.parse_args(argv)
+    try:
+        params = parse_params(a.params)
+        seeds = check_heldout_seeds(parse_seeds(a.seeds))
+        noise_seeds = list(parse_seeds(a.noise_seeds))
+        m = re.fullmatch(r'(\d+)x(\d+)', a.render_size)
+        if not m:
+            raise ValueError(f'--render-size expects WxH, got {a.render_size!r}')
+        render_size = (int(m.group(1)), int(m.group(2)))
+    except ValueError as exc:
+        ap.error(str(exc))
+    out = pathlib.Path(a.out).resolve()
+    (out / 'runs').mkdir(parents=True, exist_ok=True)
+    progress = not a.quiet
+
+    folders: Dict[str, Optional[pathlib.Path]] = {}
+    if a.data:
+        data = pathlib.Path(a.data)
+        if not data.is_dir():
+            ap.error(f'--data {data}: no such folder')
+        found = {f.name: f.resolve() for f in sequence_folders(data)}
+        names = a.sequences if a.sequences is not None else sorted(found)
+        missing = [n for n in names if n not in found]
+        if missing:
+            ap.error(f'no sequence folder {missing} in {data} (found: {sorted(found)})')
+        folders.update({n: found[n] for n in names})
+    for s in seeds:
+        folders[f'synthetic_seed{s}'] = None   # rendered when its first run starts
+    if not folders:
+        ap.error('nothing to run: give --data and/or --seeds')
+    sources = ([] if a.no_gt else ['gt']) + [f'noisy{k}' for k in noise_seeds]
+    sequences = list(folders)
+    command = 'python -m dpv_sensor.benchmarks.stream_table ' + ' '.join(x for x in argv if x != '--table-only')
+
+    def cached_runs():
+        runs = []
+        for s in sequences:
+            for src in sources:
+                f = out / 'runs' / f'{run_key(s, src, params)}.json'
+                if f.is_file():
+                    r = json.loads(f.read_text())
+                    if r.get('version') == RUN_VERSION:
+                        runs.append(r)
+        return runs
+
+    failures: Dict[str, str] = {}
+    if not a.table_only:
+        # SIGINT and SIGTERM stop the current run cleanly (its node process included), also when the benchmark was
+        # started in the background, where the shell leaves SIGINT ignored; finished runs stay cached
+        import signal
+
+        def _stop(signum, frame):
+            raise KeyboardInterrupt
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+        signal.signal(signal.SIGTERM, _stop)
+        if a.domain_id is None and os.environ.get('ROS_DOMAIN_ID', '').isdigit():
+            a.domain_id = int(os.environ['ROS_DOMAIN_ID'])
+        private_ros_env(out, a.domain_id)
+        todo = [(s, src) for src in sources for s in sequences     # every sequence with GT poses first
+                if not (out / 'runs' / f'{run_key(s, src, params)}.json').is_file()]
+        print(f'stream table: {len(sequences) * len(sources) - len(todo)} runs cached, {len(todo)} to run '
+              f'(parameters: {params_tag(params)}) -> {out}', flush=True)
+        for n, (s, src) in enumerate(todo, 1):
+            key = run_key(s, src, params)
+            print(f'\n=== run {n}/{len(todo)}: {s}, poses {src}, {params_tag(params)} '
+                  f'({time.strftime("%H:%M:%S")}) ===', flush=True)
+            try:
+                if folders[s] is None:
+                    folders[s] = rendered_sequence(out, int(s[len('synthetic_seed'):]), a.frames, progress,
+                                                   render_size)
+                res = run_one(s, folders[s], src, params, out, min_depth=a.min_depth, max_depth=a.max_depth,
+                              keep_bags=a.keep_bags, progress=progress)
+            except KeyboardInterrupt:
+                print('\ninterrupted; finished runs are cached, run the same command again to go on', flush=True)
+                return 1
+            except Exception as exc:
+                failures[key] = f'{type(exc).__name__}: {exc}'
+                (out / 'runs' / f'{key}.error.txt').write_text(traceback.format_exc())
+                print(f'run {key} FAILED: {failures[key]}', flush=True)
+                continue
+            tmp = out / 'runs' / f'{key}.json.tmp'
+            tmp.write_text(json.dumps(res, indent=1))
+            tmp.replace(out / 'runs' / f'{key}.json')
+            print(f"run {key}: abs_rel {res['abs_rel']:.4f}, d1 {res['delta1']:.3f}, {res['keyframes_scored']} "
+                  f"keyframes, resets {res['output_resets']}, kf {res['keyframe_ms_median'] or float('nan'):.0f} ms, "
+                  f"{res['timing']['total_s']:.0f} s", flush=True)
+            text, _ = write_table(out, cached_runs(), sequences, noise_seeds, params, command, failures)
+    text, _ = write_table(out, cached_runs(), sequences, noise_seeds, params, command, failures)
+    print('\n' + text)
+    return 1 if failures else 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())

@@ -1,0 +1,141 @@
+"""The stream-table benchmark on a tiny case, and its pieces.
+
+One run of the tool (held-out seed 50 rendered at 96x72, 12 frames, one noisy-odometry pose source, the classical
+model at 96x72: ~30-60 s on a busy 2-core CPU) through the node process and lockstep bag replay; its cached JSON is
+checked against values computed here, independently, from the recorded output bag and the GT sequence folder:
+abs_rel, coverage and the constant baseline with plain numpy, the number of scored keyframes, no reset. A second
+call with the same arguments runs nothing (resumable). The odometry noise and the consumer odometry have their own
+small cases.
+"""
+import json
+import math
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from ros_helpers import REPO
+from dpv_sensor.benchmarks import stream_table as ST
+from dpv_sensor.tools.demo import parse_params
+
+NODE = ['measurement=classical', 'processing_width=96', 'processing_height=72', 'num_planes=32']
+ARGS = ['--seeds', '50', '--frames', '12', '--render-size', '96x72', '--no-gt', '--noise-seeds', '0', '--keep-bags',
+        '--quiet', '--params'] + NODE
+
+
+def _run(out, timeout=300):
+    cmd = [sys.executable, '-m', 'dpv_sensor.benchmarks.stream_table', '--out', str(out)] + ARGS
+    env = dict(os.environ, PYTHONUNBUFFERED='1')
+    return subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True, timeout=timeout)
+
+
+@pytest.fixture(scope='module')
+def table_run(tmp_path_factory):
+    out = tmp_path_factory.mktemp('stream_table') / 'out'
+    return out, _run(out)
+
+
+def _run_json(out):
+    key = ST.run_key('synthetic_seed50', 'noisy0', parse_params(NODE))
+    return json.loads((out / 'runs' / f'{key}.json').read_text()), key
+
+
+def test_table_fields_match_independent_values(table_run):
+    from dpv_sensor.data import rosbag_io as R
+    from dpv_sensor.data.sequence import Sequence
+    out, proc = table_run
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    run, key = _run_json(out)
+    seq = Sequence(out / 'sequences' / 'synthetic_seed50')
+    depth = R.read_depth_images(out / 'work' / key / 'output_bag', '/depth/image')
+    stamps = np.array([seq.stamp(i) for i in range(len(seq))])
+    assert run['keyframes_scored'] == len(depth) >= 2
+    # abs_rel and coverage per frame by hand: pixels with a prediction and a valid GT depth
+    all_gt = np.concatenate([np.asarray(seq.depth(i))[np.asarray(seq.depth(i)) > 0] for i in range(len(seq))])
+    c = float(np.median(all_gt))
+    abs_rel, cover, const = [], [], []
+    for s in depth:
+        j = int(np.argmin(np.abs(stamps - s.stamp_ns / 1e9)))
+        assert abs(stamps[j] - s.stamp_ns / 1e9) < 1e-3
+        gt = np.asarray(seq.depth(j), np.float64)
+        p = np.asarray(s.data, np.float64)
+        m = np.isfinite(p) & (p > 0) & (gt > 0)
+        abs_rel.append(np.mean(np.abs(p[m] - gt[m]) / gt[m]))
+        cover.append(m.sum() / (gt > 0).sum())
+        const.append(np.mean(np.abs(c - gt[m]) / gt[m]))
+    assert run['abs_rel'] == pytest.approx(np.mean(abs_rel), rel=1e-4)
+    assert run['coverage'] == pytest.approx(np.mean(cover), rel=1e-6)
+    assert run['constant']['constant_m'] == pytest.approx(c, rel=1e-6)
+    assert run['constant']['abs_rel'] == pytest.approx(np.mean(const), rel=1e-4)
+    # a smooth rendered walk with 2 % odometry drift: the filter never restarts; every keyframe is timed
+    assert run['output_resets'] == 0 and run['output_reset_reasons'] == []
+    assert run['keyframes_timed'] == int(run['node']['keyframes']) >= 3
+    assert run['keyframe_ms_median'] > 0
+    assert int(run['node']['dropped_total']) == 0 and run['node']['exit_code'] == 0
+    co = run['consumer_odometry']
+    assert co['pairs'] == len(depth) - 1
+    assert co['ratio_trans'] == pytest.approx(co['hybrid']['predicted']['trans_m_median'] /
+                                              co['hybrid']['gt_depth']['trans_m_median'])
+    # the table: one noisy row with these numbers
+    md = (out / f'stream_table_{ST.params_tag(parse_params(NODE))}.md').read_text()
+    row = [ln for ln in md.splitlines() if ln.startswith('| synthetic_seed50 |')]
+    assert len(row) == 1 and '| noisy ×1 |' in row[0] and f"| {run['abs_rel']:.3f} |" in row[0], md
+
+
+def test_second_call_runs_nothing(table_run):
+    out, proc = table_run
+    assert proc.returncode == 0
+    run, key = _run_json(out)
+    again = _run(out, timeout=120)
+    assert again.returncode == 0, again.stdout[-2000:] + again.stderr[-2000:]
+    assert '1 runs cached, 0 to run' in again.stdout
+    assert _run_json(out)[0] == run
+
+
+def test_odometry_noise_is_two_percent_of_each_step_and_a_tenth_of_a_degree():
+    from dpv_sensor.data.synthetic import render_sequence
+    from dpv_sensor.evaluation import relative_pose_error
+    seq = render_sequence(50, 6, width=32, height=24, lazy=True)
+    gt = ST.odometry_poses(seq, 'gt')
+    noisy = ST.odometry_poses(seq, 'noisy1')
+    assert np.allclose(noisy[0], gt[0]) and not np.allclose(noisy[3], gt[3])
+    assert ST.odometry_poses(seq, 'noisy1')[5].tolist() == noisy[5].tolist()    # seeded
+    for i in range(1, 6):
+        rel_gt = np.linalg.inv(gt[i - 1]) @ gt[i]
+        rel_n = np.linalg.inv(noisy[i - 1]) @ noisy[i]
+        step = np.linalg.norm(rel_gt[:3, 3])
+        assert np.linalg.norm(rel_n[:3, 3] - rel_gt[:3, 3]) == pytest.approx(0.02 * step, rel=1e-6)
+        rot_err = relative_pose_error(_rot(rel_n) @ np.linalg.inv(_rot(rel_gt)), np.eye(4))[1]
+        assert rot_err == pytest.approx(0.1, abs=1e-6)
+    with pytest.raises(ValueError):
+        ST.odometry_poses(seq, 'drift')
+
+
+def _rot(T):
+    R = np.eye(4)
+    R[:3, :3] = T[:3, :3]
+    return R
+
+
+def test_consumer_odometry_on_gt_depth_is_ratio_one_and_a_constant_depth_is_worse():
+    from dpv_sensor.data.synthetic import render_sequence
+    from dpv_sensor import evaluation as E
+    seq = render_sequence(51, 9, width=160, height=120, lazy=True)
+    recs = []
+    for i in range(0, 9, 2):
+        d = np.asarray(seq.depth(i), np.float32)
+        recs.append(E.KeyframeRecord(index=i, stamp=seq.stamp(i), depth_hw=d.copy(), confidence_hw=None,
+                                     K_33=np.asarray(seq.K), gt_depth_hw=d, gt_T_world_cam_44=seq.pose(i),
+                                     image_hw3=seq.image(i)))
+    same = E.consumer_odometry(recs)
+    assert same['pairs'] == 4
+    assert same['ratio_trans'] == pytest.approx(1.0) and same['ratio_rot'] == pytest.approx(1.0)
+    # exact depth and poses of our renderer: the colour-term odometry recovers the motion to a few mm
+    assert same['color']['gt_depth']['trans_m_median'] < 0.01
+    flat = [E.KeyframeRecord(**{**r.__dict__, 'depth_hw': np.full_like(r.gt_depth_hw, np.median(r.gt_depth_hw))})
+            for r in recs]
+    worse = E.consumer_odometry(flat)
+    assert worse['color']['ratio_trans'] > 1.0 or worse['color']['ratio_rot'] > 1.0
+    assert math.isfinite(worse['ratio_trans'])
