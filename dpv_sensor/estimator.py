@@ -113,6 +113,7 @@ import torch.nn.functional as F
 
 from . import dpv as dpv_ops
 from . import geometry
+from . import image_quality, parallax
 from .filter import jump_limit
 from .frame import DepthOutput, Frame
 from .geometry import scale_intrinsics_np
@@ -182,6 +183,8 @@ class EstimatorConfig:
     min_confidence: float = 0.0
     pose_refinement: str = 'off'
     cpu_precision: str = 'auto'
+    parallax_full_px: float = 2.0
+    reject_degenerate_frames: bool = True
     # --- not node parameters -------------------------------------------------------------------------
     window_size: int = 5
     classical_downscale: int = 4
@@ -238,6 +241,8 @@ class EstimatorConfig:
             raise ValueError('classical_downscale must be >= 1')
         if not (0.0 <= self.min_confidence <= 1.0):
             raise ValueError(f'min_confidence must lie in [0, 1], got {self.min_confidence}')
+        if not (0.0 <= self.parallax_full_px <= 100.0):
+            raise ValueError(f'parallax_full_px must lie in [0, 100] (0 = off), got {self.parallax_full_px}')
         if not (0.0 < self.min_coverage <= 1.0):
             raise ValueError(f'min_coverage must lie in (0, 1], got {self.min_coverage}')
         return self
@@ -281,6 +286,7 @@ class _Posterior:
     K_vol_b33: torch.Tensor
     coverage_bhw: torch.Tensor          # bool, volume resolution
     stamp: float
+    support_bhw: Optional[torch.Tensor] = None   # parallax support in [0, 1], volume resolution (None: rule off)
 
 
 @dataclass
@@ -391,6 +397,10 @@ class Estimator:
         self._tracking = 'waiting for frames'
         self._last_timings: Dict[str, float] = {}
         self._kf_counter = 0
+        self._frames_degenerate = 0
+        self._last_degenerate_reason: Optional[str] = None
+        self.last_image_quality: Optional[image_quality.ImageQuality] = None
+        self._last_parallax: Dict[str, float] = {}
 
     # ------------------------------------------------------------------ construction helpers
     @staticmethod
@@ -553,6 +563,9 @@ class Estimator:
             'resets': self._resets,
             'last_reset_reason': self._last_reset_reason,
             'last_drop_reason': self._last_drop_reason,
+            'frames_degenerate': self._frames_degenerate,
+            'last_degenerate_reason': self._last_degenerate_reason,
+            'parallax': dict(self._last_parallax),
             'tracking': self._tracking,
             'pose_refinement': cfg.pose_refinement,
             'pose_refiner': self.pose_refiner is not None,
@@ -588,6 +601,12 @@ class Estimator:
             if 'pose' in drop:
                 self._tracking = 'no pose'
             return None
+        if self.config.reject_degenerate_frames:
+            quality = image_quality.assess(image)
+            self.last_image_quality = quality
+            if not quality.ok:
+                # no filter update, no keyframe, nothing published (see _degenerate_frame)
+                return self._degenerate_frame(quality)
         T = np.asarray(frame.T_world_cam_44, dtype=np.float64)
         K_in = np.asarray(frame.K_33, dtype=np.float64)
         size = (int(image.shape[1]), int(image.shape[0]))
@@ -624,6 +643,16 @@ class Estimator:
         if gap is not None and not (math.isfinite(float(gap)) and float(gap) >= 0.0):
             raise ValueError(f'Frame.sensor_gap_s must be None or a finite number >= 0, got {gap!r}')
         return image
+
+    def _degenerate_frame(self, quality: 'image_quality.ImageQuality') -> None:
+        """A frame that carries no depth information (``image_quality.assess``): counted as dropped and as
+        degenerate (``status['frames_degenerate']``, ``status['last_degenerate_reason']``); the window, the
+        keyframe selector, the filter and the stream state are left exactly as they were."""
+        self._frames_dropped += 1
+        self._frames_degenerate += 1
+        self._last_degenerate_reason = quality.reason
+        self._last_drop_reason = f'degenerate image ({quality.reason})'
+        return None
 
     @staticmethod
     def _drop_reason(frame: Frame) -> Optional[str]:
@@ -728,10 +757,13 @@ class Estimator:
         t = time.perf_counter()
         vol_hw = tuple(meas.logp_bdhw.shape[-2:])
         coverage = self._coverage(meas.K_vol_b33, vol_hw, T_src_ref_t[0])
+        weight = self._parallax_weight(meas, ref, T_src_ref_t, vol_hw)
         step = self.filter.step(meas.logp_bdhw.float(), meas.K_vol_b33, self._filter_pose(ref.T_world_cam_44),
-                                ref.stamp, self.depths_d, image_b3hw=ref.image_b3hw)
+                                ref.stamp, self.depths_d, image_b3hw=ref.image_b3hw, update_weight_bhw=weight)
         post = step.logp_bdhw
-        self._posterior = _Posterior(post, ref.T_world_cam_44.copy(), meas.K_vol_b33, coverage, ref.stamp)
+        support = self._carry_support(step, weight, ref, meas.K_vol_b33)
+        self._posterior = _Posterior(post, ref.T_world_cam_44.copy(), meas.K_vol_b33, coverage, ref.stamp,
+                                     support)
         timings['filter'] = self._ms(t)
 
         t = time.perf_counter()
@@ -742,12 +774,17 @@ class Estimator:
                 full = self.model.refine(post, meas.feats, ref.image_b3hw)
             full = full.float()
             depth, conf = self._readout(full)
+            if support is not None:
+                conf = conf * resample_to_camera(support[:, None], meas.K_vol_b33[0], K_proc_t, (H, W))[:, 0]
             valid = resample_to_camera(coverage[:, None].float(), meas.K_vol_b33[0], K_proc_t, (H, W),
                                        mode='nearest')[:, 0] > 0.5
             timings['refine'] = self._ms(t)
         else:
+            depth_v, conf_v = self._readout(post)
+            if support is not None:
+                conf_v = conf_v * support
             depth, conf, valid = self._volume_maps_to_processing(
-                *self._readout(post), coverage,
+                depth_v, conf_v, coverage,
                 meas.K_vol_b33[0], K_proc_t, (H, W))
             timings['upsample'] = self._ms(t)
 
@@ -848,6 +885,45 @@ class Estimator:
         logp, K_vol = self.classical(ref.image_b3hw, srcs, ref.K_b33, T_src_ref_t)
         return _Measurement(logp.float(), K_vol.float())
 
+    # ------------------------------------------------------------------ parallax
+    def _parallax_weight(self, meas: _Measurement, ref: Keyframe, T_src_ref_t: torch.Tensor,
+                         vol_hw) -> Optional[torch.Tensor]:
+        """(1, h, w) weight in [0, 1] of this measurement per pixel (``parallax.parallax_support`` of the
+        disparity span, in processing-size pixels, of the band [d / confidence_ratio, d * confidence_ratio]
+        around the measurement's own depth estimate ``d``, over the window's sources); None when the
+        parallax rule is off (``parallax_full_px`` = 0)."""
+        full = float(self.config.parallax_full_px)
+        if full <= 0:
+            self._last_parallax = {}
+            return None
+        depth = dpv_ops.depth_estimate(meas.logp_bdhw.float(), self.depths_d, self.readout)
+        span = parallax.disparity_span(depth, meas.K_vol_b33, T_src_ref_t, self.config.confidence_ratio,
+                                       src_hw=vol_hw)
+        span = span * float(ref.K_b33[0, 0, 0] / meas.K_vol_b33[0, 0, 0])    # volume -> processing pixels
+        weight = parallax.parallax_support(span, full)
+        self._last_parallax = {'median_span_px': float(span.median()), 'mean_weight': float(weight.mean())}
+        return weight
+
+    def _carry_support(self, step, weight: Optional[torch.Tensor], ref: Keyframe,
+                       K_vol_b33: torch.Tensor) -> Optional[torch.Tensor]:
+        """Parallax support of the new posterior, (1, h, w) in [0, 1]: ``w + (1 - w) * s_pred``, where
+        ``s_pred`` is the previous posterior's support carried into the reference with the predicted depth
+        (0 where the previous keyframe did not see the pixel, and after a filter restart). It mirrors the
+        filter's per-pixel blend of update and prediction, so a pixel keeps the support of the belief it
+        carries; it multiplies the published confidence."""
+        if weight is None:
+            return None
+        prev = self._posterior
+        pred = step.predicted_logp_bdhw
+        if pred is None or prev is None or prev.support_bhw is None:
+            return weight
+        depth = dpv_ops.depth_estimate(pred, self.depths_d, self.readout)
+        T_prev_ref = np.linalg.inv(prev.T_world_cam_44) @ ref.T_world_cam_44
+        T_t = torch.as_tensor(T_prev_ref, dtype=torch.float32, device=self.device)[None]
+        s, ok = geometry.warp_image_with_depth(prev.support_bhw[:, None], depth, prev.K_vol_b33, K_vol_b33, T_t)
+        s_pred = torch.where(ok, s[:, 0], torch.zeros_like(s[:, 0]))
+        return weight + (1.0 - weight) * s_pred
+
     def _coverage(self, K_vol_b33: torch.Tensor, vol_hw, T_src_ref_n44: torch.Tensor) -> torch.Tensor:
         """(1, h, w) bool: at least ``min_coverage`` of the ray's plane samples lie inside some source view.
 
@@ -915,9 +991,13 @@ class Estimator:
         # a pixel of the keyframe that had an estimate
         valid_v = inside.float().mean(1) >= cfg.min_coverage
         T_prev_cur = torch.as_tensor(np.linalg.inv(T_cur_prev), dtype=torch.float32, device=self.device)[None]
-        cov, ok = geometry.warp_image_with_depth(p.coverage_bhw[:, None].float(), depth_v, p.K_vol_b33,
-                                                 p.K_vol_b33, T_prev_cur)
+        maps = p.coverage_bhw[:, None].float()
+        if p.support_bhw is not None:      # the parallax support travels with the belief
+            maps = torch.cat([maps, p.support_bhw[:, None]], 1)
+        cov, ok = geometry.warp_image_with_depth(maps, depth_v, p.K_vol_b33, p.K_vol_b33, T_prev_cur)
         valid_v = valid_v & ok & (cov[:, 0] > 0.5)
+        if p.support_bhw is not None:
+            conf_v = conf_v * cov[:, 1]
         W, H = cfg.processing_size
         K_proc = torch.as_tensor(scale_intrinsics_np(K_in, W / size[0], H / size[1]), dtype=torch.float32,
                                  device=self.device)

@@ -125,6 +125,14 @@ SPECS: tuple[ParamSpec, ...] = (
               'eq. 2 made independent of where the depth falls between planes).', choices=('ratio', 'plane')),
     ParamSpec('confidence_ratio', 1.25, 'Factor of the ratio confidence: the band [d/ratio, d*ratio] around '
               'the published depth d.', min_value=1.01, max_value=10.0),
+    ParamSpec('parallax_full_px', 2.0, 'Parallax rule: a keyframe\'s measurement counts fully where its window\'s '
+              'baselines move a pixel\'s image by at least this many pixels (processing size) across the '
+              'confidence_ratio band around its depth, in proportion below; where they move it less (the camera '
+              'turns in place) the filter keeps its predicted belief and the published confidence falls with '
+              'the parallax the belief ever had (new pixels get none). 0 turns the rule off.',
+              min_value=0.0, max_value=100.0),
+    ParamSpec('reject_degenerate_frames', True, 'Drop frames that carry no depth information (all black, '
+              'saturated, flat or random noise): they neither update the filter nor produce an output.'),
     ParamSpec('min_confidence', 0.0, 'Depth with lower confidence is published as no estimate.',
               min_value=0.0, max_value=1.0),
     # --- transport ----------------------------------------------------------------------------------------
