@@ -184,6 +184,7 @@ class EstimatorConfig:
     pose_refinement: str = 'off'
     cpu_precision: str = 'auto'
     parallax_full_px: float = 2.0
+    source_pool: int = 0
     reject_degenerate_frames: bool = True
     # --- not node parameters -------------------------------------------------------------------------
     window_size: int = 5
@@ -243,6 +244,8 @@ class EstimatorConfig:
             raise ValueError(f'min_confidence must lie in [0, 1], got {self.min_confidence}')
         if not (0.0 <= self.parallax_full_px <= 100.0):
             raise ValueError(f'parallax_full_px must lie in [0, 100] (0 = off), got {self.parallax_full_px}')
+        if not (0 <= int(self.source_pool) <= 32):
+            raise ValueError(f'source_pool must lie in [0, 32] (0 = the latest keyframes), got {self.source_pool}')
         if not (0.0 < self.min_coverage <= 1.0):
             raise ValueError(f'min_coverage must lie in (0, 1], got {self.min_coverage}')
         return self
@@ -287,6 +290,7 @@ class _Posterior:
     coverage_bhw: torch.Tensor          # bool, volume resolution
     stamp: float
     support_bhw: Optional[torch.Tensor] = None   # parallax support in [0, 1], volume resolution (None: rule off)
+    median_depth: Optional[float] = None         # computed on demand (source scoring)
 
 
 @dataclass
@@ -380,7 +384,7 @@ class Estimator:
                        'newer than the pending keyframe outputs)')
         self.selector = KeyframeSelector(cfg.keyframe_translation, cfg.keyframe_rotation_deg,
                                          cfg.keyframe_max_interval)
-        self.window = KeyframeWindow(cfg.window_size)
+        self.window = KeyframeWindow(cfg.window_size, pool=cfg.source_pool)
         # counters and stream state
         self._frames_received = 0
         self._frames_accepted = 0
@@ -728,7 +732,7 @@ class Estimator:
         self._keyframes += 1
         self.window.append(kf)
         timings['resize'] = self._ms(t)
-        sel = self.window.select(self.config.window_mode)
+        sel = self.window.select(self.config.window_mode, **self._source_scoring())
         if sel is None:
             self._tracking = 'waiting for keyframes'
             self._last_timings = dict(timings, total=self._ms(t0))
@@ -903,6 +907,35 @@ class Estimator:
         weight = parallax.parallax_support(span, full)
         self._last_parallax = {'median_span_px': float(span.median()), 'mean_weight': float(weight.mean())}
         return weight
+
+    def _source_scoring(self) -> Dict[str, Any]:
+        """Keyword arguments of ``KeyframeWindow.select`` for choosing sources from the pool (``source_pool``):
+        ``parallax.pose_parallax_score`` at a nominal depth (the median depth of the last posterior, else the
+        middle of the planes in inverse depth), ``min_score`` = ``parallax_full_px`` (or 1 px when that rule is
+        off). Empty when there is no pool."""
+        cfg = self.config
+        if cfg.source_pool <= cfg.window_size:
+            return {}
+        depth = self._nominal_depth()
+        ratio = cfg.confidence_ratio
+
+        def score(ref: Keyframe, kf: Keyframe) -> float:
+            H, W = ref.image_b3hw.shape[-2:]
+            return parallax.pose_parallax_score(ref.T_world_cam_44, kf.T_world_cam_44,
+                                                ref.K_b33[0].double().cpu().numpy(), (H, W), depth, ratio)
+        return {'score': score, 'min_score': cfg.parallax_full_px if cfg.parallax_full_px > 0 else 1.0}
+
+    def _nominal_depth(self) -> float:
+        """A typical depth of the scene: the median depth of the last posterior (volume resolution), else the
+        middle of the depth planes in inverse depth."""
+        p = self._posterior
+        if p is not None:
+            if getattr(p, 'median_depth', None) is None:
+                d = dpv_ops.depth_estimate(p.logp_bdhw, self.depths_d, self.readout)
+                p.median_depth = float(d[p.coverage_bhw].median()) if bool(p.coverage_bhw.any()) else None
+            if p.median_depth is not None and math.isfinite(p.median_depth):
+                return p.median_depth
+        return 2.0 / (1.0 / self.d_min + 1.0 / self.d_max)
 
     def _carry_support(self, step, weight: Optional[torch.Tensor], ref: Keyframe,
                        K_vol_b33: torch.Tensor) -> Optional[torch.Tensor]:

@@ -131,6 +131,10 @@ SPECS: tuple[ParamSpec, ...] = (
               'turns in place) the filter keeps its predicted belief and the published confidence falls with '
               'the parallax the belief ever had (new pixels get none). 0 turns the rule off.',
               min_value=0.0, max_value=100.0),
+    ParamSpec('source_pool', 0, 'Choose the window\'s source keyframes from this many recent keyframes by how well '
+              'their baseline and overlap constrain the reference\'s depth (the closest in time that move its '
+              'pixels by parallax_full_px across the confidence band), instead of the latest ones. 0 (or at most '
+              'the window size): the latest keyframes.', min_value=0, max_value=32),
     ParamSpec('reject_degenerate_frames', True, 'Drop frames that carry no depth information (all black, '
               'saturated, flat or random noise): they neither update the filter nor produce an output.'),
     ParamSpec('min_confidence', 0.0, 'Depth with lower confidence is published as no estimate.',

@@ -211,3 +211,41 @@ def test_degenerate_frames_at_the_defaults_leave_the_network_belief_unchanged():
                                 T_world_cam_44=f.T_world_cam_44)) is None
     assert torch.equal(est.filter.logp_bdhw, belief)
     assert est.status['frames_degenerate'] == 4
+
+
+def _kf(i, x=0.0, yaw=0.0):
+    from dpv_sensor.keyframes import Keyframe
+    return Keyframe(index=i, frame_index=i, stamp=float(i), T_world_cam_44=pose(x=x, yaw_deg=yaw), image_b3hw=None,
+                    K_b33=None, input_size=(80, 60), input_K_33=np.eye(3))
+
+
+def test_window_pool_chooses_sources_by_score_and_keeps_the_reference():
+    from dpv_sensor.keyframes import KeyframeWindow
+    # keyframe i sits at x = xs[i]; the score is the baseline to the reference in cm
+    xs = [0.0, 0.10, 0.11, 0.12, 0.13, 0.135, 0.14, 0.145]
+    score = lambda ref, kf: 100 * abs(ref.T_world_cam_44[0, 3] - kf.T_world_cam_44[0, 3])  # noqa: E731
+    plain, pooled = KeyframeWindow(5), KeyframeWindow(5, pool=8)
+    for i, x in enumerate(xs):
+        plain.append(_kf(i, x))
+        pooled.append(_kf(i, x))
+    # causal: the latest four without a pool; with it, those at >= 2 cm, closest in time, then the best rest
+    ref, src = plain.select('causal', score, 2.0)
+    assert ref.index == 7 and [k.index for k in src] == [3, 4, 5, 6]
+    ref, src = pooled.select('causal', score, 2.0)
+    assert ref.index == 7 and [k.index for k in src] == [0, 1, 2, 3]
+    ref, src = pooled.select('causal')                     # no score: the latest ones
+    assert [k.index for k in src] == [3, 4, 5, 6]
+    # centered: same reference (two keyframes of latency), sources from both sides of the pool
+    # scores to the reference 5: 13.5, 3.5, 2.5, 1.5, 0.5 | 0.5, 1.0 cm; at >= 0.9, by time distance: 3, 7, 2, 1
+    ref, src = pooled.select('centered', score, 0.9)
+    assert ref.index == 5 and [k.index for k in src] == [1, 2, 3, 7]
+    ref, src = pooled.select('centered')
+    assert ref.index == 5 and [k.index for k in src] == [3, 4, 6, 7]
+
+
+def test_estimator_with_a_pool_still_outputs_in_both_modes():
+    for mode in ('causal', 'centered'):
+        est = Estimator(small_config(window_mode=mode, source_pool=8))
+        outs = [o for o in (est.push(f) for f in sideways(10, step=0.02)) if o is not None]
+        assert len(outs) == (9 if mode == 'causal' else 8)
+        assert np.isfinite(outs[-1].depth_hw).mean() > 0.5
