@@ -87,6 +87,20 @@ What happens to a pushed frame
    depth/confidence are taken from it - no network run. In ``centered`` mode such outputs would be
    newer than the pending keyframe outputs (stamps out of order on one topic), so they are not produced
    there (noted in the status).
+9. **Parallax** (``parallax_full_px``, :mod:`dpv_sensor.parallax`): per volume pixel, the disparity span
+   (processing-size pixels) that the band ``[d / confidence_ratio, d * confidence_ratio]`` around the
+   measurement's depth ``d`` (no nearer than its median) covers in the window's sources, the largest over the
+   sources that see the point. Its support ``w = min(1, span / parallax_full_px)`` weights the filter update
+   per pixel (``DPVFilter.step(update_weight_bhw=w)``: w = 0 keeps the predicted belief, which after a pure
+   rotation is the previous belief warped exactly; after a restart, the uniform one), and the belief's
+   support ``s = w + (1 - w) * s_predicted`` (carried like the belief; 0 for pixels never seen with parallax)
+   multiplies the published confidence. ``status['parallax']``: the last keyframe's median span and mean w.
+   With ``source_pool`` > ``window_size`` the sources are chosen from that many recent keyframes by
+   ``parallax.pose_parallax_score`` (``KeyframeWindow.select``), the reference and latency unchanged.
+10. **Degenerate frames** (``reject_degenerate_frames``, :mod:`dpv_sensor.image_quality`): an all-black,
+   saturated, flat or noise frame is dropped before anything else changes (no keyframe, no filter step, no
+   output, the stream state untouched); ``status['frames_degenerate']`` counts them and
+   ``status['last_degenerate_reason']`` / ``last_image_quality`` say why (for the node's log and counter).
 
 Device and precision: ``config.device`` (``cpu``, ``cuda``, ``cuda:N``); everything runs under
 ``torch.no_grad()`` (not ``inference_mode``, so a pose refiner may still use autograd on the cached
@@ -894,13 +908,17 @@ class Estimator:
                          vol_hw) -> Optional[torch.Tensor]:
         """(1, h, w) weight in [0, 1] of this measurement per pixel (``parallax.parallax_support`` of the
         disparity span, in processing-size pixels, of the band [d / confidence_ratio, d * confidence_ratio]
-        around the measurement's own depth estimate ``d``, over the window's sources); None when the
+        around the measurement's own depth estimate ``d``, but no nearer than its median, over the window's
+        sources); None when the
         parallax rule is off (``parallax_full_px`` = 0)."""
         full = float(self.config.parallax_full_px)
         if full <= 0:
             self._last_parallax = {}
             return None
         depth = dpv_ops.depth_estimate(meas.logp_bdhw.float(), self.depths_d, self.readout)
+        # a wrong, too-near estimate would claim parallax it does not have: depths are taken no nearer
+        # than the frame's median estimate
+        depth = depth.clamp_min(float(depth.median()))
         span = parallax.disparity_span(depth, meas.K_vol_b33, T_src_ref_t, self.config.confidence_ratio,
                                        src_hw=vol_hw)
         span = span * float(ref.K_b33[0, 0, 0] / meas.K_vol_b33[0, 0, 0])    # volume -> processing pixels
