@@ -88,7 +88,7 @@ What happens to a pushed frame
    newer than the pending keyframe outputs (stamps out of order on one topic), so they are not produced
    there (noted in the status).
 9. **Parallax** (``parallax_full_px``, :mod:`dpv_sensor.parallax`): per volume pixel, the disparity span
-   (processing-size pixels) that the band ``[d / confidence_ratio, d * confidence_ratio]`` around the
+   (processing-size pixels) that the band ``[d / 1.25, d * 1.25]`` (``parallax.BAND_RATIO``) around the
    measurement's depth ``d`` (no nearer than its median) covers in the window's sources, the largest over the
    sources that see the point. Its support ``w = min(1, span / parallax_full_px)`` weights the filter update
    per pixel (``DPVFilter.step(update_weight_bhw=w)``: w = 0 keeps the predicted belief, which after a pure
@@ -907,7 +907,7 @@ class Estimator:
     def _parallax_weight(self, meas: _Measurement, ref: Keyframe, T_src_ref_t: torch.Tensor,
                          vol_hw) -> Optional[torch.Tensor]:
         """(1, h, w) weight in [0, 1] of this measurement per pixel (``parallax.parallax_support`` of the
-        disparity span, in processing-size pixels, of the band [d / confidence_ratio, d * confidence_ratio]
+        disparity span, in processing-size pixels, of the band [d / 1.25, d * 1.25] (``parallax.BAND_RATIO``)
         around the measurement's own depth estimate ``d``, but no nearer than its median, over the window's
         sources); None when the
         parallax rule is off (``parallax_full_px`` = 0)."""
@@ -919,8 +919,7 @@ class Estimator:
         # a wrong, too-near estimate would claim parallax it does not have: depths are taken no nearer
         # than the frame's median estimate
         depth = depth.clamp_min(float(depth.median()))
-        span = parallax.disparity_span(depth, meas.K_vol_b33, T_src_ref_t, self.config.confidence_ratio,
-                                       src_hw=vol_hw)
+        span = parallax.disparity_span(depth, meas.K_vol_b33, T_src_ref_t, parallax.BAND_RATIO, src_hw=vol_hw)
         span = span * float(ref.K_b33[0, 0, 0] / meas.K_vol_b33[0, 0, 0])    # volume -> processing pixels
         weight = parallax.parallax_support(span, full)
         self._last_parallax = {'median_span_px': float(span.median()), 'mean_weight': float(weight.mean())}
@@ -935,12 +934,11 @@ class Estimator:
         if cfg.source_pool <= cfg.window_size:
             return {}
         depth = self._nominal_depth()
-        ratio = cfg.confidence_ratio
 
         def score(ref: Keyframe, kf: Keyframe) -> float:
             H, W = ref.image_b3hw.shape[-2:]
             return parallax.pose_parallax_score(ref.T_world_cam_44, kf.T_world_cam_44,
-                                                ref.K_b33[0].double().cpu().numpy(), (H, W), depth, ratio)
+                                                ref.K_b33[0].double().cpu().numpy(), (H, W), depth)
         return {'score': score, 'min_score': cfg.parallax_full_px if cfg.parallax_full_px > 0 else 1.0}
 
     def _nominal_depth(self) -> float:

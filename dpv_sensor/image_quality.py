@@ -7,8 +7,8 @@ counter). Pure numpy, no ROS, no torch; a 640x480 frame costs a few milliseconds
 
 The tests, in this order (thresholds are module constants, chosen so that no frame of the real and rendered
 sequences we evaluate on is flagged, while the synthetic degenerate frames are, with a wide margin: the
-neighbour ratio below is at most 0.08 on the frames of the shared real and rendered sequences, 0.35 on a
-finely textured 80x60 test scene, and 1.0 on noise):
+neighbour ratio below is at most 0.08 on the frames of the shared real and rendered sequences, up to 0.83
+on a finely textured 80x60 test plane seen from afar (its texture aliases), and 1.00 +- 0.02 on noise):
 
 - ``black``: at least ``DARK_FRACTION`` of the pixels have every channel <= ``DARK_LEVEL``;
 - ``saturated``: at least ``SATURATED_FRACTION`` of the pixels have a channel >= ``SATURATED_LEVEL``
@@ -34,7 +34,7 @@ DARK_FRACTION = 0.97
 SATURATED_LEVEL = 250
 SATURATED_FRACTION = 0.9
 FLAT_STD = 2.0
-NOISE_RATIO = 0.8
+NOISE_RATIO = 0.92
 
 
 @dataclass(frozen=True)

@@ -3,8 +3,8 @@
 Depth is observable only through parallax: a point seen from two camera centres moves in the image as
 its depth changes, and by nothing when the cameras share a centre (a pure rotation). :func:`disparity_span`
 measures, per reference pixel and depth estimate ``d``, how many pixels the point's image in a source view
-moves while its depth runs over the band ``[d / ratio, d * ratio]`` (the band of the ratio confidence and
-of the delta < 1.25 measure), and takes the largest over the sources that see the point. A span well below
+moves while its depth runs over the band ``[d / ratio, d * ratio]`` (by default ``BAND_RATIO`` = 1.25, the
+band of the delta < 1.25 measure), and takes the largest over the sources that see the point. A span well below
 a pixel means that no matching cost can tell ``d`` from ``d * ratio``: the measurement says nothing about
 depth there, however peaked the network's DPV is.
 
@@ -27,11 +27,15 @@ import torch
 
 from .geometry import Z_EPS, backproject, project, transform_points
 
-__all__ = ['disparity_span', 'parallax_support', 'pose_parallax_score', 'select_sources']
+__all__ = ['disparity_span', 'parallax_support', 'pose_parallax_score', 'select_sources', 'BAND_RATIO']
+
+# The depth band whose disparity is measured: [d / BAND_RATIO, d * BAND_RATIO], the delta < 1.25 band (fixed,
+# so that the depth does not depend on how the confidence is defined).
+BAND_RATIO = 1.25
 
 
 def disparity_span(depth_bhw: torch.Tensor, K_b33: torch.Tensor, T_src_ref_bn44: torch.Tensor,
-                   ratio: float = 1.25, src_hw=None) -> torch.Tensor:
+                   ratio: float = BAND_RATIO, src_hw=None) -> torch.Tensor:
     """(B, H, W) pixels: the largest, over the N sources, image displacement in a source between the
     points at depth ``d / ratio`` and ``d * ratio`` on each reference pixel's ray (``d`` = ``depth_bhw``).
 
@@ -80,7 +84,7 @@ def parallax_support(span_bhw: torch.Tensor, full_px: float) -> torch.Tensor:
 
 
 def pose_parallax_score(T_world_ref_44: np.ndarray, T_world_src_44: np.ndarray, K_33: np.ndarray,
-                        hw, depth: float, ratio: float = 1.25, step: int = 8) -> float:
+                        hw, depth: float, ratio: float = BAND_RATIO, step: int = 8) -> float:
     """How well one source constrains the reference's depth, in pixels: the median, over a grid of the
     reference's pixels (every ``step`` pixels) assumed at depth ``depth``, of the disparity span
     (:func:`disparity_span`), pixels the source does not see counting as 0 (so the score falls with the

@@ -127,13 +127,13 @@ SPECS: tuple[ParamSpec, ...] = (
               'the published depth d.', min_value=1.01, max_value=10.0),
     ParamSpec('parallax_full_px', 2.0, 'Parallax rule: a keyframe\'s measurement counts fully where its window\'s '
               'baselines move a pixel\'s image by at least this many pixels (processing size) across the '
-              'confidence_ratio band around its depth, in proportion below; where they move it less (the camera '
+              'band [d/1.25, d*1.25] around its depth d, in proportion below; where they move it less (the camera '
               'turns in place) the filter keeps its predicted belief and the published confidence falls with '
               'the parallax the belief ever had (new pixels get none). 0 turns the rule off.',
               min_value=0.0, max_value=100.0),
     ParamSpec('source_pool', 0, 'Choose the window\'s source keyframes from this many recent keyframes by how well '
               'their baseline and overlap constrain the reference\'s depth (the closest in time that move its '
-              'pixels by parallax_full_px across the confidence band), instead of the latest ones. 0 (or at most '
+              'pixels by parallax_full_px across that band), instead of the latest ones. 0 (or at most '
               'the window size): the latest keyframes.', min_value=0, max_value=32),
     ParamSpec('reject_degenerate_frames', True, 'Drop frames that carry no depth information (all black, '
               'saturated, flat or random noise): they neither update the filter nor produce an output.'),
