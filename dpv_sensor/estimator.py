@@ -197,7 +197,7 @@ class EstimatorConfig:
     min_confidence: float = 0.0
     pose_refinement: str = 'off'
     cpu_precision: str = 'auto'
-    parallax_full_px: float = 2.0
+    parallax_full_px: float = 1.0
     source_pool: int = 0
     reject_degenerate_frames: bool = True
     # --- not node parameters -------------------------------------------------------------------------

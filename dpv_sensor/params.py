@@ -125,7 +125,7 @@ SPECS: tuple[ParamSpec, ...] = (
               'eq. 2 made independent of where the depth falls between planes).', choices=('ratio', 'plane')),
     ParamSpec('confidence_ratio', 1.25, 'Factor of the ratio confidence: the band [d/ratio, d*ratio] around '
               'the published depth d.', min_value=1.01, max_value=10.0),
-    ParamSpec('parallax_full_px', 2.0, 'Parallax rule: a keyframe\'s measurement counts fully where its window\'s '
+    ParamSpec('parallax_full_px', 1.0, 'Parallax rule: a keyframe\'s measurement counts fully where its window\'s '
               'baselines move a pixel\'s image by at least this many pixels (processing size) across the '
               'band [d/1.25, d*1.25] around its depth d, in proportion below; where they move it less (the camera '
               'turns in place) the filter keeps its predicted belief and the published confidence falls with '
