@@ -199,6 +199,7 @@ class EstimatorConfig:
     cpu_precision: str = 'auto'
     parallax_full_px: float = 1.0
     source_pool: int = 0
+    parallax_rotation_noise: float = 0.0
     reject_degenerate_frames: bool = True
     # --- not node parameters -------------------------------------------------------------------------
     window_size: int = 5
@@ -258,6 +259,8 @@ class EstimatorConfig:
             raise ValueError(f'min_confidence must lie in [0, 1], got {self.min_confidence}')
         if not (0.0 <= self.parallax_full_px <= 100.0):
             raise ValueError(f'parallax_full_px must lie in [0, 100] (0 = off), got {self.parallax_full_px}')
+        if not (0.0 <= self.parallax_rotation_noise <= 1.0):
+            raise ValueError(f'parallax_rotation_noise must lie in [0, 1], got {self.parallax_rotation_noise}')
         if not (0 <= int(self.source_pool) <= 32):
             raise ValueError(f'source_pool must lie in [0, 32] (0 = the latest keyframes), got {self.source_pool}')
         if not (0.0 < self.min_coverage <= 1.0):
@@ -919,9 +922,17 @@ class Estimator:
         # a wrong, too-near estimate would claim parallax it does not have: depths are taken no nearer
         # than the frame's median estimate
         depth = depth.clamp_min(float(depth.median()))
-        span = parallax.disparity_span(depth, meas.K_vol_b33, T_src_ref_t, parallax.BAND_RATIO, src_hw=vol_hw)
-        span = span * float(ref.K_b33[0, 0, 0] / meas.K_vol_b33[0, 0, 0])    # volume -> processing pixels
-        weight = parallax.parallax_support(span, full)
+        spans = parallax.disparity_span(depth, meas.K_vol_b33, T_src_ref_t, parallax.BAND_RATIO, src_hw=vol_hw,
+                                        per_source=True)                       # N, 1, h, w
+        spans = spans * float(ref.K_b33[0, 0, 0] / meas.K_vol_b33[0, 0, 0])  # volume -> processing pixels
+        span = spans.amax(0)
+        if self.config.parallax_rotation_noise > 0:
+            # each source's span counts against full_px plus the pose error its rotation brings
+            noise = parallax.rotation_noise_px(T_src_ref_t, float(ref.K_b33[0, 0, 0]),
+                                               self.config.parallax_rotation_noise)[0]          # N
+            weight = (spans / (full + noise[:, None, None, None])).clamp(0.0, 1.0).amax(0)
+        else:
+            weight = parallax.parallax_support(span, full)
         self._last_parallax = {'median_span_px': float(span.median()), 'mean_weight': float(weight.mean())}
         return weight
 

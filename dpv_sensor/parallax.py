@@ -27,7 +27,8 @@ import torch
 
 from .geometry import Z_EPS, backproject, project, transform_points
 
-__all__ = ['disparity_span', 'parallax_support', 'pose_parallax_score', 'select_sources', 'BAND_RATIO']
+__all__ = ['disparity_span', 'parallax_support', 'pose_parallax_score', 'select_sources', 'BAND_RATIO',
+           'rotation_noise_px']
 
 # The depth band whose disparity is measured: [d / BAND_RATIO, d * BAND_RATIO], the delta < 1.25 band (fixed,
 # so that the depth does not depend on how the confidence is defined).
@@ -35,14 +36,15 @@ BAND_RATIO = 1.25
 
 
 def disparity_span(depth_bhw: torch.Tensor, K_b33: torch.Tensor, T_src_ref_bn44: torch.Tensor,
-                   ratio: float = BAND_RATIO, src_hw=None) -> torch.Tensor:
+                   ratio: float = BAND_RATIO, src_hw=None, per_source: bool = False) -> torch.Tensor:
     """(B, H, W) pixels: the largest, over the N sources, image displacement in a source between the
     points at depth ``d / ratio`` and ``d * ratio`` on each reference pixel's ray (``d`` = ``depth_bhw``).
 
     ``K_b33`` describes both the reference grid (H x W) and the sources' (same camera); the span is in
     pixels of that grid. A source contributes only where the point at ``d`` lies in front of it and, when
     ``src_hw`` = (h, w) is given, inside its image; both band ends must be in front of it. Pixels without
-    a finite positive depth get 0.
+    a finite positive depth get 0. ``per_source``: return every source's span, (N, B, H, W), instead of the
+    largest.
     """
     B, H, W = depth_bhw.shape
     dt = torch.float32
@@ -71,8 +73,21 @@ def disparity_span(depth_bhw: torch.Tensor, K_b33: torch.Tensor, T_src_ref_bn44:
             front = front & (u >= -0.5) & (u <= w - 0.5) & (v >= -0.5) & (v <= h - 0.5)
         spans.append(torch.where(front, span, torch.zeros_like(span)))
     if not spans:
-        return torch.zeros(B, H, W, dtype=dt, device=depth_bhw.device)
-    return torch.stack(spans, 0).amax(0).reshape(B, H, W)
+        return torch.zeros((0, B, H, W) if per_source else (B, H, W), dtype=dt, device=depth_bhw.device)
+    spans = torch.stack(spans, 0).reshape(N, B, H, W)
+    return spans if per_source else spans.amax(0)
+
+
+def rotation_noise_px(T_src_ref_bn44: torch.Tensor, f_px: float, fraction: float) -> torch.Tensor:
+    """(B, N) pixels: ``fraction`` of the image motion a source's rotation relative to the reference causes
+    (``f_px * angle``). Pose errors of real cameras grow with the rotation between two views (time-sync
+    offsets, rolling shutter, motion blur all scale with it), and a disparity below them tells nothing."""
+    T = T_src_ref_bn44.to(torch.float32)
+    if T.dim() == 3:
+        T = T[None]
+    R = T[..., :3, :3]
+    cos = ((R.diagonal(dim1=-2, dim2=-1).sum(-1) - 1.0) / 2.0).clamp(-1.0, 1.0)
+    return float(fraction) * float(f_px) * torch.arccos(cos)
 
 
 def parallax_support(span_bhw: torch.Tensor, full_px: float) -> torch.Tensor:

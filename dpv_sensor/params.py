@@ -131,6 +131,10 @@ SPECS: tuple[ParamSpec, ...] = (
               'turns in place) the filter keeps its predicted belief and the published confidence falls with '
               'the parallax the belief ever had (new pixels get none). 0 turns the rule off.',
               min_value=0.0, max_value=100.0),
+    ParamSpec('parallax_rotation_noise', 0.0, 'Parallax rule: a source\'s disparity counts against '
+              'parallax_full_px plus this fraction of the image motion its rotation from the reference causes '
+              '(f x angle): pose errors of real cameras (time sync, rolling shutter) grow with the rotation. '
+              '0: rotation adds nothing.', min_value=0.0, max_value=1.0),
     ParamSpec('source_pool', 0, 'Choose the window\'s source keyframes from this many recent keyframes by how well '
               'their baseline and overlap constrain the reference\'s depth (the closest in time that move its '
               'pixels by parallax_full_px across that band), instead of the latest ones. 0 (or at most '

@@ -249,3 +249,14 @@ def test_estimator_with_a_pool_still_outputs_in_both_modes():
         outs = [o for o in (est.push(f) for f in sideways(10, step=0.02)) if o is not None]
         assert len(outs) == (9 if mode == 'causal' else 8)
         assert np.isfinite(outs[-1].depth_hw).mean() > 0.5
+
+
+def test_rotation_noise_is_a_fraction_of_the_rotational_image_motion():
+    from dpv_sensor.parallax import rotation_noise_px
+    T = torch.stack([T_src_ref(yaw_deg=10.0), T_src_ref(tx=0.1)])[None]
+    noise = rotation_noise_px(T, 100.0, 0.02)
+    # 2 % of 100 px * 10 deg (0.1745 rad) = 0.349 px; a pure translation adds nothing
+    assert noise[0, 0].item() == pytest.approx(0.02 * 100 * math.radians(10.0), rel=1e-4)
+    assert noise[0, 1].item() == pytest.approx(0.0, abs=1e-3)
+    spans = disparity_span(torch.full((1, 80, 100), 2.0), K, T, per_source=True)
+    assert spans.shape == (2, 1, 80, 100) and spans[1, 0, 40, 50].item() == pytest.approx(2.25, abs=1e-3)
