@@ -199,7 +199,7 @@ class EstimatorConfig:
     cpu_precision: str = 'auto'
     parallax_full_px: float = 1.0
     source_pool: int = 0
-    parallax_rotation_noise: float = 0.0
+    parallax_rotation_noise: float = 0.05
     reject_degenerate_frames: bool = True
     # --- not node parameters -------------------------------------------------------------------------
     window_size: int = 5

@@ -131,7 +131,7 @@ SPECS: tuple[ParamSpec, ...] = (
               'turns in place) the filter keeps its predicted belief and the published confidence falls with '
               'the parallax the belief ever had (new pixels get none). 0 turns the rule off.',
               min_value=0.0, max_value=100.0),
-    ParamSpec('parallax_rotation_noise', 0.0, 'Parallax rule: a source\'s disparity counts against '
+    ParamSpec('parallax_rotation_noise', 0.05, 'Parallax rule: a source\'s disparity counts against '
               'parallax_full_px plus this fraction of the image motion its rotation from the reference causes '
               '(f x angle): pose errors of real cameras (time sync, rolling shutter) grow with the rotation. '
               '0: rotation adds nothing.', min_value=0.0, max_value=1.0),
