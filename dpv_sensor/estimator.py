@@ -87,6 +87,20 @@ What happens to a pushed frame
    depth/confidence are taken from it - no network run. In ``centered`` mode such outputs would be
    newer than the pending keyframe outputs (stamps out of order on one topic), so they are not produced
    there (noted in the status).
+9. **Parallax** (``parallax_full_px``, :mod:`dpv_sensor.parallax`): per volume pixel, the disparity span
+   (processing-size pixels) that the band ``[d / 1.25, d * 1.25]`` (``parallax.BAND_RATIO``) around the
+   measurement's depth ``d`` (no nearer than its median) covers in the window's sources, the largest over the
+   sources that see the point. Its support ``w = min(1, span / parallax_full_px)`` weights the filter update
+   per pixel (``DPVFilter.step(update_weight_bhw=w)``: w = 0 keeps the predicted belief, which after a pure
+   rotation is the previous belief warped exactly; after a restart, the uniform one), and the belief's
+   support ``s = w + (1 - w) * s_predicted`` (carried like the belief; 0 for pixels never seen with parallax)
+   multiplies the published confidence. ``status['parallax']``: the last keyframe's median span and mean w.
+   With ``source_pool`` > ``window_size`` the sources are chosen from that many recent keyframes by
+   ``parallax.pose_parallax_score`` (``KeyframeWindow.select``), the reference and latency unchanged.
+10. **Degenerate frames** (``reject_degenerate_frames``, :mod:`dpv_sensor.image_quality`): an all-black,
+   saturated, flat or noise frame is dropped before anything else changes (no keyframe, no filter step, no
+   output, the stream state untouched); ``status['frames_degenerate']`` counts them and
+   ``status['last_degenerate_reason']`` / ``last_image_quality`` say why (for the node's log and counter).
 
 Device and precision: ``config.device`` (``cpu``, ``cuda``, ``cuda:N``); everything runs under
 ``torch.no_grad()`` (not ``inference_mode``, so a pose refiner may still use autograd on the cached
@@ -113,6 +127,7 @@ from . import dpv as dpv_ops
 from . import params as P
 from . import geometry
 from .continuity import DUPLICATE, stream_break, time_order
+from . import image_quality, parallax
 from .frame import DepthOutput, Frame
 from .geometry import resample_to_camera, scale_intrinsics_np  # noqa: F401  (resample_to_camera: used here)
 from .keyframes import WINDOW_MODES, Keyframe, KeyframeSelector, KeyframeWindow  # noqa: F401
@@ -190,6 +205,8 @@ class _Posterior:
     K_vol_b33: torch.Tensor
     coverage_bhw: torch.Tensor          # bool, volume resolution
     stamp: float
+    support_bhw: Optional[torch.Tensor] = None   # parallax support in [0, 1], volume resolution (None: rule off)
+    median_depth: Optional[float] = None         # computed on demand (source scoring)
 
 
 @dataclass
@@ -254,7 +271,7 @@ class Estimator:
                        'newer than the pending keyframe outputs)')
         self.selector = KeyframeSelector(cfg.keyframe_translation, cfg.keyframe_rotation_deg,
                                          cfg.keyframe_max_interval)
-        self.window = KeyframeWindow(cfg.window_size)
+        self.window = KeyframeWindow(cfg.window_size, pool=cfg.source_pool)
         # counters and stream state
         self._frames_received = 0
         self._frames_accepted = 0
@@ -271,6 +288,10 @@ class Estimator:
         self._tracking = 'waiting for frames'
         self._last_timings: Dict[str, float] = {}
         self._kf_counter = 0
+        self._frames_degenerate = 0
+        self._last_degenerate_reason: Optional[str] = None
+        self.last_image_quality: Optional[image_quality.ImageQuality] = None
+        self._last_parallax: Dict[str, float] = {}
 
     # ------------------------------------------------------------------ construction helpers
     @staticmethod
@@ -433,6 +454,9 @@ class Estimator:
             'resets': self._resets,
             'last_reset_reason': self._last_reset_reason,
             'last_drop_reason': self._last_drop_reason,
+            'frames_degenerate': self._frames_degenerate,
+            'last_degenerate_reason': self._last_degenerate_reason,
+            'parallax': dict(self._last_parallax),
             'tracking': self._tracking,
             'pose_refinement': cfg.pose_refinement,
             'pose_refiner': self.pose_refiner is not None,
@@ -468,6 +492,12 @@ class Estimator:
             if 'pose' in drop:
                 self._tracking = 'no pose'
             return None
+        if self.config.reject_degenerate_frames:
+            quality = image_quality.assess(image)
+            self.last_image_quality = quality
+            if not quality.ok:
+                # no filter update, no keyframe, nothing published (see _degenerate_frame)
+                return self._degenerate_frame(quality)
         T = np.asarray(frame.T_world_cam_44, dtype=np.float64)
         K_in = np.asarray(frame.K_33, dtype=np.float64)
         size = (int(image.shape[1]), int(image.shape[0]))
@@ -504,6 +534,16 @@ class Estimator:
         if gap is not None and not (math.isfinite(float(gap)) and float(gap) >= 0.0):
             raise ValueError(f'Frame.sensor_gap_s must be None or a finite number >= 0, got {gap!r}')
         return image
+
+    def _degenerate_frame(self, quality: 'image_quality.ImageQuality') -> None:
+        """A frame that carries no depth information (``image_quality.assess``): counted as dropped and as
+        degenerate (``status['frames_degenerate']``, ``status['last_degenerate_reason']``); the window, the
+        keyframe selector, the filter and the stream state are left exactly as they were."""
+        self._frames_dropped += 1
+        self._frames_degenerate += 1
+        self._last_degenerate_reason = quality.reason
+        self._last_drop_reason = f'degenerate image ({quality.reason})'
+        return None
 
     @staticmethod
     def _drop_reason(frame: Frame) -> Optional[str]:
@@ -555,7 +595,7 @@ class Estimator:
         self._keyframes += 1
         self.window.append(kf)
         timings['resize'] = self._ms(t)
-        sel = self.window.select(self.config.window_mode)
+        sel = self.window.select(self.config.window_mode, **self._source_scoring())
         if sel is None:
             self._tracking = 'waiting for keyframes'
             self._last_timings = dict(timings, total=self._ms(t0))
@@ -584,10 +624,13 @@ class Estimator:
         t = time.perf_counter()
         vol_hw = tuple(meas.logp_bdhw.shape[-2:])
         coverage = self._coverage(meas.K_vol_b33, vol_hw, T_src_ref_t[0])
+        weight = self._parallax_weight(meas, ref, T_src_ref_t, vol_hw)
         step = self.filter.step(meas.logp_bdhw.float(), meas.K_vol_b33, self._filter_pose(ref.T_world_cam_44),
-                                ref.stamp, self.depths_d, image_b3hw=ref.image_b3hw)
+                                ref.stamp, self.depths_d, image_b3hw=ref.image_b3hw, update_weight_bhw=weight)
         post = step.logp_bdhw
-        self._posterior = _Posterior(post, ref.T_world_cam_44.copy(), meas.K_vol_b33, coverage, ref.stamp)
+        support = self._carry_support(step, weight, ref, meas.K_vol_b33)
+        self._posterior = _Posterior(post, ref.T_world_cam_44.copy(), meas.K_vol_b33, coverage, ref.stamp,
+                                     support)
         timings['filter'] = self._ms(t)
 
         t = time.perf_counter()
@@ -598,12 +641,17 @@ class Estimator:
                 full = self.model.refine(post, meas.feats, ref.image_b3hw)
             full = full.float()
             depth, conf = self._readout(full)
+            if support is not None:
+                conf = conf * resample_to_camera(support[:, None], meas.K_vol_b33[0], K_proc_t, (H, W))[:, 0]
             valid = resample_to_camera(coverage[:, None].float(), meas.K_vol_b33[0], K_proc_t, (H, W),
                                        mode='nearest')[:, 0] > 0.5
             timings['refine'] = self._ms(t)
         else:
+            depth_v, conf_v = self._readout(post)
+            if support is not None:
+                conf_v = conf_v * support
             depth, conf, valid = self._volume_maps_to_processing(
-                *self._readout(post), coverage,
+                depth_v, conf_v, coverage,
                 meas.K_vol_b33[0], K_proc_t, (H, W))
             timings['upsample'] = self._ms(t)
 
@@ -704,6 +752,84 @@ class Estimator:
         logp, K_vol = self.classical(ref.image_b3hw, srcs, ref.K_b33, T_src_ref_t)
         return _Measurement(logp.float(), K_vol.float())
 
+    # ------------------------------------------------------------------ parallax
+    def _parallax_weight(self, meas: _Measurement, ref: Keyframe, T_src_ref_t: torch.Tensor,
+                         vol_hw) -> Optional[torch.Tensor]:
+        """(1, h, w) weight in [0, 1] of this measurement per pixel (``parallax.parallax_support`` of the
+        disparity span, in processing-size pixels, of the band [d / 1.25, d * 1.25] (``parallax.BAND_RATIO``)
+        around the measurement's own depth estimate ``d``, but no nearer than its median, over the window's
+        sources); None when the
+        parallax rule is off (``parallax_full_px`` = 0)."""
+        full = float(self.config.parallax_full_px)
+        if full <= 0:
+            self._last_parallax = {}
+            return None
+        depth = dpv_ops.depth_estimate(meas.logp_bdhw.float(), self.depths_d, self.readout)
+        # a wrong, too-near estimate would claim parallax it does not have: depths are taken no nearer
+        # than the frame's median estimate
+        depth = depth.clamp_min(float(depth.median()))
+        spans = parallax.disparity_span(depth, meas.K_vol_b33, T_src_ref_t, parallax.BAND_RATIO, src_hw=vol_hw,
+                                        per_source=True)                       # N, 1, h, w
+        spans = spans * float(ref.K_b33[0, 0, 0] / meas.K_vol_b33[0, 0, 0])  # volume -> processing pixels
+        span = spans.amax(0)
+        if self.config.parallax_rotation_noise > 0:
+            # each source's span counts against full_px plus the pose error its rotation brings
+            noise = parallax.rotation_noise_px(T_src_ref_t, float(ref.K_b33[0, 0, 0]),
+                                               self.config.parallax_rotation_noise)[0]          # N
+            weight = (spans / (full + noise[:, None, None, None])).clamp(0.0, 1.0).amax(0)
+        else:
+            weight = parallax.parallax_support(span, full)
+        self._last_parallax = {'median_span_px': float(span.median()), 'mean_weight': float(weight.mean())}
+        return weight
+
+    def _source_scoring(self) -> Dict[str, Any]:
+        """Keyword arguments of ``KeyframeWindow.select`` for choosing sources from the pool (``source_pool``):
+        ``parallax.pose_parallax_score`` at a nominal depth (the median depth of the last posterior, else the
+        middle of the planes in inverse depth), ``min_score`` = ``parallax_full_px`` (or 1 px when that rule is
+        off). Empty when there is no pool."""
+        cfg = self.config
+        if cfg.source_pool <= cfg.window_size:
+            return {}
+        depth = self._nominal_depth()
+
+        def score(ref: Keyframe, kf: Keyframe) -> float:
+            H, W = ref.image_b3hw.shape[-2:]
+            return parallax.pose_parallax_score(ref.T_world_cam_44, kf.T_world_cam_44,
+                                                ref.K_b33[0].double().cpu().numpy(), (H, W), depth)
+        return {'score': score, 'min_score': cfg.parallax_full_px if cfg.parallax_full_px > 0 else 1.0}
+
+    def _nominal_depth(self) -> float:
+        """A typical depth of the scene: the median depth of the last posterior (volume resolution), else the
+        middle of the depth planes in inverse depth."""
+        p = self._posterior
+        if p is not None:
+            if getattr(p, 'median_depth', None) is None:
+                d = dpv_ops.depth_estimate(p.logp_bdhw, self.depths_d, self.readout)
+                p.median_depth = float(d[p.coverage_bhw].median()) if bool(p.coverage_bhw.any()) else None
+            if p.median_depth is not None and math.isfinite(p.median_depth):
+                return p.median_depth
+        return 2.0 / (1.0 / self.d_min + 1.0 / self.d_max)
+
+    def _carry_support(self, step, weight: Optional[torch.Tensor], ref: Keyframe,
+                       K_vol_b33: torch.Tensor) -> Optional[torch.Tensor]:
+        """Parallax support of the new posterior, (1, h, w) in [0, 1]: ``w + (1 - w) * s_pred``, where
+        ``s_pred`` is the previous posterior's support carried into the reference with the predicted depth
+        (0 where the previous keyframe did not see the pixel, and after a filter restart). It mirrors the
+        filter's per-pixel blend of update and prediction, so a pixel keeps the support of the belief it
+        carries; it multiplies the published confidence."""
+        if weight is None:
+            return None
+        prev = self._posterior
+        pred = step.predicted_logp_bdhw
+        if pred is None or prev is None or prev.support_bhw is None:
+            return weight
+        depth = dpv_ops.depth_estimate(pred, self.depths_d, self.readout)
+        T_prev_ref = np.linalg.inv(prev.T_world_cam_44) @ ref.T_world_cam_44
+        T_t = torch.as_tensor(T_prev_ref, dtype=torch.float32, device=self.device)[None]
+        s, ok = geometry.warp_image_with_depth(prev.support_bhw[:, None], depth, prev.K_vol_b33, K_vol_b33, T_t)
+        s_pred = torch.where(ok, s[:, 0], torch.zeros_like(s[:, 0]))
+        return weight + (1.0 - weight) * s_pred
+
     def _coverage(self, K_vol_b33: torch.Tensor, vol_hw, T_src_ref_n44: torch.Tensor) -> torch.Tensor:
         """(1, h, w) bool: at least ``min_coverage`` of the ray's plane samples lie inside some source view.
 
@@ -771,9 +897,13 @@ class Estimator:
         # a pixel of the keyframe that had an estimate
         valid_v = inside.float().mean(1) >= cfg.min_coverage
         T_prev_cur = torch.as_tensor(np.linalg.inv(T_cur_prev), dtype=torch.float32, device=self.device)[None]
-        cov, ok = geometry.warp_image_with_depth(p.coverage_bhw[:, None].float(), depth_v, p.K_vol_b33,
-                                                 p.K_vol_b33, T_prev_cur)
+        maps = p.coverage_bhw[:, None].float()
+        if p.support_bhw is not None:      # the parallax support travels with the belief
+            maps = torch.cat([maps, p.support_bhw[:, None]], 1)
+        cov, ok = geometry.warp_image_with_depth(maps, depth_v, p.K_vol_b33, p.K_vol_b33, T_prev_cur)
         valid_v = valid_v & ok & (cov[:, 0] > 0.5)
+        if p.support_bhw is not None:
+            conf_v = conf_v * cov[:, 1]
         W, H = cfg.processing_size
         K_proc = torch.as_tensor(scale_intrinsics_np(K_in, W / size[0], H / size[1]), dtype=torch.float32,
                                  device=self.device)

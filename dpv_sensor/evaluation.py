@@ -587,6 +587,8 @@ _TABLE_COLUMNS = [
     ('si_log', ('metric', 'frame_mean', 'si_log'), '{:.3f}'),
     ('ms abs_rel', ('median_scaled', 'frame_mean', 'abs_rel'), '{:.4f}'),
     ('ms d1', ('median_scaled', 'frame_mean', 'delta1'), '{:.3f}'),
+    ('const abs_rel', ('constant', 'frame_mean', 'abs_rel'), '{:.4f}'),
+    ('const d1', ('constant', 'frame_mean', 'delta1'), '{:.3f}'),
     ('coverage', ('coverage', 'frame_mean'), '{:.3f}'),
     ('temporal', ('temporal_consistency', 'pair_mean'), '{:.4f}'),
     ('AUSE', ('confidence', 'ause_frame_mean'), '{:.4f}'),
@@ -681,7 +683,8 @@ def compare(seq, base_overrides: Optional[Dict[str, Any]], variants: SequenceT[D
                                         'temporal = mean abs relative disagreement of consecutive keyframes; '
                                         'conf½/all = abs_rel of the most confident half / abs_rel of all '
                                         '(per frame, mean over frames); conf½ pooled = the same over the pixels of '
-                                        'all frames together.\n')
+                                        'all frames together; const = every pixel at the frame\'s median GT depth '
+                                        '(an oracle constant) on the same keyframes and pixels.\n')
         with open(out / 'compare.json', 'w') as f:
             json.dump(to_jsonable({'rows': rows, 'base_overrides': base_overrides or {},
                                    'variants': list(variants), 'options': dataclasses.asdict(options)}), f, indent=1)

@@ -204,7 +204,8 @@ class DPVFilter:
         return None, mask, reasons
 
     def step(self, meas_logp_bdhw: torch.Tensor, K_b33: torch.Tensor, T_world_cam_b44: torch.Tensor,
-             stamp: float, depths_d: torch.Tensor, image_b3hw: Optional[torch.Tensor] = None) -> FilterStep:
+             stamp: float, depths_d: torch.Tensor, image_b3hw: Optional[torch.Tensor] = None,
+             update_weight_bhw: Optional[torch.Tensor] = None) -> FilterStep:
         """Fuse one measurement DPV taken by camera ``T_world_cam_b44`` at ``stamp`` (seconds).
 
         Args:
@@ -214,6 +215,11 @@ class DPVFilter:
             stamp: time of this frame in seconds.
             depths_d: (D,) plane depths (uniform in inverse depth).
             image_b3hw: reference image for K-Net (passed through to ``knet``).
+            update_weight_bhw: optional (B, H, W) weight in [0, 1] of this measurement per pixel (e.g. how
+                much parallax the measurement had): the posterior is ``w * posterior + (1 - w) * base`` in
+                log space, renormalised, where base is the prediction (or the uniform DPV where there is
+                none: after a reset, outside the previous frustum). w = 0 leaves the belief exactly as
+                predicted; w = 1 (or None) is the plain update.
         Returns:
             FilterStep(posterior logp, prediction or None, reset reason or None).
         """
@@ -248,6 +254,13 @@ class DPVFilter:
                 idx = mask.nonzero().flatten().tolist()
                 post = torch.where(mask[:, None, None, None], meas, post)
                 reason = f"{'; '.join(reasons)} in batch elements {idx}"
+
+        if update_weight_bhw is not None:
+            w = update_weight_bhw.to(dtype=dt, device=dev).clamp(0.0, 1.0)[:, None]
+            base = torch.zeros_like(post) if pred is None else pred
+            if pred is not None and mask is not None and mask.any():
+                base = torch.where(mask[:, None, None, None], torch.zeros_like(post), base)
+            post = clamp_log(w * post + (1.0 - w) * base, self.log_floor)
 
         self._logp = post.detach() if not torch.is_grad_enabled() else post
         self._K = K

@@ -20,12 +20,19 @@ the reference and source keyframes of a plane sweep:
   either side (up to 4). The first reference is processed when the third keyframe arrives (with
   sources t + 1, t + 2 only), the second when the fourth arrives (t - 1, t + 1, t + 2), from the
   fifth on the window is full. Outputs therefore lag two keyframes behind the newest frame.
+
+With a *pool* (``KeyframeWindow(capacity, pool=P)``, P > capacity) the window keeps the last P keyframes; the
+reference is chosen as above (among the last ``capacity``, same latency), and when a ``score`` callable is
+given to :meth:`KeyframeWindow.select` the ``capacity - 1`` sources are chosen from every pool keyframe the
+mode allows (causal: older than the reference; centered: older, and the up to ``capacity // 2`` newer ones)
+by :func:`dpv_sensor.parallax.select_sources`: how well each one's baseline and overlap constrain the
+reference's depth, the closest in time among those that reach ``min_score``.
 """
 from __future__ import annotations
 
 from collections import deque
 from dataclasses import dataclass, field
-from typing import Any, Dict, List, Optional, Tuple
+from typing import Any, Callable, Dict, List, Optional, Tuple
 
 import numpy as np
 
@@ -130,11 +137,12 @@ class Keyframe:
 class KeyframeWindow:
     """The last ``capacity`` keyframes, oldest first, and the reference/source choice of a window."""
 
-    def __init__(self, capacity: int = 5):
+    def __init__(self, capacity: int = 5, pool: int = 0):
         if capacity < 2:
             raise ValueError('a window needs at least 2 keyframes')
         self.capacity = int(capacity)
-        self._kfs: deque = deque(maxlen=self.capacity)
+        self.pool = max(self.capacity, int(pool))
+        self._kfs: deque = deque(maxlen=self.pool)
 
     def __len__(self) -> int:
         return len(self._kfs)
@@ -167,12 +175,14 @@ class KeyframeWindow:
             return self.capacity // 2
         raise ValueError(f'window mode must be one of {WINDOW_MODES}, got {mode!r}')
 
-    def select(self, mode: str) -> Optional[Tuple[Keyframe, List[Keyframe]]]:
+    def select(self, mode: str, score: Optional[Callable[[Keyframe, Keyframe], float]] = None,
+               min_score: float = 0.0) -> Optional[Tuple[Keyframe, List[Keyframe]]]:
         """(reference, sources) for the newest window, or None while there is no stereo pair yet.
 
-        Sources are in time order. ``causal``: reference = newest, sources = every older keyframe in
-        the window. ``centered``: reference = the keyframe ``lag`` before the newest; sources = the
-        keyframes at most ``lag`` keyframes away from it (older and newer).
+        Sources are in time order. ``causal``: reference = newest, sources = the up to ``capacity - 1``
+        keyframes before it. ``centered``: reference = the keyframe ``lag`` before the newest; sources = the
+        keyframes at most ``lag`` keyframes away from it (older and newer). With a pool and ``score(ref,
+        candidate)`` (see the module docstring) the sources are chosen from the whole pool instead.
         """
         lag = self.lag(mode)
         n = len(self._kfs)
@@ -180,8 +190,15 @@ class KeyframeWindow:
             return None
         r = n - 1 - lag
         ref = self._kfs[r]
-        if mode == 'causal':
-            sources = [self._kfs[i] for i in range(0, r)]
+        if score is not None and self.pool > self.capacity:
+            from .parallax import select_sources
+            cand = list(range(0, n)) if mode == 'centered' else list(range(0, r))
+            cand = [i for i in cand if i != r]
+            scores = [float(score(ref, self._kfs[i])) for i in cand]
+            chosen = select_sources(r, cand, scores, self.capacity - 1, min_score)
+            sources = [self._kfs[i] for i in chosen]
+        elif mode == 'causal':
+            sources = [self._kfs[i] for i in range(max(0, r - (self.capacity - 1)), r)]
         else:
             sources = [self._kfs[i] for i in range(max(0, r - lag), min(n, r + lag + 1)) if i != r]
         if not sources:

@@ -379,7 +379,9 @@ class MetricAccumulator:
     per-frame row and the pooled sums, and, with a confidence map, the frame's sparsification curves.
     ``add_temporal(value, n)`` records one temporal-consistency pair. ``summary()`` returns
     ``frame_mean`` (headline: mean over frames) and ``pixel_weighted`` (pooled pixels) for both
-    ``metric`` and ``median_scaled``, plus coverage, confidence quality and temporal consistency.
+    ``metric`` and ``median_scaled``, plus coverage, confidence quality and temporal consistency, and the
+    ``constant`` baseline (abs_rel and delta1 of every scored pixel at the frame's median GT depth, on the
+    same pixels: what a depth must beat to say more than "the scene is about this far").
 
     The confidence quality is given per frame (``confident_half_ratio_frame_mean``: does the confidence find the
     better half *within* each image) and pooled (``confident_half_ratio_pooled``: the most confident half of all
@@ -421,6 +423,13 @@ class MetricAccumulator:
             row.update({prefix + k: v for k, v in vals.items()})
             if kind == 'median_scaled':
                 row['scale'] = scale
+        # the constant baseline on the same pixels: every pixel at the median GT depth of the scored pixels
+        # (an oracle constant: it knows the frame's median depth)
+        if g.size:
+            const = metrics_from_sums(error_sums(np.full_like(g, np.median(g)), g))
+            row['const_abs_rel'], row['const_delta1'] = const['abs_rel'], const['delta1']
+        else:
+            row['const_abs_rel'] = row['const_delta1'] = float('nan')
         n_gt = int(gvalid.sum())
         self._n_gt += n_gt
         self._n_eval += int(m.sum())
@@ -477,6 +486,8 @@ class MetricAccumulator:
                 'frame_mean': {k: _nanmean(r.get(prefix + k) for r in self.rows) for k in ERROR_METRICS},
                 'pixel_weighted': metrics_from_sums(self._sums[kind]),
             }
+        out['constant'] = {'frame_mean': {'abs_rel': _nanmean(r.get('const_abs_rel') for r in self.rows),
+                                          'delta1': _nanmean(r.get('const_delta1') for r in self.rows)}}
         out['coverage'] = {'frame_mean': _nanmean(r.get('coverage') for r in self.rows),
                            'pixel_weighted': (self._n_eval / self._n_gt) if self._n_gt else float('nan')}
         curves = self.mean_curves()

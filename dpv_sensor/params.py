@@ -140,6 +140,22 @@ SPECS: tuple[ParamSpec, ...] = (
               'eq. 2 made independent of where the depth falls between planes).', choices=('ratio', 'plane')),
     ParamSpec('confidence_ratio', 1.25, 'Factor of the ratio confidence: the band [d/ratio, d*ratio] around '
               'the published depth d.', min_value=1.01, max_value=10.0),
+    ParamSpec('parallax_full_px', 1.0, 'Parallax rule: a keyframe\'s measurement counts fully where its window\'s '
+              'baselines move a pixel\'s image by at least this many pixels (processing size) across the '
+              'band [d/1.25, d*1.25] around its depth d, in proportion below; where they move it less (the camera '
+              'turns in place) the filter keeps its predicted belief and the published confidence falls with '
+              'the parallax the belief ever had (new pixels get none). 0 turns the rule off.',
+              min_value=0.0, max_value=100.0),
+    ParamSpec('parallax_rotation_noise', 0.05, 'Parallax rule: a source\'s disparity counts against '
+              'parallax_full_px plus this fraction of the image motion its rotation from the reference causes '
+              '(f x angle): pose errors of real cameras (time sync, rolling shutter) grow with the rotation. '
+              '0: rotation adds nothing.', min_value=0.0, max_value=1.0),
+    ParamSpec('source_pool', 0, 'Choose the window\'s source keyframes from this many recent keyframes by how well '
+              'their baseline and overlap constrain the reference\'s depth (the closest in time that move its '
+              'pixels by parallax_full_px across that band), instead of the latest ones. 0 (or at most '
+              'the window size): the latest keyframes.', min_value=0, max_value=32),
+    ParamSpec('reject_degenerate_frames', True, 'Drop frames that carry no depth information (all black, '
+              'saturated, flat or random noise): they neither update the filter nor produce an output.'),
     ParamSpec('min_confidence', 0.0, 'Depth with lower confidence is published as no estimate.',
               min_value=0.0, max_value=1.0),
     # --- transport ----------------------------------------------------------------------------------------

@@ -5,6 +5,7 @@ import csv
 import json
 import math
 
+import cv2
 import numpy as np
 import pytest
 
@@ -46,7 +47,9 @@ def _gt_sequence(n=6, stamp0=10.0, rendered=False):
         if rendered:
             images.append(np.repeat(_plane_texture(K, T, d)[..., None], 3, axis=2).astype(np.uint8))
         else:
-            images.append(rng.integers(0, 255, (H, W, 3), dtype=np.uint8))
+            # a smooth random texture (pixel noise would be rejected as a degenerate frame)
+            images.append(cv2.resize(rng.integers(0, 255, (H // 4 + 1, W // 4 + 1, 3), dtype=np.uint8), (W, H),
+                                     interpolation=cv2.INTER_LINEAR))
         d[0, :5] = 0.0                      # a few invalid GT pixels
         depths.append(d)
     stamps = stamp0 + np.arange(n) / 10.0

@@ -303,3 +303,15 @@ def test_confident_half_pooled_ranks_frames_against_each_other():
     assert c['confident_half_ratio_pooled'] == pytest.approx(0.1 / 0.3)
     assert len(acc._pooled[0][0]) == 16 * 16 // acc.pool_stride
     assert np.isnan(M.MetricAccumulator().pooled_confident_half_ratio())
+
+
+def test_constant_baseline_is_the_median_gt_on_the_scored_pixels():
+    from dpv_sensor.metrics import MetricAccumulator
+    gt = np.array([[1.0, 2.0, 2.2, 4.0, 0.0]])
+    pred = np.array([[1.0, 2.0, 2.0, np.nan, 3.0]])          # scored: the first three pixels (GT 1, 2, 2.2)
+    acc = MetricAccumulator()
+    row = acc.add(pred, gt)
+    # constant = median(1, 2, 2.2) = 2: relative errors 1, 0, 0.2 / 2.2; 2 / 1 > 1.25 fails delta1
+    assert row['const_abs_rel'] == pytest.approx((1.0 + 0.2 / 2.2) / 3)
+    assert row['const_delta1'] == pytest.approx(2 / 3)
+    assert acc.summary()['constant']['frame_mean']['abs_rel'] == pytest.approx((1.0 + 0.2 / 2.2) / 3)

@@ -50,6 +50,10 @@ def test_seed_sharding_is_disjoint_and_never_validation():
         StreamConfig(seed_base=5)
     with pytest.raises(ValueError):
         check_not_heldout('/x/shared/data/sun3d_3dmatch_frag1/')
+    for name in ('tum_fr1_rpy', 'icl_nuim_lr_kt3', 'ICL_NUIM_LR_KT3_copy'):
+        with pytest.raises(ValueError, match='held-out'):
+            check_not_heldout(f'/x/data/{name}')
+    check_not_heldout('/x/data/tartanair_hospital')
     with pytest.raises(ValueError):
         loop.TrainConfig(val_seeds=(150,)).check()
 
@@ -380,6 +384,9 @@ def test_cli_parses_and_refuses_sun3d(tmp_path):
     assert cfg.val_seeds == (0, 1, 2, 7) and cfg.steps == 9
     assert tool.main(['--folders', str(tmp_path / 'sun3d_3dmatch_frag2'), '--folder-prob', '0.5',
                       '--run-dir', str(tmp_path / 'r')]) == 2
+    for name in ('tum_fr1_rpy', 'icl_nuim_lr_kt3'):
+        assert tool.main(['--folders', str(tmp_path / name), '--folder-prob', '0.5',
+                          '--run-dir', str(tmp_path / f'r_{name}')]) == 2
 
 
 def test_training_runs_without_ros_gtsam_or_rosbags(tmp_path):

@@ -79,7 +79,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--val-gap', type=int, default=d.val_gap, help='frames between validation keyframes')
     p.add_argument('--val-width', type=int, default=0, help='validation width (0 = training width)')
     p.add_argument('--val-height', type=int, default=0, help='validation height (0 = training height)')
-    p.add_argument('--folders', nargs='*', default=[], help='sequence folders to mix in (e.g. tartanair_hospital; never SUN3D)')
+    p.add_argument('--folders', nargs='*', default=[], help='sequence folders to mix in (e.g. tartanair_hospital; never SUN3D, tum_fr1_rpy or icl_nuim_lr_kt3)')
     p.add_argument('--folder-prob', type=float, default=0.0, help='probability that a sample comes from --folders')
     p.add_argument('--startup-prob', type=float, default=0.0,
                    help='share of stream-start runs (causal windows with 1, 2, 3, 4 sources, as after a reset)')

@@ -7,8 +7,8 @@ without overlap, and a resumed run continues exactly where it stopped (``start_i
 ``VAL_SEEDS`` (0..99) are reserved for validation and can never be produced here.
 
 Optionally a fraction of the samples comes from real-looking sequence folders (TartanAir hospital,
-CC BY 4.0) with random scale and crop. SUN3D folders are refused: they are the held-out real test
-data.
+CC BY 4.0) with random scale and crop. SUN3D, TUM fr1_rpy and ICL-NUIM lr kt3 folders are refused
+(``HELDOUT_FOLDERS``): they are held-out validation data.
 
 Layout of one sample (M keyframes, K unrolled filter steps, window w, S = w - 1 sources)::
 
@@ -46,7 +46,7 @@ TRAIN_SEED_BASE = 1_000_000
 VAL_SEEDS = range(0, 100)
 
 __all__ = ['TRAIN_SEED_BASE', 'VAL_SEEDS', 'WindowLayout', 'Augment', 'StreamConfig',
-           'SceneStream', 'sample_from_sequence', 'scale_K_np', 'resize_crop', 'check_not_heldout',
+           'SceneStream', 'sample_from_sequence', 'scale_K_np', 'resize_crop', 'check_not_heldout', 'HELDOUT_FOLDERS',
            'check_heldout_seeds', 'parse_seeds']
 
 
@@ -186,10 +186,19 @@ class StreamConfig:
             raise ValueError('pose noise: need 0 <= pose_noise_prob <= 1 and non-negative magnitudes')
 
 
+# Sequence folders that are validation data only: a folder whose name contains one of these (lower case) is
+# refused for training. SUN3D is the held-out real test data; TUM RGB-D fr1_rpy (motion-capture poses) and
+# ICL-NUIM lr kt3 (another renderer, exact poses) are the real / foreign checks of confidence and poses.
+HELDOUT_FOLDERS = (('sun3d', 'SUN3D'), ('tum_fr1_rpy', 'TUM RGB-D fr1_rpy'), ('icl_nuim_lr_kt3', 'ICL-NUIM lr kt3'))
+
+
 def check_not_heldout(folder: str) -> None:
-    """Refuse SUN3D folders for training: they are the held-out real evaluation data."""
-    if 'sun3d' in os.path.basename(os.path.normpath(str(folder))).lower():
-        raise ValueError(f'{folder} is held-out evaluation data (SUN3D) and must never be trained on')
+    """Refuse held-out evaluation folders for training (``HELDOUT_FOLDERS``: SUN3D, TUM fr1_rpy,
+    ICL-NUIM lr kt3)."""
+    name = os.path.basename(os.path.normpath(str(folder))).lower()
+    for key, what in HELDOUT_FOLDERS:
+        if key in name:
+            raise ValueError(f'{folder} is held-out evaluation data ({what}) and must never be trained on')
 
 
 scale_K_np = scale_intrinsics_np      # intrinsics after scaling the image by (sx, sy): geometry's one copy

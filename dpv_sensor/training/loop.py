@@ -130,7 +130,7 @@ class TrainConfig:
     val_gap: int = 4
     val_width: int = 0                    # 0: training size
     val_height: int = 0
-    folders: Tuple[str, ...] = ()         # extra sequence folders mixed into training (never SUN3D)
+    folders: Tuple[str, ...] = ()         # extra sequence folders mixed into training (never held-out ones)
     folder_prob: float = 0.0
     augment: bool = True
     select_metric: str = 'abs_rel_knet'   # validation score that decides exports (lower is better), see select_score
@@ -1002,7 +1002,8 @@ class Trainer:
             'held_out_seed_range': [VAL_SEEDS.start, VAL_SEEDS.stop - 1],
             'mixed_folders': [os.path.basename(os.path.normpath(f)) for f in cfg.folders],
             'folder_prob': cfg.folder_prob,
-            'never_trained_on': ['sun3d_3dmatch_frag1', 'sun3d_3dmatch_frag2', f'synthetic seeds {VAL_SEEDS.start}..{VAL_SEEDS.stop - 1}'],
+            'never_trained_on': ['sun3d_3dmatch_frag1', 'sun3d_3dmatch_frag2', 'tum_fr1_rpy', 'icl_nuim_lr_kt3',
+                                 f'synthetic seeds {VAL_SEEDS.start}..{VAL_SEEDS.stop - 1}'],
             'train_size': [cfg.width, cfg.height],
             'keyframe_gap_frames': [cfg.gap_min, cfg.gap_max],
             'unrolled_steps': cfg.unroll,
