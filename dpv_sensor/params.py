@@ -63,6 +63,15 @@ SPECS: tuple[ParamSpec, ...] = (
               'expectation, paper eq. 1; lands between the modes of a two-mode DPV) or auto (relative with the '
               'network, mean with the classical model, whose flat DPVs the other two pull to the near planes).',
               choices=('auto', 'relative', 'median', 'mean')),
+    ParamSpec('depth_subplane', True, 'Refine the readout between depth planes: the vertex of a parabola through '
+              'the log-probabilities of the DPV\'s mode and its neighbours, blended with the readout by the '
+              'mass of those three planes. Off, a peaked DPV reads out on plane centres and slanted surfaces '
+              'come out as terraces.'),
+    ParamSpec('edge_filter_radius', 0, 'Edge-aware refinement of the network depth: a confidence-weighted '
+              'guided filter with the colour image as guide, window radius in processing pixels; 0 = off.',
+              min_value=0, max_value=32),
+    ParamSpec('edge_filter_eps', 1e-3, 'Regulariser of the edge-aware refinement, in colour variance (image in '
+              '[0, 1]): larger smooths more and copies less texture into depth.', min_value=1e-6, max_value=1.0),
     ParamSpec('damping', 0.8, 'Global damping lambda of the prediction energy (paper eq. 8).',
               min_value=0.0, max_value=1.0),
     ParamSpec('reset_time_gap', 1.0, 'Reset the filter when the camera stream itself has a gap longer than this '
