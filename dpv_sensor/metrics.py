@@ -44,7 +44,7 @@ __all__ = [
     'ERROR_METRICS', 'DEFAULT_FRACTIONS', 'gt_valid_mask', 'pred_valid_mask', 'evaluation_mask',
     'median_scale', 'error_sums', 'metrics_from_sums', 'depth_metrics', 'frame_metrics',
     'temporal_consistency', 'sparsification', 'ause', 'aurg', 'confident_half_ratio', 'MetricAccumulator',
-    'dpv_nll', 'EDGE_JUMP', 'EDGE_RADIUS', 'NORMAL_WINDOW', 'PLANAR_CONSISTENCY', 'depth_edge_band',
+    'dpv_nll', 'EDGE_JUMP', 'EDGE_RADIUS', 'NORMAL_WINDOW', 'normal_window', 'PLANAR_CONSISTENCY', 'depth_edge_band',
     'depth_normals', 'planar_mask', 'edge_planarity_metrics',
 ]
 
@@ -197,13 +197,21 @@ def frame_metrics(pred: np.ndarray, gt: np.ndarray, *, min_depth: Optional[float
 # GT planar regions: terraces (steps between depth planes) and bumps raise it while barely moving abs_rel.
 # Normals are the smallest principal axis of the back-projected points in a ``window`` x ``window``
 # neighbourhood (a local plane fit, robust to sensor noise and quantisation), oriented towards the camera.
+# The default window grows with the image (:func:`normal_window`: width / 16, odd, at least 7; 41 px at
+# 640 wide, about 15 cm at 2 m): a 7 px fit on a 640 px image spans 3 cm at 2 m, less than the depth
+# noise of any sensor here, and its normals would score noise rather than shape.
 # A pixel is planar when its whole GT window is valid, it is outside the edge band, and the GT normals of
 # its window agree: the length of their mean is at least ``planar_consistency`` (0.995: a mean angular
 # spread of about 6 degrees).
 
 EDGE_JUMP = 0.10
 EDGE_RADIUS = 3
-NORMAL_WINDOW = 7
+NORMAL_WINDOW = 7          # the smallest window (and the one of images up to 127 px wide)
+
+
+def normal_window(width: int) -> int:
+    """The default normal window of an image ``width`` pixels wide: width / 16, made odd, at least 7."""
+    return max(NORMAL_WINDOW, (int(width) // 16) | 1)
 PLANAR_CONSISTENCY = 0.995
 
 
@@ -231,14 +239,16 @@ def depth_edge_band(gt: np.ndarray, jump: float = EDGE_JUMP, radius: int = EDGE_
     return edge
 
 
-def depth_normals(depth: np.ndarray, K: np.ndarray, window: int = NORMAL_WINDOW) -> Tuple[np.ndarray, np.ndarray]:
+def depth_normals(depth: np.ndarray, K: np.ndarray, window: Optional[int] = None) -> Tuple[np.ndarray, np.ndarray]:
     """Surface normals of a z-depth image: ((H, W, 3) unit normals facing the camera, (H, W) bool valid).
 
     Each normal is the smallest principal axis of the back-projected points (intrinsics ``K``) of the
-    ``window`` x ``window`` neighbourhood; valid where that whole neighbourhood has depth (finite, > 0)."""
+    ``window`` x ``window`` neighbourhood (default :func:`normal_window`); valid where that whole
+    neighbourhood has depth (finite, > 0)."""
     from scipy.ndimage import uniform_filter
     z = np.asarray(depth, np.float64)
     H, W = z.shape
+    window = normal_window(W) if window is None else int(window)
     K = np.asarray(K, np.float64)
     valid = pred_valid_mask(z)
     z0 = np.where(valid, z, 0.0)
@@ -267,12 +277,13 @@ def depth_normals(depth: np.ndarray, K: np.ndarray, window: int = NORMAL_WINDOW)
     return normals, full
 
 
-def planar_mask(gt: np.ndarray, K: np.ndarray, window: int = NORMAL_WINDOW,
+def planar_mask(gt: np.ndarray, K: np.ndarray, window: Optional[int] = None,
                 consistency: float = PLANAR_CONSISTENCY, edge_band: Optional[np.ndarray] = None,
                 normals: Optional[Tuple[np.ndarray, np.ndarray]] = None) -> np.ndarray:
     """(H, W) bool: GT planar pixels (see the section comment): GT normal valid, outside ``edge_band``
     (default :func:`depth_edge_band` of ``gt``), and the GT normals of the window agree."""
     from scipy.ndimage import uniform_filter
+    window = normal_window(np.shape(gt)[1]) if window is None else int(window)
     n, ok = normals if normals is not None else depth_normals(gt, K, window)
     band = depth_edge_band(gt) if edge_band is None else edge_band
     okf = ok.astype(np.float64)
@@ -284,7 +295,7 @@ def planar_mask(gt: np.ndarray, K: np.ndarray, window: int = NORMAL_WINDOW,
 def edge_planarity_metrics(pred: np.ndarray, gt: np.ndarray, K: Optional[np.ndarray] = None, *,
                            min_depth: Optional[float] = None, max_depth: Optional[float] = None,
                            jump: float = EDGE_JUMP, radius: int = EDGE_RADIUS,
-                           window: int = NORMAL_WINDOW) -> Dict[str, float]:
+                           window: Optional[int] = None) -> Dict[str, float]:
     """Edge and planarity measures of one frame (metric depth, clipped like the other measures).
 
     ``edge_abs_rel`` / ``nonedge_abs_rel``: abs_rel over evaluated pixels inside / outside the GT edge band
@@ -590,7 +601,7 @@ class MetricAccumulator:
                 'normal_err_deg_frame_mean': _nanmean(r.get('normal_err_deg') for r in self.rows),
                 'edge_abs_rel_pixel_weighted': weighted('edge_abs_rel', 'edge_pixels'),
                 'normal_err_deg_pixel_weighted': weighted('normal_err_deg', 'planar_pixels'),
-                'jump': EDGE_JUMP, 'radius_px': EDGE_RADIUS, 'normal_window_px': NORMAL_WINDOW}
+                'jump': EDGE_JUMP, 'radius_px': EDGE_RADIUS, 'normal_window': 'image width / 16, odd, >= 7 px'}
 
     def add_temporal(self, value: float, num_pixels: int) -> None:
         """Record the temporal consistency of one pair of consecutive keyframes."""

@@ -381,6 +381,10 @@ def test_terraces_raise_the_normal_error_but_not_on_a_smooth_plane():
     assert M.edge_planarity_metrics(gt, gt, K)['normal_err_deg'] < 1e-3
 
 
+def test_normal_window_grows_with_the_image():
+    assert M.normal_window(64) == 7 and M.normal_window(320) == 21 and M.normal_window(640) == 41
+
+
 def test_accumulator_reports_edges_and_normals():
     K = np.array([[30.0, 0, 20], [0, 30.0, 10], [0, 0, 1]])
     gt = _step_gt()
