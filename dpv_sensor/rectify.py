@@ -149,3 +149,9 @@ class RectifierCache:
             self._key = cal
             self.builds += 1
         return self._rectifier
+
+    def for_camera_info(self, msg) -> Optional[Rectifier]:
+        """:meth:`get` for a sensor_msgs/CameraInfo (read by field name: k, d, distortion_model, width,
+        height, p; nothing ROS is imported here)."""
+        return self.get(msg.k, list(msg.d), msg.distortion_model, (int(msg.width), int(msg.height)),
+                        msg.p if len(msg.p) == 12 else None)

@@ -84,3 +84,12 @@ def test_unsupported_models_are_refused_with_the_reason():
         Rectifier(Calibration.from_fields(K, [0.1, 0.01, 0.0, 0.0], 'equidistant', (W, H)))
     with pytest.raises(UnsupportedDistortion, match='7 coefficients'):
         Rectifier(Calibration.from_fields(K, [0.1] * 7, 'plumb_bob', (W, H)))
+
+
+def test_cache_reads_a_camera_info_by_field_name():
+    from types import SimpleNamespace
+    P = np.hstack([K * [[0.9], [0.9], [1.0]], np.zeros((3, 1))])
+    msg = SimpleNamespace(k=K.ravel().tolist(), d=RATIONAL, distortion_model='rational_polynomial', width=W,
+                          height=H, p=P.ravel().tolist())
+    rect = RectifierCache().for_camera_info(msg)
+    assert np.allclose(rect.K, P[:, :3])
