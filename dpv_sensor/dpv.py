@@ -203,7 +203,7 @@ def subplane_index(logp_bdhw: torch.Tensor, index_bhw: torch.Tensor) -> torch.Te
     if D < 3:
         return index_bhw
     idx = index_bhw.to(logp_bdhw.dtype)
-    k0 = idx.round().clamp(1, D - 2).long()[:, None]                       # B,1,H,W
+    k0 = torch.nan_to_num(idx, nan=1.0).round().clamp(1, D - 2).long()[:, None]   # B,1,H,W (NaN stays NaN below)
     trio = torch.cat([logp_bdhw.gather(1, k0 + o) for o in (-1, 0, 1)], 1)  # B,3,H,W
     k = (k0 + trio.argmax(1, keepdim=True) - 1).clamp(1, D - 2)
     lm, l0, lp = (logp_bdhw.gather(1, k + o)[:, 0] for o in (-1, 0, 1))

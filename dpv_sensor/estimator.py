@@ -115,7 +115,7 @@ from . import dpv as dpv_ops
 from . import geometry
 from .filter import jump_limit
 from .frame import DepthOutput, Frame
-from .edge_filter import guided_depth_filter
+from .edge_filter import joint_weighted_median
 from .geometry import scale_intrinsics_np
 from .keyframes import WINDOW_MODES, Keyframe, KeyframeSelector, KeyframeWindow, pose_delta
 from .nets.model import cpu_bf16_fast
@@ -170,7 +170,7 @@ class EstimatorConfig:
     depth_readout: str = dpv_ops.DEFAULT_READOUT
     depth_subplane: bool = True
     edge_filter_radius: int = 0
-    edge_filter_eps: float = 1e-3
+    edge_filter_sigma: float = 0.08
     confidence: str = dpv_ops.DEFAULT_CONFIDENCE
     confidence_ratio: float = 1.25
     damping: float = 0.8
@@ -214,8 +214,8 @@ class EstimatorConfig:
         one_of('confidence', dpv_ops.CONFIDENCES)
         if not (0 <= int(self.edge_filter_radius) <= 32):
             raise ValueError(f'edge_filter_radius must lie in [0, 32] (0 = off), got {self.edge_filter_radius}')
-        if not (0.0 < self.edge_filter_eps <= 1.0):
-            raise ValueError(f'edge_filter_eps must lie in (0, 1], got {self.edge_filter_eps}')
+        if not (0.0 < self.edge_filter_sigma <= 1.0):
+            raise ValueError(f'edge_filter_sigma must lie in (0, 1], got {self.edge_filter_sigma}')
         if not (1.0 < self.confidence_ratio <= 10.0):
             raise ValueError(f'confidence_ratio must lie in (1, 10], got {self.confidence_ratio}')
         one_of('window_mode', WINDOW_MODES)
@@ -799,15 +799,16 @@ class Estimator:
         """(depth, confidence), each (B, H, W), of a DPV with the configured ``depth_readout`` and
         ``confidence``; with ``depth_subplane`` the depth is refined between planes
         (``dpv.subplane_depth``), and with a colour ``guide_b3hw`` of the same size and
-        ``edge_filter_radius`` > 0 it is then filtered edge-aware with the confidence as weight
-        (``edge_filter.guided_depth_filter``)."""
+        ``edge_filter_radius`` > 0 it is then filtered edge-aware: the weighted median of its neighbourhood,
+        weighted by confidence and colour similarity (``edge_filter.joint_weighted_median``)."""
         cfg = self.config
         depth = dpv_ops.depth_estimate(logp_bdhw, self.depths_d, self.readout)
         if cfg.depth_subplane:
             depth = dpv_ops.subplane_depth(logp_bdhw, self.depths_d, depth)
         conf = dpv_ops.published_confidence(logp_bdhw, self.depths_d, depth, cfg.confidence, cfg.confidence_ratio)
         if guide_b3hw is not None and cfg.edge_filter_radius > 0 and guide_b3hw.shape[-2:] == depth.shape[-2:]:
-            depth = guided_depth_filter(depth, conf, guide_b3hw, cfg.edge_filter_radius, cfg.edge_filter_eps)
+            depth = joint_weighted_median(depth, conf, guide_b3hw, cfg.edge_filter_radius,
+                                          sigma_colour=cfg.edge_filter_sigma)
         return depth, conf
 
     @staticmethod

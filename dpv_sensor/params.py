@@ -67,11 +67,13 @@ SPECS: tuple[ParamSpec, ...] = (
               'the log-probabilities of the DPV\'s mode and its neighbours, blended with the readout by the '
               'mass of those three planes. Off, a peaked DPV reads out on plane centres and slanted surfaces '
               'come out as terraces.'),
-    ParamSpec('edge_filter_radius', 0, 'Edge-aware refinement of the network depth: a confidence-weighted '
-              'guided filter with the colour image as guide, window radius in processing pixels; 0 = off.',
+    ParamSpec('edge_filter_radius', 0, 'Edge-aware refinement of the network depth: every depth becomes the '
+              'weighted median of every second pixel within this radius (processing pixels), weighted by '
+              'confidence and colour similarity, so depth edges move onto colour edges; 0 = off.',
               min_value=0, max_value=32),
-    ParamSpec('edge_filter_eps', 1e-3, 'Regulariser of the edge-aware refinement, in colour variance (image in '
-              '[0, 1]): larger smooths more and copies less texture into depth.', min_value=1e-6, max_value=1.0),
+    ParamSpec('edge_filter_sigma', 0.08, 'Colour distance (RGB in [0, 1]) at which a neighbour\'s vote in the '
+              'edge-aware refinement falls to exp(-1/2): smaller keeps depth edges on weaker colour edges.',
+              min_value=1e-3, max_value=1.0),
     ParamSpec('damping', 0.8, 'Global damping lambda of the prediction energy (paper eq. 8).',
               min_value=0.0, max_value=1.0),
     ParamSpec('reset_time_gap', 1.0, 'Reset the filter when the camera stream itself has a gap longer than this '
