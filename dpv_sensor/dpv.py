@@ -192,12 +192,13 @@ def subplane_index(logp_bdhw: torch.Tensor, index_bhw: torch.Tensor) -> torch.Te
     A peaked DPV puts nearly all its mass on one plane, and every readout above then lands on (or next
     to) that plane's centre: a smooth slanted surface comes out as terraces one plane apart. The
     log-probabilities of a peak are close to a parabola in the index (a Gaussian in inverse depth), so
-    the vertex of the parabola through the mode and its two neighbours finds the peak between planes
-    (as sub-pixel stereo refines a disparity). The mode is the most probable plane among the three
-    nearest to ``index``; the vertex offset is clamped to +-0.5 plane. The result blends the vertex and
-    ``index`` by the mass of those three planes: a peaked DPV takes the vertex, a wide one (whose
-    readout already moves smoothly between planes) keeps ``index``. Where the mode is not a local
-    maximum or lies on the first or last plane, ``index`` is returned unchanged.
+    the vertex of the parabola through the mode and its two neighbours says where between planes the
+    peak lies (as sub-pixel stereo refines a disparity). The readout is shifted by the vertex's offset
+    from the mode's plane (at most half a plane), weighted by the mass of those three planes: a peaked
+    DPV moves its readout onto the vertex, a wide one keeps its readout (and the readout's own choice,
+    e.g. the relative readout's lean towards the camera, is kept either way). The mode is the most
+    probable plane among the three nearest to ``index``; where it is not a local maximum or lies on the
+    first or last plane, ``index`` is returned unchanged (NaN stays NaN).
     """
     D = logp_bdhw.shape[1]
     if D < 3:
@@ -211,9 +212,10 @@ def subplane_index(logp_bdhw: torch.Tensor, index_bhw: torch.Tensor) -> torch.Te
     peak = (l0 >= lm) & (l0 >= lp) & (curv < 0)
     offset = torch.where(peak, 0.5 * (lm - lp) / torch.where(peak, curv, -torch.ones_like(curv)),
                          torch.zeros_like(curv)).clamp(-0.5, 0.5)
-    vertex = k[:, 0].to(idx.dtype) + offset
     mass = torch.where(peak, torch.exp(lm) + torch.exp(l0) + torch.exp(lp), torch.zeros_like(curv)).clamp(0.0, 1.0)
-    return mass * vertex + (1.0 - mass) * idx
+    # a peaked readout sits near the mode's centre, so (k + offset) - k is the correction it lacks
+    target = k[:, 0].to(idx.dtype) + offset
+    return idx + mass * (target - idx).clamp(-0.5, 0.5) * (idx - k[:, 0].to(idx.dtype)).abs().le(0.5).to(idx.dtype)
 
 
 def subplane_depth(logp_bdhw: torch.Tensor, depths_d: torch.Tensor, depth_bhw: torch.Tensor) -> torch.Tensor:
