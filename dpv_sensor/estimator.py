@@ -168,8 +168,8 @@ class EstimatorConfig:
     num_planes: int = 64
     filter_mode: str = 'knet'
     depth_readout: str = dpv_ops.DEFAULT_READOUT
-    depth_subplane: bool = True
-    edge_filter_radius: int = 0
+    depth_subplane: bool = False
+    edge_filter_radius: int = 4
     edge_filter_sigma: float = 0.08
     confidence: str = dpv_ops.DEFAULT_CONFIDENCE
     confidence_ratio: float = 1.25

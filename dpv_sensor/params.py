@@ -63,11 +63,11 @@ SPECS: tuple[ParamSpec, ...] = (
               'expectation, paper eq. 1; lands between the modes of a two-mode DPV) or auto (relative with the '
               'network, mean with the classical model, whose flat DPVs the other two pull to the near planes).',
               choices=('auto', 'relative', 'median', 'mean')),
-    ParamSpec('depth_subplane', True, 'Refine the readout between depth planes: the vertex of a parabola through '
-              'the log-probabilities of the DPV\'s mode and its neighbours, blended with the readout by the '
-              'mass of those three planes. Off, a peaked DPV reads out on plane centres and slanted surfaces '
-              'come out as terraces.'),
-    ParamSpec('edge_filter_radius', 0, 'Edge-aware refinement of the network depth: every depth becomes the '
+    ParamSpec('depth_subplane', False, 'Shift the readout between depth planes by the sub-plane offset of the DPV\'s '
+              'peak (vertex of a parabola through the log-probabilities of the mode and its neighbours, weighted '
+              'by their mass). Off by default: the lite network\'s peaks sit farther than the relative readout, '
+              'and on a rendered selection scene it raised abs_rel from 0.141 to 0.158.'),
+    ParamSpec('edge_filter_radius', 4, 'Edge-aware refinement of the network depth: every depth becomes the '
               'weighted median of every second pixel within this radius (processing pixels), weighted by '
               'confidence and colour similarity, so depth edges move onto colour edges; 0 = off.',
               min_value=0, max_value=32),
