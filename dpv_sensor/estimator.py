@@ -152,7 +152,8 @@ class EstimatorConfig:
     ``config/dpv_sensor.yaml``). The rest are library-level knobs with sensible defaults:
     ``window_size`` (keyframes in a window, paper: 5), ``classical_downscale`` (volume = image / this),
     ``min_coverage`` (fraction of a ray's planes that must project into at least one source view for the
-    pixel to get an estimate), ``amp_dtype`` (autocast dtype of the networks on CUDA, or ``'none'``).
+    pixel to get an estimate), ``amp_dtype`` (autocast dtype of the networks on CUDA, or ``'none'``),
+    ``edge_filter_step`` (spacing of the samples of the edge-aware refinement; the cost falls with its square).
     ``torch_threads`` > 0 is applied with ``torch.set_num_threads`` when the Estimator is built (it is
     process-wide); 0 leaves torch's setting alone.
     """
@@ -191,6 +192,7 @@ class EstimatorConfig:
     classical_downscale: int = 4
     min_coverage: float = 0.5
     amp_dtype: str = 'bfloat16'
+    edge_filter_step: int = 2
 
     @classmethod
     def from_params(cls, values: Dict[str, Any]) -> 'EstimatorConfig':
@@ -214,6 +216,8 @@ class EstimatorConfig:
         one_of('confidence', dpv_ops.CONFIDENCES)
         if not (0 <= int(self.edge_filter_radius) <= 32):
             raise ValueError(f'edge_filter_radius must lie in [0, 32] (0 = off), got {self.edge_filter_radius}')
+        if not (1 <= int(self.edge_filter_step) <= 32):
+            raise ValueError(f'edge_filter_step must lie in [1, 32], got {self.edge_filter_step}')
         if not (0.0 < self.edge_filter_sigma <= 1.0):
             raise ValueError(f'edge_filter_sigma must lie in (0, 1], got {self.edge_filter_sigma}')
         if not (1.0 < self.confidence_ratio <= 10.0):
@@ -807,8 +811,8 @@ class Estimator:
             depth = dpv_ops.subplane_depth(logp_bdhw, self.depths_d, depth)
         conf = dpv_ops.published_confidence(logp_bdhw, self.depths_d, depth, cfg.confidence, cfg.confidence_ratio)
         if guide_b3hw is not None and cfg.edge_filter_radius > 0 and guide_b3hw.shape[-2:] == depth.shape[-2:]:
-            depth = joint_weighted_median(depth, conf, guide_b3hw, cfg.edge_filter_radius,
-                                          sigma_colour=cfg.edge_filter_sigma)
+            depth = joint_weighted_median(depth, conf, guide_b3hw, cfg.edge_filter_radius, cfg.edge_filter_step,
+                                          cfg.edge_filter_sigma)
         return depth, conf
 
     @staticmethod
