@@ -18,7 +18,7 @@ __all__ = ['joint_weighted_median']
 
 
 def joint_weighted_median(depth_bhw: torch.Tensor, weight_bhw: torch.Tensor, image_b3hw: torch.Tensor,
-                          radius: int = 6, step: int = 2, sigma_colour: float = 0.08) -> torch.Tensor:
+                          radius: int = 4, step: int = 4, sigma_colour: float = 0.08) -> torch.Tensor:
     """Depth (B, H, W) replaced by the weighted median of its neighbourhood (module docstring).
 
     Samples: every ``step``-th pixel within ``radius`` (Chebyshev) of each pixel. A sample's weight is its

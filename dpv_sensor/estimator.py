@@ -192,7 +192,7 @@ class EstimatorConfig:
     classical_downscale: int = 4
     min_coverage: float = 0.5
     amp_dtype: str = 'bfloat16'
-    edge_filter_step: int = 2
+    edge_filter_step: int = 4
 
     @classmethod
     def from_params(cls, values: Dict[str, Any]) -> 'EstimatorConfig':

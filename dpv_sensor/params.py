@@ -68,8 +68,9 @@ SPECS: tuple[ParamSpec, ...] = (
               'by their mass). Off by default: the lite network\'s peaks sit farther than the relative readout, '
               'and on a rendered selection scene it raised abs_rel from 0.141 to 0.158.'),
     ParamSpec('edge_filter_radius', 4, 'Edge-aware refinement of the network depth: every depth becomes the '
-              'weighted median of every second pixel within this radius (processing pixels), weighted by '
-              'confidence and colour similarity, so depth edges move onto colour edges; 0 = off.',
+              'weighted median of the pixels within this radius (processing pixels) sampled every 4 pixels (a 3x3 '
+              'grid at 4), weighted by confidence and colour similarity, so depth edges move onto colour edges; '
+              '0 = off.',
               min_value=0, max_value=32),
     ParamSpec('edge_filter_sigma', 0.08, 'Colour distance (RGB in [0, 1]) at which a neighbour\'s vote in the '
               'edge-aware refinement falls to exp(-1/2): smaller keeps depth edges on weaker colour edges.',
