@@ -20,7 +20,8 @@ __all__ = [
     'uniform_log', 'expected_depth', 'expected_index', 'argmax_depth', 'confidence', 'entropy',
     'nll', 'valid_depth_mask', 'one_hot_log', 'READOUTS', 'quantile_index', 'median_depth',
     'relative_depth', 'depth_estimate', 'estimate_index', 'DEFAULT_READOUT', 'READOUT_CHOICES', 'resolve_readout',
-    'ratio_confidence', 'published_confidence', 'CONFIDENCES', 'DEFAULT_CONFIDENCE',
+    'ratio_confidence', 'published_confidence', 'CONFIDENCES', 'DEFAULT_CONFIDENCE', 'subplane_index',
+    'subplane_depth',
 ]
 
 # Lowest log-probability we keep anywhere in the filter (e^-30 ~ 1e-13): a zero-probability
@@ -184,6 +185,46 @@ def estimate_index(logp_bdhw: torch.Tensor, depths_d: torch.Tensor, readout: str
     """Fractional plane index of :func:`depth_estimate`; shape (B, H, W)."""
     d = _planes(depths_d, logp_bdhw)
     return inverse_depth_index(depth_estimate(logp_bdhw, d, readout), d[0], d[-1], logp_bdhw.shape[1])
+
+
+def subplane_index(logp_bdhw: torch.Tensor, index_bhw: torch.Tensor) -> torch.Tensor:
+    """A readout index refined below the plane spacing; shape (B, H, W).
+
+    A peaked DPV puts nearly all its mass on one plane, and every readout above then lands on (or next
+    to) that plane's centre: a smooth slanted surface comes out as terraces one plane apart. The
+    log-probabilities of a peak are close to a parabola in the index (a Gaussian in inverse depth), so
+    the vertex of the parabola through the mode and its two neighbours says where between planes the
+    peak lies (as sub-pixel stereo refines a disparity). The readout is shifted by the vertex's offset
+    from the mode's plane (at most half a plane), weighted by the mass of those three planes: a peaked
+    DPV moves its readout onto the vertex, a wide one keeps its readout (and the readout's own choice,
+    e.g. the relative readout's lean towards the camera, is kept either way). The mode is the most
+    probable plane among the three nearest to ``index``; where it is not a local maximum or lies on the
+    first or last plane, ``index`` is returned unchanged (NaN stays NaN).
+    """
+    D = logp_bdhw.shape[1]
+    if D < 3:
+        return index_bhw
+    idx = index_bhw.to(logp_bdhw.dtype)
+    k0 = torch.nan_to_num(idx, nan=1.0).round().clamp(1, D - 2).long()[:, None]   # B,1,H,W (NaN stays NaN below)
+    trio = torch.cat([logp_bdhw.gather(1, k0 + o) for o in (-1, 0, 1)], 1)  # B,3,H,W
+    k = (k0 + trio.argmax(1, keepdim=True) - 1).clamp(1, D - 2)
+    lm, l0, lp = (logp_bdhw.gather(1, k + o)[:, 0] for o in (-1, 0, 1))
+    curv = lm - 2.0 * l0 + lp
+    peak = (l0 >= lm) & (l0 >= lp) & (curv < 0)
+    offset = torch.where(peak, 0.5 * (lm - lp) / torch.where(peak, curv, -torch.ones_like(curv)),
+                         torch.zeros_like(curv)).clamp(-0.5, 0.5)
+    mass = torch.where(peak, torch.exp(lm) + torch.exp(l0) + torch.exp(lp), torch.zeros_like(curv)).clamp(0.0, 1.0)
+    # a peaked readout sits near the mode's centre, so (k + offset) - k is the correction it lacks
+    target = k[:, 0].to(idx.dtype) + offset
+    return idx + mass * (target - idx).clamp(-0.5, 0.5) * (idx - k[:, 0].to(idx.dtype)).abs().le(0.5).to(idx.dtype)
+
+
+def subplane_depth(logp_bdhw: torch.Tensor, depths_d: torch.Tensor, depth_bhw: torch.Tensor) -> torch.Tensor:
+    """:func:`subplane_index` applied to a depth readout: depth in, refined depth out (B, H, W)."""
+    d = _planes(depths_d, logp_bdhw)
+    D = logp_bdhw.shape[1]
+    idx = inverse_depth_index(depth_bhw.to(logp_bdhw.dtype), d[0], d[-1], D)
+    return index_to_depth(subplane_index(logp_bdhw, idx), d[0], d[-1], D).to(depth_bhw.dtype)
 
 
 def _mass_in_index_window(logp_bdhw: torch.Tensor, lo_b1hw: torch.Tensor, hi_b1hw: torch.Tensor) -> torch.Tensor:

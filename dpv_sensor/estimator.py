@@ -129,6 +129,7 @@ from . import geometry
 from .continuity import DUPLICATE, stream_break, time_order
 from . import image_quality, parallax
 from .frame import DepthOutput, Frame
+from .edge_filter import joint_weighted_median
 from .geometry import resample_to_camera, scale_intrinsics_np  # noqa: F401  (resample_to_camera: used here)
 from .keyframes import WINDOW_MODES, Keyframe, KeyframeSelector, KeyframeWindow  # noqa: F401
 from .nets.model import cpu_bf16_fast
@@ -640,7 +641,7 @@ class Estimator:
             with self._autocast():
                 full = self.model.refine(post, meas.feats, ref.image_b3hw)
             full = full.float()
-            depth, conf = self._readout(full)
+            depth, conf = self._readout(full, ref.image_b3hw)
             if support is not None:
                 conf = conf * resample_to_camera(support[:, None], meas.K_vol_b33[0], K_proc_t, (H, W))[:, 0]
             valid = resample_to_camera(coverage[:, None].float(), meas.K_vol_b33[0], K_proc_t, (H, W),
@@ -690,12 +691,22 @@ class Estimator:
         self._pending_reset_reason = None
         return reason
 
-    def _readout(self, logp_bdhw: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
+    def _readout(self, logp_bdhw: torch.Tensor, guide_b3hw: Optional[torch.Tensor] = None
+                 ) -> Tuple[torch.Tensor, torch.Tensor]:
         """(depth, confidence), each (B, H, W), of a DPV with the configured ``depth_readout`` and
-        ``confidence``."""
+        ``confidence``; with ``depth_subplane`` the depth is refined between planes
+        (``dpv.subplane_depth``), and with a colour ``guide_b3hw`` of the same size and
+        ``edge_filter_radius`` > 0 it is then filtered edge-aware: the weighted median of its neighbourhood,
+        weighted by confidence and colour similarity (``edge_filter.joint_weighted_median``)."""
+        cfg = self.config
         depth = dpv_ops.depth_estimate(logp_bdhw, self.depths_d, self.readout)
-        return depth, dpv_ops.published_confidence(logp_bdhw, self.depths_d, depth, self.config.confidence,
-                                                   self.config.confidence_ratio)
+        if cfg.depth_subplane:
+            depth = dpv_ops.subplane_depth(logp_bdhw, self.depths_d, depth)
+        conf = dpv_ops.published_confidence(logp_bdhw, self.depths_d, depth, cfg.confidence, cfg.confidence_ratio)
+        if guide_b3hw is not None and cfg.edge_filter_radius > 0 and guide_b3hw.shape[-2:] == depth.shape[-2:]:
+            depth = joint_weighted_median(depth, conf, guide_b3hw, cfg.edge_filter_radius, cfg.edge_filter_step,
+                                          cfg.edge_filter_sigma)
+        return depth, conf
 
     @staticmethod
     def _ms(t: float) -> float:

@@ -310,7 +310,7 @@ def score_records(records: SequenceT[KeyframeRecord], *, min_depth: Optional[flo
     prev: Optional[KeyframeRecord] = None
     for k, r in iterator:
         te, re = _pose_error(r.T_world_cam_44, r.gt_T_world_cam_44)
-        row = acc.add(r.depth_hw, r.gt_depth_hw, r.confidence_hw, index=r.index, stamp=r.stamp,
+        row = acc.add(r.depth_hw, r.gt_depth_hw, r.confidence_hw, K=r.K_33, index=r.index, stamp=r.stamp,
                       time_ms=r.time_ms, pose_err_m=te, pose_err_deg=re, reset=bool(r.reset_reason))
         row['temporal'] = float('nan')
         row['temporal_pixels'] = 0
@@ -590,6 +590,9 @@ _TABLE_COLUMNS = [
     ('const abs_rel', ('constant', 'frame_mean', 'abs_rel'), '{:.4f}'),
     ('const d1', ('constant', 'frame_mean', 'delta1'), '{:.3f}'),
     ('coverage', ('coverage', 'frame_mean'), '{:.3f}'),
+    ('edge abs_rel', ('edges', 'edge_abs_rel_frame_mean'), '{:.4f}'),
+    ('non-edge abs_rel', ('edges', 'nonedge_abs_rel_frame_mean'), '{:.4f}'),
+    ('normal°', ('edges', 'normal_err_deg_frame_mean'), '{:.1f}'),
     ('temporal', ('temporal_consistency', 'pair_mean'), '{:.4f}'),
     ('AUSE', ('confidence', 'ause_frame_mean'), '{:.4f}'),
     ('conf½/all', ('confidence', 'confident_half_ratio_frame_mean'), '{:.3f}'),

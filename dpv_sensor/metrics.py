@@ -44,7 +44,8 @@ __all__ = [
     'ERROR_METRICS', 'DEFAULT_FRACTIONS', 'gt_valid_mask', 'pred_valid_mask', 'evaluation_mask',
     'median_scale', 'error_sums', 'metrics_from_sums', 'depth_metrics', 'frame_metrics',
     'temporal_consistency', 'sparsification', 'ause', 'aurg', 'confident_half_ratio', 'MetricAccumulator',
-    'dpv_nll',
+    'dpv_nll', 'EDGE_JUMP', 'EDGE_RADIUS', 'NORMAL_WINDOW', 'normal_window', 'PLANAR_CONSISTENCY', 'depth_edge_band',
+    'depth_normals', 'planar_mask', 'edge_planarity_metrics',
 ]
 
 ERROR_METRICS = ('abs_rel', 'sq_rel', 'rmse', 'rmse_log', 'delta1', 'delta2', 'delta3', 'si_log')
@@ -183,6 +184,144 @@ def frame_metrics(pred: np.ndarray, gt: np.ndarray, *, min_depth: Optional[float
     return {'metric': depth_metrics(pred, gt, min_depth=min_depth, max_depth=max_depth),
             'median_scaled': depth_metrics(pred, gt, median_scaling=True, min_depth=min_depth,
                                            max_depth=max_depth)}
+
+
+# ----------------------------------------------------------------------------------------------
+# Depth edges and planar surfaces
+# ----------------------------------------------------------------------------------------------
+#
+# Two views of the *shape* of a depth image that the pixel averages above hide. Edges: abs_rel in the
+# band within ``radius`` pixels (Chebyshev distance) of a GT depth jump (two 4-neighbours whose GT depths
+# differ by more than ``jump``, relative to the nearer) against abs_rel elsewhere: blurred or misplaced
+# object boundaries raise the first. Planarity: the angle between surface normals of prediction and GT on
+# GT planar regions: terraces (steps between depth planes) and bumps raise it while barely moving abs_rel.
+# Normals are the smallest principal axis of the back-projected points in a ``window`` x ``window``
+# neighbourhood (a local plane fit, robust to sensor noise and quantisation), oriented towards the camera.
+# The default window grows with the image (:func:`normal_window`: width / 16, odd, at least 7; 41 px at
+# 640 wide, about 15 cm at 2 m): a 7 px fit on a 640 px image spans 3 cm at 2 m, less than the depth
+# noise of any sensor here, and its normals would score noise rather than shape.
+# A pixel is planar when its whole GT window is valid, it is outside the edge band, and the GT normals of
+# its window agree: the length of their mean is at least ``planar_consistency`` (0.995: a mean angular
+# spread of about 6 degrees).
+
+EDGE_JUMP = 0.10
+EDGE_RADIUS = 3
+NORMAL_WINDOW = 7          # the smallest window (and the one of images up to 127 px wide)
+
+
+def normal_window(width: int) -> int:
+    """The default normal window of an image ``width`` pixels wide: width / 16, made odd, at least 7."""
+    return max(NORMAL_WINDOW, (int(width) // 16) | 1)
+PLANAR_CONSISTENCY = 0.995
+
+
+def depth_edge_band(gt: np.ndarray, jump: float = EDGE_JUMP, radius: int = EDGE_RADIUS) -> np.ndarray:
+    """(H, W) bool: pixels within ``radius`` px (Chebyshev) of a GT depth jump larger than ``jump``.
+
+    A jump is a pair of 4-neighbours, both with valid GT, whose depths differ by more than ``jump`` times
+    the nearer one; both pixels of the pair are edge pixels. Invalid GT never makes an edge."""
+    from scipy.ndimage import binary_dilation
+    g = np.asarray(gt, np.float64)
+    valid = gt_valid_mask(g)
+    gz = np.where(valid, g, 1.0)
+    edge = np.zeros(g.shape, bool)
+    for a, b, va, vb in ((gz[:, :-1], gz[:, 1:], valid[:, :-1], valid[:, 1:]),
+                         (gz[:-1, :], gz[1:, :], valid[:-1, :], valid[1:, :])):
+        j = va & vb & (np.maximum(a, b) > (1.0 + jump) * np.minimum(a, b))
+        if a.shape[1] != g.shape[1]:
+            edge[:, :-1] |= j
+            edge[:, 1:] |= j
+        else:
+            edge[:-1, :] |= j
+            edge[1:, :] |= j
+    if radius > 0 and edge.any():
+        edge = binary_dilation(edge, structure=np.ones((2 * radius + 1, 2 * radius + 1), bool))
+    return edge
+
+
+def depth_normals(depth: np.ndarray, K: np.ndarray, window: Optional[int] = None) -> Tuple[np.ndarray, np.ndarray]:
+    """Surface normals of a z-depth image: ((H, W, 3) unit normals facing the camera, (H, W) bool valid).
+
+    Each normal is the smallest principal axis of the back-projected points (intrinsics ``K``) of the
+    ``window`` x ``window`` neighbourhood (default :func:`normal_window`); valid where that whole
+    neighbourhood has depth (finite, > 0)."""
+    from scipy.ndimage import uniform_filter
+    z = np.asarray(depth, np.float64)
+    H, W = z.shape
+    window = normal_window(W) if window is None else int(window)
+    K = np.asarray(K, np.float64)
+    valid = pred_valid_mask(z)
+    z0 = np.where(valid, z, 0.0)
+    u, v = np.meshgrid(np.arange(W, dtype=np.float64), np.arange(H, dtype=np.float64))
+    X = (u - K[0, 2]) / K[0, 0] * z0
+    Y = (v - K[1, 2]) / K[1, 1] * z0
+    P = (X, Y, z0)
+
+    def box(a):
+        return uniform_filter(a, size=window, mode='constant', cval=0.0)
+
+    full = box(valid.astype(np.float64)) > 1.0 - 1e-9
+    normals = np.zeros((H, W, 3), np.float64)
+    if not full.any():
+        return normals, full
+    mu = [box(p)[full] for p in P]
+    C = np.empty((int(full.sum()), 3, 3), np.float64)
+    for i in range(3):
+        for j in range(i, 3):
+            C[:, i, j] = C[:, j, i] = box(P[i] * P[j])[full] - mu[i] * mu[j]
+    _w, vecs = np.linalg.eigh(C)
+    n = vecs[:, :, 0]                                         # eigenvalues ascending: smallest axis
+    centre = np.stack(mu, 1)
+    n = np.where((np.sum(n * centre, 1) > 0)[:, None], -n, n)  # face the camera
+    normals[full] = n / np.linalg.norm(n, axis=1, keepdims=True)
+    return normals, full
+
+
+def planar_mask(gt: np.ndarray, K: np.ndarray, window: Optional[int] = None,
+                consistency: float = PLANAR_CONSISTENCY, edge_band: Optional[np.ndarray] = None,
+                normals: Optional[Tuple[np.ndarray, np.ndarray]] = None) -> np.ndarray:
+    """(H, W) bool: GT planar pixels (see the section comment): GT normal valid, outside ``edge_band``
+    (default :func:`depth_edge_band` of ``gt``), and the GT normals of the window agree."""
+    from scipy.ndimage import uniform_filter
+    window = normal_window(np.shape(gt)[1]) if window is None else int(window)
+    n, ok = normals if normals is not None else depth_normals(gt, K, window)
+    band = depth_edge_band(gt) if edge_band is None else edge_band
+    okf = ok.astype(np.float64)
+    full = uniform_filter(okf, size=window, mode='constant') > 1.0 - 1e-9
+    mean = np.stack([uniform_filter(n[..., i] * okf, size=window, mode='constant') for i in range(3)], -1)
+    return ok & full & ~band & (np.linalg.norm(mean, axis=-1) >= consistency)
+
+
+def edge_planarity_metrics(pred: np.ndarray, gt: np.ndarray, K: Optional[np.ndarray] = None, *,
+                           min_depth: Optional[float] = None, max_depth: Optional[float] = None,
+                           jump: float = EDGE_JUMP, radius: int = EDGE_RADIUS,
+                           window: Optional[int] = None) -> Dict[str, float]:
+    """Edge and planarity measures of one frame (metric depth, clipped like the other measures).
+
+    ``edge_abs_rel`` / ``nonedge_abs_rel``: abs_rel over evaluated pixels inside / outside the GT edge band
+    (:func:`depth_edge_band`); ``edge_pixels``. With ``K``: ``normal_err_deg`` (mean angle between the
+    predicted and GT normals over the GT planar pixels where the prediction has a normal) and
+    ``planar_pixels`` (how many such pixels). NaN where no pixel qualifies."""
+    pred = np.asarray(pred, np.float64)
+    gt = np.asarray(gt, np.float64)
+    m = evaluation_mask(pred, gt, min_depth, max_depth)
+    band = depth_edge_band(gt, jump, radius)
+    out: Dict[str, float] = {}
+    for key, sel in (('edge', m & band), ('nonedge', m & ~band)):
+        p = _clip(pred[sel], min_depth, max_depth)
+        g = gt[sel]
+        out[f'{key}_abs_rel'] = float(np.mean(np.abs(p - g) / g)) if g.size else float('nan')
+    out['edge_pixels'] = int((m & band).sum())
+    if K is not None:
+        g_in = np.where(gt_valid_mask(gt, min_depth, max_depth), gt, np.nan)
+        gn = depth_normals(g_in, K, window)
+        planar = planar_mask(g_in, K, window, edge_band=band, normals=gn)
+        pn, pok = depth_normals(pred, K, window)
+        sel = planar & pok
+        cos = np.clip(np.sum(pn[sel] * gn[0][sel], axis=1), -1.0, 1.0)
+        out['normal_err_deg'] = float(np.degrees(np.arccos(cos)).mean()) if cos.size else float('nan')
+        out['planar_pixels'] = int(sel.sum())
+    return out
 
 
 # ----------------------------------------------------------------------------------------------
@@ -403,10 +542,12 @@ class MetricAccumulator:
     _pooled: List[Tuple[np.ndarray, np.ndarray]] = field(default_factory=list)
 
     def add(self, pred: np.ndarray, gt: np.ndarray, confidence: Optional[np.ndarray] = None,
-            **extra) -> Dict:
+            K: Optional[np.ndarray] = None, **extra) -> Dict:
         """Score one frame; ``extra`` (e.g. index=, stamp=) is copied into its row. Returns the row:
         flat keys ``<metric>`` (metric), ``ms_<metric>`` (median-scaled), coverage, num_pixels,
-        scale, and with confidence ``ause``, ``confident_half_ratio``, ``mean_confidence``."""
+        scale, the edge measures of :func:`edge_planarity_metrics` (``edge_abs_rel``, ``nonedge_abs_rel``,
+        ``edge_pixels``; with the intrinsics ``K`` of the images also ``normal_err_deg``, ``planar_pixels``),
+        and with confidence ``ause``, ``confident_half_ratio``, ``mean_confidence``."""
         gvalid = gt_valid_mask(gt, self.min_depth, self.max_depth)
         m = evaluation_mask(pred, gt, self.min_depth, self.max_depth)
         p = np.asarray(pred, np.float64)[m]
@@ -435,6 +576,7 @@ class MetricAccumulator:
         self._n_eval += int(m.sum())
         row['coverage'] = (m.sum() / n_gt) if n_gt else float('nan')
         row['num_pixels'] = int(m.sum())
+        row.update(edge_planarity_metrics(pred, gt, K, min_depth=self.min_depth, max_depth=self.max_depth))
         if confidence is not None:
             conf = np.asarray(confidence, np.float64)
             if conf.shape != np.shape(gt):
@@ -454,6 +596,21 @@ class MetricAccumulator:
                 row['confident_half_ratio'] = float('nan')
         self.rows.append(row)
         return row
+
+    def _edge_summary(self) -> Dict[str, float]:
+        """Edge-band / elsewhere abs_rel and planar normal error: frame means, and pixel-weighted means
+        (each frame's value weighted by its edge / planar pixel count)."""
+        def weighted(key, count):
+            pairs = [(r.get(key), r.get(count, 0)) for r in self.rows]
+            pairs = [(v, n) for v, n in pairs if v is not None and np.isfinite(v) and n > 0]
+            tot = sum(n for _, n in pairs)
+            return sum(v * n for v, n in pairs) / tot if tot else float('nan')
+        return {'edge_abs_rel_frame_mean': _nanmean(r.get('edge_abs_rel') for r in self.rows),
+                'nonedge_abs_rel_frame_mean': _nanmean(r.get('nonedge_abs_rel') for r in self.rows),
+                'normal_err_deg_frame_mean': _nanmean(r.get('normal_err_deg') for r in self.rows),
+                'edge_abs_rel_pixel_weighted': weighted('edge_abs_rel', 'edge_pixels'),
+                'normal_err_deg_pixel_weighted': weighted('normal_err_deg', 'planar_pixels'),
+                'jump': EDGE_JUMP, 'radius_px': EDGE_RADIUS, 'normal_window': 'image width / 16, odd, >= 7 px'}
 
     def add_temporal(self, value: float, num_pixels: int) -> None:
         """Record the temporal consistency of one pair of consecutive keyframes."""
@@ -490,6 +647,7 @@ class MetricAccumulator:
                                           'delta1': _nanmean(r.get('const_delta1') for r in self.rows)}}
         out['coverage'] = {'frame_mean': _nanmean(r.get('coverage') for r in self.rows),
                            'pixel_weighted': (self._n_eval / self._n_gt) if self._n_gt else float('nan')}
+        out['edges'] = self._edge_summary()
         curves = self.mean_curves()
         if curves is not None:
             out['confidence'] = {

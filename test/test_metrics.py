@@ -315,3 +315,97 @@ def test_constant_baseline_is_the_median_gt_on_the_scored_pixels():
     assert row['const_abs_rel'] == pytest.approx((1.0 + 0.2 / 2.2) / 3)
     assert row['const_delta1'] == pytest.approx(2 / 3)
     assert acc.summary()['constant']['frame_mean']['abs_rel'] == pytest.approx((1.0 + 0.2 / 2.2) / 3)
+
+
+# ----------------------------------------------------------------------------------------------
+# depth edges and planar normals
+# ----------------------------------------------------------------------------------------------
+
+def _step_gt(h=20, w=40, near=1.0, far=2.0, col=20):
+    gt = np.full((h, w), near)
+    gt[:, col:] = far
+    return gt
+
+
+def test_edge_band_is_the_columns_within_radius_of_the_jump():
+    gt = _step_gt()
+    band = M.depth_edge_band(gt, jump=0.10, radius=3)
+    # the jump lies between columns 19 and 20: both are edge pixels, the band is columns 16..23
+    expected = np.zeros_like(band)
+    expected[:, 16:24] = True
+    assert np.array_equal(band, expected)
+    # a 5 % step is not a jump at 10 %, and invalid GT makes no edge
+    assert not M.depth_edge_band(_step_gt(far=1.05)).any()
+    holes = np.full((20, 40), 1.0)
+    holes[:, 20:] = 0.0
+    assert not M.depth_edge_band(holes).any()
+
+
+def test_edge_abs_rel_separates_the_band_from_the_rest():
+    gt = _step_gt()
+    pred = gt.copy()
+    pred[:, 16:24] *= 1.1             # 10 % wrong in the band only
+    m = M.edge_planarity_metrics(pred, gt)
+    assert m['edge_abs_rel'] == pytest.approx(0.1)
+    assert m['nonedge_abs_rel'] == pytest.approx(0.0, abs=1e-12)
+    assert m['edge_pixels'] == 20 * 8
+    assert 'normal_err_deg' not in m  # no intrinsics, no normals
+
+
+def _tilted_plane_depth(h, w, K, n, d):
+    """z-depth of the plane n . X = d seen through K."""
+    u, v = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
+    rays = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)], -1)
+    return d / (rays @ np.asarray(n, np.float64))
+
+
+def test_normals_of_a_tilted_plane_and_the_error_of_a_flat_prediction():
+    h, w = 48, 64
+    K = np.array([[60.0, 0, 32], [0, 60.0, 24], [0, 0, 1]])
+    tilt = np.radians(30.0)
+    n = np.array([0.0, np.sin(tilt), np.cos(tilt)])      # plane turned 30 degrees about the x axis
+    gt = _tilted_plane_depth(h, w, K, n, 2.0)
+    normals, ok = M.depth_normals(gt, K, window=7)
+    assert ok[3:-3, 3:-3].all() and not ok[:3].any()     # a full 7x7 window is needed
+    # facing the camera: the normal is -n
+    assert np.allclose(normals[ok], -n, atol=1e-6)
+    planar = M.planar_mask(gt, K)
+    # planar needs a full window of GT normals: 3 more pixels off each border
+    assert planar[6:-6, 6:-6].all() and planar.sum() == (h - 12) * (w - 12)
+    m = M.edge_planarity_metrics(gt, gt, K)
+    assert m['normal_err_deg'] == pytest.approx(0.0, abs=1e-3)
+    assert m['planar_pixels'] == int(planar.sum())
+    # a fronto-parallel prediction (constant depth) is 30 degrees off everywhere
+    flat = np.full_like(gt, float(np.median(gt)))
+    assert M.edge_planarity_metrics(flat, gt, K)['normal_err_deg'] == pytest.approx(30.0, abs=1e-3)
+
+
+def test_terraces_raise_the_normal_error_but_not_on_a_smooth_plane():
+    h, w = 48, 64
+    K = np.array([[60.0, 0, 32], [0, 60.0, 24], [0, 0, 1]])
+    n = np.array([0.0, np.sin(np.radians(60.0)), np.cos(np.radians(60.0))])
+    gt = _tilted_plane_depth(h, w, K, n, 1.5)
+    inv = 1.0 / gt
+    step = (inv.max() - inv.min()) / 8                    # 8 terraces in inverse depth
+    terraced = 1.0 / (np.round(inv / step) * step)
+    m = M.edge_planarity_metrics(terraced, gt, K)
+    assert m['normal_err_deg'] > 5.0
+    assert M.edge_planarity_metrics(gt, gt, K)['normal_err_deg'] < 1e-3
+
+
+def test_normal_window_grows_with_the_image():
+    assert M.normal_window(64) == 7 and M.normal_window(320) == 21 and M.normal_window(640) == 41
+
+
+def test_accumulator_reports_edges_and_normals():
+    K = np.array([[30.0, 0, 20], [0, 30.0, 10], [0, 0, 1]])
+    gt = _step_gt()
+    pred = gt.copy()
+    pred[:, 20:] *= 1.2               # the far half 20 % too far: half of the band and half of the rest
+    acc = M.MetricAccumulator()
+    row = acc.add(pred, gt, K=K)
+    assert row['edge_abs_rel'] == pytest.approx(0.1)
+    assert row['normal_err_deg'] == pytest.approx(0.0, abs=1e-3)   # both halves stay fronto-parallel
+    e = acc.summary()['edges']
+    assert e['edge_abs_rel_frame_mean'] == pytest.approx(0.1)
+    assert e['nonedge_abs_rel_frame_mean'] == pytest.approx(0.1)
