@@ -6,7 +6,8 @@ dpv_sensor.msgs; image poses come from dpv_sensor.pose_buffer.
 
 Topics (relative names, remappable):
   in   image (sensor_msgs/Image rgb8/bgr8/rgba8/bgra8/mono8), camera_info (sensor_msgs/CameraInfo),
-       odom (nav_msgs/Odometry) - sensor-data QoS by default (input_reliability, input_depth)
+       odom (nav_msgs/Odometry) - QoS: input_reliability (auto: as the publishers offer), input_depth; transport:
+       dpv_sensor.transport (docs/transport.md)
   out  depth/image (32FC1 m, NaN = none | 16UC1 mm, 0 = none), depth/camera_info (K of the output size),
        confidence/image (32FC1 in [0, 1]), points (PointCloud2 XYZRGB, only computed while subscribed),
        pose (PoseStamped, with pose_refinement or odometry none), /diagnostics (DiagnosticArray)
@@ -36,7 +37,7 @@ import sys
 import threading
 import time
 import traceback
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 from dpv_sensor import params as P
 
@@ -303,12 +304,26 @@ class _Incoming:
     receipt_ns: int      # wall clock (ns) at receipt
     gap_ns: int | None = None  # longest stamp interval between consecutive received images up to this one, since
     #                            the previous item the worker took (None: first image, or time went backwards)
+    loss_gaps: list = field(default_factory=list)  # stream_loss.Gap of intervals with images lost in transport
+    #                            (their interval is not in gap_ns: see _camera_gap_ns)
 
 
 def _merge_incoming(dropped: _Incoming, new: _Incoming) -> _Incoming:
     """Mailbox merge: the image replacing a dropped one inherits the dropped one's stream gap."""
     new.gap_ns = _max_gap(dropped.gap_ns, new.gap_ns)
+    new.loss_gaps = dropped.loss_gaps + new.loss_gaps
     return new
+
+
+# ---- [stream loss hook] ------------------------------------------------------------------------------------------
+def _camera_gap_ns(item: _Incoming) -> int | None:
+    """The camera stream's longest gap up to `item`: a stamp interval whose missing images were all reported lost by
+    the middleware counts as one frame period (the camera kept running), read when the worker takes the item (the
+    report may be handled after the image that ends the gap)."""
+    gap = item.gap_ns
+    for lost in item.loss_gaps:
+        gap = _max_gap(gap, lost.camera_gap_ns)
+    return gap
 
 
 @dataclass
@@ -380,17 +395,22 @@ class DepthCameraNode(_node_base()):
 
         # --- QoS, subscriptions, publishers ------------------------------------------------------------------
         rel = {'best_effort': ReliabilityPolicy.BEST_EFFORT, 'reliable': ReliabilityPolicy.RELIABLE}
-        in_qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=cfg['input_depth'],
-                            reliability=rel[cfg['input_reliability']], durability=DurabilityPolicy.VOLATILE)
         out_qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=cfg['output_depth'],
                              reliability=rel[cfg['output_reliability']], durability=DurabilityPolicy.VOLATILE)
-        self.sub_image = self.create_subscription(Image, 'image', self._on_image, in_qos)
-        self.sub_info = None
+        # ---- [input QoS hook] subscriptions at the reliability the publishers offer (see _adapt_input_qos) ----
+        from dpv_sensor.stream_loss import StreamLoss
+        self.stream_loss = StreamLoss()                 # images lost before _on_image (callback thread only)
+        self._inputs = {'image': (Image, self._on_image)}
         if cfg['camera_info_source'] == 'topic':
-            self.sub_info = self.create_subscription(CameraInfo, 'camera_info', self._on_camera_info, in_qos)
-        self.sub_odom = None
+            self._inputs['camera_info'] = (CameraInfo, self._on_camera_info)
         if cfg['odometry'] == 'topic':
-            self.sub_odom = self.create_subscription(Odometry, 'odom', self._on_odom, in_qos)
+            self._inputs['odom'] = (Odometry, self._on_odom)
+        self._input_subs: dict = {}
+        self._input_reliability: dict = {}
+        for topic in self._inputs:
+            self._subscribe_input(topic, 'reliable' if cfg['input_reliability'] == 'reliable' else 'best_effort')
+        if cfg['input_reliability'] == 'auto':
+            self.create_timer(1.0, self._adapt_input_qos)
         self.pub_depth = self.create_publisher(Image, 'depth/image', out_qos)
         self.pub_depth_info = self.create_publisher(CameraInfo, 'depth/camera_info', out_qos)
         self.pub_conf = self.create_publisher(Image, 'confidence/image', out_qos)
@@ -443,6 +463,47 @@ class DepthCameraNode(_node_base()):
             f"image='{self.sub_image.topic_name}' camera_info="
             f"'{self.sub_info.topic_name if self.sub_info else 'parameters'}' "
             f"odom='{self.sub_odom.topic_name if self.sub_odom else 'none'}'")
+
+    # ---- [input QoS hook] ----------------------------------------------------------------------------------------
+    sub_image = property(lambda self: self._input_subs['image'])
+    sub_info = property(lambda self: self._input_subs.get('camera_info'))
+    sub_odom = property(lambda self: self._input_subs.get('odom'))
+
+    def _subscribe_input(self, topic: str, reliability: str) -> None:
+        """(Re)create the subscription of input `topic` with `reliability`; the image subscription also counts the
+        samples the middleware reports lost (where it reports them)."""
+        from rclpy.event_handler import SubscriptionEventCallbacks
+        from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+        old = self._input_subs.pop(topic, None)
+        if old is not None:
+            self.destroy_subscription(old)
+        rel = {'best_effort': ReliabilityPolicy.BEST_EFFORT, 'reliable': ReliabilityPolicy.RELIABLE}[reliability]
+        qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=self.config['input_depth'], reliability=rel,
+                         durability=DurabilityPolicy.VOLATILE)
+        events = None
+        if topic == 'image':
+            events = SubscriptionEventCallbacks(
+                message_lost=lambda info: self.stream_loss.on_rmw_lost(int(info.total_count_change)))
+        msg_type, callback = self._inputs[topic]
+        self._input_subs[topic] = self.create_subscription(msg_type, topic, callback, qos, event_callbacks=events)
+        self._input_reliability[topic] = reliability
+
+    def _adapt_input_qos(self) -> None:
+        """input_reliability auto: follow what the publishers of each input offer (transport.choose_reliability)."""
+        from rclpy.qos import ReliabilityPolicy
+        from dpv_sensor.transport import choose_reliability
+        for topic, sub in list(self._input_subs.items()):
+            try:
+                infos = self.get_publishers_info_by_topic(sub.topic_name)
+            except Exception:
+                continue
+            offered = ['reliable' if i.qos_profile.reliability == ReliabilityPolicy.RELIABLE else 'best_effort'
+                       for i in infos]
+            want = choose_reliability('auto', offered)
+            if want != self._input_reliability[topic]:
+                self.get_logger().info(f"input {sub.topic_name}: publishers offer {', '.join(sorted(set(offered)))}"
+                                       f'; subscribing {want}')
+                self._subscribe_input(topic, want)
 
     # ------------------------------------------------------------------------------------------ construction
     def _make_estimator(self):
@@ -504,7 +565,10 @@ class DepthCameraNode(_node_base()):
             stamp_ns = None
         last, self._last_received_stamp_ns = self._last_received_stamp_ns, stamp_ns
         gap_ns = stamp_ns - last if stamp_ns is not None and last is not None and stamp_ns > last else None
-        if self._mailbox.put(_Incoming(msg, time.monotonic(), time.time_ns(), gap_ns)):
+        # ---- [stream loss hook] images missing before this one: counted, and their interval judged later
+        lost = self.stream_loss.on_image(stamp_ns) if stamp_ns is not None else None
+        if self._mailbox.put(_Incoming(msg, time.monotonic(), time.time_ns(), None if lost else gap_ns,
+                                       [lost] if lost else [])):
             with self._stats_lock:
                 self.dropped[BUSY] += 1
             self.faults.report(BUSY, 'estimator busy: dropping an older image that was still waiting (newest wins; '
@@ -611,7 +675,7 @@ class DepthCameraNode(_node_base()):
         stamp_ns = M.stamp_to_ns(msg.header.stamp)
         frame_id = msg.header.frame_id
         # the stream's longest image gap since the last push: images dropped here (bad input, no pose) count too
-        self._gap_carry_ns = _max_gap(self._gap_carry_ns, item.gap_ns)
+        self._gap_carry_ns = _max_gap(self._gap_carry_ns, _camera_gap_ns(item))   # [stream loss hook]
 
         # 1. decode
         try:
@@ -847,6 +911,7 @@ class DepthCameraNode(_node_base()):
         }
         for reason, n in sorted(dropped.items()):
             values[f'dropped.{reason}'] = n
+        values.update(self.stream_loss.counts())          # [stream loss hook] lost.* and input_period_ms
         for kind, n in sorted(self.faults.counts.items()):
             values[f'faults.{kind}'] = n
         values['filter_resets'] = st.get('resets', self._node_resets)
@@ -870,6 +935,8 @@ class DepthCameraNode(_node_base()):
         values['pose_buffer_size'] = len(self.pose_buffer)
         # matched publishers of the inputs, as this node's subscriptions see them (0: nothing arrives)
         values['publishers.image'] = self.sub_image.get_publisher_count()
+        for topic, reliability in self._input_reliability.items():   # [input QoS hook]
+            values[f'input_qos.{topic}'] = reliability
         if self.sub_info is not None:
             values['publishers.camera_info'] = self.sub_info.get_publisher_count()
         if self.sub_odom is not None:
@@ -916,6 +983,9 @@ class DepthCameraNode(_node_base()):
 
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv if argv is None else argv
+    # ---- [transport hook] the node's DDS transport, before rclpy starts (the middleware reads it at init)
+    from dpv_sensor.transport import configure as configure_transport
+    transport_note = configure_transport()
     parser = argparse.ArgumentParser(
         prog='node', description='dpv_sensor: virtual RGB-D camera from monocular RGB + odometry. '
         'ROS arguments go after --ros-args, e.g. --ros-args --params-file config/dpv_sensor.yaml')
@@ -954,6 +1024,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         node = DepthCameraNode()
         node.get_logger().info(arenas_note)
+        node.get_logger().info(transport_note)              # [transport hook]
         executor = SingleThreadedExecutor()
         executor.add_node(node)
         while not stop.is_set() and rclpy.ok():

@@ -73,3 +73,13 @@ def configure(environ: MutableMapping[str, str] | None = None) -> str:
         env['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'SUBNET'   # the profile restricts discovery to 127.0.0.1 itself
         note += ', discovery on 127.0.0.1 only'
     return note
+
+
+def choose_reliability(setting: str, offered: list[str]) -> str:
+    """Reliability of an input subscription: `setting` ('best_effort' / 'reliable') as it is, or for 'auto' from
+    the reliabilities the topic's publishers offer: 'reliable' when there is at least one publisher and every one
+    offers reliable (lost samples are then repaired), else 'best_effort', which matches best-effort and reliable
+    publishers alike (a reliable subscription never matches a best-effort publisher)."""
+    if setting != 'auto':
+        return setting
+    return 'reliable' if offered and all(o == 'reliable' for o in offered) else 'best_effort'

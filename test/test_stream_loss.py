@@ -103,3 +103,4 @@ def test_counts_and_arguments():
     with pytest.raises(ValueError):
         StreamLoss(history=0)
     assert Gap(10, 2, 4, 4).camera_gap_ns == 2 and Gap(10, 2, 4, 3).camera_gap_ns == 10
+

@@ -40,11 +40,13 @@ def _qos(reliability: str, depth: int):
 
 # ---------------------------------------------------------------------------------------------------- publisher
 def publish(reliability: str = 'best_effort', seconds: float = 10.0, depth: int = 5, wait_subscribers: int = 1,
-            wait_timeout: float = 60.0, prefix: str = '', width: int = WIDTH, height: int = HEIGHT) -> dict:
+            wait_timeout: float = 60.0, prefix: str = '', width: int = WIDTH, height: int = HEIGHT,
+            wait_go: bool = False) -> dict:
     """Publish `seconds` of camera (image + camera_info at 30 Hz) and odometry (100 Hz) on `prefix`image,
     `prefix`camera_info, `prefix`odom, once each publisher sees `wait_subscribers` subscriptions. Stamps are the
     wall clock at the scheduled send time, so a receiver sees one image every 1/30 s exactly in stamp time.
-    Returns {'sent': {topic: n}, 'first_image_ns': .., 'last_image_ns': .., 'late_ms_max': ..}."""
+    wait_go: after matching, print 'matched' and wait for a line on stdin before sending (a test first checks the
+    receiver). Returns {'sent': {topic: n}, 'first_image_ns': .., 'last_image_ns': .., 'late_ms_max': ..}."""
     import numpy as np
     import rclpy
     from nav_msgs.msg import Odometry
@@ -60,6 +62,9 @@ def publish(reliability: str = 'best_effort', seconds: float = 10.0, depth: int 
     while time.monotonic() < deadline and any(p.get_subscription_count() < wait_subscribers for p in pubs.values()):
         rclpy.spin_once(node, timeout_sec=0.05)
     matched = {k: p.get_subscription_count() for k, p in pubs.items()}
+    if wait_go:
+        print('matched', flush=True)
+        sys.stdin.readline()
     time.sleep(1.0)   # let the other side match our writers as well (discovery is not symmetric in time)
 
     # one image (a gradient with a moving bar), reused with new stamps: building it costs more than sending it
@@ -242,6 +247,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument('--depth', type=int, default=5)
     p.add_argument('--wait-subscribers', type=int, default=1)
     p.add_argument('--prefix', default='')
+    p.add_argument('--wait-go', action='store_true', help="print 'matched', then wait for a line on stdin")
     p.add_argument('--node-transport', action='store_true', help="apply the node's transport settings first")
     r = sub.add_parser('receive', help='the counting receiver process')
     r.add_argument('--reliability', choices=('best_effort', 'reliable'), default='best_effort')
@@ -261,7 +267,7 @@ def main(argv: list[str] | None = None) -> int:
             from dpv_sensor.transport import configure
             configure()
         print(json.dumps(publish(args.reliability, args.seconds, args.depth, args.wait_subscribers,
-                                 prefix=args.prefix)), flush=True)
+                                 prefix=args.prefix, wait_go=args.wait_go)), flush=True)
         return 0
     if args.role == 'receive':
         if args.node_transport:
