@@ -102,7 +102,7 @@ def publish(reliability: str = 'best_effort', seconds: float = 10.0, depth: int 
         late_max = max(late_max, (time.time_ns() - t_ns) / 1e6)
         if kind == 0:
             stamp(odom, t_ns)
-            odom.pose.pose.position.x = 0.01 * i
+            odom.pose.pose.position.x = 0.001 * i     # 0.1 m/s
             pubs['odom'].publish(odom)
             sent['odom'] += 1
         else:
