@@ -256,7 +256,7 @@ def main(argv: list[str] | None = None) -> int:
     r.add_argument('--node-transport', action='store_true', help="apply the node's transport settings first")
     ap.add_argument('--seconds', type=float, default=10.0)
     ap.add_argument('--depth', type=int, default=5)
-    ap.add_argument('--configs', default='default,udp,shm,large_data,node',
+    ap.add_argument('--configs', default='default,udp,large_data,shm16m_udp,profile,node',
                     help=f'receiver configurations, from {",".join(CONFIGS)}')
     ap.add_argument('--sensor', default='default', help='configuration of the sensor process (default: none)')
     ap.add_argument('--reliability', default='best_effort,reliable')
