@@ -171,8 +171,9 @@ SPECS: tuple[ParamSpec, ...] = (
     ParamSpec('min_confidence', 0.0, 'Depth with lower confidence is published as no estimate.',
               min_value=0.0, max_value=1.0),
     # --- transport ----------------------------------------------------------------------------------------
-    ParamSpec('input_reliability', 'best_effort', 'QoS reliability of the subscriptions (sensor data default).',
-              choices=('best_effort', 'reliable'), scope='node'),
+    ParamSpec('input_reliability', 'auto', 'QoS reliability of the subscriptions; auto: reliable while every '
+              'publisher of the topic offers reliable, else best effort (which matches both kinds).',
+              choices=('auto', 'best_effort', 'reliable'), scope='node'),
     ParamSpec('input_depth', 5, 'QoS history depth of the subscriptions.', min_value=1, max_value=1000, scope='node'),
     ParamSpec('output_reliability', 'reliable', 'QoS reliability of the publishers.',
               choices=('best_effort', 'reliable'), scope='node'),

@@ -1,0 +1,106 @@
+"""StreamLoss: images missing from the stamps and reported lost by the middleware, each counted once."""
+import pytest
+
+from dpv_sensor.stream_loss import Gap, StreamLoss
+
+MS = 1_000_000
+P = 33 * MS          # a 33 ms camera
+
+
+def feed(loss, frame_indices, base=10**18):
+    """Images at base + i * P for each index i; returns the gaps."""
+    return [loss.on_image(base + i * P) for i in frame_indices]
+
+
+def test_no_gap_counted_until_the_period_is_known_then_missing_images_are_counted():
+    loss = StreamLoss(min_intervals=3)
+    # frames 0, 2: one interval of 2 periods, but no period is known yet -> not counted
+    assert feed(loss, [0, 2]) == [None, None]
+    assert loss.period_ns is None
+    feed(loss, [3, 4])                       # intervals 2P, P, P: low quantile = P, ratios P, P, P
+    assert loss.period_ns == P
+    gap = loss.on_image(10**18 + 8 * P)      # 4 -> 8: frames 5, 6, 7 missing
+    assert gap.missing == 3 and gap.interval_ns == 4 * P and gap.period_ns == P
+    assert not gap.explained and gap.camera_gap_ns == 4 * P
+    assert loss.counts()['lost.transport'] == 3 and loss.lost_stamp_gap_only == 3 and loss.lost_rmw == 0
+    assert loss.gaps == 1 and loss.unexplained_gaps == 1
+
+
+def test_period_from_a_low_quantile_survives_heavy_loss():
+    """Most intervals span several periods (only every 3rd or 4th image arrives); the median of the raw intervals
+    would be 3P, the estimate stays P."""
+    loss = StreamLoss(min_intervals=4, quantile=0.1)
+    feed(loss, [0, 1, 4, 7, 11, 14, 17, 18, 21])   # intervals P, 3P, 3P, 4P, 3P, 3P, P, 3P
+    assert loss.period_ns == P
+    # missing so far: counted from the 5th interval on (after 4 intervals): 11->14, 14->17 (2 + 2), 18->21 (2)
+    assert loss.lost_stamp_gap_only == 6
+
+
+def test_jitter_is_not_a_gap_and_1_4_periods_is_not_a_lost_image():
+    loss = StreamLoss(min_intervals=4)
+    t = 0
+    for dt in (P, P + 2 * MS, P - 2 * MS, P, P + 1 * MS):
+        t += dt
+        loss.on_image(t)
+    assert abs(loss.period_ns - P) <= 1 * MS
+    assert loss.on_image(t + int(1.4 * P)) is None
+    assert loss.lost_total == 0 and loss.gaps == 0
+
+
+def test_report_before_the_gap_explains_it_and_is_not_counted_twice():
+    loss = StreamLoss(min_intervals=3)
+    feed(loss, [0, 1, 2, 3])
+    loss.on_rmw_lost(2)                      # the event is handled first ...
+    gap = loss.on_image(10**18 + 6 * P)      # ... then the image after the hole: frames 4, 5 missing
+    assert gap.missing == 2 and gap.matched == 2 and gap.explained and gap.camera_gap_ns == P
+    assert (loss.lost_rmw, loss.lost_stamp_gap_only, loss.lost_total) == (2, 0, 2)
+    assert loss.unexplained_gaps == 0 and loss.gaps == 1
+
+
+def test_report_after_the_gap_explains_it_later():
+    loss = StreamLoss(min_intervals=3)
+    feed(loss, [0, 1, 2, 3])
+    gap = loss.on_image(10**18 + 7 * P)      # frames 4, 5, 6 missing; no report yet
+    assert not gap.explained and loss.lost_total == 3 and loss.unexplained_gaps == 1
+    loss.on_rmw_lost(1)
+    assert gap.matched == 1 and not gap.explained and loss.lost_total == 3
+    loss.on_rmw_lost(2)                      # now all three are reported: the same gap, no new images lost
+    assert gap.explained and gap.camera_gap_ns == P
+    assert (loss.lost_rmw, loss.lost_stamp_gap_only, loss.lost_total) == (3, 0, 3)
+    assert loss.unexplained_gaps == 0
+
+
+def test_reports_without_a_gap_and_gaps_without_reports_both_count():
+    loss = StreamLoss(min_intervals=3)
+    feed(loss, [0, 1, 2, 3])
+    loss.on_rmw_lost(4)                      # 4 reported ...
+    gap = loss.on_image(10**18 + 5 * P)      # ... one missing in the stamps: matched with one report
+    assert gap.explained and loss.lost_total == 4
+    feed(loss, [8])                          # a later gap of 2 (frames 6, 7) takes two of the 3 spare reports
+    assert loss.lost_total == 4 and loss.lost_stamp_gap_only == 0
+    feed(loss, [11])                         # 9, 10 missing: one spare report left, one image unreported
+    assert (loss.lost_rmw, loss.lost_stamp_gap_only, loss.lost_total) == (4, 1, 5)
+    assert loss.unexplained_gaps == 1
+
+
+def test_time_going_backwards_restarts_the_estimate():
+    loss = StreamLoss(min_intervals=3)
+    feed(loss, [0, 1, 2, 3])
+    assert loss.on_image(10**18 - 100 * P) is None
+    assert loss.period_ns is None
+    assert loss.on_image(10**18 - 95 * P) is None      # 5P after the restart: no period yet, not counted
+    assert loss.on_image(10**18 - 95 * P) is None      # a repeated stamp: nothing
+    assert loss.lost_total == 0
+
+
+def test_counts_and_arguments():
+    loss = StreamLoss()
+    assert loss.counts() == {'lost.transport': 0, 'lost.rmw': 0, 'lost.stamp_gaps_only': 0, 'lost.gaps': 0,
+                             'lost.unexplained_gaps': 0, 'input_period_ms': 'n/a'}
+    loss.on_rmw_lost(0)
+    loss.on_rmw_lost(-3)
+    assert loss.lost_rmw == 0
+    with pytest.raises(ValueError):
+        StreamLoss(history=0)
+    assert Gap(10, 2, 4, 4).camera_gap_ns == 2 and Gap(10, 2, 4, 3).camera_gap_ns == 10
+
