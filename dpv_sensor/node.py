@@ -10,6 +10,8 @@ Topics (relative names, remappable):
   out  depth/image (32FC1 m, NaN = none | 16UC1 mm, 0 = none), depth/camera_info (K of the output size),
        confidence/image (32FC1 in [0, 1]), points (PointCloud2 XYZRGB, only computed while subscribed),
        pose (PoseStamped, with pose_refinement or odometry none), /diagnostics (DiagnosticArray)
+       with publish_tf: /tf_static (base_frame -> image frame, T_base_camera) and /tf (<image frame>_refined,
+       with the pose output), tf2_msgs/TFMessage (dpv_sensor.tf_publisher)
 
 Threading: callbacks only store messages. The newest image waits in a one-slot mailbox ("newest wins": an image
 that is still waiting when a newer one arrives is dropped and counted) and a worker thread converts it, waits up to
@@ -401,6 +403,14 @@ class DepthCameraNode(_node_base()):
             # frame ('odom' without odometry)
             self.pub_pose = self.create_publisher(PoseStamped, 'pose', out_qos)
         self.pub_diag = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
+        self.tf = None      # TF output (dpv_sensor.tf_publisher), with publish_tf
+        if cfg['publish_tf']:
+            try:
+                from dpv_sensor.tf_publisher import TfPublisher
+                self.tf = TfPublisher(self, self.T_base_camera, base_frame=cfg['base_frame'])
+            except ImportError as exc:
+                log.error(f'publish_tf is set but tf2_msgs does not import ({exc}); no TF is published '
+                          '(make venv generates tf2_msgs; or source a ROS installation that has it)')
 
         # --- statistics ----------------------------------------------------------------------------------------
         self.in_rate = RateMeter()
@@ -496,6 +506,8 @@ class DepthCameraNode(_node_base()):
     # ------------------------------------------------------------------------------------------ callbacks
     def _on_image(self, msg) -> None:
         self.n_received += 1
+        if self.tf is not None:
+            self.tf.frames(image_frame=msg.header.frame_id)
         self._last_image_mono = time.monotonic()
         self.in_rate.tick(self._last_image_mono)
         try:
@@ -536,6 +548,8 @@ class DepthCameraNode(_node_base()):
                                'interpolated across it are dropped')
             T = None
         self._odom_frame = msg.header.frame_id or self._odom_frame
+        if self.tf is not None and msg.child_frame_id:
+            self.tf.frames(odom_child_frame=msg.child_frame_id)
         jumps = self.pose_buffer.jumps
         cleared = self.pose_buffer.add(stamp_ns, T)
         if cleared and self.pose_buffer.jumps != jumps:
@@ -790,6 +804,8 @@ class DepthCameraNode(_node_base()):
         if self.pub_pose is not None and out.T_world_cam_44 is not None:
             self.pub_pose.publish(M.matrix_to_pose_stamped(out.T_world_cam_44, M.make_header(meta.stamp_ns,
                                                                                              self._odom_frame)))
+            if self.tf is not None:
+                self.tf.publish_refined(out.T_world_cam_44, meta.stamp_ns, self._odom_frame, meta.frame_id)
         if self.visual_odometry is not None and out.is_keyframe and rgb_src is not None:
             K_depth = None if (h, w) == rgb_src.shape[:2] else K_out
             self.visual_odometry.set_keyframe(rgb_src, meta.K_in, out.T_world_cam_44, out.depth_hw,
@@ -868,6 +884,7 @@ class DepthCameraNode(_node_base()):
             last = getattr(self.pose_refiner, 'last_result', None)
             values['pose_refinement_tracking'] = 'ok' if last is None or last.tracking_ok else f'lost: {last.reason}'
         values['pose_buffer_size'] = len(self.pose_buffer)
+        values['tf'] = self.tf.status() if self.tf is not None else 'off'
         # matched publishers of the inputs, as this node's subscriptions see them (0: nothing arrives)
         values['publishers.image'] = self.sub_image.get_publisher_count()
         if self.sub_info is not None:
