@@ -73,7 +73,7 @@ def self_check() -> int:
     failures = []
     versions = {}
     for mod in ('rclpy', 'torch', 'cv2', 'gtsam', 'numpy', 'rosbags', 'safetensors',
-                'sensor_msgs.msg', 'nav_msgs.msg', 'diagnostic_msgs.msg'):
+                'sensor_msgs.msg', 'nav_msgs.msg', 'diagnostic_msgs.msg', 'tf2_msgs.msg'):
         try:
             m = __import__(mod, fromlist=['_'])
             versions[mod] = getattr(m, '__version__', 'ok')
