@@ -34,7 +34,8 @@ PRESETS: dict[str, dict[str, str]] = {
     # no odometry: remap odom to your odometry source.
     'realsense': {'image': '/camera/camera/color/image_raw',
                   'camera_info': '/camera/camera/color/camera_info'},
-    # zed_wrapper 5.x zed_camera.launch.py: camera_name 'zed', node_name 'zed_node'; its visual odometry tracks
+    # zed_wrapper 5.x zed_camera.launch.py: camera_name 'zed', node_name 'zed_node' (4.x wrappers named the image
+    # rgb/image_rect_color and its info rgb/camera_info: pass image:= and camera_info:=). Its odometry tracks
     # zed_camera_link, so set T_base_camera to the left optical frame's pose in it.
     'zed': {'image': '/zed/zed_node/rgb/color/rect/image',
             'camera_info': '/zed/zed_node/rgb/color/rect/camera_info',
