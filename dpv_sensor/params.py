@@ -126,6 +126,13 @@ SPECS: tuple[ParamSpec, ...] = (
               'pose buffer restarts and so does the estimator. 0 disables.', min_value=0.0, max_value=1e4, scope='node'),
     ParamSpec('odom_max_rate_deg', 720.0, 'An odometry step turning faster than this (deg/s, and over 10 deg) is a '
               'teleport (as odom_max_speed). 0 disables.', min_value=0.0, max_value=1e6, scope='node'),
+    ParamSpec('publish_tf', False, 'Publish TF: base_frame -> image frame (T_base_camera) on /tf_static, and with '
+              'pose_refinement or odometry none the estimated pose as <image frame>_refined on /tf. Off by default: '
+              'the camera driver or a URDF normally publishes the image frame already, and a second parent makes '
+              'tf2 lookups of that frame flip between the two; turn it on when nothing else puts the camera in TF '
+              '(a replayed bag without /tf_static, a webcam).', scope='node'),
+    ParamSpec('base_frame', '', 'Parent frame of the static TF: the frame T_base_camera is given in. Empty: the '
+              'odometry\'s child_frame_id.', scope='node'),
     ParamSpec('pose_refinement', 'off', 'Sliding-window pose refinement with gtsam: off or window.',
               choices=('off', 'window')),
     ParamSpec('odom_sigma_rot_deg', 0.5, 'Pose refinement: rotation std of the odometry between two keyframes '

@@ -1,13 +1,14 @@
 #!/usr/bin/env bash
-# Make ./.venv point at a Python 3.11 virtual environment holding exactly requirements.txt.
+# Make ./.venv point at a Python 3.11 virtual environment holding exactly requirements.txt, plus the
+# message packages the wheels lack (tf2_msgs), generated from interfaces/ by scripts/build_interfaces.sh.
 # The environment itself lives under ${DPV_VENV_CACHE:-~/.cache/dpv_sensor}/venv-<hash of
-# requirements.txt>, so every clone (and every CI run on the same machine) reuses one install of
-# the ~6 GB of wheels; a changed requirements file gets a fresh environment.
+# requirements.txt, interfaces/ and the build script>, so every clone (and every CI run on the same machine)
+# reuses one install of the ~6 GB of wheels; a change to any of them gets a fresh environment.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
 req=requirements.txt
-hash=$(sha256sum "$req" | cut -c1-12)
+hash=$(cat "$req" scripts/build_interfaces.sh $(find interfaces -type f | LC_ALL=C sort) | sha256sum | cut -c1-12)
 cache=${DPV_VENV_CACHE:-$HOME/.cache/dpv_sensor}
 target="$cache/venv-$hash"
 
@@ -37,6 +38,7 @@ rm -rf "$target"
 "$target/bin/pip" install --quiet -r "$req"
 # torch from PyPI drags in triton (~1 GB) which only serves CUDA kernels compiled at run time.
 "$target/bin/pip" uninstall --quiet -y triton || true
+scripts/build_interfaces.sh "$target"
 touch "$target/.complete"
 rm -rf .venv && ln -s "$target" .venv
 echo "ensure_venv: ready"

@@ -5,7 +5,9 @@ without odometry (`odometry: none`, visual odometry + the same window). Checked:
 - both publish `pose` (geometry_msgs/PoseStamped) with the exact stamp of every depth image they publish, in the
   odometry frame of the bag (/ref) or 'odom' (/vo);
 - /ref's refined poses stay on the (exact) odometry poses of the rendered camera, and it reports tracking ok;
-- /vo's poses rotate like the rendered camera (monocular: its translation scale is arbitrary, its rotation is not).
+- /vo's poses rotate like the rendered camera (monocular: its translation scale is arbitrary, its rotation is not);
+- /ref (publish_tf) puts each refined pose on /tf as map -> cam_optical_refined with its stamp; /vo (publish_tf
+  off, the default) puts nothing there.
 """
 import threading
 
@@ -46,6 +48,26 @@ class PoseCollector:
         self.frames.add(msg.header.frame_id)
 
 
+class TfCollector:
+    """Transforms on /tf by (parent, child, stamp)."""
+
+    def __init__(self, node):
+        from rclpy.qos import QoSProfile, ReliabilityPolicy
+        from tf2_msgs.msg import TFMessage
+        self.by_key = {}
+        self.sub = node.create_subscription(TFMessage, '/tf', self._on,
+                                            QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE))
+
+    def _on(self, msg):
+        for tf in msg.transforms:
+            t, q = tf.transform.translation, tf.transform.rotation
+            key = (tf.header.frame_id, tf.child_frame_id, M.stamp_to_ns(tf.header.stamp))
+            self.by_key[key] = make_pose([t.x, t.y, t.z], [q.x, q.y, q.z, q.w])
+
+    def stamps(self, parent, child):
+        return {s for p, c, s in self.by_key if (p, c) == (parent, child)}
+
+
 def test_refined_and_visual_odometry_poses_are_published_with_every_depth_image(scene, observer):
     seq, bag, summary = scene
     node, executor = observer
@@ -53,9 +75,10 @@ def test_refined_and_visual_odometry_poses_are_published_with_every_depth_image(
     ref = OutputCollector(node, namespace='/ref', diagnostics_name='ref/dpv_sensor: depth camera')
     vo = OutputCollector(node, namespace='/vo', diagnostics_name='vo/dpv_sensor: depth camera')
     ref_poses, vo_poses = PoseCollector(node, '/ref/pose'), PoseCollector(node, '/vo/pose')
+    tf = TfCollector(node)
     env = {'OMP_NUM_THREADS': '1'}
     proc_ref = start_node(ros_args({**COMMON, 'T_base_camera': T_BASE_CAMERA, 'pose_refinement': 'window',
-                                    'odom_sigma_rot_deg': 0.2, 'odom_sigma_trans_rel': 0.02},
+                                    'publish_tf': True, 'odom_sigma_rot_deg': 0.2, 'odom_sigma_trans_rel': 0.02},
                                    ['-r', '__ns:=/ref']), env=env)
     proc_vo = start_node(ros_args({**COMMON, 'odometry': 'none'}, ['-r', '__ns:=/vo']), env=env)
     player = BagPlayer(node, bag, rate=0.2)
@@ -78,7 +101,8 @@ def test_refined_and_visual_odometry_poses_are_published_with_every_depth_image(
                                 and c.diag_int('frames_processed') + c.diag_int('dropped_total') == FRAMES
                                 and c.diag_int('outputs_published', -1) == len(c.complete()) for c in (ref, vo))
                         and set(ref_poses.by_stamp) >= {r.stamp_ns for r in ref.complete()}
-                        and set(vo_poses.by_stamp) >= {r.stamp_ns for r in vo.complete()},
+                        and set(vo_poses.by_stamp) >= {r.stamp_ns for r in vo.complete()}
+                        and tf.stamps('map', 'cam_optical_refined') >= set(ref_poses.by_stamp),
                         timeout=90.0, spin=spin)
         assert done, (f'replay did not finish: ref {ref.diagnostics} poses {len(ref_poses.by_stamp)}; '
                       f'vo {vo.diagnostics} poses {len(vo_poses.by_stamp)}')
@@ -98,6 +122,12 @@ def test_refined_and_visual_odometry_poses_are_published_with_every_depth_image(
     for s, T in ref_poses.by_stamp.items():
         t_err, r_err = pose_error(seq.pose(idx[s]), T)
         assert t_err < 0.03 and r_err < 1.0, (idx[s], t_err, r_err)
+
+    # /ref's refined poses on /tf as a frame of their own; nothing from /vo (publish_tf off)
+    assert {(p, c) for p, c, _ in tf.by_key} == {('map', 'cam_optical_refined')}
+    assert tf.stamps('map', 'cam_optical_refined') == set(ref_poses.by_stamp)
+    for s, T in ref_poses.by_stamp.items():
+        np.testing.assert_allclose(tf.by_key[('map', 'cam_optical_refined', s)], T, atol=1e-9)
 
     # /vo: a pose for every depth image, frame 'odom', rotating like the camera
     outs = vo.complete()

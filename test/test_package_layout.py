@@ -49,6 +49,7 @@ def test_ament_index_finds_the_package_and_its_executable(install_prefix):
     assert node.is_file() and os.access(node, os.X_OK)
     assert (share / 'package.xml').is_file()
     assert (share / 'config' / 'dpv_sensor.yaml').is_file()
+    assert (share / 'launch' / 'dpv_sensor.launch.py').is_file()
     marker = prefix / 'share' / 'ament_index' / 'resource_index' / 'packages' / 'dpv_sensor'
     assert marker.is_file()
 
@@ -58,7 +59,7 @@ def test_installed_node_runs_its_self_check(install_prefix):
     result = _sourced(install_prefix, f'"{install_prefix}/dpv_sensor/lib/dpv_sensor/node" --check')
     assert result.returncode == 0, result.stdout + result.stderr
     assert 'self-check ok' in result.stdout
-    for module in ('rclpy', 'torch', 'cv2', 'gtsam'):
+    for module in ('rclpy', 'torch', 'cv2', 'gtsam', 'tf2_msgs.msg'):
         assert module in result.stdout
 
 

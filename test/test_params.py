@@ -11,7 +11,8 @@ CONFIG = pathlib.Path(__file__).resolve().parents[1] / 'config' / 'dpv_sensor.ya
 
 def test_yaml_documents_every_parameter_with_its_default():
     doc = yaml.safe_load(CONFIG.read_text())
-    values = doc['/**']['ros__parameters']      # keyed /**: applies in any namespace, under any node name
+    assert list(doc) == ['/**']          # any node name, any namespace
+    values = doc['/**']['ros__parameters']
     assert set(values) == {s.name for s in P.SPECS}
     for spec in P.SPECS:
         assert values[spec.name] == spec.default, spec.name
