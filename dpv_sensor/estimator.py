@@ -81,7 +81,8 @@ What happens to a pushed frame
    the sources' frustums). With ``output_resolution='input'`` the
    maps are resized to the input image size with centre-aligned **nearest** neighbour (no depth is ever
    interpolated across an occlusion edge, no "flying pixels" in point clouds; NaN stays NaN) and K is
-   the input K; with ``'processing'`` they stay at the processing size with the processing K.
+   the input K; with ``'processing'`` they are resized the same way to processing_width wide with the
+   input's aspect ratio (:func:`output_size`), with the input K scaled to that size.
 8. **Frames between keyframes** (``publish_between_keyframes``, causal mode): the filter's last
    posterior is warped into the frame's pose (``geometry.warp_volume``, the filter's predict step) and
    depth/confidence are taken from it - no network run. In ``centered`` mode such outputs would be
@@ -157,6 +158,18 @@ def default_weights_path(preset: str) -> pathlib.Path:
 # ------------------------------------------------------------------------------------------------------
 # configuration
 # ------------------------------------------------------------------------------------------------------
+
+def output_size(config, input_size) -> Tuple[int, int]:
+    """(width, height) of the published maps for an input image of ``input_size`` (width, height): the input's
+    with ``output_resolution='input'``; with ``'processing'`` processing_width wide with the input's aspect ratio
+    (height rounded, at least 1), so the output pairs with the camera's colour images (depth_image_proc refuses
+    a depth image whose aspect differs from the colour image's)."""
+    in_w, in_h = int(input_size[0]), int(input_size[1])
+    if config.output_resolution == 'input':
+        return in_w, in_h
+    w = int(config.processing_width)
+    return w, max(1, int(round(w * in_h / in_w)))
+
 
 def _processing_size(self) -> Tuple[int, int]:
     """(width, height) the images are resized to."""
@@ -879,12 +892,14 @@ class Estimator:
         H, W = depth.shape[-2:]
         # the processing K in float64, exactly as the resize convention gives it
         K_out = scale_intrinsics_np(K_in_33, W / input_size[0], H / input_size[1])
-        if self.config.output_resolution == 'input' and (input_size[0], input_size[1]) != (W, H):
-            hw = (int(input_size[1]), int(input_size[0]))
+        out_w, out_h = output_size(self.config, input_size)
+        if (out_w, out_h) != (W, H):
+            K_target = np.array(K_in_33, dtype=np.float64, copy=True) if (out_w, out_h) == tuple(input_size[:2]) \
+                else scale_intrinsics_np(K_in_33, out_w / input_size[0], out_h / input_size[1])
             maps = torch.stack([depth, conf], 1)
-            maps = resample_to_camera(maps, K_out, K_in_33, hw, mode='nearest')
+            maps = resample_to_camera(maps, K_out, K_target, (out_h, out_w), mode='nearest')
             depth, conf = maps[:, 0], maps[:, 1]
-            K_out = np.array(K_in_33, dtype=np.float64, copy=True)
+            K_out = K_target
         return DepthOutput(stamp=float(stamp),
                            depth_hw=depth[0].float().cpu().numpy(),
                            confidence_hw=conf[0].float().cpu().numpy(),

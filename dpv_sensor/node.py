@@ -8,8 +8,13 @@ Topics (relative names, remappable):
   in   image (sensor_msgs/Image rgb8/bgr8/rgba8/bgra8/mono8), camera_info (sensor_msgs/CameraInfo),
        odom (nav_msgs/Odometry) - sensor-data QoS by default (input_reliability, input_depth)
   out  depth/image (32FC1 m, NaN = none | 16UC1 mm, 0 = none), depth/camera_info (K of the output size),
-       confidence/image (32FC1 in [0, 1]), points (PointCloud2 XYZRGB, only computed while subscribed),
+       rgb/image (rgb8: the colour image the depth was computed for, rectified when the node rectifies, at the
+       depth's size) + rgb/camera_info, confidence/image (32FC1 in [0, 1]) + confidence/camera_info (all camera_info
+       the same: K of the output size, D zero), depth/image/compressedDepth (with publish_compressed_depth),
+       points (PointCloud2 XYZRGB, only computed while subscribed; points_decimation, points_max_rate),
        pose (PoseStamped, with pose_refinement or odometry none), /diagnostics (DiagnosticArray)
+       with publish_tf: /tf_static (base_frame -> image frame, T_base_camera) and /tf (<image frame>_refined,
+       with the pose output), tf2_msgs/TFMessage (dpv_sensor.tf_publisher)
 
 Threading: callbacks only store messages. The newest image waits in a one-slot mailbox ("newest wins": an image
 that is still waiting when a newer one arrives is dropped and counted) and a worker thread converts it, waits up to
@@ -23,6 +28,13 @@ the node starts ('ready' is logged once topics and parameters are up, 'estimator
 if it cannot be built (e.g. measurement=network without weights) the node exits with code 2.
 SIGINT / SIGTERM stop the node cleanly (exit 0), also while it is still starting: the entry point
 (dpv_sensor.entry) installs the handlers before this module's heavy imports.
+
+Distorted input (camera_info with non-zero D, plumb_bob / rational_polynomial / equidistant) is rectified
+(dpv_sensor.rectify) before the estimator; every output then carries the rectified K with D zero.
+
+Diagnostics: per output a measured rate against expected_depth_rate / expected_points_rate, the share of recent
+images lost in transport (lost.*) or rejected as faulty (dropped.* other than busy) against drop_warn_share /
+drop_error_share, the stamp age on the node's clock (sim time works), incompatible QoS events per topic.
 
 Bad input never stops the node: each kind of fault (unsupported encoding, inconsistent image, size change,
 missing or zero camera_info, NaN odometry, odometry gap or timeout, time going backwards, an exception inside the
@@ -49,11 +61,12 @@ from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import Odometry
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
 from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
+from rclpy.event_handler import PublisherEventCallbacks, SubscriptionEventCallbacks
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.signals import SignalHandlerOptions
-from sensor_msgs.msg import CameraInfo, Image, PointCloud2
+from sensor_msgs.msg import CameraInfo, CompressedImage, Image, PointCloud2
 
 from dpv_sensor import continuity
 from dpv_sensor import msgs as M
@@ -63,6 +76,7 @@ from dpv_sensor.frame import Frame
 from dpv_sensor.node_support import FaultLog, Incoming, LogBridge, Mailbox, RateMeter, max_gap, merge_incoming
 from dpv_sensor.pipeline import VO_LOST, Pipeline
 from dpv_sensor.pose_buffer import PoseBuffer, pose7_to_matrix
+from dpv_sensor.rectify import RectifierCache, UnsupportedDistortion
 
 NODE_NAME = 'dpv_sensor'
 NS = 1_000_000_000
@@ -87,6 +101,10 @@ PUBLISH_ERROR = 'publish_error'
 UNKNOWN_OUTPUT = 'unknown_output_stamp'
 INTERNAL_ERROR = 'internal_error'
 BUSY = 'busy'
+UNSUPPORTED_DISTORTION = 'unsupported_distortion'
+RECTIFY_SIZE = 'rectify_size_mismatch'
+MISSING_RGB = 'missing_output_colour'
+INCOMPATIBLE_QOS = 'incompatible_qos'
 
 
 def self_check() -> int:
@@ -94,7 +112,7 @@ def self_check() -> int:
     failures = []
     versions = {}
     for mod in ('rclpy', 'torch', 'cv2', 'gtsam', 'numpy', 'rosbags', 'safetensors',
-                'sensor_msgs.msg', 'nav_msgs.msg', 'diagnostic_msgs.msg'):
+                'sensor_msgs.msg', 'nav_msgs.msg', 'diagnostic_msgs.msg', 'tf2_msgs.msg'):
         try:
             m = __import__(mod, fromlist=['_'])
             versions[mod] = getattr(m, '__version__', 'ok')
@@ -194,7 +212,9 @@ class DepthCameraNode(Node):
         if cfg['camera_info_source'] == 'parameters':
             self._K = (np.array([[cfg['fx'], 0.0, cfg['cx']], [0.0, cfg['fy'], cfg['cy']], [0.0, 0.0, 1.0]]),
                        (0, 0))
-        self._warned_distortion = False
+        self._rectifiers = RectifierCache()           # distorted camera_info: undistortion maps of the latest one
+        self._rectifier = None                        # the Rectifier of the current camera_info (None: as-is)
+        self.qos_incompatible: collections.Counter = collections.Counter()   # incompatible QoS events per topic
         self._odom_frame = 'odom'
 
         # --- QoS, subscriptions, publishers ------------------------------------------------------------------
@@ -203,27 +223,54 @@ class DepthCameraNode(Node):
                             reliability=rel[cfg['input_reliability']], durability=DurabilityPolicy.VOLATILE)
         out_qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=cfg['output_depth'],
                              reliability=rel[cfg['output_reliability']], durability=DurabilityPolicy.VOLATILE)
-        self.sub_image = self.create_subscription(Image, 'image', self._on_image, in_qos)
+        self.sub_image = self.create_subscription(Image, 'image', self._on_image, in_qos,
+                                                  event_callbacks=self._qos_events('image', subscription=True))
         self.sub_info = None
         if cfg['camera_info_source'] == 'topic':
-            self.sub_info = self.create_subscription(CameraInfo, 'camera_info', self._on_camera_info, in_qos)
+            self.sub_info = self.create_subscription(CameraInfo, 'camera_info', self._on_camera_info, in_qos,
+                                                     event_callbacks=self._qos_events('camera_info', subscription=True))
         self.sub_odom = None
         if cfg['odometry'] == 'topic':
-            self.sub_odom = self.create_subscription(Odometry, 'odom', self._on_odom, in_qos)
-        self.pub_depth = self.create_publisher(Image, 'depth/image', out_qos)
-        self.pub_depth_info = self.create_publisher(CameraInfo, 'depth/camera_info', out_qos)
-        self.pub_conf = self.create_publisher(Image, 'confidence/image', out_qos)
-        self.pub_points = self.create_publisher(PointCloud2, 'points', out_qos)
+            self.sub_odom = self.create_subscription(Odometry, 'odom', self._on_odom, in_qos,
+                                                     event_callbacks=self._qos_events('odom', subscription=True))
+        pub = self._publisher
+        self.pub_depth = pub(Image, 'depth/image', out_qos)
+        self.pub_depth_info = pub(CameraInfo, 'depth/camera_info', out_qos)
+        # the colour image each depth was computed for, with the same header, size and K (rtabmap's rgbd_sync and
+        # depth_image_proc pair them by exact stamp; the camera's own colour stream has no image at most stamps
+        # of the keyframe outputs)
+        self.pub_rgb = pub(Image, 'rgb/image', out_qos)
+        self.pub_rgb_info = pub(CameraInfo, 'rgb/camera_info', out_qos)
+        self.pub_conf = pub(Image, 'confidence/image', out_qos)
+        self.pub_conf_info = pub(CameraInfo, 'confidence/camera_info', out_qos)
+        self.pub_compressed = None
+        if cfg['publish_compressed_depth']:
+            # image_transport's topic name for the compressedDepth transport of depth/image
+            self.pub_compressed = pub(CompressedImage, 'depth/image/compressedDepth', out_qos)
+        self.pub_points = pub(PointCloud2, 'points', out_qos)
         self.pub_pose = None
         if cfg['pose_refinement'] != 'off' or cfg['odometry'] == 'none':
             # the refined pose, or the visual odometry's (the user has no other pose source then), in the odometry
             # frame ('odom' without odometry)
-            self.pub_pose = self.create_publisher(PoseStamped, 'pose', out_qos)
+            self.pub_pose = pub(PoseStamped, 'pose', out_qos)
         self.pub_diag = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
+        self.tf = None      # TF output (dpv_sensor.tf_publisher), with publish_tf
+        if cfg['publish_tf']:
+            try:
+                from dpv_sensor.tf_publisher import TfPublisher
+                self.tf = TfPublisher(self, self.T_base_camera, base_frame=cfg['base_frame'])
+            except ImportError as exc:
+                log.error(f'publish_tf is set but tf2_msgs does not import ({exc}); no TF is published '
+                          '(make venv generates tf2_msgs; or source a ROS installation that has it)')
 
         # --- statistics ----------------------------------------------------------------------------------------
         self.in_rate = RateMeter()
-        self.out_rate = RateMeter()
+        self.out_rate = RateMeter(cfg['rate_window'])      # depth/image (rgb, confidence: the same messages)
+        self.points_rate = RateMeter(cfg['rate_window'])
+        self.n_points_skipped = 0                          # clouds skipped by points_max_rate
+        self._last_points_stamp_ns = None
+        self._first_image_mono = None
+        self._share_history: collections.deque = collections.deque()   # (mono, received, faulty, lost)
         self.latency_ms: collections.deque[float] = collections.deque(maxlen=200)   # receipt -> published
         self.age_ms: collections.deque[float] = collections.deque(maxlen=200)       # header stamp -> published
         self.process_ms: collections.deque[float] = collections.deque(maxlen=200)   # estimator.push, any frame
@@ -269,6 +316,24 @@ class DepthCameraNode(Node):
             f"odom='{self.sub_odom.topic_name if self.sub_odom else 'none'}'")
 
     # ------------------------------------------------------------------------------------------ construction
+    def _qos_events(self, topic: str, subscription: bool):
+        """Event callbacks that count and report incompatible QoS on `topic` (a peer whose QoS cannot match:
+        nothing flows between the two, so it is worth a warning)."""
+        def on_incompatible(info, topic=topic, role='subscription' if subscription else 'publisher') -> None:
+            self.qos_incompatible[topic] += max(1, int(getattr(info, 'total_count_change', 1)))
+            kind = getattr(info, 'last_policy_kind', '?')
+            policy = getattr(kind, 'name', str(kind))
+            self.faults.report(INCOMPATIBLE_QOS, f"incompatible QoS on '{topic}' ({policy}): a peer of this {role} "
+                               'cannot match it and receives or sends nothing (e.g. a best-effort subscriber of a '
+                               'reliable-only topic; see input_reliability / output_reliability)',
+                               key=f'{INCOMPATIBLE_QOS}:{topic}')
+        if subscription:
+            return SubscriptionEventCallbacks(incompatible_qos=on_incompatible)
+        return PublisherEventCallbacks(incompatible_qos=on_incompatible)
+
+    def _publisher(self, msg_type, topic: str, qos):
+        return self.create_publisher(msg_type, topic, qos, event_callbacks=self._qos_events(topic, subscription=False))
+
     def _make_pipeline(self) -> Pipeline:
         try:
             return Pipeline(EstimatorConfig.from_params(self.config))
@@ -310,7 +375,11 @@ class DepthCameraNode(Node):
     # ------------------------------------------------------------------------------------------ callbacks
     def _on_image(self, msg) -> None:
         self.n_received += 1
+        if self.tf is not None:
+            self.tf.frames(image_frame=msg.header.frame_id)
         self._last_image_mono = time.monotonic()
+        if self._first_image_mono is None:
+            self._first_image_mono = self._last_image_mono
         self.in_rate.tick(self._last_image_mono)
         try:
             stamp_ns = M.stamp_to_ns(msg.header.stamp)
@@ -330,13 +399,19 @@ class DepthCameraNode(Node):
         except M.BadCameraInfo as exc:
             self.faults.report(BAD_CAMERA_INFO, f'ignoring camera_info on {self.sub_info.topic_name}: {exc}')
             return
-        if not self._warned_distortion and M.has_distortion(msg):
-            self._warned_distortion = True
-            self.get_logger().warning(
-                f'camera_info has non-zero distortion ({msg.distortion_model}); images are used as they are '
-                '(feed rectified images, e.g. image_proc, for accurate depth)')
+        rect = None
+        if M.has_distortion(msg):
+            try:
+                rect = self._rectifiers.for_camera_info(msg)
+            except UnsupportedDistortion as exc:
+                self.faults.report(UNSUPPORTED_DISTORTION, f'cannot rectify the images of camera_info on '
+                                   f'{self.sub_info.topic_name}: {exc}; images are used as they are (depth is less '
+                                   'accurate towards the borders)', period_s=60.0)
+            if rect is not None:
+                K = np.array(rect.K, dtype=np.float64)
         with self._inputs_cv:
             self._K = (K, size)
+            self._rectifier = rect
             self._inputs_cv.notify_all()
 
     def _on_odom(self, msg) -> None:
@@ -348,6 +423,8 @@ class DepthCameraNode(Node):
                                'interpolated across it are dropped')
             T = None
         self._odom_frame = msg.header.frame_id or self._odom_frame
+        if self.tf is not None and msg.child_frame_id:
+            self.tf.frames(odom_child_frame=msg.child_frame_id)
         jumps = self.pose_buffer.jumps
         cleared = self.pose_buffer.add(stamp_ns, T)
         if cleared and self.pose_buffer.jumps != jumps:
@@ -427,9 +504,22 @@ class DepthCameraNode(Node):
         inputs = self._camera_and_pose(item, stamp_ns, (rgb.shape[1], rgb.shape[0]))
         if inputs is None:
             return
+        rgb = self._rectify(rgb, stamp_ns)
         out = self._estimate(item, stamp_ns, rgb, *inputs)
         if out is not None:
             self._publish_output(out, rgb, stamp_ns)
+
+    def _rectify(self, rgb, stamp_ns: int):
+        """The image undistorted with the current camera_info's maps (as it is without distortion)."""
+        with self._inputs_cv:
+            rect = self._rectifier
+        if rect is None:
+            return rgb
+        if (rgb.shape[1], rgb.shape[0]) != rect.size:
+            self.faults.report(RECTIFY_SIZE, f'image at {stamp_ns / NS:.3f} s is {rgb.shape[1]}x{rgb.shape[0]} but '
+                               f'the distorted camera_info is for {rect.size[0]}x{rect.size[1]}; used as it is')
+            return rgb
+        return rect.rectify(rgb)
 
     def _decode(self, msg, stamp_ns: int):
         """The image as HxWx3 uint8 RGB, or None (unsupported encoding, inconsistent image)."""
@@ -588,29 +678,55 @@ class DepthCameraNode(Node):
         conf = np.asarray(out.confidence_hw, dtype=np.float32)     # depth below min_confidence: NaN (estimator)
         h, w = depth.shape
         K_out = self._output_K(out, meta, (w, h))
+        rgb = None
+        if rgb_src is not None:
+            # the colour image at the output size (INTER_AREA, as the output K is the input K scaled to that size)
+            rgb = rgb_src if rgb_src.shape[:2] == (h, w) else cv2.resize(rgb_src, (w, h), interpolation=cv2.INTER_AREA)
+        info = M.K_to_camera_info(K_out, w, h, header)     # every output's camera_info: K of this size, D zero
         self.pub_depth.publish(M.depth_to_image(depth, header, encoding=cfg['depth_encoding']))
+        self.pub_depth_info.publish(info)
+        if rgb is not None:
+            self.pub_rgb.publish(M.rgb_to_image(rgb, header))
+            self.pub_rgb_info.publish(info)
+        else:
+            self.faults.report(MISSING_RGB, f'no colour image kept for the output at {out.stamp:.3f} s; rgb/image '
+                               'skipped', level='error')
         self.pub_conf.publish(M.confidence_to_image(conf, header))
-        self.pub_depth_info.publish(M.K_to_camera_info(K_out, w, h, header))
-        if self.pub_points.get_subscription_count() > 0 and rgb_src is not None:
-            rgb = rgb_src
-            if rgb.shape[:2] != (h, w):
-                rgb = cv2.resize(rgb, (w, h), interpolation=cv2.INTER_AREA)
-            self.pub_points.publish(M.depth_to_pointcloud(depth, rgb, K_out, header))
-            self.n_points += 1
+        self.pub_conf_info.publish(info)
+        if self.pub_compressed is not None:
+            self.pub_compressed.publish(M.depth_to_compressed_depth(depth, header, encoding=cfg['depth_encoding']))
+        if self.pub_points.get_subscription_count() > 0 and rgb is not None:
+            self._publish_points(depth, rgb, K_out, header, meta.stamp_ns)
         if self.pub_pose is not None and out.T_world_cam_44 is not None:
             self.pub_pose.publish(M.matrix_to_pose_stamped(out.T_world_cam_44, M.make_header(meta.stamp_ns,
                                                                                              self._odom_frame)))
+            if self.tf is not None:
+                self.tf.publish_refined(out.T_world_cam_44, meta.stamp_ns, self._odom_frame, meta.frame_id)
         reset_reason = getattr(out, 'reset_reason', None)
         if reset_reason and not (self.n_published == 0 and reset_reason == 'first frame'):
             self.n_output_resets += 1
             self._last_output_reset = f'{out.stamp:.3f} s: {reset_reason}'
             self.get_logger().info(f'output for {out.stamp:.3f} s follows a filter restart: {reset_reason}')
-        now_ns = time.time_ns()
+        now_ns = self.get_clock().now().nanoseconds     # the node's clock: ROS time with use_sim_time
         self.n_published += 1
         self.n_keyframes_published += int(bool(out.is_keyframe))
         self.out_rate.tick()
         self.latency_ms.append((time.monotonic() - meta.receipt_mono) * 1000.0)
         self.age_ms.append((now_ns - meta.stamp_ns) / 1e6)
+
+    def _publish_points(self, depth, rgb, K, header, stamp_ns: int) -> None:
+        """The organised cloud (every points_decimation-th pixel), at most points_max_rate per second of image
+        time: an output closer than 1/rate to the previous cloud's stamp is skipped and counted."""
+        max_rate = self.config['points_max_rate']
+        last = self._last_points_stamp_ns
+        if max_rate > 0 and last is not None and 0 <= stamp_ns - last < NS / max_rate:
+            self.n_points_skipped += 1
+            return
+        self._last_points_stamp_ns = stamp_ns
+        self.pub_points.publish(M.depth_to_pointcloud_decimated(depth, rgb, K, header,
+                                                                decimation=self.config['points_decimation']))
+        self.n_points += 1
+        self.points_rate.tick()
 
     def _output_K(self, out, meta: _FrameMeta, out_wh) -> 'np.ndarray':
         """K of the output image: the input K scaled (in float64) from the input size to the output size. The
@@ -649,7 +765,12 @@ class DepthCameraNode(Node):
             'point_clouds_published': self.n_points,
             'latency_ms_median': round(float(np.median(lat)), 1) if lat else 'n/a',
             'latency_ms_p95': round(float(np.percentile(lat, 95)), 1) if lat else 'n/a',
-            'stamp_age_ms_median': round(float(np.median(age)), 1) if age else 'n/a',
+            'stamp_age_ms_median': round(float(np.median(age)), 1) if age else 'n/a',   # on the node's clock
+            'depth_rate_hz': round(self.out_rate.mean_rate(self._first_image_mono), 3),
+            'expected_depth_rate_hz': self.config['expected_depth_rate'],
+            'points_rate_hz': round(self.points_rate.mean_rate(self._first_image_mono), 3),
+            'expected_points_rate_hz': self.config['expected_points_rate'],
+            'points_skipped_rate_cap': self.n_points_skipped,
             'processing_ms_median': round(float(np.median(proc)), 1) if proc else 'n/a',
             'keyframe_ms_median': round(float(np.median(kf)), 1) if kf else 'n/a',
             'keyframe_ms_last': round(self._last_keyframe_ms, 1) if self._last_keyframe_ms is not None else 'n/a',
@@ -679,6 +800,12 @@ class DepthCameraNode(Node):
         if 'pose_refinement_tracking' in st:
             values['pose_refinement_tracking'] = st['pose_refinement_tracking']
         values['pose_buffer_size'] = len(self.pose_buffer)
+        values['tf'] = self.tf.status() if self.tf is not None else 'off'
+        rect = self._rectifier
+        values['rectification'] = 'off' if rect is None else \
+            f'on ({rect.calibration.model}, K fx={rect.K[0, 0]:.2f} fy={rect.K[1, 1]:.2f})'
+        for topic, n in sorted(self.qos_incompatible.items()):
+            values[f'qos_incompatible.{topic}'] = n
         # matched publishers of the inputs, as this node's subscriptions see them (0: nothing arrives)
         values['publishers.image'] = self.sub_image.get_publisher_count()
         if self.sub_info is not None:
@@ -686,6 +813,59 @@ class DepthCameraNode(Node):
         if self.sub_odom is not None:
             values['publishers.odom'] = self.sub_odom.get_publisher_count()
         return values
+
+    def _drop_share_status(self, values: dict):
+        """(level, problem or '') from the share of the images of the last rate_window that were lost in transport
+        (the lost.* values) or rejected as faulty (dropped.* other than busy: images replaced while the estimator
+        was busy are the normal regime of a slow machine, reported but not warned about). Judged from 5 images
+        on. Adds drop_share_window to `values`."""
+        cfg = self.config
+        now = time.monotonic()
+
+        def number(v):
+            try:
+                return float(v)
+            except (TypeError, ValueError):
+                return 0.0
+        faulty = sum(number(v) for k, v in values.items() if k.startswith('dropped.') and k != f'dropped.{BUSY}')
+        lost = sum(number(v) for k, v in values.items() if k.startswith('lost.'))
+        hist = self._share_history
+        hist.append((now, self.n_received, faulty, lost))
+        while len(hist) > 1 and now - hist[1][0] >= cfg['rate_window']:
+            hist.popleft()
+        _t0, rec0, faulty0, lost0 = hist[0]
+        seen = (self.n_received - rec0) + (lost - lost0)
+        bad = (faulty - faulty0) + (lost - lost0)
+        share = bad / seen if seen > 0 else 0.0
+        values['drop_share_window'] = round(share, 3)
+        if seen < 5 or bad <= 0:
+            return DiagnosticStatus.OK, ''
+        text = (f'{share:.0%} of the last {int(seen)} images lost in transport or rejected as faulty '
+                '(see lost.*, dropped.*)')
+        if share > cfg['drop_error_share']:
+            return DiagnosticStatus.ERROR, text
+        if share > cfg['drop_warn_share']:
+            return DiagnosticStatus.WARN, text
+        return DiagnosticStatus.OK, ''
+
+    def _rate_status(self, values: dict) -> list:
+        """Frequency status per output against its expected rate: WARN below expected * (1 - rate_tolerance),
+        ERROR when none came in the window; judged once images have arrived for a whole rate_window and while
+        they still arrive (a stalled input has its own warning)."""
+        cfg = self.config
+        first, last = self._first_image_mono, self._last_image_mono
+        now = time.monotonic()
+        if first is None or now - first < cfg['rate_window'] or now - last > 2.0:
+            return []
+        out = []
+        checks = [('depth/image', values.get('depth_rate_hz', 0.0), cfg['expected_depth_rate'])]
+        if self.pub_points.get_subscription_count() > 0:
+            checks.append(('points', values.get('points_rate_hz', 0.0), cfg['expected_points_rate']))
+        for name, rate, expected in checks:
+            if expected > 0 and rate < expected * (1.0 - cfg['rate_tolerance']):
+                level = DiagnosticStatus.ERROR if rate == 0 else DiagnosticStatus.WARN
+                out.append((level, f'{name} at {rate:.2f} Hz, expected {expected:g} Hz'))
+        return out
 
     def _publish_diagnostics(self) -> None:
         try:
@@ -699,11 +879,22 @@ class DepthCameraNode(Node):
             level = DiagnosticStatus.ERROR
             problems.append('estimator exceptions')
         self._last_exception_count = exceptions
-        total_faults = sum(n for k, n in self.faults.counts.items())
+        # faults that do not drop an image (camera_info, odometry jumps, incompatible QoS ...) warn when new; images
+        # lost or rejected count by their share of the recent images (below)
+        with self._stats_lock:
+            drop_kinds = set(self.dropped)
+        total_faults = sum(n for k, n in self.faults.counts.items() if k not in drop_kinds)
         if total_faults > self._last_fault_total:
             level = max(level, DiagnosticStatus.WARN)
             problems.append('input faults (see faults.*)')
         self._last_fault_total = total_faults
+        share_level, share_problem = self._drop_share_status(values)
+        level = max(level, share_level)
+        if share_problem:
+            problems.append(share_problem)
+        for rate_level, rate_problem in self._rate_status(values):
+            level = max(level, rate_level)
+            problems.append(rate_problem)
         if str(values.get('measurement_reason', '')).startswith('fallback'):
             level = max(level, DiagnosticStatus.WARN)
             problems.append('network weights missing: classical fallback')

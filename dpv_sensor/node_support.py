@@ -81,6 +81,14 @@ class RateMeter:
         with self._lock:
             return self._t[-1] if self._t else None
 
+    def mean_rate(self, since: float | None = None) -> float:
+        """Events in the window over the window's length (or over the time since `since`, a monotonic time, when
+        that is shorter): unlike :meth:`rate` it falls to 0 when the events stop."""
+        with self._lock:
+            self._trim()
+            span = self.window_s if since is None else min(self.window_s, time.monotonic() - since)
+            return len(self._t) / span if span > 0 else 0.0
+
 
 class FaultLog:
     """Per-kind counters and rate-limited log messages.

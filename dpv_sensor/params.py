@@ -151,7 +151,9 @@ SPECS: tuple[ParamSpec, ...] = (
     # --- output -------------------------------------------------------------------------------------------
     ParamSpec('depth_encoding', '32FC1', 'depth/image encoding: 32FC1 metres (NaN = none) or 16UC1 millimetres '
               '(0 = none), REP 118.', choices=('32FC1', '16UC1'), scope='node'),
-    ParamSpec('output_resolution', 'input', 'Output image size: input (the camera\'s) or processing.',
+    ParamSpec('output_resolution', 'input', "Output image size: input (the camera's) or processing "
+              "(processing_width wide, with the input's aspect ratio: 320x240 from 640x480, so that the output "
+              "pairs with the camera's colour images; the height is rounded to whole pixels).",
               choices=('input', 'processing')),
     ParamSpec('confidence', 'ratio', 'What the confidence image holds: ratio (the probability under the DPV that '
               'the true depth is within a factor confidence_ratio of the published one, i.e. that the pixel is '
@@ -186,6 +188,32 @@ SPECS: tuple[ParamSpec, ...] = (
               choices=('best_effort', 'reliable'), scope='node'),
     ParamSpec('output_depth', 5, 'QoS history depth of the publishers.', min_value=1, max_value=1000, scope='node'),
     ParamSpec('diagnostics_period', 1.0, 'Seconds between /diagnostics messages.', min_value=0.05, max_value=60.0, scope='node'),
+    # --- extra outputs and diagnostics ---------------------------------------------------------------------
+    ParamSpec('publish_compressed_depth', False, 'Also publish depth/image/compressedDepth (sensor_msgs/'
+              "CompressedImage, PNG as image_transport's compressedDepth plugin encodes it, in depth_encoding).",
+              scope='node'),
+    ParamSpec('points_decimation', 1, 'points: every n-th pixel in each direction (organised cloud of '
+              'ceil(H/n) x ceil(W/n); 640x480 at 4: 4.9 MB -> 0.31 MB per cloud).', min_value=1, max_value=16,
+              scope='node'),
+    ParamSpec('points_max_rate', 0.0, 'points: at most this many clouds per second of image time (an output whose '
+              "stamp is closer than 1/rate to the previous cloud's is skipped and counted). 0: every output.",
+              min_value=0.0, max_value=1000.0, scope='node'),
+    ParamSpec('expected_depth_rate', 0.0, 'Expected rate of depth/image (and rgb, confidence) in Hz: /diagnostics '
+              'warns while the measured rate is below it by more than rate_tolerance. Keyframe outputs come at '
+              'about a fifth of the camera rate at most. 0: no expectation.', min_value=0.0, max_value=1000.0,
+              scope='node'),
+    ParamSpec('expected_points_rate', 0.0, 'Expected rate of points in Hz (as expected_depth_rate; only while '
+              'someone subscribes). 0: no expectation.', min_value=0.0, max_value=1000.0, scope='node'),
+    ParamSpec('rate_tolerance', 0.1, 'Share below an expected rate that is still fine (0.1: 10 %).',
+              min_value=0.0, max_value=1.0, scope='node'),
+    ParamSpec('rate_window', 10.0, 'Seconds over which output rates and the share of lost or faulty images are '
+              'measured for /diagnostics.', min_value=1.0, max_value=600.0, scope='node'),
+    ParamSpec('drop_warn_share', 0.1, 'Share of the images of the last rate_window lost in transport or rejected '
+              'as faulty above which /diagnostics warns (images replaced while the node is busy do not count: '
+              'they are the normal regime of a slow machine and are only reported).', min_value=0.0,
+              max_value=1.0, scope='node'),
+    ParamSpec('drop_error_share', 0.5, 'As drop_warn_share, for level ERROR.', min_value=0.0, max_value=1.0,
+              scope='node'),
 )
 
 

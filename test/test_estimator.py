@@ -226,8 +226,9 @@ def test_outputs_keep_stamp_size_and_scaled_K(resolution):
             assert o.depth_hw.shape == (h, w) and o.confidence_hw.shape == (h, w)
             np.testing.assert_allclose(o.K_33, K_in)
         else:
-            assert o.depth_hw.shape == (48, 64)
-            sx, sy = 64 / w, 48 / h
+            # processing_width wide with the input's aspect ratio: 64 x round(64 * 60 / 100) = 64 x 38
+            assert o.depth_hw.shape == (38, 64) and o.confidence_hw.shape == (38, 64)
+            sx, sy = 64 / w, 38 / h
             K = np.array(K_in)
             expected = np.array([[K[0, 0] * sx, 0, (K[0, 2] + 0.5) * sx - 0.5],
                                  [0, K[1, 1] * sy, (K[1, 2] + 0.5) * sy - 0.5], [0, 0, 1]])
