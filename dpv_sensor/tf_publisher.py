@@ -64,7 +64,7 @@ def static_frames(base_frame: str, image_frame: str) -> tuple[str, str] | None:
 class TfPublisher:
     """The node's TF output: call `frames()` as frame names arrive and `publish_refined()` per estimated pose."""
 
-    def __init__(self, node, T_base_camera_44, base_frame: str = ''):
+    def __init__(self, node, T_base_camera_44, base_frame: str):
         from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
         from tf2_msgs.msg import TFMessage   # ImportError where tf2_msgs was not generated
 

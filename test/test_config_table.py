@@ -17,7 +17,10 @@ SETTINGS = {s.name for s in P.SPECS + P.LIBRARY_SPECS}
 # Same name, another setting: the fusion's own confidence mask, the trainer's table (TrainConfig), and benchmark
 # experiments that pass their own values on purpose.
 OTHER_MEANING = {('fusion.py', 'min_confidence'), ('tools/fuse.py', 'min_confidence'), ('training/loop.py', 'preset'),
-                 ('training/loop.py', 'device')}
+                 ('training/loop.py', 'device'),
+                 # the bag writer's odometry child frame (the frame its T_base_camera is written in), not the node's
+                 # TF parent parameter
+                 ('data/rosbag_io.py', 'base_frame'), ('tools/bag.py', 'base_frame')}
 OWN_VALUES = ('benchmarks/', 'nets/', 'training/stream_validation.py')
 
 
