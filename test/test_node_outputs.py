@@ -1,0 +1,266 @@
+"""The node's RGB-D outputs over real DDS: a rendered bag replayed into two node processes.
+
+Node A (output_resolution input, publish_compressed_depth) and node B (namespace /pr: output_resolution processing
+with processing 96x64 from 160x128 input, i.e. 96x77 out with the input's aspect ratio; a distorted camera_info of
+its own, so it rectifies; points with points_decimation 2 and points_max_rate 3 Hz; expected_depth_rate 50 Hz).
+Checked, for every output of each node:
+- rgb/image, rgb/camera_info, depth/image, confidence/image, confidence/camera_info pair by exact stamp, with the
+  image's frame_id, the same size, the same K (D zero);
+- the colour pixels equal the bag's image of that stamp: as it is (A), rectified then resized with INTER_AREA to the
+  output size (B);
+- A's compressedDepth decodes to its depth/image (32FC1 inverse-depth code: within its quantisation);
+- B's clouds are the decimated grid and no two are closer than 1/points_max_rate in image time, the skipped ones
+  counted in /diagnostics; B's /diagnostics warns that depth/image is below its expected rate, A's never does.
+A second test: /diagnostics warns once more than drop_warn_share of the recent images are rejected as faulty.
+"""
+import threading
+
+import cv2
+import numpy as np
+import pytest
+
+from ros_helpers import start_node, stop_process, wait_for
+from test_node_integration import COMMON, T_BASE_CAMERA, ros_args
+from dpv_sensor import msgs as M
+from dpv_sensor.data import rosbag_io as R
+from dpv_sensor.rectify import RectifierCache
+from dpv_sensor.tools.ros_io import BagPlayer
+
+W, H = 160, 128
+FRAMES = 24
+START_NS = 1_700_000_000_123_456_789
+PW, PH = 96, 64                    # processing size of node B (aspect 1.5, the input's 1.25)
+OUT_B = (96, 77)                   # processing_width wide with the input's aspect: round(96 * 128 / 160) = 77
+POINTS_RATE = 3.0
+DISTORTION = [-0.12, 0.03, 0.001, -0.002, 0.0]
+OUTPUT_TOPICS = {'depth': 'depth/image', 'depth_info': 'depth/camera_info', 'rgb': 'rgb/image',
+                 'rgb_info': 'rgb/camera_info', 'conf': 'confidence/image', 'conf_info': 'confidence/camera_info'}
+WARN = 1
+
+
+@pytest.fixture(scope='module')
+def scene(tmp_path_factory):
+    from dpv_sensor.data.synthetic import render_sequence
+    seq = render_sequence(5, FRAMES, width=W, height=H)
+    bag = tmp_path_factory.mktemp('bags') / 'outputs'
+    summary = R.write_sequence_bag(bag, seq, odom_rate=60.0, start_ns=START_NS, T_base_camera=T_BASE_CAMERA,
+                                   camera_frame='cam_optical', progress=False)
+    return seq, bag, summary
+
+
+class Outputs:
+    """Every output topic of one node under `ns`, grouped by header stamp, and its /diagnostics history."""
+
+    def __init__(self, node, ns: str, diag_name: str, extra=()):
+        from diagnostic_msgs.msg import DiagnosticArray
+        from rclpy.qos import QoSProfile, ReliabilityPolicy
+        from sensor_msgs.msg import CameraInfo, CompressedImage, Image, PointCloud2
+        qos = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
+        self.by_stamp: dict[int, dict] = {}
+        self.diag_history: list[tuple[int, str]] = []
+        self.diagnostics: dict = {}
+        self.lock = threading.Lock()
+        types = {'depth': Image, 'rgb': Image, 'conf': Image, 'points': PointCloud2, 'compressed': CompressedImage}
+        topics = dict(OUTPUT_TOPICS, points='points', compressed='depth/image/compressedDepth')
+        self.subs = {}
+        for kind in list(OUTPUT_TOPICS) + list(extra):
+            self.subs[kind] = node.create_subscription(types.get(kind, CameraInfo), f'{ns}/{topics[kind]}',
+                                                       lambda m, kind=kind: self._on(kind, m), qos)
+        self.diag_name = diag_name
+        node.create_subscription(DiagnosticArray, '/diagnostics', self._on_diag, qos)
+
+    def _on(self, kind, msg):
+        with self.lock:
+            self.by_stamp.setdefault(M.stamp_to_ns(msg.header.stamp), {})[kind] = msg
+
+    def _on_diag(self, msg):
+        for st in msg.status:
+            if st.name == self.diag_name:
+                level = int.from_bytes(st.level, 'little') if isinstance(st.level, bytes) else int(st.level)
+                self.diag_history.append((level, st.message))
+                self.diagnostics = {kv.key: kv.value for kv in st.values}
+
+    def diag_int(self, key):
+        try:
+            return int(self.diagnostics.get(key, -1))
+        except ValueError:
+            return -1
+
+    def complete(self):
+        with self.lock:
+            return {s: d for s, d in self.by_stamp.items() if set(OUTPUT_TOPICS) <= set(d)}
+
+
+def _distorted_info(seq):
+    info = M.K_to_camera_info(seq.K, W, H, M.make_header(START_NS, 'cam_optical'))
+    info.d = list(DISTORTION)
+    return info
+
+
+def _check_pairing(recs, frame_id, size, K_expected):
+    """The five image/camera_info outputs of one stamp agree: header, size, K, D zero."""
+    w, h = size
+    for stamp, d in recs.items():
+        for kind in OUTPUT_TOPICS:
+            assert M.stamp_to_ns(d[kind].header.stamp) == stamp and d[kind].header.frame_id == frame_id, kind
+            assert (d[kind].width, d[kind].height) == (w, h), (kind, d[kind].width, d[kind].height)
+        assert d['rgb'].encoding == 'rgb8'
+        for kind in ('depth_info', 'rgb_info', 'conf_info'):
+            np.testing.assert_allclose(M.camera_info_to_K(d[kind])[0], K_expected, rtol=1e-9, atol=1e-9)
+            assert not np.any(np.asarray(d[kind].d)), kind
+        assert list(d['rgb_info'].k) == list(d['depth_info'].k) == list(d['conf_info'].k)
+
+
+def test_rgb_confidence_info_compressed_points_and_rate_warning_in_both_resolutions(scene, observer):
+    from sensor_msgs.msg import CameraInfo
+    seq, bag, summary = scene
+    node, executor = observer
+    info_pub = node.create_publisher(CameraInfo, '/distorted/camera_info', 10)
+    distorted = _distorted_info(seq)
+
+    def spin(t):      # node B's camera_info comes from here, not from the bag: keep sending it
+        info_pub.publish(distorted)
+        executor.spin_once(timeout_sec=t)
+
+    a = Outputs(node, '', 'dpv_sensor: depth camera', extra=('compressed',))
+    b = Outputs(node, '/pr', 'pr/dpv_sensor: depth camera', extra=('points',))
+    common = {**COMMON, 'processing_width': 80, 'processing_height': 64, 'T_base_camera': T_BASE_CAMERA,
+              'keyframe_max_interval': 2}
+    env = {'OMP_NUM_THREADS': '1'}
+    proc_a = start_node(ros_args({**common, 'publish_compressed_depth': True}), env=env)
+    proc_b = start_node(ros_args({**common, 'processing_width': PW, 'processing_height': PH,
+                                  'output_resolution': 'processing', 'points_decimation': 2,
+                                  'points_max_rate': POINTS_RATE, 'expected_depth_rate': 50.0, 'rate_window': 2.0},
+                                 ['-r', '__ns:=/pr', '-r', 'camera_info:=/distorted/camera_info']), env=env)
+    player = BagPlayer(node, bag, rate=0.25)
+    played = {}
+    try:
+        ready = wait_for(lambda: all(o.diagnostics.get('measurement_model') == 'classical'
+                                     and o.diag_int('publishers.image') == 1 and o.diag_int('publishers.odom') == 1
+                                     and o.diag_int('publishers.camera_info') >= 1 for o in (a, b))
+                         and all(s.get_publisher_count() == 1 for o in (a, b) for s in o.subs.values()),
+                         timeout=90.0, spin=spin)
+        assert proc_a.poll() is None and proc_b.poll() is None, 'a node exited early'
+        assert ready, f'the nodes never got ready: A {a.diagnostics} B {b.diagnostics}'
+        assert not player.wait_for_subscribers([R.IMAGE_TOPIC, R.ODOM_TOPIC], min_count=2, timeout=10.0, spin=spin)
+        assert not player.wait_for_subscribers([R.CAMERA_INFO_TOPIC], min_count=1, timeout=10.0, spin=spin)
+        assert wait_for(lambda: b.diagnostics.get('rectification', '').startswith('on'), timeout=20.0, spin=spin), \
+            b.diagnostics
+        thread = threading.Thread(target=lambda: played.update(stats=player.play()), daemon=True)
+        thread.start()
+        done = wait_for(lambda: not thread.is_alive()
+                        and all(o.diag_int('frames_processed') + o.diag_int('dropped_total') == FRAMES
+                                and o.diag_int('outputs_published') == len(o.complete()) for o in (a, b)),
+                        timeout=120.0, spin=spin)
+        assert done, f'replay did not finish: A {a.diagnostics} B {b.diagnostics}'
+        wait_for(lambda: False, timeout=1.5, spin=spin)       # the last diagnostics of the run
+    finally:
+        code_a, out_a = stop_process(proc_a)
+        code_b, out_b = stop_process(proc_b)
+        player.stop()
+    assert code_a == 0 and code_b == 0, out_a + out_b
+    assert 'Traceback' not in out_a + out_b, out_a + out_b
+    index = {s: i for i, s in enumerate(summary.image_stamps_ns)}
+
+    # ---------------- node A: input resolution, the bag's colour image exactly
+    recs_a = a.complete()
+    assert len(recs_a) >= 4 and len(recs_a) == len(a.by_stamp), (len(recs_a), len(a.by_stamp))
+    _check_pairing(recs_a, 'cam_optical', (W, H), seq.K)
+    for stamp, d in recs_a.items():
+        np.testing.assert_array_equal(M.image_to_rgb(d['rgb']), seq.image(index[stamp]))
+        depth = M.image_to_float(d['depth'])
+        decoded = M.compressed_depth_to_float(d['compressed'])
+        assert d['compressed'].format == '32FC1; compressedDepth png'
+        np.testing.assert_array_equal(np.isfinite(decoded), np.isfinite(depth) & (depth < 10.0))
+        ok = np.isfinite(decoded)
+        # inverse-depth code: one step of q = a / d + b is d^2 / a, a = 10100
+        assert np.all(np.abs(decoded[ok] - depth[ok]) <= depth[ok] ** 2 / 10100 * 1.01 + 1e-6)
+    assert not any('depth/image at' in m for _lvl, m in a.diag_history), a.diag_history
+
+    # ---------------- node B: processing width with the input's aspect, rectified colour, K of that size
+    rect = RectifierCache().for_camera_info(distorted)
+    K_b = M.scale_K(rect.K, (W, H), OUT_B)
+    recs_b = b.complete()
+    assert len(recs_b) >= 4 and len(recs_b) == len(b.by_stamp), (len(recs_b), len(b.by_stamp))
+    _check_pairing(recs_b, 'cam_optical', OUT_B, K_b)
+    for stamp, d in recs_b.items():
+        expected = cv2.resize(rect.rectify(seq.image(index[stamp])), OUT_B, interpolation=cv2.INTER_AREA)
+        assert not np.array_equal(expected, cv2.resize(seq.image(index[stamp]), OUT_B, interpolation=cv2.INTER_AREA))
+        np.testing.assert_array_equal(M.image_to_rgb(d['rgb']), expected)
+    # points: decimated grid, at most POINTS_RATE per second of image time, the rest counted
+    clouds = sorted(s for s, d in b.by_stamp.items() if 'points' in d)
+    assert clouds and set(clouds) <= set(recs_b)
+    for s in clouds:
+        cloud = b.by_stamp[s]['points']
+        assert (cloud.width, cloud.height) == ((OUT_B[0] + 1) // 2, (OUT_B[1] + 1) // 2)
+    assert all(t1 - t0 >= 1e9 / POINTS_RATE for t0, t1 in zip(clouds, clouds[1:])), np.diff(clouds) / 1e9
+    skipped = b.diag_int('points_skipped_rate_cap')
+    assert skipped > 0 and skipped + len(clouds) == len(recs_b), (skipped, len(clouds), len(recs_b))
+    assert b.diag_int('point_clouds_published') == len(clouds)
+    # the keyframe outputs come far below the 50 Hz node B expects: /diagnostics says so
+    warned = [(lvl, m) for lvl, m in b.diag_history if 'depth/image at' in m]
+    assert warned and all(lvl >= WARN for lvl, _m in warned), b.diag_history
+    assert float(b.diagnostics['depth_rate_hz']) < 45.0
+
+
+def test_diagnostics_warn_when_the_share_of_faulty_images_is_too_high(observer):
+    """Images with an unsupported encoding are rejected as faulty: up to drop_warn_share of the recent ones leave
+    the level OK, more raise it to WARN (drop_error_share 1: never ERROR here)."""
+    from diagnostic_msgs.msg import DiagnosticArray
+    from nav_msgs.msg import Odometry
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from sensor_msgs.msg import CameraInfo, Image
+    node, executor = observer
+    spin = lambda t: executor.spin_once(timeout_sec=t)  # noqa: E731
+    history = []
+
+    def on_diag(msg):
+        for st in msg.status:
+            if st.name == 'dpv_sensor: depth camera':
+                level = int.from_bytes(st.level, 'little') if isinstance(st.level, bytes) else int(st.level)
+                history.append((level, st.message, {kv.key: kv.value for kv in st.values}))
+    node.create_subscription(DiagnosticArray, '/diagnostics', on_diag, 10)
+    qos = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE)
+    pub_img = node.create_publisher(Image, '/camera/image', qos)
+    pub_info = node.create_publisher(CameraInfo, '/camera/camera_info', qos)
+    pub_odom = node.create_publisher(Odometry, '/odom', qos)
+    proc = start_node(ros_args({**COMMON, 'drop_warn_share': 0.3, 'drop_error_share': 1.0, 'rate_window': 30.0}))
+    stamp = [START_NS]
+
+    def send(encoding, n):
+        for _ in range(n):
+            stamp[0] += 33_000_000
+            header = M.make_header(stamp[0], 'cam_optical')
+            if encoding == 'rgb8':
+                msg = M.rgb_to_image(np.full((H, W, 3), 90, np.uint8), header)
+            else:     # 16-bit colour: not an encoding the node reads
+                msg = Image(header=header, height=4, width=4, encoding='rgb16', step=24, data=bytes(96))
+            pub_info.publish(M.K_to_camera_info(np.array([[100.0, 0, 80], [0, 100.0, 64], [0, 0, 1]]), W, H, header))
+            for t in (stamp[0] - 16_000_000, stamp[0] + 16_000_000):      # odometry around the image
+                pub_odom.publish(M.matrix_to_odometry(np.eye(4), t, 'base_link', frame_id='odom'))
+            pub_img.publish(msg)
+            spin(0.02)
+
+    def received(n):
+        return history and history[-1][2].get('frames_received') == str(n)
+    try:
+        assert wait_for(lambda: all(p.get_subscription_count() == 1 for p in (pub_img, pub_info, pub_odom)),
+                        timeout=60.0, spin=spin), 'the node never subscribed'
+        send('rgb8', 8)
+        send('rgb16', 2)                       # 2 of 10: 20 %, not above 30 %
+        assert wait_for(lambda: received(10), timeout=60.0, spin=spin), history[-1:]
+        n = len(history)
+        assert wait_for(lambda: len(history) >= n + 2, timeout=20.0, spin=spin)
+        below = history[-1]
+        send('rgb16', 8)                       # 10 of 18: 56 %
+        assert wait_for(lambda: received(18) and 'rejected as faulty' in history[-1][1], timeout=60.0, spin=spin), \
+            history[-1:]
+        above = history[-1]
+    finally:
+        code, out = stop_process(proc)
+    assert code == 0, out
+    assert below[2]['dropped.unsupported_encoding'] == '2' and below[2]['drop_share_window'] == '0.2'
+    assert below[2]['dropped_total'] == '2', below[2]     # the uniform images themselves were not rejected
+    assert 'rejected as faulty' not in below[1] and below[0] <= WARN, below[:2]
+    assert above[0] == WARN and above[2]['dropped.unsupported_encoding'] == '10', above[:2]
+    assert abs(float(above[2]['drop_share_window']) - 10 / 18) < 1e-3
