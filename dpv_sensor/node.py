@@ -270,7 +270,8 @@ class DepthCameraNode(Node):
         self.n_points_skipped = 0                          # clouds skipped by points_max_rate
         self._last_points_stamp_ns = None
         self._first_image_mono = None
-        self._share_history: collections.deque = collections.deque()   # (mono, received, faulty, lost)
+        # (mono, received, faulty, lost) at each diagnostics tick, from the start (nothing received yet)
+        self._share_history: collections.deque = collections.deque([(time.monotonic(), 0, 0.0, 0.0)])
         self.latency_ms: collections.deque[float] = collections.deque(maxlen=200)   # receipt -> published
         self.age_ms: collections.deque[float] = collections.deque(maxlen=200)       # header stamp -> published
         self.process_ms: collections.deque[float] = collections.deque(maxlen=200)   # estimator.push, any frame

@@ -226,6 +226,11 @@ def test_diagnostics_warn_when_the_share_of_faulty_images_is_too_high(observer):
     pub_odom = node.create_publisher(Odometry, '/odom', qos)
     proc = start_node(ros_args({**COMMON, 'drop_warn_share': 0.3, 'drop_error_share': 1.0, 'rate_window': 30.0}))
     stamp = [START_NS]
+    sent = [0]
+
+    def handled():
+        v = history[-1][2] if history else {}
+        return int(v.get('frames_processed', 0)) + int(v.get('dropped_total', 0))
 
     def send(encoding, n):
         for _ in range(n):
@@ -239,7 +244,9 @@ def test_diagnostics_warn_when_the_share_of_faulty_images_is_too_high(observer):
             for t in (stamp[0] - 16_000_000, stamp[0] + 16_000_000):      # odometry around the image
                 pub_odom.publish(M.matrix_to_odometry(np.eye(4), t, 'base_link', frame_id='odom'))
             pub_img.publish(msg)
-            spin(0.02)
+            sent[0] += 1
+            # one at a time: no image is replaced while the node is busy (those would not count as faulty)
+            assert wait_for(lambda: handled() == sent[0], timeout=30.0, spin=spin), history[-1:]
 
     def received(n):
         return history and history[-1][2].get('frames_received') == str(n)
@@ -259,7 +266,7 @@ def test_diagnostics_warn_when_the_share_of_faulty_images_is_too_high(observer):
     finally:
         code, out = stop_process(proc)
     assert code == 0, out
-    assert below[2]['dropped.unsupported_encoding'] == '2' and below[2]['drop_share_window'] == '0.2'
+    assert below[2]['dropped.unsupported_encoding'] == '2' and below[2]['drop_share_window'] == '0.2', below
     assert below[2]['dropped_total'] == '2', below[2]     # the uniform images themselves were not rejected
     assert 'rejected as faulty' not in below[1] and below[0] <= WARN, below[:2]
     assert above[0] == WARN and above[2]['dropped.unsupported_encoding'] == '10', above[:2]
