@@ -61,6 +61,7 @@ from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import Odometry
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
 from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
+from rclpy.clock import Clock, ClockType
 from rclpy.event_handler import PublisherEventCallbacks, SubscriptionEventCallbacks
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
@@ -303,7 +304,9 @@ class DepthCameraNode(Node):
         self._frame_meta: collections.OrderedDict = collections.OrderedDict()
         self._worker = threading.Thread(target=self._work, name='dpv_sensor_worker', daemon=True)
         self._worker.start()
-        self.create_timer(cfg['diagnostics_period'], self._publish_diagnostics)
+        # on the steady clock: diagnostics keep coming while sim time (use_sim_time) is paused or not yet published
+        self.create_timer(cfg['diagnostics_period'], self._publish_diagnostics,
+                          clock=Clock(clock_type=ClockType.STEADY_TIME))
 
         log.info(
             f"ready: preset={cfg['preset']} device={cfg['device']}"

@@ -127,12 +127,21 @@ def test_rgb_confidence_info_compressed_points_and_rate_warning_in_both_resoluti
     common = {**COMMON, 'processing_width': 80, 'processing_height': 64, 'T_base_camera': T_BASE_CAMERA,
               'keyframe_max_interval': 2}
     env = {'OMP_NUM_THREADS': '1'}
-    proc_a = start_node(ros_args({**common, 'publish_compressed_depth': True}), env=env)
-    proc_b = start_node(ros_args({**common, 'processing_width': PW, 'processing_height': PH,
-                                  'output_resolution': 'processing', 'points_decimation': 2,
-                                  'points_max_rate': POINTS_RATE, 'expected_depth_rate': 50.0, 'rate_window': 2.0},
-                                 ['-r', '__ns:=/pr', '-r', 'camera_info:=/distorted/camera_info']), env=env)
+    proc_a = start_node(ros_args({**common, 'publish_compressed_depth': True, 'use_sim_time': True}), env=env)
+    args_b = ros_args({**common, 'processing_width': PW, 'processing_height': PH, 'output_resolution': 'processing',
+                       'points_decimation': 2, 'points_max_rate': POINTS_RATE, 'expected_depth_rate': 50.0,
+                       'rate_window': 2.0}, ['-r', '__ns:=/pr'])
+    # the first remap rule of a name wins: node B's camera_info is the distorted one published here
+    args_b[args_b.index('camera_info:=/camera/camera_info')] = 'camera_info:=/distorted/camera_info'
+    proc_b = start_node(args_b, env=env)
     player = BagPlayer(node, bag, rate=0.25)
+    # node A runs on sim time: /clock follows the bag's stamps
+    from rosgraph_msgs.msg import Clock
+    clock_pub = node.create_publisher(Clock, '/clock', 10)
+
+    def on_publish(_topic, _msg, bag_stamp_ns, _stamp_ns):
+        clock_pub.publish(Clock(clock=M.ns_to_stamp(bag_stamp_ns)))
+    player.on_publish = on_publish
     played = {}
     try:
         ready = wait_for(lambda: all(o.diagnostics.get('measurement_model') == 'classical'
@@ -176,6 +185,9 @@ def test_rgb_confidence_info_compressed_points_and_rate_warning_in_both_resoluti
         # inverse-depth code: one step of q = a / d + b is d^2 / a, a = 10100
         assert np.all(np.abs(decoded[ok] - depth[ok]) <= depth[ok] ** 2 / 10100 * 1.01 + 1e-6)
     assert not any('depth/image at' in m for _lvl, m in a.diag_history), a.diag_history
+    # stamp age on the node's (sim) clock: at most the bag's span, not the years since the recording
+    age = float(a.diagnostics['stamp_age_ms_median'])
+    assert -50.0 <= age <= FRAMES / 30 * 1000, age
 
     # ---------------- node B: processing width with the input's aspect, rectified colour, K of that size
     rect = RectifierCache().for_camera_info(distorted)
@@ -263,6 +275,13 @@ def test_diagnostics_warn_when_the_share_of_faulty_images_is_too_high(observer):
         assert wait_for(lambda: received(18) and 'rejected as faulty' in history[-1][1], timeout=60.0, spin=spin), \
             history[-1:]
         above = history[-1]
+        # a subscriber that asks for more than depth/image offers (transient local): incompatible QoS, reported
+        from rclpy.qos import DurabilityPolicy
+        node.create_subscription(Image, '/depth/image', lambda m: None,
+                                 QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL))
+        assert wait_for(lambda: history[-1][2].get('qos_incompatible.depth/image', '0') != '0', timeout=20.0,
+                        spin=spin), history[-1]
+        qos_report = history[-1]
     finally:
         code, out = stop_process(proc)
     assert code == 0, out
@@ -271,3 +290,5 @@ def test_diagnostics_warn_when_the_share_of_faulty_images_is_too_high(observer):
     assert 'rejected as faulty' not in below[1] and below[0] <= WARN, below[:2]
     assert above[0] == WARN and above[2]['dropped.unsupported_encoding'] == '10', above[:2]
     assert abs(float(above[2]['drop_share_window']) - 10 / 18) < 1e-3
+    assert int(qos_report[2]['faults.incompatible_qos']) >= 1 and qos_report[0] >= WARN, qos_report[:2]
+    assert "incompatible QoS on 'depth/image'" in out, out[-2000:]
