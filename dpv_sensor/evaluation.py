@@ -686,7 +686,7 @@ def compare(seq, base_overrides: Optional[Dict[str, Any]], variants: SequenceT[D
                                         'temporal = mean abs relative disagreement of consecutive keyframes; '
                                         'conf½/all = abs_rel of the most confident half / abs_rel of all '
                                         '(per frame, mean over frames); conf½ pooled = the same over the pixels of '
-                                        'all frames together; const = every pixel at the frame\'s median GT depth '
+                                        "all frames together; const = every pixel at the frame's median GT depth "
                                         '(an oracle constant) on the same keyframes and pixels.\n')
         with open(out / 'compare.json', 'w') as f:
             json.dump(to_jsonable({'rows': rows, 'base_overrides': base_overrides or {},

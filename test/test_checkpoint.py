@@ -190,7 +190,7 @@ def test_plain_safetensors_is_not_a_dpv_checkpoint(tmp_path):
     from safetensors.torch import save_file
     p = tmp_path / 'plain.safetensors'
     save_file({'a': torch.zeros(2)}, str(p))
-    with pytest.raises(CheckpointError, match="not a dpv_sensor checkpoint"):
+    with pytest.raises(CheckpointError, match='not a dpv_sensor checkpoint'):
         load_checkpoint(p)
 
 

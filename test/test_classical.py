@@ -129,7 +129,7 @@ def test_filter_on_classical_measurements_beats_single_frames():
             out = f.step(logp, Kv, ref_T, 0.1 * i, planes)
             e = (dpv.expected_depth(out.logp_bdhw, planes) - gt).abs() / gt
             errs[k].append(e[0, 3:-3, 3:-3].mean().item())
-    print("classical + filter, noisy analytic scene, abs_rel:", {k: [round(e, 4) for e in v] for k, v in errs.items()})
+    print('classical + filter, noisy analytic scene, abs_rel:', {k: [round(e, 4) for e in v] for k, v in errs.items()})
     none = sum(errs['none'][1:])
     for k in ('bayes', 'global'):
         assert all(a < b for a, b in zip(errs[k][1:], errs['none'][1:])), errs

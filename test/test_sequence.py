@@ -2,7 +2,6 @@
 real SUN3D fragment from the shared development data folder (skipped when absent)."""
 from __future__ import annotations
 
-import json
 
 import cv2
 import numpy as np

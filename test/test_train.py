@@ -15,7 +15,6 @@ import numpy as np
 import pytest
 import torch
 
-from dpv_sensor import dpv
 from dpv_sensor.training.dataset import (TRAIN_SEED_BASE, VAL_SEEDS, SceneStream, StreamConfig, WindowLayout,
                                          check_not_heldout)
 from dpv_sensor.training import loop
@@ -439,7 +438,7 @@ def test_selection_benchmark_scores_weight_files_like_the_streaming_validation(t
     torch.manual_seed(3)
     model = DPVNet('lite').eval()
     w = tmp_path / 'w.safetensors'
-    save_checkpoint(str(w), model, metadata={"steps": 7})
+    save_checkpoint(str(w), model, metadata={'steps': 7})
     out = tmp_path / 'sel.json'
     assert selection.main(['--weights', str(w), '--seeds', '21', '--frames', '14', '--pose-noise', '0', '0',
                            '--threads', '1', '--out', str(out)]) == 0

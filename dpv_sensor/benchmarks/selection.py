@@ -106,15 +106,15 @@ def difference_table(rows: List[Dict], mode: str) -> str:
 
 def main(argv: Optional[List[str]] = None) -> int:
     ap = argparse.ArgumentParser(prog='selection', description=__doc__.split('\n\n')[0])
-    ap.add_argument('--weights', nargs='+', required=True, help='exported .safetensors (or a run dir\'s best_model)')
+    ap.add_argument('--weights', nargs='+', required=True, help="exported .safetensors (or a run dir's best_model)")
     ap.add_argument('--seeds', default='20-25', help='held-out rendered seeds (0..99), never reported')
     ap.add_argument('--frames', type=int, default=60, help='frames per sequence (320x240, 30 Hz)')
     ap.add_argument('--pose-noise', type=float, nargs=2, default=[0.03, 0.5], metavar=('REL_T', 'ROT_DEG'),
                     help='odometry-like pose errors per frame of the noisy pass (0 0: GT poses only)')
     ap.add_argument('--modes', nargs='+', default=['knet'], help='filter modes')
     ap.add_argument('--threads', type=int, default=2)
-    ap.add_argument('--device', default='cpu', help="torch device of the estimator: cpu, cuda, cuda:N (the paper "
-                                                     "preset wants a GPU: 2.5 s a keyframe in float32 on a 2-core CPU)")
+    ap.add_argument('--device', default='cpu', help='torch device of the estimator: cpu, cuda, cuda:N (the paper '
+                                                     'preset wants a GPU: 2.5 s a keyframe in float32 on a 2-core CPU)')
     ap.add_argument('--out', default=None, help='write the results as JSON here')
     a = ap.parse_args(argv)
     torch.set_num_threads(a.threads)

@@ -96,7 +96,7 @@ class BagWriter:
     def __init__(self, path: str | os.PathLike, storage: str = 'mcap', overwrite: bool = False):
         from rosbags.rosbag2 import StoragePlugin, Writer
         if storage not in STORAGES:
-            raise BagError(f"storage must be one of {STORAGES}, got {storage!r}")
+            raise BagError(f'storage must be one of {STORAGES}, got {storage!r}')
         self.path = pathlib.Path(path)
         if self.path.exists():
             if not overwrite:
@@ -264,7 +264,7 @@ def write_sequence_bag(path: str | os.PathLike, seq, *, storage: str = 'mcap', r
     at equal stamps odometry is written before camera_info, camera_info before the image.
     """
     if storage not in STORAGES:
-        raise BagError(f"storage must be one of {STORAGES}, got {storage!r}")
+        raise BagError(f'storage must be one of {STORAGES}, got {storage!r}')
     idx = list(range(len(seq))) if frames is None else [int(i) for i in frames]
     if not idx:
         raise BagError('no frames to write')

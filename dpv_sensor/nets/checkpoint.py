@@ -245,7 +245,7 @@ def load_checkpoint(path, preset: Union[None, str, Preset] = None, device='cpu',
         wd, sd = want.to_dict(), stored.to_dict()
         diff = sorted(k for k, v in wd.items() if k not in _RUNTIME_FIELDS and sd.get(k) != v)
         if diff:
-            raise CheckpointError(f'{path}: wrong preset: preset {want.name!r} differs from the checkpoint\'s '
+            raise CheckpointError(f"{path}: wrong preset: preset {want.name!r} differs from the checkpoint's "
                                   f'in {", ".join(diff)}')
         use = want
     else:

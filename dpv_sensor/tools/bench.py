@@ -339,7 +339,7 @@ def markdown(report: Dict) -> str:
     if nets or core:
         lines += ['## Per-stage latency (ms)', '',
                   'Network stages per keyframe (4 source views, their features cached); filter predict/update at '
-                  'the preset\'s volume (1/4 size, D planes); classical = the NCC cost volume of the no-weights '
+                  "the preset's volume (1/4 size, D planes); classical = the NCC cost volume of the no-weights "
                   f'fallback (D={CLASSICAL_PLANES}). Peak memory: growth of peak RSS (CPU) / CUDA max allocated over '
                   'the network stages.', '']
         hdr = ['device', 'model', 'size', 'D', 'feature extraction', 'cost volume', 'K-Net', 'R-Net',

@@ -57,7 +57,6 @@ import json
 import math
 import os
 import pathlib
-import random
 import shlex
 import shutil
 import sys
@@ -666,7 +665,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help='sensor_msgs/CameraInfo topic (default: the only one, or the one next to the image)')
     b.add_argument('--odom-topic', default=None, help='nav_msgs/Odometry topic (default: the only one in the bag)')
     b.add_argument('--gt', help='ground-truth sequence folder for --bag (enables evaluation and fusion)')
-    b.add_argument('--stamp-offset', default='auto', help="passed to `evaluate bag` / `fuse bag` (default auto)")
+    b.add_argument('--stamp-offset', default='auto', help='passed to `evaluate bag` / `fuse bag` (default auto)')
     n = p.add_argument_group('node and replay')
     n.add_argument('--params', nargs='*', default=[], metavar='KEY=VALUE',
                    help='node parameters (config/dpv_sensor.yaml names), e.g. measurement=classical preset=lite '
@@ -684,7 +683,7 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument('--voxel', type=float, default=0.03, help='TSDF voxel size in m (default 0.03)')
     f.add_argument('--fuse-min-confidence', type=float, default=0.9,
                    help='confidence threshold of the masked mesh (default 0.9: with the default ratio confidence, '
-                        'pixels 90 %% sure to be within a factor 1.25; about a third of the demo\'s pixels)')
+                        "pixels 90 %% sure to be within a factor 1.25; about a third of the demo's pixels)")
     f.add_argument('--no-fusion', action='store_true', help='skip step 7')
     p.add_argument('--quiet', action='store_true', help='no progress bars')
     return p

@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import pathlib
 import signal
 import sys
 from typing import List, Optional
@@ -105,7 +104,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--val-stream-frames', type=int, default=d.val_stream_frames, help='frames per streamed sequence')
     p.add_argument('--val-stream-pose-noise', type=float, nargs=2, default=list(d.val_stream_pose_noise),
                    metavar=('REL_T', 'ROT_DEG'),
-                   help='odometry-like pose errors per frame of the streaming validation\'s noisy pass (0 0 = off)')
+                   help="odometry-like pose errors per frame of the streaming validation's noisy pass (0 0 = off)")
     p.add_argument('--max-minutes', type=float, default=0.0, help='stop with a checkpoint after this wall time')
     p.add_argument('--quiet', action='store_true', help='no progress bar or log lines')
     return p

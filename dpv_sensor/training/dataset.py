@@ -32,7 +32,6 @@ irregular spacing a motion-triggered keyframe selector produces.
 from __future__ import annotations
 
 import dataclasses
-import math
 import os
 from typing import Dict, Iterator, List, Optional, Sequence as Seq, Tuple
 

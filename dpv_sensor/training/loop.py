@@ -254,7 +254,7 @@ def parse_select_metric(name: str, noisy_validation: bool = True, stream_validat
     if stream and not stream_validation:
         raise ValueError(f'select_metric {STREAM_PREFIX}{name!r} needs the streaming validation (val_stream_seeds)')
     if stream and poses != 'clean' and not stream_noisy_validation:
-        raise ValueError(f'select_metric {STREAM_PREFIX}{name!r} needs the streaming validation\'s noisy poses '
+        raise ValueError(f"select_metric {STREAM_PREFIX}{name!r} needs the streaming validation's noisy poses "
                          '(val_stream_pose_noise > 0)')
     if not stream and poses != 'clean' and not noisy_validation:
         raise ValueError(f'select_metric {name!r} needs the noisy-pose validation (val_pose_noise > 0)')
@@ -842,7 +842,7 @@ def resolve_amp(amp: str, device: torch.device) -> Optional[torch.dtype]:
     autocast has no float16 kernels worth using). The cost volume, filter, readout and loss stay float32.
     """
     if amp not in ('auto', 'off', 'bf16', 'fp16'):
-        raise ValueError(f"amp must be auto, off, bf16 or fp16, got {amp!r}")
+        raise ValueError(f'amp must be auto, off, bf16 or fp16, got {amp!r}')
     if amp == 'off':
         return None
     if device.type == 'cuda':
