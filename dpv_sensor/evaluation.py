@@ -419,6 +419,23 @@ def consumer_odometry(records: SequenceT[KeyframeRecord], *, depth_max: float = 
     return out
 
 
+def consumer_odometry_text(summary: Dict[str, Any]) -> str:
+    """Lines for the user: per Open3D Jacobian, the median RPE of the consumer odometry on predicted vs GT depth
+    (empty when the summary has none)."""
+    co = summary.get('consumer_odometry') or {}
+    lines = []
+    if 'error' in co:
+        lines.append(f"consumer odometry skipped: {co['error']}")
+    for j in (co.get('options') or {}).get('jacobians', []):
+        r = co[j]
+        p, g = r['predicted'], r['gt_depth']
+        lines.append(f"consumer odometry ({j}, {co['pairs']} pairs of consecutive outputs): median translation / "
+                     f"rotation error {p['trans_m_median'] * 100:.2f} cm / {p['rot_deg_median']:.2f} deg on the "
+                     f"predicted depth, {g['trans_m_median'] * 100:.2f} cm / {g['rot_deg_median']:.2f} deg on the GT "
+                     f"depth: {r['ratio_trans']:.2f}x / {r['ratio_rot']:.2f}x")
+    return ''.join('\n' + line for line in lines) + ('\n' if lines else '')
+
+
 def _add_consumer_odometry(summary: Dict[str, Any], records, options: EvalOptions) -> None:
     """summary['consumer_odometry'] when asked for; an Open3D failure is reported there, not raised."""
     if not options.consumer_odometry or len(records) < 2:

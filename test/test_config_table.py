@@ -17,7 +17,9 @@ SETTINGS = {s.name for s in P.SPECS + P.LIBRARY_SPECS}
 # Same name, another setting: the fusion's own confidence mask, the trainer's table (TrainConfig), and benchmark
 # experiments that pass their own values on purpose.
 OTHER_MEANING = {('fusion.py', 'min_confidence'), ('tools/fuse.py', 'min_confidence'), ('training/loop.py', 'preset'),
-                 ('training/loop.py', 'device')}
+                 ('training/loop.py', 'device'),
+                 # the odometry child frame a written bag carries, not the node's TF parent
+                 ('data/rosbag_io.py', 'base_frame'), ('tools/bag.py', 'base_frame')}
 OWN_VALUES = ('benchmarks/', 'nets/', 'training/stream_validation.py')
 
 
