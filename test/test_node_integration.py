@@ -23,7 +23,7 @@ from dpv_sensor import msgs as M
 from dpv_sensor import params as P
 from dpv_sensor.data import rosbag_io as R
 from dpv_sensor.pose_buffer import NS
-from dpv_sensor.tools.ros_io import BagPlayer, BagRecorder, OutputCollector
+from dpv_sensor.client.ros_io import BagPlayer, BagRecorder, OutputCollector
 
 W, H = 160, 128
 FRAMES = 36

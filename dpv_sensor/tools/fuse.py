@@ -23,7 +23,7 @@ import sys
 from typing import List, Optional
 
 from dpv_sensor.cli import add_config
-from dpv_sensor.tools import tool_argv
+from dpv_sensor.cli import tool_argv
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -26,7 +26,7 @@ from typing import List, Optional
 
 from ..training.dataset import TRAIN_SEED_BASE, parse_seeds
 from ..training.loop import MODULES, TrainConfig, latest_checkpoint
-from dpv_sensor.tools import tool_argv
+from dpv_sensor.cli import tool_argv
 
 
 def build_parser() -> argparse.ArgumentParser:
