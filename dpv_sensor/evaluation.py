@@ -308,7 +308,7 @@ def score_records(records: SequenceT[KeyframeRecord], *, min_depth: Optional[flo
         from tqdm import tqdm
         iterator = tqdm(iterator, total=len(records), desc='scoring', unit='frame', leave=False)
     prev: Optional[KeyframeRecord] = None
-    for k, r in iterator:
+    for _, r in iterator:
         te, re = _pose_error(r.T_world_cam_44, r.gt_T_world_cam_44)
         row = acc.add(r.depth_hw, r.gt_depth_hw, r.confidence_hw, K=r.K_33, index=r.index, stamp=r.stamp,
                       time_ms=r.time_ms, pose_err_m=te, pose_err_deg=re, reset=bool(r.reset_reason))

@@ -80,7 +80,8 @@ def test_recovers_depth_of_analytic_scene():
     assert torch.allclose(Kv, G.scale_intrinsics(K, 0.25, 0.25).float())
     assert torch.allclose(logp.exp().sum(1), torch.ones(1, H // S, W // S), atol=1e-5)
     err = rel_err(logp.double(), gt)
-    print('classical, clean analytic scene: median rel err %.4f, frac < 0.1: %.3f' % (err.median(), (err < 0.1).float().mean()))
+    print('classical, clean analytic scene: median rel err %.4f, frac < 0.1: %.3f'
+          % (err.median(), (err < 0.1).float().mean()))
     assert err.median() < 0.05 and (err < 0.1).float().mean() > 0.8
     # with the poses of the sources scrambled the same images give much worse depth
     bad = T_src_ref[:, [3, 2, 1, 0]]
@@ -178,8 +179,9 @@ def evaluate_sequence(folder: Path, cfg=SUN3D_CFG, modes=('none', 'global')):
     """Classical measurement (+ filter modes) vs the constant-median-depth baseline on a sequence.
 
     Keyframes every ``keyframe_step`` frames; a 5-frame window: the reference and the (up to) four
-    frames nearest to the target ``baselines`` (:func:`select_source_frames`); GT poses; metrics at volume resolution on GT in [d_min, d_max], averaged over
-    keyframes. The constant baseline predicts every pixel = the median GT depth of that keyframe.
+    frames nearest to the target ``baselines`` (:func:`select_source_frames`); GT poses; metrics at volume
+    resolution on GT in [d_min, d_max], averaged over keyframes. The constant baseline predicts every pixel =
+    the median GT depth of that keyframe.
     """
     imgs, deps, P, K = _load_sequence(folder, cfg['input_width'])
     m = ClassicalMeasurement(cfg['d_min'], cfg['d_max'], cfg['num_planes'], temperature=cfg['temperature'],

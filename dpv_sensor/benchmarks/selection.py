@@ -49,7 +49,8 @@ def score_weights(paths: List[str], spec: StreamValidationSpec, progress=None, d
 
 def markdown_table(results: Dict[str, Dict], modes) -> str:
     """One row per weights and mode: abs_rel with GT / noisy poses and their mean, delta1, confident-half."""
-    lines = ['| weights | steps | mode | abs_rel GT poses | abs_rel noisy poses | mean | δ1 GT / noisy | conf½ GT / noisy |',
+    lines = ['| weights | steps | mode | abs_rel GT poses | abs_rel noisy poses | mean | δ1 GT / noisy '
+             '| conf½ GT / noisy |',
              '|---|---|---|---|---|---|---|---|']
     for p, r in results.items():
         for mode in modes:
@@ -97,7 +98,8 @@ def difference_table(rows: List[Dict], mode: str) -> str:
     if not rows:
         return ''
     lines = [f'paired difference from {rows[0]["base"]} ({mode}, per-seed mean of GT and noisy abs_rel; '
-             f'negative = better):', '', '| weights | difference | standard error | seeds better |', '|---|---|---|---|']
+             f'negative = better):', '', '| weights | difference | standard error | seeds better |',
+             '|---|---|---|---|']
     for r in rows:
         lines.append(f"| {r['weights']} | {r['mean_diff']:+.4f} | {r['std_err']:.4f} | "
                      f"{r['seeds_better']} of {r['seeds']} |")

@@ -578,8 +578,8 @@ def export_depth_bag(path, out_dir, *, depth_topic: str = DEPTH_TOPIC, confidenc
         (out / 'images').mkdir(exist_ok=True)
     summary = {'bag': str(path), 'depth_topic': depth_topic_found, 'confidence_topic': conf_topic,
                'camera_info_topic': info_t, 'image_topic': image_topic, 'odom_topic': odom_topic,
-               'pose_topic': pose_topic if poses_src is not None and pose_topic else None, 'chosen_by': how, 'frames': 0, 'without_confidence': 0, 'without_image': 0,
-               'without_pose': 0, 'K_changed': False}
+               'pose_topic': pose_topic if poses_src is not None and pose_topic else None, 'chosen_by': how,
+               'frames': 0, 'without_confidence': 0, 'without_image': 0, 'without_pose': 0, 'K_changed': False}
     K0 = None
     stamps, poses = [], []
     iterator: Iterable = depth

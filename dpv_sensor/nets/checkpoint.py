@@ -197,8 +197,8 @@ def _read(path) -> Tuple[bytes, dict, dict]:
     except json.JSONDecodeError as e:
         raise CheckpointError(f'{path}: corrupted metadata (not valid JSON: {e})') from None
     if not isinstance(meta, dict) or meta.get('format') != FORMAT:
-        raise CheckpointError(f'{path}: unsupported checkpoint format {meta.get("format") if isinstance(meta, dict) else None!r}'
-                              f' (expected {FORMAT!r})')
+        found = meta.get('format') if isinstance(meta, dict) else None
+        raise CheckpointError(f'{path}: unsupported checkpoint format {found!r} (expected {FORMAT!r})')
     return data, header, meta
 
 

@@ -12,8 +12,9 @@ Examples::
     evaluate bag run.mcap --gt DATA/sun3d_3dmatch_frag1 --out eval/bag
     evaluate export exported/ --gt DATA/sun3d_3dmatch_frag1 --out eval/export
 
-(DATA: the shared development data folder, or any sequence folders.) SOURCE for ``sequence`` is a sequence folder or ``synthetic:SEED[:FRAMES]`` (the synthetic renderer,
-rendered at --width x --height, default 320x240, 60 frames).
+(DATA: the shared development data folder, or any sequence folders.) SOURCE for ``sequence`` is a sequence
+folder or ``synthetic:SEED[:FRAMES]`` (the synthetic renderer, rendered at --width x --height, default
+320x240, 60 frames).
 
 Depth range: GT pixels outside [--min-depth, --max-depth] are not scored and predictions are clipped to
 that range. The default is the estimator's depth planes [d_min, d_max] (for ``bag``/``export``: every

@@ -9,7 +9,7 @@ end-to-end latency = (receipt time of an output) - (its image stamp). Reported a
   drops        the node's /diagnostics counters (dropped.* by reason, faults.*)
   memory       VmRSS of the node process (from /proc) after warm-up, at the end, and its maximum
 
-A tool, not a unit test: it takes minutes. Its `OutputCollector` (tools.ros_io) is also used by the node tests.
+A tool, not a unit test: it takes minutes. Its `OutputCollector` (client.ros_io) is also used by the node tests.
 """
 from __future__ import annotations
 

@@ -69,7 +69,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--num-workers', type=int, default=d.num_workers, help='DataLoader worker processes (rendering)')
     p.add_argument('--threads', type=int, default=d.threads, help='torch CPU threads')
     p.add_argument('--device', default=d.device, help="'auto', 'cpu', 'cuda', 'cuda:1', ...")
-    p.add_argument('--amp', choices=('auto', 'off', 'bf16', 'fp16'), default=d.amp, help='mixed precision: on CUDA auto = bf16 (fp16 where bf16 is missing); on the CPU auto = bf16 where the CPU has AMX / AVX512-BF16 (a lite step 1.75x faster), else float32')
+    p.add_argument('--amp', choices=('auto', 'off', 'bf16', 'fp16'), default=d.amp,
+                   help='mixed precision: on CUDA auto = bf16 (fp16 where bf16 is missing); on the CPU auto = bf16 '
+                        'where the CPU has AMX / AVX512-BF16 (a lite step 1.75x faster), else float32')
     p.add_argument('--ckpt-every', type=int, default=d.ckpt_every, help='steps between checkpoints')
     p.add_argument('--log-every', type=int, default=d.log_every)
     p.add_argument('--val-every', type=int, default=d.val_every, help='steps between validations ("epoch")')
@@ -78,7 +80,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--val-gap', type=int, default=d.val_gap, help='frames between validation keyframes')
     p.add_argument('--val-width', type=int, default=0, help='validation width (0 = training width)')
     p.add_argument('--val-height', type=int, default=0, help='validation height (0 = training height)')
-    p.add_argument('--folders', nargs='*', default=[], help='sequence folders to mix in (e.g. tartanair_hospital; never SUN3D, tum_fr1_rpy or icl_nuim_lr_kt3)')
+    p.add_argument('--folders', nargs='*', default=[],
+                   help='sequence folders to mix in (e.g. tartanair_hospital; never SUN3D, tum_fr1_rpy or '
+                        'icl_nuim_lr_kt3)')
     p.add_argument('--folder-prob', type=float, default=0.0, help='probability that a sample comes from --folders')
     p.add_argument('--startup-prob', type=float, default=0.0,
                    help='share of stream-start runs (causal windows with 1, 2, 3, 4 sources, as after a reset)')
@@ -93,7 +97,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help='validation score deciding exports, lower is better: <metric>_<mode> (GT poses), '
                         '<metric>_<mode>_noisy (the --val-pose-noise validation) or <metric>_<mode>_both (their mean); '
                         'prefixed stream_, the same from the streaming validation (--val-stream-seeds)')
-    p.add_argument('--val-pose-noise', type=float, nargs=2, default=list(d.val_pose_noise), metavar=('REL_T', 'ROT_DEG'),
+    p.add_argument('--val-pose-noise', type=float, nargs=2, default=list(d.val_pose_noise),
+                   metavar=('REL_T', 'ROT_DEG'),
                    help='also validate with odometry-like poses: relative translation error and rotation error (deg) '
                         'per keyframe step, accumulating (0 0 = off); reported as noisy_net_<mode>')
     p.add_argument('--val-stream-seeds', default='',
