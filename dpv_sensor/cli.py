@@ -29,5 +29,12 @@ def add_setting(parser, name: str, flag: str | None = None, **overrides) -> argp
 def add_config(parser, help_extra: str = '') -> argparse.Action:
     """``--config KEY=VALUE ...``: settings of the table by name (config/dpv_sensor.yaml names)."""
     return parser.add_argument('--config', nargs='*', default=[], metavar='KEY=VALUE',
-                               help='settings by name (config/dpv_sensor.yaml names and the estimator\'s '
+                               help="settings by name (config/dpv_sensor.yaml names and the estimator's "
                                     'library settings), e.g. filter_mode=global processing_width=160' + help_extra)
+
+
+def tool_argv(argv=None) -> list:
+    """The tool's own arguments: `ros2 run` may append `--ros-args ...`, which the console tools do not use."""
+    import sys
+    argv = list(sys.argv[1:] if argv is None else argv)
+    return argv[:argv.index('--ros-args')] if '--ros-args' in argv else argv

@@ -37,13 +37,13 @@ def joint_weighted_median(depth_bhw: torch.Tensor, weight_bhw: torch.Tensor, ima
     ok = torch.isfinite(d) & (d > 0)
     v = torch.where(ok, d, torch.zeros_like(d))[:, None]
     w = torch.where(ok, weight_bhw.to(dtype).clamp_min(0.0) + 1e-6, torch.zeros_like(d))[:, None]
-    I = image_b3hw.to(dtype)
+    img = image_b3hw.to(dtype)
     r, s = int(radius), max(int(step), 1)
     H, W = d.shape[-2:]
     pad = (r, r, r, r)
     vp = torch.nn.functional.pad(v, pad)                     # zero weight outside the image
     wp = torch.nn.functional.pad(w, pad)
-    Ip = torch.nn.functional.pad(I, pad, mode='replicate')
+    img_p = torch.nn.functional.pad(img, pad, mode='replicate')
     offs = range(-(r // s) * s, r + 1, s)
     vals, wts = [], []
     inv2s2 = 1.0 / (2.0 * sigma_colour * sigma_colour)
@@ -51,7 +51,7 @@ def joint_weighted_median(depth_bhw: torch.Tensor, weight_bhw: torch.Tensor, ima
         for dx in offs:
             ys, xs = r + dy, r + dx
             vals.append(vp[:, :, ys:ys + H, xs:xs + W])
-            c = ((Ip[:, :, ys:ys + H, xs:xs + W] - I) ** 2).sum(1, keepdim=True)
+            c = ((img_p[:, :, ys:ys + H, xs:xs + W] - img) ** 2).sum(1, keepdim=True)
             wts.append(wp[:, :, ys:ys + H, xs:xs + W] * torch.exp(-c * inv2s2))
     # samples last (contiguous): sorting many short rows is fast that way
     V = torch.cat(vals, 1).permute(0, 2, 3, 1).contiguous()          # B,H,W,N

@@ -308,7 +308,7 @@ def score_records(records: SequenceT[KeyframeRecord], *, min_depth: Optional[flo
         from tqdm import tqdm
         iterator = tqdm(iterator, total=len(records), desc='scoring', unit='frame', leave=False)
     prev: Optional[KeyframeRecord] = None
-    for k, r in iterator:
+    for _, r in iterator:
         te, re = _pose_error(r.T_world_cam_44, r.gt_T_world_cam_44)
         row = acc.add(r.depth_hw, r.gt_depth_hw, r.confidence_hw, K=r.K_33, index=r.index, stamp=r.stamp,
                       time_ms=r.time_ms, pose_err_m=te, pose_err_deg=re, reset=bool(r.reset_reason))
@@ -417,6 +417,23 @@ def consumer_odometry(records: SequenceT[KeyframeRecord], *, depth_max: float = 
         out['ratio_trans'] = out[jacobians[0]]['ratio_trans']
         out['ratio_rot'] = out[jacobians[0]]['ratio_rot']
     return out
+
+
+def consumer_odometry_text(summary: Dict[str, Any]) -> str:
+    """Lines for the user: per Open3D Jacobian, the median RPE of the consumer odometry on predicted vs GT depth
+    (empty when the summary has none)."""
+    co = summary.get('consumer_odometry') or {}
+    lines = []
+    if 'error' in co:
+        lines.append(f"consumer odometry skipped: {co['error']}")
+    for j in (co.get('options') or {}).get('jacobians', []):
+        r = co[j]
+        p, g = r['predicted'], r['gt_depth']
+        lines.append(f"consumer odometry ({j}, {co['pairs']} pairs of consecutive outputs): median translation / "
+                     f"rotation error {p['trans_m_median'] * 100:.2f} cm / {p['rot_deg_median']:.2f} deg on the "
+                     f"predicted depth, {g['trans_m_median'] * 100:.2f} cm / {g['rot_deg_median']:.2f} deg on the GT "
+                     f"depth: {r['ratio_trans']:.2f}x / {r['ratio_rot']:.2f}x")
+    return ''.join('\n' + line for line in lines) + ('\n' if lines else '')
 
 
 def _add_consumer_odometry(summary: Dict[str, Any], records, options: EvalOptions) -> None:
@@ -686,7 +703,7 @@ def compare(seq, base_overrides: Optional[Dict[str, Any]], variants: SequenceT[D
                                         'temporal = mean abs relative disagreement of consecutive keyframes; '
                                         'conf½/all = abs_rel of the most confident half / abs_rel of all '
                                         '(per frame, mean over frames); conf½ pooled = the same over the pixels of '
-                                        'all frames together; const = every pixel at the frame\'s median GT depth '
+                                        "all frames together; const = every pixel at the frame's median GT depth "
                                         '(an oracle constant) on the same keyframes and pixels.\n')
         with open(out / 'compare.json', 'w') as f:
             json.dump(to_jsonable({'rows': rows, 'base_overrides': base_overrides or {},

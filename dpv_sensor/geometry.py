@@ -40,7 +40,8 @@ __all__ = [
 # ----------------------------------------------------------------------------------------------
 
 def scale_intrinsics_np(K_33, sx: float, sy: float) -> np.ndarray:
-    """Numpy float64 twin of scale_intrinsics: K for an image scaled by (sx, sy): fx' = fx*sx, cx' = (cx + 0.5)*sx - 0.5 (same for y)."""
+    """Numpy float64 twin of scale_intrinsics: K for an image scaled by (sx, sy):
+    fx' = fx*sx, cx' = (cx + 0.5)*sx - 0.5 (same for y)."""
     K = np.array(K_33, dtype=np.float64, copy=True)
     K[0, 0] *= sx
     K[0, 1] *= sx
@@ -351,7 +352,6 @@ def _sweep_grid(K_ref_b33, K_src_b33, T_src_ref_b44, depths_bd, H, W, Hs, Ws):
     The projection and the normalisation are folded into one 3x3 matrix per batch element, so the
     per-voxel work is one multiply-add per coordinate and one division.
     """
-    B = K_ref_b33.shape[0]
     pix = pixel_grid(H, W, K_ref_b33.dtype, K_ref_b33.device)                      # 3,HW
     NK = _norm_matrix(Hs, Ws, K_src_b33) @ K_src_b33                                # B,3,3
     M = NK @ T_src_ref_b44[:, :3, :3] @ _invert_K(K_ref_b33)                        # B,3,3

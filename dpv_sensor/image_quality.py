@@ -7,8 +7,9 @@ counter). numpy and OpenCV, no ROS, no torch; a 640x480 frame costs a few millis
 
 The tests, in this order (thresholds are module constants, chosen so that no frame of the real and rendered
 sequences we evaluate on is flagged, while the synthetic degenerate frames are, with a wide margin: the
-neighbour ratio below is at most 0.13 on the frames of the shared real and rendered sequences (every third frame checked), up to 0.83
-on a finely textured 80x60 test plane seen from afar (its texture aliases), and 1.00 +- 0.02 on noise):
+neighbour ratio below is at most 0.13 on the frames of the shared real and rendered sequences (every third
+frame checked), up to 0.83 on a finely textured 80x60 test plane seen from afar (its texture aliases), and
+1.00 +- 0.02 on noise):
 
 - ``black``: at least ``DARK_FRACTION`` of the pixels have every channel <= ``DARK_LEVEL``;
 - ``saturated``: at least ``SATURATED_FRACTION`` of the pixels have a channel >= ``SATURATED_LEVEL``

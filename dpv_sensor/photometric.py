@@ -492,8 +492,8 @@ class Aligner:
         else:
             K_depth = _as_tensor(K_depth_33, torch.float64, device)
         maps = torch.stack([depth, conf] + ([] if rho_std is None else [rho_std]))
-        levels = [l for l in range(min(len(pyr.levels), cfg.num_levels) - 1, cfg.finest_level - 1, -1)
-                  if min(pyr.levels[l][0].shape) >= cfg.min_level_size]
+        levels = [lvl for lvl in range(min(len(pyr.levels), cfg.num_levels) - 1, cfg.finest_level - 1, -1)
+                  if min(pyr.levels[lvl][0].shape) >= cfg.min_level_size]
         if not levels:
             levels = [min(cfg.finest_level, len(pyr.levels) - 1)]
         self.levels = levels
@@ -544,7 +544,7 @@ class Aligner:
             stalled = False
             small_step = False
             last_step = float('inf')
-            for iters in range(1, cfg.max_iterations + 1):
+            for iters in range(1, cfg.max_iterations + 1):   # noqa: B007 (the count is read after the loop)
                 delta = cfg.huber_k * sigma
                 # Outlier rejection from the second level on (at the coarsest, misaligned pixels look like
                 # outliers).

@@ -64,13 +64,13 @@ def static_frames(base_frame: str, image_frame: str) -> tuple[str, str] | None:
 class TfPublisher:
     """The node's TF output: call `frames()` as frame names arrive and `publish_refined()` per estimated pose."""
 
-    def __init__(self, node, T_base_camera_44, base_frame: str):
+    def __init__(self, node, T_base_camera_44, base_frame: str | None = None):
         from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
         from tf2_msgs.msg import TFMessage   # ImportError where tf2_msgs was not generated
 
         self._node = node
         self._T_base_camera = np.asarray(T_base_camera_44, dtype=np.float64)
-        self._base_param = base_frame
+        self._base_param = base_frame or ''
         self._lock = threading.Lock()
         self._base = ''
         self._image = ''

@@ -49,7 +49,7 @@ def parse_remaps(text: str) -> list[tuple[str, str]]:
     for item in text.split():
         src, sep, dst = item.partition(':=')
         if not sep or not src or not dst or ':=' in dst:
-            raise ValueError(f"remap {item!r} is not of the form from:=to")
+            raise ValueError(f'remap {item!r} is not of the form from:=to')
         pairs.append((src, dst))
     return pairs
 
@@ -58,7 +58,7 @@ def remappings(preset: str = 'none', image: str = '', camera_info: str = '', odo
                remaps: str = '') -> list[tuple[str, str]]:
     """The node's remappings: the preset's input topics, each overridden by an explicit one, then `remaps`."""
     if preset not in PRESETS:
-        raise ValueError(f"preset {preset!r} is not one of {sorted(PRESETS)}")
+        raise ValueError(f'preset {preset!r} is not one of {sorted(PRESETS)}')
     topics = dict(PRESETS[preset])
     for name, value in zip(INPUTS, (image, camera_info, odom)):
         if value:

@@ -18,7 +18,8 @@ os.environ.setdefault('ROS_DOMAIN_ID', str(random.Random(os.getpid()).randint(10
 os.environ.setdefault('ROS_LOCALHOST_ONLY', '1')
 if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
-os.environ['PYTHONPATH'] = os.pathsep.join([str(REPO)] + [p for p in os.environ.get('PYTHONPATH', '').split(os.pathsep) if p])
+os.environ['PYTHONPATH'] = os.pathsep.join(
+    [str(REPO)] + [p for p in os.environ.get('PYTHONPATH', '').split(os.pathsep) if p])
 
 
 def cpu_native_bf16():

@@ -36,10 +36,9 @@ def start_node(args: list[str] | None = None, executable: list[str] | None = Non
                             text=True)
 
 
-def stop_process(proc: subprocess.Popen, sig=signal.SIGINT, timeout: float = 20.0) -> tuple[int, str]:
-    """Send `sig`, wait for exit and return (exit code, all output). Kills it if it does not stop."""
-    if proc.poll() is None:
-        proc.send_signal(sig)
+def wait_exit(proc: subprocess.Popen, timeout: float) -> tuple[int, str]:
+    """Wait up to `timeout` s for `proc` to exit and return (exit code, all output); if it has not exited by
+    then, kill it and return (-9, its output)."""
     try:
         out, _ = proc.communicate(timeout=timeout)
     except subprocess.TimeoutExpired:
@@ -47,3 +46,10 @@ def stop_process(proc: subprocess.Popen, sig=signal.SIGINT, timeout: float = 20.
         out, _ = proc.communicate()
         return -9, out
     return proc.returncode, out
+
+
+def stop_process(proc: subprocess.Popen, sig=signal.SIGINT, timeout: float = 20.0) -> tuple[int, str]:
+    """Send `sig`, wait for exit and return (exit code, all output). Kills it if it does not stop."""
+    if proc.poll() is None:
+        proc.send_signal(sig)
+    return wait_exit(proc, timeout)

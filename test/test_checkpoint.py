@@ -130,7 +130,8 @@ def test_truncated(saved, tmp_path):
     _, path = saved
     data = path.read_bytes()
     cut = _copy(path, tmp_path / 'cut.safetensors', data[:-1000])
-    with pytest.raises(CheckpointError, match=r'truncated \(size mismatch\): the file has \d+ bytes, its header declares \d+'):
+    with pytest.raises(CheckpointError,
+                       match=r'truncated \(size mismatch\): the file has \d+ bytes, its header declares \d+'):
         load_checkpoint(cut, preset='lite')
     (n,) = struct.unpack('<Q', data[:8])
     cut_header = _copy(path, tmp_path / 'cut_header.safetensors', data[:8 + n // 2])
@@ -143,18 +144,21 @@ def test_truncated(saved, tmp_path):
 
 def test_wrong_preset(saved, tmp_path):
     _, path = saved
-    with pytest.raises(CheckpointError, match=r"wrong preset: the checkpoint is for preset 'lite' but preset 'paper' was requested"):
+    with pytest.raises(CheckpointError,
+                       match=r"wrong preset: the checkpoint is for preset 'lite' but preset 'paper' was requested"):
         load_checkpoint(path, preset='paper')
     with pytest.raises(CheckpointError, match=r"wrong preset: unknown preset 'nope'"):
         load_checkpoint(path, preset='nope')
     far = dataclasses.replace(get_preset('lite'), d_max=12.0)   # same name, other depth range
-    with pytest.raises(CheckpointError, match=r"wrong preset: preset 'lite' has d_max=12.0 but the checkpoint has d_max=8.0"):
+    with pytest.raises(CheckpointError,
+                       match=r"wrong preset: preset 'lite' has d_max=12.0 but the checkpoint has d_max=8.0"):
         load_checkpoint(path, preset=far)
     # runtime-only fields (memory chunking, initial values of learnt scalars) may differ
     net, _ = load_checkpoint(path, preset=dataclasses.replace(get_preset('lite'), cost_plane_chunk=3))
     assert net.cost_volume.plane_chunk == 3
     wide = dataclasses.replace(get_preset('lite'), knet_channels=16)
-    with pytest.raises(CheckpointError, match=r"wrong preset: preset 'lite' differs from the checkpoint's in knet_channels"):
+    with pytest.raises(CheckpointError,
+                       match=r"wrong preset: preset 'lite' differs from the checkpoint's in knet_channels"):
         load_checkpoint(path, preset=wide)
 
 
@@ -182,7 +186,8 @@ def test_missing_unexpected_and_misshapen_tensors(saved, tmp_path):
     def reshape(t):
         t['rnet.conv0.0.bias'] = torch.zeros(5)
     bad = _rewrite(path, tmp_path / 'shape.safetensors', reshape)
-    with pytest.raises(CheckpointError, match=r'shape mismatch: rnet\.conv0\.0\.bias: checkpoint \(5,\) vs model \(\d+,\)'):
+    with pytest.raises(CheckpointError,
+                       match=r'shape mismatch: rnet\.conv0\.0\.bias: checkpoint \(5,\) vs model \(\d+,\)'):
         load_checkpoint(bad, preset='lite')
 
 
@@ -190,7 +195,7 @@ def test_plain_safetensors_is_not_a_dpv_checkpoint(tmp_path):
     from safetensors.torch import save_file
     p = tmp_path / 'plain.safetensors'
     save_file({'a': torch.zeros(2)}, str(p))
-    with pytest.raises(CheckpointError, match="not a dpv_sensor checkpoint"):
+    with pytest.raises(CheckpointError, match='not a dpv_sensor checkpoint'):
         load_checkpoint(p)
 
 

@@ -80,7 +80,8 @@ def test_recovers_depth_of_analytic_scene():
     assert torch.allclose(Kv, G.scale_intrinsics(K, 0.25, 0.25).float())
     assert torch.allclose(logp.exp().sum(1), torch.ones(1, H // S, W // S), atol=1e-5)
     err = rel_err(logp.double(), gt)
-    print('classical, clean analytic scene: median rel err %.4f, frac < 0.1: %.3f' % (err.median(), (err < 0.1).float().mean()))
+    print('classical, clean analytic scene: median rel err %.4f, frac < 0.1: %.3f'
+          % (err.median(), (err < 0.1).float().mean()))
     assert err.median() < 0.05 and (err < 0.1).float().mean() > 0.8
     # with the poses of the sources scrambled the same images give much worse depth
     bad = T_src_ref[:, [3, 2, 1, 0]]
@@ -129,7 +130,7 @@ def test_filter_on_classical_measurements_beats_single_frames():
             out = f.step(logp, Kv, ref_T, 0.1 * i, planes)
             e = (dpv.expected_depth(out.logp_bdhw, planes) - gt).abs() / gt
             errs[k].append(e[0, 3:-3, 3:-3].mean().item())
-    print("classical + filter, noisy analytic scene, abs_rel:", {k: [round(e, 4) for e in v] for k, v in errs.items()})
+    print('classical + filter, noisy analytic scene, abs_rel:', {k: [round(e, 4) for e in v] for k, v in errs.items()})
     none = sum(errs['none'][1:])
     for k in ('bayes', 'global'):
         assert all(a < b for a, b in zip(errs[k][1:], errs['none'][1:])), errs
@@ -178,8 +179,9 @@ def evaluate_sequence(folder: Path, cfg=SUN3D_CFG, modes=('none', 'global')):
     """Classical measurement (+ filter modes) vs the constant-median-depth baseline on a sequence.
 
     Keyframes every ``keyframe_step`` frames; a 5-frame window: the reference and the (up to) four
-    frames nearest to the target ``baselines`` (:func:`select_source_frames`); GT poses; metrics at volume resolution on GT in [d_min, d_max], averaged over
-    keyframes. The constant baseline predicts every pixel = the median GT depth of that keyframe.
+    frames nearest to the target ``baselines`` (:func:`select_source_frames`); GT poses; metrics at volume
+    resolution on GT in [d_min, d_max], averaged over keyframes. The constant baseline predicts every pixel =
+    the median GT depth of that keyframe.
     """
     imgs, deps, P, K = _load_sequence(folder, cfg['input_width'])
     m = ClassicalMeasurement(cfg['d_min'], cfg['d_max'], cfg['num_planes'], temperature=cfg['temperature'],

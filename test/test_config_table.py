@@ -18,8 +18,7 @@ SETTINGS = {s.name for s in P.SPECS + P.LIBRARY_SPECS}
 # experiments that pass their own values on purpose.
 OTHER_MEANING = {('fusion.py', 'min_confidence'), ('tools/fuse.py', 'min_confidence'), ('training/loop.py', 'preset'),
                  ('training/loop.py', 'device'),
-                 # the bag writer's odometry child frame (the frame its T_base_camera is written in), not the node's
-                 # TF parent parameter
+                 # the odometry child frame a written bag carries, not the node's TF parent
                  ('data/rosbag_io.py', 'base_frame'), ('tools/bag.py', 'base_frame')}
 OWN_VALUES = ('benchmarks/', 'nets/', 'training/stream_validation.py')
 

@@ -23,6 +23,7 @@ import cv2
 import pytest
 
 from ros_helpers import REPO
+from dpv_sensor.client.node_process import node_command
 from dpv_sensor.tools import demo as D
 
 NODE = ['measurement=classical', 'processing_width=96', 'processing_height=72', 'num_planes=32']
@@ -194,7 +195,7 @@ def test_parse_params_types_and_rejects_unknown_names():
         D.parse_params(['no_such_thing=1'])
     with pytest.raises(ValueError, match='KEY=VALUE'):
         D.parse_params(['preset'])
-    cmd = D.node_command({'weights': '', 'damping': 0.5, 'T_base_camera': [0, 0, 0, 0, 0, 0, 1]}, {'image': '/cam'})
+    cmd = node_command({'weights': '', 'damping': 0.5, 'T_base_camera': [0, 0, 0, 0, 0, 0, 1]}, {'image': '/cam'})
     assert cmd[:4] == [sys.executable, '-m', 'dpv_sensor.node', '--ros-args']
     assert cmd[4:] == ['-p', "weights:=''", '-p', 'damping:=0.5', '-p', 'T_base_camera:=[0.0,0.0,0.0,0.0,0.0,0.0,1.0]',
                        '-r', 'image:=/cam']

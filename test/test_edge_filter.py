@@ -1,8 +1,6 @@
 """Sharper depth: sub-plane readout (dpv.subplane_index) and the colour-guided edge filter (edge_filter.py)."""
 from __future__ import annotations
 
-import numpy as np
-import pytest
 import torch
 
 from dpv_sensor import dpv

@@ -29,7 +29,8 @@ def _plane_texture(K, T_world_cam, depth):
     rays = np.linalg.inv(K) @ np.stack([u.ravel(), v.ravel(), np.ones(H * W)])
     X = T_world_cam[:3, :3] @ (rays * depth.ravel()) + T_world_cam[:3, 3:4]
     x, y = X[0], X[1]
-    g = 128 + 50 * np.sin(9.0 * x + 2.0 * y) + 40 * np.sin(3.0 * x - 11.0 * y + 1.0) + 30 * np.sign(np.sin(5.0 * x * y + 4 * x))
+    g = (128 + 50 * np.sin(9.0 * x + 2.0 * y) + 40 * np.sin(3.0 * x - 11.0 * y + 1.0)
+         + 30 * np.sign(np.sin(5.0 * x * y + 4 * x)))
     return np.clip(g, 0, 255).reshape(H, W)
 
 
@@ -267,7 +268,8 @@ def test_processing_resolution_and_noisy_poses_and_compare(tmp_path):
     res = E.compare(seq, TINY, E.variants_from_specs(['filter_mode=none,global']), tmp_path, opts)
     assert [r['filter'] for r in res['rows']] == ['none', 'global']
     # the textured plane is found with 8 planes too (noise images: abs_rel 0.21, d1 0.50)
-    assert all(r['abs_rel'] < 0.2 and r['d1'] > 0.7 for r in res['rows']), [(r['abs_rel'], r['d1']) for r in res['rows']]
+    assert all(r['abs_rel'] < 0.2 and r['d1'] > 0.7 for r in res['rows']), \
+        [(r['abs_rel'], r['d1']) for r in res['rows']]
     assert s['metric']['frame_mean']['abs_rel'] < 0.25         # drifting poses, still the plane
     md = (tmp_path / 'compare.md').read_text()
     assert md.count('\n| filter_mode=') == 2

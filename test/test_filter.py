@@ -360,6 +360,7 @@ def test_prediction_moves_a_peaked_patch_by_the_hand_computed_shift(use_step):
     left_behind = [c for c in cols if c not in moved]  # 20..25
     assert float(p[k][:, moved].min()) > 0.5, 'the peak did not arrive where the hand-computed shift puts it'
     assert int(p[:, :, moved].argmax(0).unique().numel()) == 1 and int(p[:, :, moved].argmax(0)[0, 0]) == k
-    assert float(p[k][:, left_behind + [moved[0] - 1]].max()) < 0.2, 'the peak stayed where it was or moved the wrong way'
+    assert float(p[k][:, left_behind + [moved[0] - 1]].max()) < 0.2, \
+        'the peak stayed where it was or moved the wrong way'
     # moved the other way (the inverted relative pose) it would sit on columns 26..31
     assert float(p[k][:, [c + shift for c in cols]].max()) < 0.2

@@ -93,8 +93,8 @@ def test_quaternion_roundtrip_and_so3():
     q = G.rotation_matrix_to_quaternion(R)
     assert torch.allclose(G.quaternion_to_rotation_matrix(q), R, atol=1e-10)
     assert torch.allclose(G.so3_exp(G.so3_log(R)), R, atol=1e-10)
-    assert torch.allclose(G.rotation_angle(R), torch.remainder(w.norm(dim=-1) + math.pi, 2 * math.pi).sub(math.pi).abs(),
-                          atol=1e-9)
+    assert torch.allclose(G.rotation_angle(R),
+                          torch.remainder(w.norm(dim=-1) + math.pi, 2 * math.pi).sub(math.pi).abs(), atol=1e-9)
     assert G.rotation_angle(rot_z(math.radians(30))[None]).item() == pytest.approx(math.radians(30))
     T = G.se3_exp(torch.tensor([[1.0, 2.0, 3.0, 0.0, 0.0, 0.0]], dtype=DT))
     assert torch.allclose(T, se3(t=(1.0, 2.0, 3.0)))
@@ -159,7 +159,8 @@ def test_plane_sweep_identity_and_valid():
     assert valid.all()
     assert torch.allclose(warped, src[:, :, None].expand_as(warped), atol=1e-12)
     # a large x-translation pushes near planes out of the source image: zeros and invalid there
-    warped, valid = G.plane_sweep_warp(src, K.expand(2, 3, 3), K.expand(2, 3, 3), se3(t=(2.0, 0, 0)).expand(2, 4, 4), planes)
+    warped, valid = G.plane_sweep_warp(src, K.expand(2, 3, 3), K.expand(2, 3, 3), se3(t=(2.0, 0, 0)).expand(2, 4, 4),
+                                       planes)
     assert not valid[:, 0].any() and (warped[:, :, 0] == 0).all()
     # ref_hw: a half-size reference grid reading from the full-size source
     K_ref = G.scale_intrinsics(K, 0.5, 0.5)
@@ -321,5 +322,5 @@ def test_cuda_matches_cpu():
     b, vb = G.plane_sweep_warp(src.cuda(), K.cuda(), K.cuda(), T.cuda(), planes.cuda())
     assert torch.allclose(a, b.cpu(), atol=1e-5) and torch.equal(va, vb.cpu())
     logp = torch.log_softmax(torch.randn(1, 8, 12, 16), 1)
-    assert torch.allclose(G.warp_volume(logp, K, T, planes), G.warp_volume(logp.cuda(), K.cuda(), T.cuda(), planes.cuda()).cpu(),
-                          atol=1e-4)
+    assert torch.allclose(G.warp_volume(logp, K, T, planes),
+                          G.warp_volume(logp.cuda(), K.cuda(), T.cuda(), planes.cuda()).cpu(), atol=1e-4)

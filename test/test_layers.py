@@ -1,6 +1,7 @@
 """Import arrows point down: no ROS below the node, benchmarks do not import tools, tools do not import each
-other (shared pieces live in tools/node_process.py and tools/ros_io.py), and the entry point imports only the
-standard library before it has installed its signal handlers."""
+other (shared pieces live in the client package below them: client/node_process.py, client/ros_io.py,
+client/replay.py), the client package imports neither, and the entry point imports only the standard library before
+it has installed its signal handlers."""
 import ast
 import pathlib
 import sys
@@ -12,7 +13,7 @@ ROS_PACKAGES = {'rclpy', 'rcl_interfaces', 'sensor_msgs', 'nav_msgs', 'geometry_
 NO_ROS = ['geometry.py', 'dpv.py', 'params.py', 'cli.py', 'common.py', 'continuity.py', 'filter.py', 'keyframes.py',
           'poses.py', 'photometric.py', 'classical.py', 'estimator.py', 'pipeline.py', 'frame.py', 'node_support.py',
           'entry.py', 'process_memory.py', 'pose_buffer.py', 'metrics.py', 'evaluation.py']
-SHARED_TOOL_MODULES = {'dpv_sensor.tools', 'dpv_sensor.tools.node_process', 'dpv_sensor.tools.ros_io'}
+SHARED_TOOL_MODULES = {'dpv_sensor.tools'}
 
 
 def _imports(path: pathlib.Path, top_level_only: bool = False):
@@ -50,6 +51,12 @@ def test_benchmarks_do_not_import_tools():
     assert not offenders
 
 
+def test_client_imports_neither_tools_nor_benchmarks():
+    offenders = [f'{p.name}: {m}' for p in (PACKAGE / 'client').glob('*.py') for m in _imports(p)
+                 if m.startswith(('dpv_sensor.tools', 'dpv_sensor.benchmarks'))]
+    assert not offenders
+
+
 def _module_of(name: str) -> str:
     """The module an imported name lives in: ``dpv_sensor.tools.bag.BagPlayer`` -> ``dpv_sensor.tools.bag``."""
     parts = name.split('.')
@@ -69,7 +76,8 @@ def test_tools_do_not_import_each_other():
             if module.startswith('dpv_sensor.tools.') and module not in SHARED_TOOL_MODULES and module != own:
                 offenders.append(f'{p.name}: {module}')
     # the demo runs evaluate and fuse through their main(): the one sanctioned tool-to-tool call
-    offenders = [o for o in offenders if o not in ('demo.py: dpv_sensor.tools.evaluate', 'demo.py: dpv_sensor.tools.fuse')]
+    sanctioned = ('demo.py: dpv_sensor.tools.evaluate', 'demo.py: dpv_sensor.tools.fuse')
+    offenders = [o for o in offenders if o not in sanctioned]
     assert not offenders
 
 

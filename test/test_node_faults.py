@@ -19,7 +19,7 @@ from ros_helpers import start_node, stop_process, wait_for
 from dpv_sensor import msgs as M
 from dpv_sensor.data import rosbag_io as R
 from dpv_sensor.pose_buffer import NS
-from dpv_sensor.tools.ros_io import BagPlayer, OutputCollector
+from dpv_sensor.client.ros_io import BagPlayer, OutputCollector
 
 W, H = 160, 128
 FRAMES = 44

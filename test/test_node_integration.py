@@ -1,6 +1,6 @@
 """The node end to end over real DDS: a rendered sequence as a rosbag2, replayed into two node processes.
 
-The bag is played in-process with tools.ros_io.BagPlayer (started once both nodes report, in /diagnostics, that they
+The bag is played in-process with client.ros_io.BagPlayer (started once both nodes report, in /diagnostics, that they
 see its publishers); `bag record` (BagRecorder) records node A's outputs, which are then exported. Node A (defaults:
 32FC1, input resolution) and node B (namespace /mm: 16UC1, processing resolution 80x64, min_confidence, someone
 subscribed to its point cloud) run side by side on the same replay. Checked:
@@ -23,7 +23,7 @@ from dpv_sensor import msgs as M
 from dpv_sensor import params as P
 from dpv_sensor.data import rosbag_io as R
 from dpv_sensor.pose_buffer import NS
-from dpv_sensor.tools.ros_io import BagPlayer, BagRecorder, OutputCollector
+from dpv_sensor.client.ros_io import BagPlayer, BagRecorder, OutputCollector
 
 W, H = 160, 128
 FRAMES = 36

@@ -24,7 +24,7 @@ from test_node_integration import COMMON, T_BASE_CAMERA, ros_args
 from dpv_sensor import msgs as M
 from dpv_sensor.data import rosbag_io as R
 from dpv_sensor.rectify import RectifierCache
-from dpv_sensor.tools.ros_io import BagPlayer
+from dpv_sensor.client.ros_io import BagPlayer
 
 W, H = 160, 128
 FRAMES = 24

@@ -20,7 +20,7 @@ from dpv_sensor import msgs as M
 from dpv_sensor.data import rosbag_io as R
 from dpv_sensor.photometric import pose_error
 from dpv_sensor.pose_buffer import make_pose
-from dpv_sensor.tools.ros_io import BagPlayer, OutputCollector
+from dpv_sensor.client.ros_io import BagPlayer, OutputCollector
 
 
 @pytest.fixture(scope='module')

@@ -47,7 +47,7 @@ def test_tool_client_node_ignores_the_tools_own_argv(monkeypatch):
     """`soak --param cpu_precision:=bfloat16` puts `name:=value` in the tool's argv; rclpy must not read it as a
     remap rule of the tool's own client node (here `__node:=` would rename it)."""
     import sys
-    from dpv_sensor.tools.node_process import ClientNode
+    from dpv_sensor.client.node_process import ClientNode
     monkeypatch.setattr(sys, 'argv', ['soak', '--param', '__node:=hijacked', 'cpu_precision:=bfloat16'])
     client = ClientNode('dpv_probe')
     try:

@@ -10,7 +10,7 @@ import time
 
 import pytest
 
-from ros_helpers import REPO
+from ros_helpers import REPO, wait_exit
 
 MODULE = [sys.executable, '-m', 'dpv_sensor.node']
 # what the console script setuptools writes for `ros2 run dpv_sensor node` does
@@ -31,14 +31,7 @@ def _spawn(cmd):
 
 
 def _run_to_end(cmd, timeout=180.0):
-    proc = _spawn(cmd)
-    try:
-        out, _ = proc.communicate(timeout=timeout)
-    except subprocess.TimeoutExpired:
-        proc.kill()
-        out, _ = proc.communicate()
-        return -9, out
-    return proc.returncode, out
+    return wait_exit(_spawn(cmd), timeout)
 
 
 def test_missing_weights_with_network_measurement_exits_2_every_time():

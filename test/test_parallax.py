@@ -95,25 +95,25 @@ def test_filter_update_weight_keeps_or_replaces_the_belief():
     D, H, W = 8, 4, 5
     depths = dpv_ops.depth_planes(0.5, 4.0, D)
     Kv = torch.tensor([[[4.0, 0, 2.0], [0, 4.0, 1.5], [0, 0, 1]]])
-    I = torch.eye(4)[None]
+    eye = torch.eye(4)[None]
     first = dpv_ops.one_hot_log(torch.full((1, H, W), 2), D)
     second = dpv_ops.one_hot_log(torch.full((1, H, W), 6), D)
     f = DPVFilter(mode='bayes', max_time_gap=math.inf)
     # after a reset a zero-weight measurement leaves the uniform belief
-    out = f.step(first, Kv, I, 0.0, depths, update_weight_bhw=torch.zeros(1, H, W))
+    out = f.step(first, Kv, eye, 0.0, depths, update_weight_bhw=torch.zeros(1, H, W))
     assert torch.allclose(out.logp_bdhw.exp(), torch.full((1, D, H, W), 1.0 / D), atol=1e-6)
     f.reset()
-    f.step(first, Kv, I, 0.0, depths)
+    f.step(first, Kv, eye, 0.0, depths)
     w = torch.zeros(1, H, W)
     w[0, :, 3:] = 1.0                                    # the right columns have parallax, the rest none
-    out = f.step(second, Kv, I, 0.1, depths, update_weight_bhw=w)
+    out = f.step(second, Kv, eye, 0.1, depths, update_weight_bhw=w)
     # weight 0: exactly the prediction (the camera did not move: the first belief)
     assert torch.allclose(out.logp_bdhw[..., :3], out.predicted_logp_bdhw[..., :3], atol=1e-5)
     assert (out.logp_bdhw[..., :3].argmax(1) == 2).all()
     # weight 1: the plain update (bayes: the product of two disjoint one-hots is flat between the floors)
     plain = DPVFilter(mode='bayes', max_time_gap=math.inf)
-    plain.step(first, Kv, I, 0.0, depths)
-    ref = plain.step(second, Kv, I, 0.1, depths).logp_bdhw
+    plain.step(first, Kv, eye, 0.0, depths)
+    ref = plain.step(second, Kv, eye, 0.1, depths).logp_bdhw
     assert torch.allclose(out.logp_bdhw[..., 3:], ref[..., 3:], atol=1e-5)
 
 

@@ -7,7 +7,7 @@ import pytest
 
 from dpv_sensor.process_memory import limit_malloc_arenas
 
-_COUNT_ARENAS = r'''
+_COUNT_ARENAS = r"""
 import ctypes, sys, threading
 sys.path.insert(0, {repo!r})
 from dpv_sensor.process_memory import limit_malloc_arenas
@@ -24,7 +24,7 @@ def work():
 ts = [threading.Thread(target=work) for _ in range(8)]
 [t.start() for t in ts]; [t.join() for t in ts]
 libc.malloc_stats()                        # writes 'Arena N:' per arena to stderr
-'''
+"""
 
 
 def _arenas(limit: bool, env_extra=None) -> tuple[int, str]:

@@ -225,9 +225,11 @@ USER_BAG = {'/robot/front/img': (R.IMAGE, 30), '/robot/front/calib': (R.CAMERA_I
 def test_input_topics_found_by_type_under_any_names():
     chosen, how = R.detect_input_topics(USER_BAG)
     assert chosen == {'image': '/robot/front/img', 'camera_info': '/robot/front/calib', 'odom': '/wheel/odometry'}
-    assert how['image'] == 'the only sensor_msgs/msg/Image topic' and how['odom'] == 'the only nav_msgs/msg/Odometry topic'
+    assert how['image'] == 'the only sensor_msgs/msg/Image topic'
+    assert how['odom'] == 'the only nav_msgs/msg/Odometry topic'
     line = R.describe_choice(chosen, how)
-    assert line.startswith('image /robot/front/img (the only sensor_msgs/msg/Image topic), camera_info /robot/front/calib')
+    assert line.startswith('image /robot/front/img (the only sensor_msgs/msg/Image topic), '
+                           'camera_info /robot/front/calib')
 
 
 def test_two_image_topics_need_a_name_and_the_error_lists_both():

@@ -2,7 +2,6 @@
 real SUN3D fragment from the shared development data folder (skipped when absent)."""
 from __future__ import annotations
 
-import json
 
 import cv2
 import numpy as np
@@ -27,7 +26,7 @@ def _random_sequence(n=4, w=40, h=30, seed=0) -> Sequence:
     base = cv2.resize(rng.integers(0, 256, (3, 4, 3)).astype(np.uint8), (w, h), interpolation=cv2.INTER_LINEAR)
     images = [np.roll(base, i, axis=1) for i in range(n)]
     depths = []
-    for i in range(n):
+    for _ in range(n):
         d = rng.uniform(0.3, 9.0, (h, w)).astype(np.float32)
         d[rng.random((h, w)) < 0.2] = 0.0          # invalid
         d[0, 0] = np.nan                             # also invalid

@@ -15,7 +15,6 @@ import numpy as np
 import pytest
 import torch
 
-from dpv_sensor import dpv
 from dpv_sensor.training.dataset import (TRAIN_SEED_BASE, VAL_SEEDS, SceneStream, StreamConfig, WindowLayout,
                                          check_not_heldout)
 from dpv_sensor.training import loop
@@ -165,7 +164,8 @@ def test_optimizer_state_roundtrip_without_pickle():
 
 
 def _tiny_config(tmp_path, steps):
-    return loop.TrainConfig(preset='lite', run_dir=str(tmp_path / 'run'), export_path=str(tmp_path / 'w' / 'lite.safetensors'),
+    return loop.TrainConfig(preset='lite', run_dir=str(tmp_path / 'run'),
+                            export_path=str(tmp_path / 'w' / 'lite.safetensors'),
                             width=48, height=32, steps=steps, batch_size=1, unroll=2, gap_min=2, gap_max=3,
                             warmup=1, num_workers=0, threads=1, ckpt_every=2, log_every=1, val_every=3,
                             val_seeds=(0,), val_keyframes=5, val_gap=2)
@@ -205,7 +205,7 @@ def test_trainer_checkpoint_resume_and_export(tmp_path):
     out = t.train()
     assert out['step'] == 5
     assert loop.latest_checkpoint(str(run)).name == 'step_0000005'
-    rows = [json.loads(l) for l in (run / 'train.jsonl').read_text().splitlines()]
+    rows = [json.loads(line) for line in (run / 'train.jsonl').read_text().splitlines()]
     assert [r['step'] for r in rows] == [1, 2, 3, 4, 5]
 
 
@@ -222,7 +222,7 @@ def test_train_modules_knet_updates_only_knet(tmp_path):
     after = t.model.state_dict()
     moved = {k for k in before if not torch.equal(before[k], after[k])}
     assert moved and all(k.startswith('knet.') for k in moved), moved
-    rows = [json.loads(l) for l in (tmp_path / 'run' / 'train.jsonl').read_text().splitlines()]
+    rows = [json.loads(line) for line in (tmp_path / 'run' / 'train.jsonl').read_text().splitlines()]
     assert all(r['loss'] == pytest.approx(r['nll_full']) for r in rows)
     meta = t.metadata({})
     assert meta['trained_modules'] == ['knet'] and 'D-Net' not in meta['loss']
@@ -233,7 +233,8 @@ def test_train_modules_knet_updates_only_knet(tmp_path):
 
 def test_selection_metric_names():
     assert loop.parse_select_metric('abs_rel_knet') == ('abs_rel', 'knet', 'clean', False)
-    assert loop.parse_select_metric('confident_half_ratio_global_noisy') == ('confident_half_ratio', 'global', 'noisy', False)
+    assert loop.parse_select_metric('confident_half_ratio_global_noisy') == \
+        ('confident_half_ratio', 'global', 'noisy', False)
     assert loop.parse_select_metric('nll_full_knet_both') == ('nll_full', 'knet', 'both', False)
     assert loop.parse_select_metric('stream_abs_rel_knet_both') == ('abs_rel', 'knet', 'both', True)
     assert loop.parse_select_metric('stream_delta1_global') == ('delta1', 'global', 'clean', True)
@@ -367,7 +368,8 @@ def test_noisy_pose_validation_corrupts_relative_poses_and_is_reported(tmp_path)
         assert torch.equal(b['images'], n['images']) and torch.equal(b['depths'], n['depths'])
         torch.testing.assert_close(n['poses'], n2['poses'])
         rel = lambda P, i: torch.linalg.inv(P[0, i]) @ P[0, i + 1]       # noqa: E731
-        moved = max(float((rel(b['poses'], i) - rel(n['poses'], i)).abs().max()) for i in range(n['poses'].shape[1] - 1))
+        moved = max(float((rel(b['poses'], i) - rel(n['poses'], i)).abs().max())
+                    for i in range(n['poses'].shape[1] - 1))
         assert moved > 1e-3
     metrics = t.validate()
     for mode in loop.FILTER_MODES:
@@ -399,8 +401,9 @@ def test_training_runs_without_ros_gtsam_or_rosbags(tmp_path):
         "for m in ('gtsam', 'rclpy', 'rosbags', 'open3d'):\n"
         "    sys.modules[m] = None\n"
         f"sys.argv = ['train', '--preset', 'lite', '--run-dir', {str(tmp_path / 'run')!r}, '--export', "
-        f"{str(tmp_path / 'w.safetensors')!r}, '--width', '64', '--height', '48', '--batch-size', '1', '--unroll', '2', "
-        "'--steps', '2', '--val-every', '2', '--val-seeds', '0', '--val-keyframes', '6', '--threads', '1', "
+        f"{str(tmp_path / 'w.safetensors')!r}, '--width', '64', '--height', '48', '--batch-size', '1', "
+        "'--unroll', '2', '--steps', '2', '--val-every', '2', '--val-seeds', '0', '--val-keyframes', '6', "
+        "'--threads', '1', "
         "'--num-workers', '0', '--quiet', '--pose-noise-prob', '1.0', '--val-stream-seeds', '20', "
         "'--val-stream-frames', '12', '--select-metric', 'stream_abs_rel_knet_both']\n"
         "from dpv_sensor.tools import train\n"
@@ -439,7 +442,7 @@ def test_selection_benchmark_scores_weight_files_like_the_streaming_validation(t
     torch.manual_seed(3)
     model = DPVNet('lite').eval()
     w = tmp_path / 'w.safetensors'
-    save_checkpoint(str(w), model, metadata={"steps": 7})
+    save_checkpoint(str(w), model, metadata={'steps': 7})
     out = tmp_path / 'sel.json'
     assert selection.main(['--weights', str(w), '--seeds', '21', '--frames', '14', '--pose-noise', '0', '0',
                            '--threads', '1', '--out', str(out)]) == 0
@@ -526,7 +529,7 @@ def test_distributed_training_under_torchrun_on_cpu(tmp_path):
            '--threads', '1', '--num-workers', '0', '--quiet', '--ckpt-every', '3', '--device', 'cpu']
     res = subprocess.run(cmd, capture_output=True, text=True, timeout=300, cwd=str(pathlib.Path(__file__).parents[1]))
     assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-3000:]
-    finals = [json.loads(l) for l in res.stdout.splitlines() if l.startswith('{"step"')]
+    finals = [json.loads(line) for line in res.stdout.splitlines() if line.startswith('{"step"')]
     assert sorted(f['step'] for f in finals) == [3, 3]
     assert sum(f['best'] is not None for f in finals) == 1          # only rank 0 validates
     state = json.loads((loop.latest_checkpoint(str(tmp_path / 'run')) / 'state.json').read_text())

@@ -24,8 +24,8 @@ knet, R-Net), on windows laid out like the training validation (``TrainConfig``:
 
 * **synthetic**: held-out seeds (0..99, never trained on) rendered by
   :func:`~dpv_sensor.training.loop.render_validation_batches`, keyframes ``val_gap`` frames apart;
-* **SUN3D** (``sun3d_3dmatch_frag1`` and ``frag2`` of the shared development data folder, when present; never trained on):
-  keyframes chosen by the estimator's own :class:`dpv_sensor.keyframes.KeyframeSelector` (its default
+* **SUN3D** (``sun3d_3dmatch_frag1`` and ``frag2`` of the shared development data folder, when present;
+  never trained on): keyframes chosen by the estimator's own :class:`dpv_sensor.keyframes.KeyframeSelector` (its default
   5 cm / 5 deg / every 5th frame thresholds), ``--sun3d-windows`` runs of consecutive keyframes spread
   along each sequence, frames resized (stretched, like the estimator) to the evaluation size.
 
@@ -252,9 +252,11 @@ def run(model, *, synthetic_seeds: Seq[int] = tuple(range(6)), sun3d_windows: in
     if synthetic_seeds:
         datasets['synthetic'] = {'batches': render_validation_batches(synthetic_seeds, num_keyframes, gap, width,
                                                                       height, lay),
-                                 'what': f'held-out synthetic seeds {list(synthetic_seeds)}, keyframes {gap} frames apart'}
+                                 'what': f'held-out synthetic seeds {list(synthetic_seeds)}, '
+                                         f'keyframes {gap} frames apart'}
     if not skip_sun3d:
-        folders = [pathlib.Path(data_dir) / n for n in SUN3D_SEQUENCES if (pathlib.Path(data_dir) / n / 'poses.txt').is_file()]
+        folders = [pathlib.Path(data_dir) / n for n in SUN3D_SEQUENCES
+                   if (pathlib.Path(data_dir) / n / 'poses.txt').is_file()]
         if not folders:
             print(f'SUN3D not found under {data_dir}; skipped', file=sys.stderr)
         else:
@@ -341,8 +343,11 @@ def format_table(result: Dict) -> str:
                       _f(r['nll_full']), _f(r['abs_rel'], '{:.4f}'), _f(r['delta1']), ch,
                       _f(r.get('confident_half_ratio_pooled'), '{:.2f}'), _f(r['ause'], '{:.4f}'),
                       _f(r['aurg'], '{:.4f}'), below])
-    w = [max(len(h), *(len(l[i]) for l in lines)) if lines else len(h) for i, h in enumerate(hdr)]
-    fmt = lambda cells: '  '.join(c.ljust(w[i]) if i < 3 else c.rjust(w[i]) for i, c in enumerate(cells))
+    w = [max(len(h), *(len(row[i]) for row in lines)) if lines else len(h) for i, h in enumerate(hdr)]
+
+    def fmt(cells):
+        return '  '.join(c.ljust(w[i]) if i < 3 else c.rjust(w[i]) for i, c in enumerate(cells))
+
     t = result['temperature']
     s = result['settings']
     head = (f"calibration at {s['width']}x{s['height']}, {s['num_keyframes']} keyframes/window "
@@ -352,7 +357,7 @@ def format_table(result: Dict) -> str:
             f"classical temperature: tuned {t['tuned']:g} (default {t['default']:g}) on {t['tuning_windows']} "
             f"synthetic training-seed windows; tuning NLL: "
             + ' '.join(f'{k}:{v:.3f}' for k, v in t['tuning_nll_meas_q'].items()))
-    return '\n'.join([head, fmt(hdr), fmt(['-' * x for x in w])] + [fmt(l) for l in lines])
+    return '\n'.join([head, fmt(hdr), fmt(['-' * x for x in w])] + [fmt(row) for row in lines])
 
 
 def main(argv: Optional[List[str]] = None) -> Dict:
@@ -367,7 +372,8 @@ def main(argv: Optional[List[str]] = None) -> Dict:
     ap.add_argument('--data', default=str(DATA), help='folder holding the SUN3D sequences')
     ap.add_argument('--width', type=int, default=320)
     ap.add_argument('--height', type=int, default=256)
-    ap.add_argument('--keyframes', type=int, default=None, help='keyframes per window (default: TrainConfig.val_keyframes)')
+    ap.add_argument('--keyframes', type=int, default=None,
+                    help='keyframes per window (default: TrainConfig.val_keyframes)')
     ap.add_argument('--tune-seeds', default=f'{DEFAULT_TUNE_SEEDS[0]}-{DEFAULT_TUNE_SEEDS[-1]}',
                     help=f'training seeds (>= {TRAIN_SEED_BASE}) the classical temperature is tuned on')
     ap.add_argument('--temperatures', default=','.join(f'{t:g}' for t in DEFAULT_TEMPERATURES),
@@ -392,7 +398,8 @@ def main(argv: Optional[List[str]] = None) -> Dict:
               num_keyframes=a.keyframes, skip_sun3d=a.skip_sun3d, data_dir=a.data, out=a.out,
               progress=not a.no_progress, readout=a.readout, confidence=a.confidence)
     res['weights'] = {'path': weights, 'steps': meta.get('steps'), 'preset': model.preset.name}
-    res['command'] = ' '.join(['python -m dpv_sensor.benchmarks.calibration'] + list(argv if argv is not None else sys.argv[1:]))
+    res['command'] = ' '.join(['python -m dpv_sensor.benchmarks.calibration']
+                              + list(argv if argv is not None else sys.argv[1:]))
     print(f"total {res['seconds']:.0f} s; plots: {', '.join(res['plots'].values()) or '-'}")
     if a.json:
         pathlib.Path(a.json).parent.mkdir(parents=True, exist_ok=True)

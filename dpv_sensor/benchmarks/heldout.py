@@ -104,7 +104,8 @@ def main():
         except ValueError as e:
             ap.error(str(e))
         for s in seeds:
-            seqs.append((f'synthetic_seed{s}', render_sequence(s, a.synthetic_frames, width=320, height=240, lazy=True)))
+            seqs.append((f'synthetic_seed{s}',
+                         render_sequence(s, a.synthetic_frames, width=320, height=240, lazy=True)))
     results = {'weights': a.weights, 'steps': meta.get('steps'), 'window_mode': a.window_mode, 'readout': a.readout,
                'confidence': a.confidence, 'pose_noise': a.pose_noise, 'sequences': {}}
     for k, (name, seq) in enumerate(seqs):

@@ -20,9 +20,9 @@ The filter's own predict/update arithmetic is not part of these nets and is not 
 
 Latency is the median (and the minimum, the least-contended figure on a shared machine) over
 ``repeats`` timed runs after ``warmup`` runs, plus the median process CPU time (``cpu``: robust to
-other processes competing for the cores; with ``--threads 1`` it is the uncontended one-core latency) (``torch.no_grad``; CUDA is
-synchronised around each stage). Peak memory on the CPU is the growth of the process's peak resident
-set (``VmHWM`` in /proc/self/status, reset before each configuration through
+other processes competing for the cores; with ``--threads 1`` it is the uncontended one-core latency)
+(``torch.no_grad``; CUDA is synchronised around each stage). Peak memory on the CPU is the growth of the
+process's peak resident set (``VmHWM`` in /proc/self/status, reset before each configuration through
 /proc/self/clear_refs; falls back to ``resource.getrusage`` ``ru_maxrss`` growth, which only sees new
 highs) over the resident size before the configuration; on CUDA it is
 ``torch.cuda.max_memory_allocated`` growth. ``run(...)`` returns everything as a dict.
@@ -180,7 +180,8 @@ def run_one(preset: str, size: Tuple[int, int], device='cpu', num_sources: int =
         load0 = os.getloadavg()[0] if hasattr(os, 'getloadavg') else None
         timed = {
             'feature_extraction': _timed(lambda: model.extract_features(ref), device, repeats, warmup),
-            'cost_volume': _timed(lambda: model.cost_volume(feats.fusion, src, K_vol, T, depths), device, repeats, warmup),
+            'cost_volume': _timed(lambda: model.cost_volume(feats.fusion, src, K_vol, T, depths), device, repeats,
+                                  warmup),
             'knet': _timed(lambda: model.knet(residual, ref), device, repeats, warmup),
             'rnet': _timed(lambda: model.refine(logp, feats, ref), device, repeats, warmup),
             'keyframe_streaming': _timed(keyframe_streaming, device, repeats, warmup),
@@ -193,7 +194,8 @@ def run_one(preset: str, size: Tuple[int, int], device='cpu', num_sources: int =
         'preset': preset, 'width': width, 'height': height, 'num_sources': num_sources,
         'num_planes': model.num_planes, 'device': str(device), 'amp': amp or 'fp32',
         'threads': torch.get_num_threads(), 'repeats': repeats,
-        'latency_ms': ms, 'latency_min_ms': ms_min, 'cpu_time_ms': ms_cpu, 'load_average': load0, 'peak_memory_mb': peak.peak_mb, 'memory_method': peak.method,
+        'latency_ms': ms, 'latency_min_ms': ms_min, 'cpu_time_ms': ms_cpu, 'load_average': load0,
+        'peak_memory_mb': peak.peak_mb, 'memory_method': peak.method,
         'params': dict(params), 'macs': dict(macs),
     }
 
@@ -226,10 +228,10 @@ def format_result(r: Dict) -> str:
              f"peak mem +{r['peak_memory_mb']:.0f} MiB",
              f"    {'stage':<20} {'median':>9}    {'min':>7}    {'cpu':>8}      {'MACs':>8}"]
     for stage in ('feature_extraction', 'cost_volume', 'knet', 'rnet'):
-        lines.append(f"    {stage:<20} {ms[stage]:9.1f} ms {mn[stage]:7.1f} ms {cpu[stage]:8.1f} ms {macs[stage] / 1e9:8.3f} GMAC   "
-                     f"{r['params'][stage] / 1e6:7.3f} M params")
-    lines.append(f"    {'keyframe_streaming':<20} {ms['keyframe_streaming']:9.1f} ms {mn['keyframe_streaming']:7.1f} ms "
-                 f"{cpu['keyframe_streaming']:8.1f} ms "
+        lines.append(f"    {stage:<20} {ms[stage]:9.1f} ms {mn[stage]:7.1f} ms {cpu[stage]:8.1f} ms "
+                     f"{macs[stage] / 1e9:8.3f} GMAC   {r['params'][stage] / 1e6:7.3f} M params")
+    lines.append(f"    {'keyframe_streaming':<20} {ms['keyframe_streaming']:9.1f} ms "
+                 f"{mn['keyframe_streaming']:7.1f} ms {cpu['keyframe_streaming']:8.1f} ms "
                  f"{macs['total_streaming'] / 1e9:8.3f} GMAC   (source features cached)")
     lines.append(f"    {'keyframe_cold':<20} {ms['keyframe_cold']:9.1f} ms {mn['keyframe_cold']:7.1f} ms "
                  f"{cpu['keyframe_cold']:8.1f} ms "

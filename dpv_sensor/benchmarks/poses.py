@@ -8,15 +8,17 @@
 Parts:
 
 * ``synthetic`` - rendered sequences (``data.synthetic.render_sequence``), keyframes every ``--every`` frames,
-  odometry corrupted per keyframe (``data.trajectory.corrupt_trajectory``: ``--trans-noise`` (3 %) of each keyframe step in
-  a random direction, ``--rot-noise`` (0.5 deg) about a random axis, optional ``--scale-bias``). Runs the
+  odometry corrupted per keyframe (``data.trajectory.corrupt_trajectory``: ``--trans-noise`` (3 %) of each
+  keyframe step in a random direction, ``--rot-noise`` (0.5 deg) about a random axis, optional
+  ``--scale-bias``). Runs the
   estimator (``estimator.Estimator``, causal window of 5 keyframes) three times - GT poses, noisy poses, noisy
   poses with the :class:`~dpv_sensor.poses.WindowPoseRefiner` hook - and reports the keyframe relative pose error
   (RPE between consecutive output keyframes, of the poses the outputs were computed with) and depth abs_rel
   (metric and median-scaled), and the fraction of the noisy-to-GT abs_rel gap the refinement recovers. A
   ``refiner on GT depth`` row shows the RPE the window reaches when it aligns against the true depth (an upper
   bound for what the filter's predicted depth allows).
-* ``sun3d`` - the same on ``sun3d_3dmatch_frag1`` and ``frag2`` of the shared development data folder (skipped when absent).
+* ``sun3d`` - the same on ``sun3d_3dmatch_frag1`` and ``frag2`` of the shared development data folder
+  (skipped when absent).
 * ``vo`` - odometry-free mode (``poses.VisualOdometry``, bootstrapped from a fronto-parallel plane, refined by the
   same window) on rendered sequences and SUN3D: metric and median-scaled abs_rel next to the GT-pose figures; a
   second run replaces the middle keyframe's image by noise (must lose tracking and publish nothing for it);
@@ -402,8 +404,8 @@ def refiner_config(args, vo_mode: bool = False) -> PoseRefinerConfig:
 
 def print_odometry_table(results: List[Dict]) -> None:
     print('\nKeyframe relative pose error and depth with corrupted odometry')
-    hdr = (f'{"sequence":<22} {"run":<22} {"RPE t mm":>9} {"RPE deg":>8} {"RPE px":>7} {"abs_rel":>8} {"ms_abs_rel":>10} '
-           f'{"out":>4} {"lost":>4} {"photo-ref mm":>12} {"photo-ref deg":>13}')
+    hdr = (f'{"sequence":<22} {"run":<22} {"RPE t mm":>9} {"RPE deg":>8} {"RPE px":>7} {"abs_rel":>8} '
+           f'{"ms_abs_rel":>10} {"out":>4} {"lost":>4} {"photo-ref mm":>12} {"photo-ref deg":>13}')
     print(hdr)
     print('-' * len(hdr))
     for res in results:

@@ -49,7 +49,8 @@ def score_weights(paths: List[str], spec: StreamValidationSpec, progress=None, d
 
 def markdown_table(results: Dict[str, Dict], modes) -> str:
     """One row per weights and mode: abs_rel with GT / noisy poses and their mean, delta1, confident-half."""
-    lines = ['| weights | steps | mode | abs_rel GT poses | abs_rel noisy poses | mean | δ1 GT / noisy | conf½ GT / noisy |',
+    lines = ['| weights | steps | mode | abs_rel GT poses | abs_rel noisy poses | mean | δ1 GT / noisy '
+             '| conf½ GT / noisy |',
              '|---|---|---|---|---|---|---|---|']
     for p, r in results.items():
         for mode in modes:
@@ -97,7 +98,8 @@ def difference_table(rows: List[Dict], mode: str) -> str:
     if not rows:
         return ''
     lines = [f'paired difference from {rows[0]["base"]} ({mode}, per-seed mean of GT and noisy abs_rel; '
-             f'negative = better):', '', '| weights | difference | standard error | seeds better |', '|---|---|---|---|']
+             f'negative = better):', '', '| weights | difference | standard error | seeds better |',
+             '|---|---|---|---|']
     for r in rows:
         lines.append(f"| {r['weights']} | {r['mean_diff']:+.4f} | {r['std_err']:.4f} | "
                      f"{r['seeds_better']} of {r['seeds']} |")
@@ -106,15 +108,15 @@ def difference_table(rows: List[Dict], mode: str) -> str:
 
 def main(argv: Optional[List[str]] = None) -> int:
     ap = argparse.ArgumentParser(prog='selection', description=__doc__.split('\n\n')[0])
-    ap.add_argument('--weights', nargs='+', required=True, help='exported .safetensors (or a run dir\'s best_model)')
+    ap.add_argument('--weights', nargs='+', required=True, help="exported .safetensors (or a run dir's best_model)")
     ap.add_argument('--seeds', default='20-25', help='held-out rendered seeds (0..99), never reported')
     ap.add_argument('--frames', type=int, default=60, help='frames per sequence (320x240, 30 Hz)')
     ap.add_argument('--pose-noise', type=float, nargs=2, default=[0.03, 0.5], metavar=('REL_T', 'ROT_DEG'),
                     help='odometry-like pose errors per frame of the noisy pass (0 0: GT poses only)')
     ap.add_argument('--modes', nargs='+', default=['knet'], help='filter modes')
     ap.add_argument('--threads', type=int, default=2)
-    ap.add_argument('--device', default='cpu', help="torch device of the estimator: cpu, cuda, cuda:N (the paper "
-                                                     "preset wants a GPU: 2.5 s a keyframe in float32 on a 2-core CPU)")
+    ap.add_argument('--device', default='cpu', help='torch device of the estimator: cpu, cuda, cuda:N (the paper '
+                                                     'preset wants a GPU: 2.5 s a keyframe in float32 on a 2-core CPU)')
     ap.add_argument('--out', default=None, help='write the results as JSON here')
     a = ap.parse_args(argv)
     torch.set_num_threads(a.threads)

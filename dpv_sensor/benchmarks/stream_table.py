@@ -4,7 +4,7 @@
         [--noise-seeds 0-2] [--params window_mode=centered ...] [--sequences tum_fr1_rpy ...] [--frames 60]
 
 Each run is one (sequence, pose source, node parameters) replay exactly as ``make demo`` replays
-(dpv_sensor.tools.demo): the sequence is written as a rosbag2 (image + camera_info at the sequence's stamps,
+(dpv_sensor.client.replay): the sequence is written as a rosbag2 (image + camera_info at the sequence's stamps,
 odometry at 100 Hz), the node is started as its own process at its defaults plus the demo's transport settings
 (reliable input, deep queue, diagnostics every 0.1 s) plus ``--params``, the bag is played in lockstep (no image
 dropped) while the outputs are recorded, and the recorded bag is scored with ``evaluate bag``'s code
@@ -117,7 +117,7 @@ def rendered_sequence(out: pathlib.Path, seed: int, frames: int, progress: bool,
     tag = f'{frames} {size[0]}x{size[1]}'
     if done.is_file() and done.read_text().strip() == tag:
         return folder
-    from dpv_sensor.tools.demo import render_scene
+    from dpv_sensor.client.replay import render_scene
     if folder.exists():
         shutil.rmtree(folder)
     render_scene(folder, seed, frames, size[0], size[1], progress)
@@ -165,7 +165,7 @@ def constant_on_same_pixels(records, constant: float, min_depth=None, max_depth=
 def diagnostics_series(output_bag) -> List[Dict[str, str]]:
     """The node's /diagnostics values ({key: str}) recorded in the output bag, in record order."""
     from dpv_sensor.data import rosbag_io as R
-    from dpv_sensor.tools.demo import DIAGNOSTICS_SUFFIX
+    from dpv_sensor.client.replay import DIAGNOSTICS_SUFFIX
     out = []
     if '/diagnostics' not in R.bag_topics(output_bag):
         return out
@@ -178,7 +178,7 @@ def diagnostics_series(output_bag) -> List[Dict[str, str]]:
 
 def keyframe_times_ms(series: List[Dict[str, str]]) -> Dict[int, float]:
     """Estimator time of each keyframe image: {keyframe count: keyframe_ms_last} from the recorded diagnostics."""
-    from dpv_sensor.tools.demo import _as_number
+    from dpv_sensor.client.replay import _as_number
     out: Dict[int, float] = {}
     for v in series:
         k = _as_number(v.get('estimator_keyframes'))
@@ -221,7 +221,7 @@ def run_one(seq_name: str, seq_dir: pathlib.Path, pose_source: str, user_params:
     from dpv_sensor import evaluation as E
     from dpv_sensor.data import rosbag_io as R
     from dpv_sensor.data.sequence import Sequence
-    from dpv_sensor.tools import demo as D
+    from dpv_sensor.client import replay as D
 
     key = run_key(seq_name, pose_source, user_params)
     work = out / 'work' / key
@@ -464,8 +464,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Optional[List[str]] = None) -> int:
-    from dpv_sensor.tools import tool_argv
-    from dpv_sensor.tools.demo import parse_params, private_ros_env
+    from dpv_sensor.cli import tool_argv
+    from dpv_sensor.client.replay import parse_params
+    from dpv_sensor.client.ros_io import private_ros_env
     from dpv_sensor.training.dataset import check_heldout_seeds, parse_seeds
     argv = tool_argv(argv)
     ap = build_parser()

@@ -234,7 +234,8 @@ def _row(r: dict) -> str:
     cells = []
     for k in TOPICS:
         g = r['received'][k]
-        cells.append(f"{g['received']:4d}/{r['sent'][k]:<4d} {g['delay_ms_median'] or 0:7.1f} {g['delay_ms_max'] or 0:8.1f}")
+        cells.append(f"{g['received']:4d}/{r['sent'][k]:<4d} {g['delay_ms_median'] or 0:7.1f} "
+                     f"{g['delay_ms_max'] or 0:8.1f}")
     return f"{r['config']:<11} {r['sensor']:<9}{r['reliability']:<12}{r['depth']:>3}  " + '  '.join(cells)
 
 

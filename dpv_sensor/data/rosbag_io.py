@@ -96,7 +96,7 @@ class BagWriter:
     def __init__(self, path: str | os.PathLike, storage: str = 'mcap', overwrite: bool = False):
         from rosbags.rosbag2 import StoragePlugin, Writer
         if storage not in STORAGES:
-            raise BagError(f"storage must be one of {STORAGES}, got {storage!r}")
+            raise BagError(f'storage must be one of {STORAGES}, got {storage!r}')
         self.path = pathlib.Path(path)
         if self.path.exists():
             if not overwrite:
@@ -264,7 +264,7 @@ def write_sequence_bag(path: str | os.PathLike, seq, *, storage: str = 'mcap', r
     at equal stamps odometry is written before camera_info, camera_info before the image.
     """
     if storage not in STORAGES:
-        raise BagError(f"storage must be one of {STORAGES}, got {storage!r}")
+        raise BagError(f'storage must be one of {STORAGES}, got {storage!r}')
     idx = list(range(len(seq))) if frames is None else [int(i) for i in frames]
     if not idx:
         raise BagError('no frames to write')
@@ -578,8 +578,8 @@ def export_depth_bag(path, out_dir, *, depth_topic: str = DEPTH_TOPIC, confidenc
         (out / 'images').mkdir(exist_ok=True)
     summary = {'bag': str(path), 'depth_topic': depth_topic_found, 'confidence_topic': conf_topic,
                'camera_info_topic': info_t, 'image_topic': image_topic, 'odom_topic': odom_topic,
-               'pose_topic': pose_topic if poses_src is not None and pose_topic else None, 'chosen_by': how, 'frames': 0, 'without_confidence': 0, 'without_image': 0,
-               'without_pose': 0, 'K_changed': False}
+               'pose_topic': pose_topic if poses_src is not None and pose_topic else None, 'chosen_by': how,
+               'frames': 0, 'without_confidence': 0, 'without_image': 0, 'without_pose': 0, 'K_changed': False}
     K0 = None
     stamps, poses = [], []
     iterator: Iterable = depth

@@ -698,7 +698,7 @@ class SyntheticScene:
 
     def _build_room_and_path(self, rng):
         cfg = self.config
-        for attempt in range(200):
+        for _ in range(200):
             L = np.array([rng.uniform(*cfg.room_size_x), rng.uniform(*cfg.room_size_y),
                           rng.uniform(*cfg.room_height)])
             margin = self.clearance + cfg.shake_m + 0.02
@@ -1126,7 +1126,7 @@ class SyntheticScene:
         self._cube_rot = np.stack([np.stack([eye[(a + 1) % 3], s * eye[(a + 2) % 3], s * eye[a]], axis=1)
                                    for a in range(3) for s in (1.0, -1.0)])
         self._cube_K = Kf
-        strength = [float(np.sum(l.color)) for l in self.lights]
+        strength = [float(np.sum(light.color)) for light in self.lights]
         shadowed = np.argsort(strength)[::-1][:max(0, int(self.config.max_shadowed_lights))]
         for li in shadowed:
             light = self.lights[li]

@@ -197,8 +197,8 @@ def _read(path) -> Tuple[bytes, dict, dict]:
     except json.JSONDecodeError as e:
         raise CheckpointError(f'{path}: corrupted metadata (not valid JSON: {e})') from None
     if not isinstance(meta, dict) or meta.get('format') != FORMAT:
-        raise CheckpointError(f'{path}: unsupported checkpoint format {meta.get("format") if isinstance(meta, dict) else None!r}'
-                              f' (expected {FORMAT!r})')
+        found = meta.get('format') if isinstance(meta, dict) else None
+        raise CheckpointError(f'{path}: unsupported checkpoint format {found!r} (expected {FORMAT!r})')
     return data, header, meta
 
 
@@ -245,7 +245,7 @@ def load_checkpoint(path, preset: Union[None, str, Preset] = None, device='cpu',
         wd, sd = want.to_dict(), stored.to_dict()
         diff = sorted(k for k, v in wd.items() if k not in _RUNTIME_FIELDS and sd.get(k) != v)
         if diff:
-            raise CheckpointError(f'{path}: wrong preset: preset {want.name!r} differs from the checkpoint\'s '
+            raise CheckpointError(f"{path}: wrong preset: preset {want.name!r} differs from the checkpoint's "
                                   f'in {", ".join(diff)}')
         use = want
     else:

@@ -281,7 +281,8 @@ class CostVolume(nn.Module):
         B, C, h, w = ref_bchw.shape
         N = srcs_bnchw.shape[1]
         if srcs_bnchw.shape[0] != B or srcs_bnchw.shape[2:] != (C, h, w):
-            raise ValueError(f'source features {tuple(srcs_bnchw.shape)} do not match reference {tuple(ref_bchw.shape)}')
+            raise ValueError(f'source features {tuple(srcs_bnchw.shape)} do not match reference '
+                             f'{tuple(ref_bchw.shape)}')
         if T_src_ref_bn44.shape[:2] != (B, N):
             raise ValueError(f'T_src_ref {tuple(T_src_ref_bn44.shape)} does not match {N} source views, batch {B}')
         dt = torch.float32 if ref_bchw.dtype in (torch.float16, torch.bfloat16) else ref_bchw.dtype

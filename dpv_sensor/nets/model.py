@@ -132,7 +132,8 @@ class DPVNet(nn.Module):
                 raise ValueError('need source images or cached source features')
             B, N = srcs_bn3hw.shape[:2]
             if srcs_bn3hw.shape[2:] != ref_b3hw.shape[1:]:
-                raise ValueError(f'source images {tuple(srcs_bn3hw.shape)} do not match the reference {tuple(ref_b3hw.shape)}')
+                raise ValueError(f'source images {tuple(srcs_bn3hw.shape)} do not match the reference '
+                                 f'{tuple(ref_b3hw.shape)}')
             f = self.extract_features(srcs_bn3hw.reshape(B * N, *srcs_bn3hw.shape[2:])).fusion
             src = f.reshape(B, N, *f.shape[1:])
         elif torch.is_tensor(src_features):

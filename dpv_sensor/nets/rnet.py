@@ -37,7 +37,8 @@ from .presets import Preset
 __all__ = ['RNet', 'upsample_logp']
 
 
-def upsample_logp(logp_bdhw: torch.Tensor, out_hw, stride: int = FEATURE_STRIDE, normalize: bool = True) -> torch.Tensor:
+def upsample_logp(logp_bdhw: torch.Tensor, out_hw, stride: int = FEATURE_STRIDE,
+                  normalize: bool = True) -> torch.Tensor:
     """Bilinear upsampling of a log-DPV on the stride-``stride`` grid: output pixel u reads the input
     at u/stride (edge-clamped). Log space, values clamped at LOG_FLOOR first; renormalised (log-softmax
     over dim 1) unless ``normalize=False``."""
@@ -89,7 +90,8 @@ class RNet(nn.Module):
         H, W = image_norm_b3hw.shape[-2:]
         hh, hw = half_bchw.shape[-2:]
         if fusion_bchw.shape[-2:] != logp_bdhw.shape[-2:]:
-            raise ValueError(f'DPV {tuple(logp_bdhw.shape[-2:])} and features {tuple(fusion_bchw.shape[-2:])} differ in size')
+            raise ValueError(f'DPV {tuple(logp_bdhw.shape[-2:])} and features {tuple(fusion_bchw.shape[-2:])} '
+                             'differ in size')
         x = torch.cat([logp_bdhw.clamp_min(LOG_FLOOR).to(fusion_bchw.dtype), fusion_bchw], 1)
         if self.channels_last:
             x = x.contiguous(memory_format=torch.channels_last)

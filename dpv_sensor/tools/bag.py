@@ -9,8 +9,8 @@
   bag export BAG OUT_DIR             a recorded depth/confidence bag -> depth PNG (mm) + confidence PNG folder
 
 The file side (reading, writing, export) is dpv_sensor.data.rosbag_io (rosbags library, no rclpy); playing and
-recording need a live graph and use rclpy here. `BagPlayer` and `BagRecorder` (dpv_sensor.tools.ros_io) can be used in-process (tests, the
-soak tool) with a node of the caller's own context.
+recording need a live graph and use rclpy here. `BagPlayer` and `BagRecorder` (dpv_sensor.client.ros_io) can be
+used in-process (tests, the soak tool) with a node of the caller's own context.
 """
 from __future__ import annotations
 
@@ -19,7 +19,7 @@ import sys
 import time
 
 from dpv_sensor.data import rosbag_io as R
-from dpv_sensor.tools.ros_io import BagPlayer, BagRecorder
+from dpv_sensor.client.ros_io import BagPlayer, BagRecorder
 
 NS = 1_000_000_000
 

@@ -48,8 +48,8 @@ import time
 from typing import Any, Dict, List, Optional, Tuple
 
 from dpv_sensor.process_memory import proc_status_kib
-from dpv_sensor.tools.node_process import ClientNode, node_command
-from dpv_sensor.tools import tool_argv
+from dpv_sensor.client.node_process import ClientNode, node_command
+from dpv_sensor.cli import tool_argv
 
 REPO = pathlib.Path(__file__).resolve().parents[2]
 PARTS = ('nets', 'core', 'estimator', 'node')
@@ -194,7 +194,7 @@ def bench_node(presets, sizes, device, out: pathlib.Path, *, hz: float, seconds:
                max_seconds: float, start_timeout: float, frames: int, seed: int, threads: Optional[int]) -> List[Dict]:
     """Start the node per preset x size, play a looped synthetic bag at `hz` with live stamps, measure."""
     from dpv_sensor.data import rosbag_io as R
-    from dpv_sensor.tools.ros_io import BagPlayer, OutputCollector
+    from dpv_sensor.client.ros_io import BagPlayer, OutputCollector
 
     env = dict(os.environ)
     env['PYTHONPATH'] = os.pathsep.join([str(REPO)] + [p for p in env.get('PYTHONPATH', '').split(os.pathsep) if p])
@@ -339,7 +339,7 @@ def markdown(report: Dict) -> str:
     if nets or core:
         lines += ['## Per-stage latency (ms)', '',
                   'Network stages per keyframe (4 source views, their features cached); filter predict/update at '
-                  'the preset\'s volume (1/4 size, D planes); classical = the NCC cost volume of the no-weights '
+                  "the preset's volume (1/4 size, D planes); classical = the NCC cost volume of the no-weights "
                   f'fallback (D={CLASSICAL_PLANES}). Peak memory: growth of peak RSS (CPU) / CUDA max allocated over '
                   'the network stages.', '']
         hdr = ['device', 'model', 'size', 'D', 'feature extraction', 'cost volume', 'K-Net', 'R-Net',
@@ -473,7 +473,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     out = pathlib.Path(a.out).resolve()
     out.mkdir(parents=True, exist_ok=True)
     if 'node' in a.parts:   # a private DDS domain for the node runs, logs under OUT
-        from dpv_sensor.tools.ros_io import private_ros_env
+        from dpv_sensor.client.ros_io import private_ros_env
         private_ros_env(out, a.domain_id)
     import torch
     if a.threads:

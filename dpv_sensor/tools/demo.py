@@ -16,7 +16,7 @@ Steps (each prints a progress line and its time):
 3. node    start the node as its own process (`python -m dpv_sensor.node --ros-args -p ... -r ...`) with a private
            ROS_DOMAIN_ID (localhost only) and ROS_LOG_DIR under OUT/logs; wait until its estimator is built and its
            subscriptions match the player's publishers.
-4. replay  play the bag into the node with dpv_sensor.tools.ros_io.BagPlayer and record the node's outputs
+4. replay  play the bag into the node with dpv_sensor.client.ros_io.BagPlayer and record the node's outputs
            (depth/image, depth/camera_info, confidence/image, /diagnostics) with BagRecorder into OUT/output_bag.
            Pacing ("lockstep", the default): real time at most, and each image is held back until the node has
            finished every earlier one (its /diagnostics counters frames_processed + dropped_total, published every
@@ -55,21 +55,19 @@ import contextlib
 import io
 import json
 import math
-import os
 import pathlib
-import random
 import shlex
 import shutil
 import sys
-import threading
 import time
-from dataclasses import dataclass, field
 from typing import Any, Dict, List, Optional
 
-from dpv_sensor.process_memory import proc_status_kib
-from dpv_sensor.tools.node_process import ClientNode, node_command
-from dpv_sensor.tools.ros_io import private_ros_env
-from dpv_sensor.tools import tool_argv
+from dpv_sensor.client.ros_io import private_ros_env
+from dpv_sensor.cli import tool_argv
+from dpv_sensor.client.replay import (  # noqa: F401  (the replay machinery the demo drives)
+    DEMO_NODE_PARAMS, DIAGNOSTICS_SUFFIX, ODOM_RATE_HZ, OUTPUT_TOPICS, GatedPublisher, NodeMonitor,
+    ReplayError as DemoError, ReplayResult, Steps, _as_number, _rel, end_to_end_latency, parse_params, render_scene,
+    run_node_replay)
 
 REPO = pathlib.Path(__file__).resolve().parents[2]
 NS = 1_000_000_000
@@ -80,458 +78,8 @@ DEFAULT_SEED = 42
 DEFAULT_FRAMES = 60
 DEFAULT_WIDTH = 320
 DEFAULT_HEIGHT = 240
-ODOM_RATE_HZ = 100.0
-
-# node parameters the demo sets (a user's --params override them): reliable input so that no image is lost in
-# transport, a deep input queue for the odometry bursts, and frequent diagnostics for the lockstep pacing
-DEMO_NODE_PARAMS = {'input_reliability': 'reliable', 'input_depth': 50, 'diagnostics_period': 0.1}
-OUTPUT_TOPICS = ('/depth/image', '/depth/camera_info', '/confidence/image', '/diagnostics')
-DIAGNOSTICS_SUFFIX = ': depth camera'
-
 # what the demo writes under OUT (removed first when they exist)
 OUT_ITEMS = ('sequence', 'input_bag', 'output_bag', 'eval', 'fusion', 'logs', 'montage.png', 'summary.json')
-
-
-class DemoError(RuntimeError):
-    """A step failed; the message says which and why."""
-
-
-# --------------------------------------------------------------------------------------------------------------
-# small helpers
-# --------------------------------------------------------------------------------------------------------------
-def _rel(path) -> str:
-    """A path relative to the current directory when it lies inside it (shorter, copy-pasteable)."""
-    p = pathlib.Path(path).resolve()
-    try:
-        return str(p.relative_to(pathlib.Path.cwd()))
-    except ValueError:
-        return str(p)
-
-
-
-def _as_number(text, default=None):
-    """A /diagnostics value (a string) as int or float; `default` when it is not a number ('n/a', missing)."""
-    try:
-        return int(text)
-    except (TypeError, ValueError):
-        pass
-    try:
-        return float(text)
-    except (TypeError, ValueError):
-        return default
-
-
-def parse_params(items: List[str]) -> Dict[str, Any]:
-    """['preset=lite', 'fx=525', 'T_base_camera=[0,0,0,0,0,0,1]'] -> typed node parameters (params.SPECS).
-
-    Accepts KEY=VALUE and KEY:=VALUE (``params.parse_assignments``); unknown names raise ValueError listing the
-    known ones."""
-    from dpv_sensor import params as P
-    known = {s.name: s.default for s in P.SPECS}
-    try:
-        return P.parse_assignments(items or [], known)
-    except ValueError as exc:
-        raise ValueError(f'--params: {exc}'.replace('unknown configuration key', 'unknown node parameter')) from None
-
-
-class Steps:
-    """Numbered progress lines with the time of every step."""
-
-    def __init__(self, total: int):
-        self.total = total
-        self.k = 0
-        self.records: List[Dict[str, Any]] = []
-        self._t0 = None
-
-    @contextlib.contextmanager
-    def step(self, name: str, what: str):
-        self.k += 1
-        print(f'[{self.k}/{self.total}] {what} ...', flush=True)
-        t0 = time.perf_counter()
-        rec = {'step': name, 'what': what, 'seconds': None, 'ok': False}
-        self.records.append(rec)
-        try:
-            yield rec
-            rec['ok'] = True
-        finally:
-            rec['seconds'] = round(time.perf_counter() - t0, 2)
-            state = 'done' if rec['ok'] else 'FAILED'
-            note = f" - {rec['note']}" if rec.get('note') else ''
-            print(f'[{self.k}/{self.total}] {name}: {state} in {rec["seconds"]:.1f} s{note}', flush=True)
-
-    def skip(self, name: str, why: str):
-        self.k += 1
-        self.records.append({'step': name, 'what': why, 'seconds': 0.0, 'ok': True, 'skipped': True})
-        print(f'[{self.k}/{self.total}] {name}: skipped ({why})', flush=True)
-
-
-# --------------------------------------------------------------------------------------------------------------
-# watching the node
-# --------------------------------------------------------------------------------------------------------------
-class NodeMonitor:
-    """The node's latest /diagnostics values (as a {key: str} dict), with a condition to wait on."""
-
-    def __init__(self, node):
-        from diagnostic_msgs.msg import DiagnosticArray
-        from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
-        qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=20, reliability=ReliabilityPolicy.RELIABLE,
-                         durability=DurabilityPolicy.VOLATILE)
-        self.values: Dict[str, str] = {}
-        self.level = None
-        self.message = ''
-        self.count = 0
-        self.cv = threading.Condition()
-        self.abort = threading.Event()
-        self.sub = node.create_subscription(DiagnosticArray, '/diagnostics', self._on, qos)
-
-    def _on(self, msg) -> None:
-        for st in msg.status:
-            if st.name.endswith(DIAGNOSTICS_SUFFIX) and st.hardware_id.startswith('dpv_sensor'):
-                with self.cv:
-                    self.values = {kv.key: kv.value for kv in st.values}
-                    lvl = st.level
-                    self.level = int.from_bytes(lvl, 'little') if isinstance(lvl, (bytes, bytearray)) else int(lvl)
-                    self.message = st.message
-                    self.count += 1
-                    self.cv.notify_all()
-
-    def get_int(self, key: str, default: int = 0) -> int:
-        with self.cv:
-            v = _as_number(self.values.get(key), None)
-        return default if v is None else int(v)
-
-    def accounted(self) -> int:
-        """Images the node has finished with: estimated (frames_processed) or dropped for any reason."""
-        with self.cv:
-            return self._accounted(self.values)
-
-    @staticmethod
-    def _accounted(vals: Dict[str, str]) -> int:
-        return int(_as_number(vals.get('frames_processed'), 0) or 0) + \
-            int(_as_number(vals.get('dropped_total'), 0) or 0)
-
-    def snapshot(self) -> Dict[str, str]:
-        with self.cv:
-            return dict(self.values)
-
-    def wait_accounted(self, n: int, timeout: float) -> bool:
-        """Block (another thread spins the executor) until at least `n` images are accounted for; False on timeout
-        or abort."""
-        deadline = time.monotonic() + timeout
-        with self.cv:
-            while True:
-                if self.abort.is_set():
-                    return False
-                if self._accounted(self.values) >= n:
-                    return True
-                left = deadline - time.monotonic()
-                if left <= 0:
-                    return False
-                self.cv.wait(min(left, 0.2))
-
-
-class GatedPublisher:
-    """Wraps the player's image publisher: in lockstep mode each image waits until the node has accounted for all
-    earlier images; stops the player after `max_images`. Everything else is the wrapped publisher's."""
-
-    def __init__(self, pub, monitor: NodeMonitor, player, *, lockstep: bool, timeout: float,
-                 max_images: int = 0, on_image=None):
-        self._pub = pub
-        self._monitor = monitor
-        self._player = player
-        self._lockstep = lockstep
-        self._timeout = timeout
-        self._max = int(max_images or 0)
-        self._on_image = on_image
-        self.sent = 0
-        self.timeouts = 0
-        self.wait_s = 0.0
-        self.sent_wall_ns: Dict[int, int] = {}   # image header stamp (ns) -> wall clock when it was published
-
-    def publish(self, msg) -> None:
-        if self._max and self.sent >= self._max:
-            self._player.stop()
-            return
-        if self._lockstep and self.sent:
-            t0 = time.monotonic()
-            if not self._monitor.wait_accounted(self.sent, self._timeout) and not self._monitor.abort.is_set():
-                self.timeouts += 1
-                print(f'\nwarning: the node has not finished image {self.sent - 1} after {self._timeout:g} s; '
-                      'sending the next one anyway', file=sys.stderr, flush=True)
-            self.wait_s += time.monotonic() - t0
-        if self._monitor.abort.is_set():
-            self._player.stop()
-            return
-        stamp_ns = self._stamp_ns(msg)
-        self._pub.publish(msg)
-        if stamp_ns is not None:
-            self.sent_wall_ns[stamp_ns] = time.time_ns()
-        self.sent += 1
-        if self._on_image is not None:
-            self._on_image(self.sent)
-
-    @staticmethod
-    def _stamp_ns(msg) -> Optional[int]:
-        """Header stamp of an image given as a message or as CDR bytes (what the player publishes)."""
-        try:
-            if isinstance(msg, (bytes, bytearray, memoryview)):
-                from rclpy.serialization import deserialize_message
-                from sensor_msgs.msg import Image
-                msg = deserialize_message(bytes(msg), Image)
-            return msg.header.stamp.sec * NS + msg.header.stamp.nanosec
-        except Exception:
-            return None
-
-    def __getattr__(self, name):
-        return getattr(self._pub, name)
-
-
-# --------------------------------------------------------------------------------------------------------------
-# steps
-# --------------------------------------------------------------------------------------------------------------
-def render_scene(seq_dir: pathlib.Path, seed: int, frames: int, width: int, height: int, progress: bool):
-    from dpv_sensor.data.sequence import write_sequence
-    from dpv_sensor.data.synthetic import render_sequence
-    seq = render_sequence(seed, frames, width=width, height=height, progress=progress)
-    write_sequence(seq_dir, seq, lossless=True, progress=progress)
-    return seq
-
-
-
-@dataclass
-class ReplayResult:
-    images_in_bag: int = 0
-    images_sent: int = 0
-    messages_published: int = 0
-    wall_s: float = 0.0
-    lockstep: bool = True
-    rate: float = 1.0
-    wait_s: float = 0.0
-    timeouts: int = 0
-    recorded: Dict[str, int] = field(default_factory=dict)
-    diagnostics: Dict[str, str] = field(default_factory=dict)
-    node_exit_code: Optional[int] = None
-    node_peak_rss_mib: Optional[float] = None
-    node_start_s: float = 0.0
-    node_stop_s: float = 0.0
-    node_log: str = ''
-    node_command: List[str] = field(default_factory=list)
-    warnings: List[str] = field(default_factory=list)
-    e2e_ms: Dict[str, Any] = field(default_factory=dict)
-
-
-def end_to_end_latency(output_bag, sent_wall_ns: Dict[int, int]) -> Dict[str, Any]:
-    """Per depth output: wall time from publishing its image into the graph to recording its depth image (the
-    recorder's record time is its receipt time). Median / p95 / max in ms over the outputs."""
-    import numpy as np
-    from dpv_sensor import msgs as M
-    from dpv_sensor.data import rosbag_io as R
-    lat = []
-    for _t, _ty, log_ns, msg in R.read_messages(output_bag, ['/depth/image']):
-        sent = sent_wall_ns.get(M.stamp_to_ns(msg.header.stamp))
-        if sent is not None:
-            lat.append((log_ns - sent) / 1e6)
-    if not lat:
-        return {'outputs': 0}
-    return {'outputs': len(lat), 'median': float(np.median(lat)), 'p95': float(np.percentile(lat, 95)),
-            'max': float(np.max(lat))}
-
-
-def run_node_replay(steps: Steps, input_bag: pathlib.Path, output_bag: pathlib.Path, *, topics: Dict[str, str],
-                    params: Dict[str, Any], log_dir: pathlib.Path, lockstep: bool, rate: float,
-                    start_timeout: float, frame_timeout: float, max_images: int, progress: bool) -> ReplayResult:
-    """Steps 3-5: start the node, replay `input_bag` through it while recording its outputs, stop it."""
-    import subprocess
-    from dpv_sensor.data import rosbag_io as R
-    from dpv_sensor.tools.ros_io import BagPlayer, BagRecorder
-
-    res = ReplayResult(lockstep=lockstep, rate=rate)
-    bag_topics = R.bag_topics(input_bag)
-    play_topics = [t for t in (topics.get('image'), topics.get('camera_info'), topics.get('odom')) if t]
-    res.images_in_bag = bag_topics[topics['image']][1]
-    remaps = {name: t for name, t in topics.items() if t}
-    cmd = node_command(params, remaps)
-    res.node_command = cmd
-    env = dict(os.environ)
-    env['PYTHONPATH'] = os.pathsep.join([str(REPO)] + [p for p in env.get('PYTHONPATH', '').split(os.pathsep) if p])
-    env.setdefault('PYTHONUNBUFFERED', '1')
-    log_path = log_dir / 'node.log'
-    log_file = open(log_path, 'w')
-    proc = None
-    client = node = executor = recorder = monitor = player = None
-    t_start = time.perf_counter()
-    peak_rss = 0
-    try:
-        # ---------------------------------------------------------------- 3. start the node
-        with steps.step('node', 'start the node process and wait for its subscriptions') as rec:
-            proc = subprocess.Popen(cmd, cwd=REPO, env=env, stdout=log_file, stderr=subprocess.STDOUT, text=True)
-            # Ctrl-C stays a KeyboardInterrupt here and reaches the node process as a SIGINT: it stops by itself
-            client = ClientNode('dpv_demo')
-            node, executor = client.node, client.executor
-            from rclpy.logging import LoggingSeverity
-            node.get_logger().set_level(LoggingSeverity.WARN)   # the recorder's "recording ..." lines
-            monitor = NodeMonitor(node)
-            recorder = BagRecorder(node, output_bag, OUTPUT_TOPICS, overwrite=True)
-            player = BagPlayer(node, input_bag, rate=rate, topics=play_topics)
-
-            def spin_until(cond, timeout: float) -> bool:
-                deadline = time.monotonic() + timeout
-                while time.monotonic() < deadline:
-                    if cond():
-                        return True
-                    if proc.poll() is not None:
-                        return cond()
-                    executor.spin_once(timeout_sec=0.05)
-                return cond()
-
-            def node_died() -> str:
-                log_file.flush()
-                tail = log_path.read_text(errors='replace').strip().splitlines()[-15:]
-                return (f'the node exited with code {proc.returncode} (log: {_rel(log_path)}):\n    ' +
-                        '\n    '.join(tail))
-
-            ready = spin_until(lambda: monitor.count > 0 and monitor.values.get('measurement_model') not in
-                               (None, 'starting'), start_timeout)
-            if proc.poll() is not None:
-                raise DemoError(node_died())
-            if not ready:
-                raise DemoError(f'the node did not report a built estimator within {start_timeout:g} s '
-                                f'(log: {_rel(log_path)})')
-            missing = player.wait_for_subscribers(play_topics, timeout=max(10.0, start_timeout),
-                                                  spin=lambda t: executor.spin_once(timeout_sec=t))
-            if missing:
-                raise DemoError(f'the node did not subscribe to {missing} within {max(10.0, start_timeout):g} s '
-                                f'(log: {_rel(log_path)})')
-            spin_until(lambda: not recorder.poll(), 10.0)
-            still = recorder.poll()
-            if still:
-                raise DemoError(f'the node does not publish {still} (log: {_rel(log_path)})')
-            spin_until(lambda: False, 0.5)   # let discovery settle between the recorder and the node's publishers
-            res.node_start_s = round(time.perf_counter() - t_start, 2)
-            d = monitor.snapshot()
-            rec['note'] = (f"pid {proc.pid}, measurement {d.get('measurement_model')}, device {d.get('device')}, "
-                           f"filter {d.get('filter_mode')}")
-
-        # ---------------------------------------------------------------- 4. replay and record
-        total = res.images_in_bag if not max_images else min(max_images, res.images_in_bag)
-        mode = 'lockstep (each image waits for the previous one)' if lockstep else f'{rate:g}x real time'
-        with steps.step('replay', f'replay {total} images through the node, {mode}, recording its outputs') as rec:
-            bar = None
-            if progress:
-                from tqdm import tqdm
-                bar = tqdm(total=total, unit='img', desc='replay', leave=False, dynamic_ncols=True)
-
-            def on_image(n):
-                if bar is not None:
-                    bar.update(1)
-                    bar.set_postfix(outputs=recorder.counts.get('/depth/image', 0),
-                                    keyframes=monitor.values.get('estimator_keyframes', '?'), refresh=False)
-
-            gate = GatedPublisher(player.publishers[topics['image']], monitor, player, lockstep=lockstep,
-                                  timeout=frame_timeout, max_images=max_images, on_image=on_image)
-            player.publishers[topics['image']] = gate
-            box: Dict[str, Any] = {}
-
-            def play():
-                try:
-                    box['stats'] = player.play(progress=False)
-                except BaseException as exc:   # reported by the main thread
-                    box['error'] = exc
-            thread = threading.Thread(target=play, name='demo_player', daemon=True)
-            t0 = time.perf_counter()
-            thread.start()
-            while thread.is_alive():
-                executor.spin_once(timeout_sec=0.05)
-                rss = proc_status_kib(proc.pid, 'VmRSS')
-                peak_rss = max(peak_rss, rss or 0)
-                if proc.poll() is not None:
-                    monitor.abort.set()
-                    player.stop()
-                    thread.join(5.0)
-                    raise DemoError(node_died())
-            thread.join()
-            if 'error' in box:
-                raise DemoError(f'playing the bag failed: {type(box["error"]).__name__}: {box["error"]}')
-            stats = box['stats']
-            res.images_sent = gate.sent
-            res.messages_published = stats.published
-            res.wait_s = round(gate.wait_s, 2)
-            res.timeouts = gate.timeouts
-            # the last images: wait until the node has finished them and every output is recorded
-            spin_until(lambda: monitor.accounted() >= gate.sent, frame_timeout)
-
-            def all_recorded():
-                n = monitor.get_int('outputs_published', -1)
-                c = recorder.counts
-                return n >= 0 and all(c.get(t, 0) >= n for t in OUTPUT_TOPICS[:3])
-            spin_until(all_recorded, 30.0)
-            spin_until(lambda: False, 0.3)   # one more diagnostics message for the final figures
-            res.wall_s = round(time.perf_counter() - t0, 2)
-            if bar is not None:
-                bar.close()
-            res.diagnostics = monitor.snapshot()
-            hwm = proc_status_kib(proc.pid, 'VmHWM')
-            res.node_peak_rss_mib = round(max(peak_rss, hwm or 0) / 1024.0, 1)
-            recorder.close()
-            res.recorded = dict(recorder.counts)
-            res.e2e_ms = end_to_end_latency(output_bag, gate.sent_wall_ns)
-            d = res.diagnostics
-            rec['note'] = (f"{gate.sent} images, {d.get('estimator_keyframes', '?')} keyframes, "
-                           f"{res.recorded.get('/depth/image', 0)} depth outputs recorded, "
-                           f"{d.get('dropped_total', '?')} dropped")
-            if monitor.accounted() < gate.sent:
-                res.warnings.append(f'the node finished only {monitor.accounted()} of {gate.sent} images')
-            n_out = monitor.get_int('outputs_published', -1)
-            if res.recorded.get('/depth/image', 0) < n_out:
-                res.warnings.append(f"recorded {res.recorded.get('/depth/image', 0)} depth images but the node "
-                                    f'published {n_out}')
-            dropped = monitor.get_int('dropped_total', 0)
-            if dropped:
-                reasons = ', '.join(f'{k[8:]}: {v}' for k, v in d.items() if k.startswith('dropped.'))
-                res.warnings.append(f'the node dropped {dropped} images ({reasons})')
-            if gate.timeouts:
-                res.warnings.append(f'{gate.timeouts} images were sent before the node finished the previous one '
-                                    f'(--frame-timeout {frame_timeout:g} s)')
-
-        # ---------------------------------------------------------------- 5. stop
-        with steps.step('stop', 'stop the node with SIGINT') as rec:
-            import signal
-            t0 = time.perf_counter()
-            proc.send_signal(signal.SIGINT)
-            try:
-                res.node_exit_code = proc.wait(timeout=30.0)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait()
-                res.node_exit_code = None
-            res.node_stop_s = round(time.perf_counter() - t0, 2)
-            log_file.flush()
-            res.node_log = log_path.read_text(errors='replace')
-            rec['note'] = f'exit code {res.node_exit_code}'
-            if res.node_exit_code != 0:
-                raise DemoError(f'the node did not stop cleanly on SIGINT (exit code {res.node_exit_code}; log: '
-                                f'{_rel(log_path)})')
-            if 'Traceback' in res.node_log:
-                res.warnings.append(f'the node log has a Python traceback: {_rel(log_path)}')
-    finally:
-        if monitor is not None:
-            monitor.abort.set()          # releases a player thread waiting in the gate
-        if player is not None:
-            player.stop()
-        if recorder is not None and not recorder.closed:
-            recorder.close()
-        if proc is not None and proc.poll() is None:
-            import signal
-            proc.send_signal(signal.SIGINT)
-            try:
-                proc.wait(timeout=20.0)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait()
-        if client is not None:
-            client.close()
-        log_file.close()
-    return res
 
 
 def _run_tool(main, argv: List[str], log_path: pathlib.Path) -> tuple:
@@ -666,7 +214,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help='sensor_msgs/CameraInfo topic (default: the only one, or the one next to the image)')
     b.add_argument('--odom-topic', default=None, help='nav_msgs/Odometry topic (default: the only one in the bag)')
     b.add_argument('--gt', help='ground-truth sequence folder for --bag (enables evaluation and fusion)')
-    b.add_argument('--stamp-offset', default='auto', help="passed to `evaluate bag` / `fuse bag` (default auto)")
+    b.add_argument('--stamp-offset', default='auto', help='passed to `evaluate bag` / `fuse bag` (default auto)')
     n = p.add_argument_group('node and replay')
     n.add_argument('--params', nargs='*', default=[], metavar='KEY=VALUE',
                    help='node parameters (config/dpv_sensor.yaml names), e.g. measurement=classical preset=lite '
@@ -684,7 +232,7 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument('--voxel', type=float, default=0.03, help='TSDF voxel size in m (default 0.03)')
     f.add_argument('--fuse-min-confidence', type=float, default=0.9,
                    help='confidence threshold of the masked mesh (default 0.9: with the default ratio confidence, '
-                        'pixels 90 %% sure to be within a factor 1.25; about a third of the demo\'s pixels)')
+                        "pixels 90 %% sure to be within a factor 1.25; about a third of the demo's pixels)")
     f.add_argument('--no-fusion', action='store_true', help='skip step 7')
     p.add_argument('--quiet', action='store_true', help='no progress bars')
     return p

@@ -12,8 +12,9 @@ Examples::
     evaluate bag run.mcap --gt DATA/sun3d_3dmatch_frag1 --out eval/bag
     evaluate export exported/ --gt DATA/sun3d_3dmatch_frag1 --out eval/export
 
-(DATA: the shared development data folder, or any sequence folders.) SOURCE for ``sequence`` is a sequence folder or ``synthetic:SEED[:FRAMES]`` (the synthetic renderer,
-rendered at --width x --height, default 320x240, 60 frames).
+(DATA: the shared development data folder, or any sequence folders.) SOURCE for ``sequence`` is a sequence
+folder or ``synthetic:SEED[:FRAMES]`` (the synthetic renderer, rendered at --width x --height, default
+320x240, 60 frames).
 
 Depth range: GT pixels outside [--min-depth, --max-depth] are not scored and predictions are clipped to
 that range. The default is the estimator's depth planes [d_min, d_max] (for ``bag``/``export``: every
@@ -41,7 +42,7 @@ import sys
 from typing import List, Optional
 
 from dpv_sensor.cli import add_config
-from dpv_sensor.tools import tool_argv
+from dpv_sensor.cli import tool_argv
 
 
 def _add_common(p: argparse.ArgumentParser) -> None:
@@ -111,22 +112,6 @@ def _print_table(rows) -> None:
     print(markdown_table(rows))
 
 
-def _print_consumer(summary) -> None:
-    """One line per Open3D Jacobian: median RPE of the consumer odometry on predicted vs GT depth."""
-    co = summary.get('consumer_odometry') or {}
-    if 'error' in co:
-        print(f"\nconsumer odometry skipped: {co['error']}")
-    for j in (co.get('options') or {}).get('jacobians', []):
-        r = co[j]
-        p, g = r['predicted'], r['gt_depth']
-        print(f"\nconsumer odometry ({j}, {co['pairs']} pairs of consecutive outputs): median translation / rotation "
-              f"error {p['trans_m_median'] * 100:.2f} cm / {p['rot_deg_median']:.2f} deg on the predicted depth, "
-              f"{g['trans_m_median'] * 100:.2f} cm / {g['rot_deg_median']:.2f} deg on the GT depth: "
-              f"{r['ratio_trans']:.2f}x / {r['ratio_rot']:.2f}x", end='')
-    if co.get('options'):
-        print()
-
-
 def main(argv: Optional[List[str]] = None) -> int:
     argv = tool_argv(argv)
     a = build_parser().parse_args(argv)
@@ -159,7 +144,7 @@ def main(argv: Optional[List[str]] = None) -> int:
             else:
                 summary = E.evaluate_sequence(seq, overrides, out, options, name=pathlib.Path(a.source).name)
                 _print_table([E.table_row('config', summary)])
-                _print_consumer(summary)
+                print(E.consumer_odometry_text(summary), end='')
                 print(f'\nwritten: {out}/summary.json, frames.csv, montage.png, sparsification.png')
         else:
             options = E.EvalOptions(min_depth=a.min_depth, max_depth=a.max_depth, montage_frames=a.montage_frames,
@@ -184,7 +169,7 @@ def main(argv: Optional[List[str]] = None) -> int:
             summary = E.evaluate_records(records, out, options, source=str(source), extra={'input': info},
                                          name=pathlib.Path(source).name)
             _print_table([E.table_row(pathlib.Path(source).name, summary)])
-            _print_consumer(summary)
+            print(E.consumer_odometry_text(summary), end='')
             print(f'\nmatched {info["matched"]} depth images ({info["unmatched"]} unmatched); written: {out}')
     except (ValueError, FileNotFoundError) as exc:
         print(f'evaluate: {exc}', file=sys.stderr)

@@ -23,7 +23,7 @@ import sys
 from typing import List, Optional
 
 from dpv_sensor.cli import add_config
-from dpv_sensor.tools import tool_argv
+from dpv_sensor.cli import tool_argv
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -127,8 +127,7 @@ def main(argv: Optional[List[str]] = None) -> int:
         return 2
     _print_report(report)
     if 'consumer_odometry' in report:
-        from .evaluate import _print_consumer
-        _print_consumer(report)
+        print(E.consumer_odometry_text(report), end='')
     print(f'\n{len(pred)} depth maps fused; written: {out}/mesh_pred.ply, mesh_pred_masked.ply, mesh_gt.ply, '
           'fusion.json')
     return 0

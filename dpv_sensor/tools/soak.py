@@ -9,7 +9,7 @@ end-to-end latency = (receipt time of an output) - (its image stamp). Reported a
   drops        the node's /diagnostics counters (dropped.* by reason, faults.*)
   memory       VmRSS of the node process (from /proc) after warm-up, at the end, and its maximum
 
-A tool, not a unit test: it takes minutes. Its `OutputCollector` (tools.ros_io) is also used by the node tests.
+A tool, not a unit test: it takes minutes. Its `OutputCollector` (client.ros_io) is also used by the node tests.
 """
 from __future__ import annotations
 
@@ -28,8 +28,8 @@ import numpy as np
 
 from dpv_sensor import params as P
 from dpv_sensor.cli import add_setting
-from dpv_sensor.tools.node_process import ClientNode, node_command
-from dpv_sensor.tools.ros_io import OutputCollector
+from dpv_sensor.client.node_process import ClientNode, node_command
+from dpv_sensor.client.ros_io import OutputCollector
 
 REPO = pathlib.Path(__file__).resolve().parents[2]
 NS = 1_000_000_000
@@ -101,7 +101,7 @@ def _percentile(values, q):
 
 def run_soak(args) -> dict:
     from dpv_sensor.data import rosbag_io as R
-    from dpv_sensor.tools.ros_io import BagPlayer
+    from dpv_sensor.client.ros_io import BagPlayer
 
     work = pathlib.Path(args.work_dir or tempfile.mkdtemp(prefix='dpv_soak_'))
     work.mkdir(parents=True, exist_ok=True)

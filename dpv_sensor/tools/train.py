@@ -20,14 +20,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import pathlib
 import signal
 import sys
 from typing import List, Optional
 
 from ..training.dataset import TRAIN_SEED_BASE, parse_seeds
 from ..training.loop import MODULES, TrainConfig, latest_checkpoint
-from dpv_sensor.tools import tool_argv
+from dpv_sensor.cli import tool_argv
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -70,7 +69,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--num-workers', type=int, default=d.num_workers, help='DataLoader worker processes (rendering)')
     p.add_argument('--threads', type=int, default=d.threads, help='torch CPU threads')
     p.add_argument('--device', default=d.device, help="'auto', 'cpu', 'cuda', 'cuda:1', ...")
-    p.add_argument('--amp', choices=('auto', 'off', 'bf16', 'fp16'), default=d.amp, help='mixed precision: on CUDA auto = bf16 (fp16 where bf16 is missing); on the CPU auto = bf16 where the CPU has AMX / AVX512-BF16 (a lite step 1.75x faster), else float32')
+    p.add_argument('--amp', choices=('auto', 'off', 'bf16', 'fp16'), default=d.amp,
+                   help='mixed precision: on CUDA auto = bf16 (fp16 where bf16 is missing); on the CPU auto = bf16 '
+                        'where the CPU has AMX / AVX512-BF16 (a lite step 1.75x faster), else float32')
     p.add_argument('--ckpt-every', type=int, default=d.ckpt_every, help='steps between checkpoints')
     p.add_argument('--log-every', type=int, default=d.log_every)
     p.add_argument('--val-every', type=int, default=d.val_every, help='steps between validations ("epoch")')
@@ -79,7 +80,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--val-gap', type=int, default=d.val_gap, help='frames between validation keyframes')
     p.add_argument('--val-width', type=int, default=0, help='validation width (0 = training width)')
     p.add_argument('--val-height', type=int, default=0, help='validation height (0 = training height)')
-    p.add_argument('--folders', nargs='*', default=[], help='sequence folders to mix in (e.g. tartanair_hospital; never SUN3D, tum_fr1_rpy or icl_nuim_lr_kt3)')
+    p.add_argument('--folders', nargs='*', default=[],
+                   help='sequence folders to mix in (e.g. tartanair_hospital; never SUN3D, tum_fr1_rpy or '
+                        'icl_nuim_lr_kt3)')
     p.add_argument('--folder-prob', type=float, default=0.0, help='probability that a sample comes from --folders')
     p.add_argument('--startup-prob', type=float, default=0.0,
                    help='share of stream-start runs (causal windows with 1, 2, 3, 4 sources, as after a reset)')
@@ -94,7 +97,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help='validation score deciding exports, lower is better: <metric>_<mode> (GT poses), '
                         '<metric>_<mode>_noisy (the --val-pose-noise validation) or <metric>_<mode>_both (their mean); '
                         'prefixed stream_, the same from the streaming validation (--val-stream-seeds)')
-    p.add_argument('--val-pose-noise', type=float, nargs=2, default=list(d.val_pose_noise), metavar=('REL_T', 'ROT_DEG'),
+    p.add_argument('--val-pose-noise', type=float, nargs=2, default=list(d.val_pose_noise),
+                   metavar=('REL_T', 'ROT_DEG'),
                    help='also validate with odometry-like poses: relative translation error and rotation error (deg) '
                         'per keyframe step, accumulating (0 0 = off); reported as noisy_net_<mode>')
     p.add_argument('--val-stream-seeds', default='',
@@ -105,7 +109,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--val-stream-frames', type=int, default=d.val_stream_frames, help='frames per streamed sequence')
     p.add_argument('--val-stream-pose-noise', type=float, nargs=2, default=list(d.val_stream_pose_noise),
                    metavar=('REL_T', 'ROT_DEG'),
-                   help='odometry-like pose errors per frame of the streaming validation\'s noisy pass (0 0 = off)')
+                   help="odometry-like pose errors per frame of the streaming validation's noisy pass (0 0 = off)")
     p.add_argument('--max-minutes', type=float, default=0.0, help='stop with a checkpoint after this wall time')
     p.add_argument('--quiet', action='store_true', help='no progress bar or log lines')
     return p

@@ -32,7 +32,6 @@ irregular spacing a motion-triggered keyframe selector produces.
 from __future__ import annotations
 
 import dataclasses
-import math
 import os
 from typing import Dict, Iterator, List, Optional, Sequence as Seq, Tuple
 
@@ -365,10 +364,11 @@ class SceneStream(IterableDataset):
 
     def _pose_noise(self, smp: Dict[str, torch.Tensor], rng: np.random.Generator) -> Dict[str, torch.Tensor]:
         """With probability ``pose_noise_prob``, replace the sample's poses by an odometry-like corruption of
-        them (:func:`dpv_sensor.data.trajectory.corrupt_trajectory`: per keyframe step a rotation error about a random axis
-        and a translation error in a random direction, accumulating along the run; magnitudes drawn uniformly up
-        to ``pose_noise_rot_deg`` / ``pose_noise_trans_rel`` per sample). Images and depths stay exact, so the
-        nets learn what real poses do to the plane sweep and to the warped prior (K-Net learns to damp it)."""
+        them (:func:`dpv_sensor.data.trajectory.corrupt_trajectory`: per keyframe step a rotation error about a
+        random axis and a translation error in a random direction, accumulating along the run; magnitudes drawn
+        uniformly up to ``pose_noise_rot_deg`` / ``pose_noise_trans_rel`` per sample). Images and depths stay
+        exact, so the nets learn what real poses do to the plane sweep and to the warped prior (K-Net learns to
+        damp it)."""
         cfg = self.config
         if cfg.pose_noise_prob <= 0 or rng.random() >= cfg.pose_noise_prob:
             return smp

@@ -134,7 +134,8 @@ class TrainConfig:
     folder_prob: float = 0.0
     augment: bool = True
     select_metric: str = 'abs_rel_knet'   # validation score that decides exports (lower is better), see select_score
-    val_pose_noise: Tuple[float, float] = (0.0, 0.0)   # also validate with odometry-like poses: (rel. translation, deg) per step
+    # also validate with odometry-like poses: (rel. translation, deg) per step
+    val_pose_noise: Tuple[float, float] = (0.0, 0.0)
     init_weights: Optional[str] = None    # start from an exported .safetensors instead of random
     startup_prob: float = 0.0             # share of stream-start runs (1, 2, 3, 4 sources; causal windows)
     pose_noise_prob: float = 0.0          # share of samples with odometry-like pose errors (depths exact)
@@ -194,7 +195,8 @@ class TrainConfig:
         if self.width % 4 or self.height % 4:
             raise ValueError('width and height must be multiples of 4')
         if len(self.val_pose_noise) != 2 or min(self.val_pose_noise) < 0:
-            raise ValueError(f'val_pose_noise must be (relative translation, rotation deg) >= 0, got {self.val_pose_noise}')
+            raise ValueError(f'val_pose_noise must be (relative translation, rotation deg) >= 0, '
+                             f'got {self.val_pose_noise}')
         spec = self.stream_spec()
         parse_select_metric(self.select_metric, noisy_validation=max(self.val_pose_noise) > 0,
                             stream_validation=spec.enabled, stream_noisy_validation=spec.noisy)
@@ -254,7 +256,7 @@ def parse_select_metric(name: str, noisy_validation: bool = True, stream_validat
     if stream and not stream_validation:
         raise ValueError(f'select_metric {STREAM_PREFIX}{name!r} needs the streaming validation (val_stream_seeds)')
     if stream and poses != 'clean' and not stream_noisy_validation:
-        raise ValueError(f'select_metric {STREAM_PREFIX}{name!r} needs the streaming validation\'s noisy poses '
+        raise ValueError(f"select_metric {STREAM_PREFIX}{name!r} needs the streaming validation's noisy poses "
                          '(val_stream_pose_noise > 0)')
     if not stream and poses != 'clean' and not noisy_validation:
         raise ValueError(f'select_metric {name!r} needs the noisy-pose validation (val_pose_noise > 0)')
@@ -446,7 +448,8 @@ def _np(x: torch.Tensor) -> np.ndarray:
 def evaluate_batches(model, batches: List[Dict[str, torch.Tensor]], depths_d: torch.Tensor, device,
                      modes: Seq[str] = FILTER_MODES, classical=None, keep_last: bool = True,
                      curves: bool = False, readout: str = dpvops.DEFAULT_READOUT,
-                     confidence: str = dpvops.DEFAULT_CONFIDENCE, confidence_ratio: float = _params.default('confidence_ratio')) -> Dict:
+                     confidence: str = dpvops.DEFAULT_CONFIDENCE,
+                     confidence_ratio: float = _params.default('confidence_ratio')) -> Dict:
     """Score the model (and optionally a classical measurement model) on validation batches.
 
     Depth and confidence come from the DPVs with ``readout`` (:func:`dpv_sensor.dpv.depth_estimate`;
@@ -464,7 +467,6 @@ def evaluate_batches(model, batches: List[Dict[str, torch.Tensor]], depths_d: to
     was_training = model.training if model is not None else False
     if model is not None:
         model.eval()
-    d_min, d_max = float(depths_d[0]), float(depths_d[-1])
     sources = []
     if model is not None:
         sources.append(('net', model))
@@ -576,7 +578,8 @@ def save_montage(examples: List[Dict], path: str, d_min: float, d_max: float, ti
         return
     rows = len(examples)
     fig, axes = plt.subplots(rows, 5, figsize=(13, 2.2 * rows + 0.4), squeeze=False)
-    vmax = float(np.percentile(examples[0]['gt'][examples[0]['gt'] > 0], 99)) if (examples[0]['gt'] > 0).any() else d_max
+    gt0 = examples[0]['gt']
+    vmax = float(np.percentile(gt0[gt0 > 0], 99)) if (gt0 > 0).any() else d_max
     for r, ex in enumerate(examples):
         gt = ex['gt']
         err = np.where(gt > 0, np.abs(ex['depth'] - gt) / np.maximum(gt, 1e-6), np.nan)
@@ -685,7 +688,8 @@ def _optimizer_to_flat(optimizer: torch.optim.Optimizer) -> Tuple[Dict[str, torc
     for pid, st in sd['state'].items():
         for k, v in st.items():
             if torch.is_tensor(v):
-                tensors[f'state.{pid}.{k}'] = v.detach().cpu().contiguous().reshape(-1) if v.dim() == 0 else v.detach().cpu().contiguous()
+                flat = v.detach().cpu().contiguous()
+                tensors[f'state.{pid}.{k}'] = flat.reshape(-1) if v.dim() == 0 else flat
                 if v.dim() == 0:
                     scalars[f'{pid}.{k}'] = 'scalar'
             else:
@@ -815,7 +819,7 @@ def _lr_at(cfg: TrainConfig, step: int) -> float:
 
 def _param_groups(model: nn.Module, weight_decay: float):
     decay, no_decay = [], []
-    for name, p in model.named_parameters():
+    for _, p in model.named_parameters():
         if not p.requires_grad:
             continue
         (decay if p.dim() >= 2 else no_decay).append(p)
@@ -842,7 +846,7 @@ def resolve_amp(amp: str, device: torch.device) -> Optional[torch.dtype]:
     autocast has no float16 kernels worth using). The cost volume, filter, readout and loss stay float32.
     """
     if amp not in ('auto', 'off', 'bf16', 'fp16'):
-        raise ValueError(f"amp must be auto, off, bf16 or fp16, got {amp!r}")
+        raise ValueError(f'amp must be auto, off, bf16 or fp16, got {amp!r}')
     if amp == 'off':
         return None
     if device.type == 'cuda':
@@ -1018,7 +1022,8 @@ class Trainer:
             prior_steps = int(self.init_meta.get('steps') or 0)
             data['initialised_from'] = {'file': os.path.basename(cfg.init_weights), 'steps': prior_steps,
                                         'training_data': self.init_meta.get('training_data'),
-                                        'loss': self.init_meta.get('loss'), 'optimizer': self.init_meta.get('optimizer')}
+                                        'loss': self.init_meta.get('loss'),
+                                        'optimizer': self.init_meta.get('optimizer')}
         return {
             'steps_this_run': self.step, 'steps_total': prior_steps + self.step,
             'preset': self.preset.name, 'D': self.preset.num_planes, 'd_min': self.preset.d_min,
@@ -1029,7 +1034,8 @@ class Trainer:
             'loss': (f'mean over {cfg.unroll} unrolled knet-filter steps of NLL(R-Net output)'
                      + (f' + {cfg.aux_weight} * NLL(D-Net 1/4-res measurement)' if cfg.measurement_trained else '')),
             'trained_modules': [m for m in MODULES if cfg.trains(m)],
-            'optimizer': f'AdamW lr {cfg.lr} cosine (warm-up {cfg.warmup}), wd {cfg.weight_decay}, clip {cfg.clip}, batch {cfg.batch_size} x {self.world}',
+            'optimizer': (f'AdamW lr {cfg.lr} cosine (warm-up {cfg.warmup}), wd {cfg.weight_decay}, '
+                          f'clip {cfg.clip}, batch {cfg.batch_size} x {self.world}'),
             'code_version': code_version(),
             'exported_at': datetime.datetime.now(datetime.timezone.utc).isoformat(timespec='seconds'),
             'command': ' '.join(self.argv),
@@ -1113,7 +1119,6 @@ class Trainer:
         bar = tqdm(total=cfg.steps, initial=self.step, disable=not self.is_main or self.quiet, dynamic_ncols=True,
                    mininterval=1.0 if sys.stderr.isatty() else 30.0, desc=f'train {cfg.preset}')
         last_log = []
-        t_data = 0.0
         try:
             if self.is_main and self.step == 0 and not self.history['val']:
                 self.validate()

@@ -62,7 +62,8 @@ class BagPlayer:
     rate: playback speed factor (1 = real time). topics: only these bag topics. remap: {bag topic: published
     topic}. rebase_stamps: header stamps are shifted so the first message carries "now" (wall clock) and later
     ones keep their offsets (divided by the rate) — the node then sees live-looking stamps (latency measurements,
-    loops without time going backwards). loop: play again from the start (with rebase_stamps, time keeps increasing across loops).
+    loops without time going backwards). loop: play again from the start (with rebase_stamps, time keeps
+    increasing across loops).
     """
 
     def __init__(self, node, bag_path, *, rate: float = 1.0, topics=None, remap=None,
