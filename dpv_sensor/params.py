@@ -53,14 +53,14 @@ SPECS: tuple[ParamSpec, ...] = (
               choices=('auto', 'network', 'classical')),
     ParamSpec('device', 'cpu', 'Torch device: cpu, cuda or cuda:N.'),
     ParamSpec('torch_threads', 0, 'CPU threads for torch (torch.set_num_threads, applied when the estimator is '
-              'built; process-wide). 0 leaves torch\'s default. On a loaded 2-core machine 1 gives the steadiest '
+              "built; process-wide). 0 leaves torch's default. On a loaded 2-core machine 1 gives the steadiest "
               'latency.', min_value=0, max_value=64),
     ParamSpec('cpu_precision', 'auto', 'What the networks compute in on the CPU: auto (bfloat16 where the CPU has '
               'AMX or AVX512-BF16 kernels, else float32), float32, or bfloat16 (autocast; a lite keyframe 1.25x '
               '(320x256) to 1.4x (640x480) faster with those kernels, emulated and slower without). Geometry, '
               'filter and DPV normalisations stay float32; on CUDA the networks always run under bfloat16 '
               'autocast. bfloat16 held about 90 MB more resident memory than float32 in a 30-minute soak (bounded; '
-              'peaks to 1.5 GB) before the node capped glibc\'s malloc arenas at two, which brought it lower.',
+              "peaks to 1.5 GB) before the node capped glibc's malloc arenas at two, which brought it lower.",
               choices=('auto', 'float32', 'bfloat16')),
     ParamSpec('processing_width', 320, 'Width the images are resized to for estimation (pixels).',
               min_value=32, max_value=4096),
@@ -78,16 +78,16 @@ SPECS: tuple[ParamSpec, ...] = (
               'expectation, paper eq. 1; lands between the modes of a two-mode DPV) or auto (relative with the '
               'network, mean with the classical model, whose flat DPVs the other two pull to the near planes).',
               choices=('auto', 'relative', 'median', 'mean')),
-    ParamSpec('depth_subplane', False, 'Shift the readout between depth planes by the sub-plane offset of the DPV\'s '
+    ParamSpec('depth_subplane', False, "Shift the readout between depth planes by the sub-plane offset of the DPV's "
               'peak (vertex of a parabola through the log-probabilities of the mode and its neighbours, weighted '
-              'by their mass). Off by default: the lite network\'s peaks sit farther than the relative readout, '
+              "by their mass). Off by default: the lite network's peaks sit farther than the relative readout, "
               'and on a rendered selection scene it raised abs_rel from 0.141 to 0.158.'),
     ParamSpec('edge_filter_radius', 4, 'Edge-aware refinement of the network depth: every depth becomes the '
               'weighted median of the pixels within this radius (processing pixels) sampled every 4 pixels (a 3x3 '
               'grid at 4), weighted by confidence and colour similarity, so depth edges move onto colour edges; '
               '0 = off.',
               min_value=0, max_value=32),
-    ParamSpec('edge_filter_sigma', 0.08, 'Colour distance (RGB in [0, 1]) at which a neighbour\'s vote in the '
+    ParamSpec('edge_filter_sigma', 0.08, "Colour distance (RGB in [0, 1]) at which a neighbour's vote in the "
               'edge-aware refinement falls to exp(-1/2): smaller keeps depth edges on weaker colour edges.',
               min_value=1e-3, max_value=1.0),
     ParamSpec('damping', 0.8, 'Global damping lambda of the prediction energy (paper eq. 8).',
@@ -117,13 +117,15 @@ SPECS: tuple[ParamSpec, ...] = (
     ParamSpec('odometry', 'topic', 'Pose source: topic (nav_msgs/Odometry on `odom`) or none (visual alignment).',
               choices=('topic', 'none')),
     ParamSpec('T_base_camera', list(IDENTITY_POSE), 'Static camera pose in the odometry child frame: '
-              '[x, y, z, qx, qy, qz, qw] (identity: odometry already tracks the optical frame).', length=7, scope='node'),
+              '[x, y, z, qx, qy, qz, qw] (identity: odometry already tracks the optical frame).', length=7,
+              scope='node'),
     ParamSpec('odom_wait_timeout', 0.5, 'How long an image waits for odometry that brackets its stamp (s).',
               min_value=0.0, max_value=60.0, scope='node'),
     ParamSpec('max_odom_gap', 0.5, 'Largest gap between the two odometry messages an image pose is '
               'interpolated from (s).', min_value=0.0, max_value=60.0, scope='node'),
     ParamSpec('odom_max_speed', 10.0, 'An odometry step faster than this (m/s, and over 0.1 m) is a teleport: the '
-              'pose buffer restarts and so does the estimator. 0 disables.', min_value=0.0, max_value=1e4, scope='node'),
+              'pose buffer restarts and so does the estimator. 0 disables.', min_value=0.0, max_value=1e4,
+              scope='node'),
     ParamSpec('odom_max_rate_deg', 720.0, 'An odometry step turning faster than this (deg/s, and over 10 deg) is a '
               'teleport (as odom_max_speed). 0 disables.', min_value=0.0, max_value=1e6, scope='node'),
     ParamSpec('publish_tf', False, 'Publish TF: base_frame -> image frame (T_base_camera) on /tf_static, and with '
@@ -132,7 +134,7 @@ SPECS: tuple[ParamSpec, ...] = (
               'tf2 lookups of that frame flip between the two; turn it on when nothing else puts the camera in TF '
               '(a replayed bag without /tf_static, a webcam).', scope='node'),
     ParamSpec('base_frame', '', 'Parent frame of the static TF: the frame T_base_camera is given in. Empty: the '
-              'odometry\'s child_frame_id.', scope='node'),
+              "odometry's child_frame_id.", scope='node'),
     ParamSpec('pose_refinement', 'off', 'Sliding-window pose refinement with gtsam: off or window.',
               choices=('off', 'window')),
     ParamSpec('odom_sigma_rot_deg', 0.5, 'Pose refinement: rotation std of the odometry between two keyframes '
@@ -161,18 +163,18 @@ SPECS: tuple[ParamSpec, ...] = (
               'eq. 2 made independent of where the depth falls between planes).', choices=('ratio', 'plane')),
     ParamSpec('confidence_ratio', 1.25, 'Factor of the ratio confidence: the band [d/ratio, d*ratio] around '
               'the published depth d.', min_value=1.01, max_value=10.0),
-    ParamSpec('parallax_full_px', 1.0, 'Parallax rule: a keyframe\'s measurement counts fully where its window\'s '
-              'baselines move a pixel\'s image by at least this many pixels (processing size) across the '
+    ParamSpec('parallax_full_px', 1.0, "Parallax rule: a keyframe's measurement counts fully where its window's "
+              "baselines move a pixel's image by at least this many pixels (processing size) across the "
               'band [d/1.25, d*1.25] around its depth d, in proportion below; where they move it less (the camera '
               'turns in place) the filter keeps its predicted belief and the published confidence falls with '
               'the parallax the belief ever had (new pixels get none). 0 turns the rule off.',
               min_value=0.0, max_value=100.0),
-    ParamSpec('parallax_rotation_noise', 0.05, 'Parallax rule: a source\'s disparity counts against '
+    ParamSpec('parallax_rotation_noise', 0.05, "Parallax rule: a source's disparity counts against "
               'parallax_full_px plus this fraction of the image motion its rotation from the reference causes '
               '(f x angle): pose errors of real cameras (time sync, rolling shutter) grow with the rotation. '
               '0: rotation adds nothing.', min_value=0.0, max_value=1.0),
-    ParamSpec('source_pool', 0, 'Choose the window\'s source keyframes from this many recent keyframes by how well '
-              'their baseline and overlap constrain the reference\'s depth (the closest in time that move its '
+    ParamSpec('source_pool', 0, "Choose the window's source keyframes from this many recent keyframes by how well "
+              "their baseline and overlap constrain the reference's depth (the closest in time that move its "
               'pixels by parallax_full_px across that band), instead of the latest ones. 0 (or at most '
               'the window size): the latest keyframes.', min_value=0, max_value=32),
     ParamSpec('reject_degenerate_frames', True, 'Drop frames that carry no depth information (all black, '
@@ -187,7 +189,8 @@ SPECS: tuple[ParamSpec, ...] = (
     ParamSpec('output_reliability', 'reliable', 'QoS reliability of the publishers.',
               choices=('best_effort', 'reliable'), scope='node'),
     ParamSpec('output_depth', 5, 'QoS history depth of the publishers.', min_value=1, max_value=1000, scope='node'),
-    ParamSpec('diagnostics_period', 1.0, 'Seconds between /diagnostics messages.', min_value=0.05, max_value=60.0, scope='node'),
+    ParamSpec('diagnostics_period', 1.0, 'Seconds between /diagnostics messages.', min_value=0.05, max_value=60.0,
+              scope='node'),
     # --- extra outputs and diagnostics ---------------------------------------------------------------------
     ParamSpec('publish_compressed_depth', False, 'Also publish depth/image/compressedDepth (sensor_msgs/'
               "CompressedImage, PNG as image_transport's compressedDepth plugin encodes it, in depth_encoding).",
@@ -225,7 +228,7 @@ LIBRARY_SPECS: tuple[ParamSpec, ...] = (
               min_value=2, max_value=31, scope='library'),
     ParamSpec('classical_downscale', 4, 'Volume resolution of the classical model: image size / this.',
               min_value=1, max_value=16, scope='library'),
-    ParamSpec('min_coverage', 0.5, 'Fraction of a ray\'s plane samples that must project into at least one '
+    ParamSpec('min_coverage', 0.5, "Fraction of a ray's plane samples that must project into at least one "
               'source view for the pixel to get an estimate.', min_value=1e-6, max_value=1.0, scope='library'),
     ParamSpec('amp_dtype', 'bfloat16', 'Autocast dtype of the networks on CUDA, or none.',
               choices=('bfloat16', 'float16', 'none'), scope='library'),
@@ -297,7 +300,7 @@ def check_relations(values: dict[str, Any]) -> None:
     if 'T_base_camera' in values:
         q = values['T_base_camera'][3:]
         if abs(math.sqrt(sum(c * c for c in q)) - 1.0) > 1e-3:
-            raise ParameterError(f"T_base_camera quaternion {q} is not unit length")
+            raise ParameterError(f'T_base_camera quaternion {q} is not unit length')
     if 'window_size' in values and 'window_mode' in values and values['window_mode'] == 'centered' \
             and values['window_size'] % 2 != 1:
         raise ParameterError(f"window_size {values['window_size']} does not fit window_mode 'centered' (odd)")

@@ -99,8 +99,8 @@ def test_node_publishes_the_extrinsic_on_tf_static(observer):
     assert (tf.header.frame_id, tf.child_frame_id) == ('base_link', 'cam_optical')
     t, q = tf.transform.translation, tf.transform.rotation
     np.testing.assert_allclose([t.x, t.y, t.z, q.x, q.y, q.z, q.w], EXTRINSIC, atol=1e-12)
-    np.testing.assert_allclose(make_pose([t.x, t.y, t.z], [q.x, q.y, q.z, q.w]), make_pose(EXTRINSIC[:3], EXTRINSIC[3:]),
-                               atol=1e-12)
+    np.testing.assert_allclose(make_pose([t.x, t.y, t.z], [q.x, q.y, q.z, q.w]),
+                               make_pose(EXTRINSIC[:3], EXTRINSIC[3:]), atol=1e-12)
 
 
 def test_publish_tf_false_publishes_no_tf(observer):
