@@ -744,3 +744,12 @@ def test_cuda_matches_cpu():
     est = Estimator(small_config(device='cuda', measurement='auto', filter_mode='knet'), model=DPVNet('lite'))
     out = push_all(est, sideways(4))[-1]
     assert out is not None and np.isfinite(out.depth_hw).mean() > 0.5
+
+
+def test_output_size_keeps_the_input_aspect_ratio():
+    from dpv_sensor.estimator import output_size
+    proc = small_config(processing_width=320, processing_height=256, output_resolution='processing')
+    assert output_size(proc, (640, 480)) == (320, 240)          # not the 320x256 processing grid
+    assert output_size(proc, (1280, 720)) == (320, 180)
+    assert output_size(proc, (752, 480)) == (320, 204)          # 204.26 rounded
+    assert output_size(small_config(output_resolution='input'), (640, 480)) == (640, 480)
