@@ -90,7 +90,6 @@ ODOM_TIMEOUT = 'odometry_timeout'
 ODOM_TOO_OLD = 'odometry_too_old'
 ODOM_INVALID = 'odometry_invalid_bracket'
 ODOM_CONFLICT = 'odometry_conflict'            # two messages at one stamp with different poses (the first is kept)
-ODOM_DUPLICATE = 'odometry_duplicate'          # the same message at one stamp again (ignored quietly)
 EMPTY_FRAME_ID = 'empty_frame_id'              # an image without header.frame_id (the frame_id parameter is used)
 TIME_BACKWARDS = 'time_backwards'
 DUPLICATE_STAMP = 'duplicate_stamp'
@@ -621,20 +620,22 @@ class DepthCameraNode(Node):
 
     def _on_degenerate(self, stamp_s: float, reason: str) -> None:
         """A degenerate image (no texture to measure depth from): dropped and counted (dropped.degenerate_image);
-        one log line when a run of them starts, one when it ends."""
+        one log line when a run of them starts, one when it ends (rate-limited per kind, black / saturated / flat /
+        noise: a flickering camera is summarised, not logged at its frame rate)."""
         self._drop(DEGENERATE)
         if self._degenerate_run == 0:
             self.n_degenerate_episodes += 1
             self._degenerate_reason = reason
             self.faults.report(DEGENERATE, f'degenerate images from {stamp_s:.3f} s on ({reason}): dropped, no depth '
                                'published until they carry texture again (lens covered, exposure or a broken '
-                               'driver?)', count=False)
+                               'driver?)', count=False, key=f'{DEGENERATE}:{reason.split(":")[0]}')
         self._degenerate_run += 1
 
     def _degenerate_episode_end(self, stamp_s: float) -> None:
         n, self._degenerate_run = self._degenerate_run, 0
         self.faults.report(DEGENERATE, f'degenerate images ended at {stamp_s:.3f} s: {n} dropped '
-                           f'({self._degenerate_reason})', count=False, level='info', key=f'{DEGENERATE}:end')
+                           f'({self._degenerate_reason})', count=False, level='info',
+                           key=f'{DEGENERATE}:end:{self._degenerate_reason.split(":")[0]}')
 
     def _publish_output(self, out, rgb, stamp_ns: int) -> None:
         try:
