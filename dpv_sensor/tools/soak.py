@@ -361,9 +361,9 @@ def main(argv=None) -> int:
     parser.add_argument('--json', help='write the report as JSON here')
     args = parser.parse_args(argv)
     result = run_soak(args)
-    _print_report(result)
-    if args.json:
+    if args.json:      # first: the figures of a long run survive a problem in the printout
         pathlib.Path(args.json).write_text(json.dumps(result, indent=1))
+    _print_report(result)
     return 0 if result.get('node_exit_code') == 0 else 1
 
 
