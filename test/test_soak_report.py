@@ -31,15 +31,17 @@ def test_rss_halves_after_the_warmup():
 
 def test_resets_are_split_by_cause_and_loop_boundary():
     from dpv_sensor.tools.soak import classify_resets
-    loop_start_ns = 1_000_000_100 * 10**9
+    loop_starts_ns = [1_000_000_100 * 10**9, 1_000_000_110 * 10**9]
+    prefix = '[INFO] [{}] [dpv_sensor]: [dpv_sensor.estimator] estimator reset: '
     log = '\n'.join([
-        '[INFO] [1000000050.250000000] [dpv_sensor]: [dpv_sensor.estimator] estimator reset: time gap 0.533 s in '
-        'the camera stream > reset_time_gap 0.5 s',
-        '[INFO] [1000000101.500000000] [dpv_sensor]: [dpv_sensor.estimator] estimator reset: odometry jumped 2.1 m',
-        '[INFO] [1000000200.000000000] [dpv_sensor]: [dpv_sensor.estimator] estimator reset: odometry jumped 0.4 m',
-        '[INFO] [1000000201.000000000] [dpv_sensor]: estimator ready: nothing to count here'])
-    assert classify_resets(log, [loop_start_ns]) == {
-        'time gap # s in the camera stream > reset_time_gap # s': 1, 'loop_boundary': 1, 'odometry jumped # m': 1}
+        prefix.format('1000000050.250000000') + 'odometry jumped',             # before the first loop start
+        prefix.format('1000000101.500000000') + 'time gap 0.533 s in the camera stream > reset_time_gap 0.5 s',
+        prefix.format('1000000106.000000000') + 'odometry jumped',             # the loop's jump, 6 s late: busy
+        prefix.format('1000000108.000000000') + 'odometry jumped',             # a second one in the same loop
+        prefix.format('1000000110.500000000') + 'odometry jumped',             # the next loop's
+        '[INFO] [1000000111.000000000] [dpv_sensor]: estimator ready: nothing to count here'])
+    assert classify_resets(log, loop_starts_ns) == {
+        'odometry jumped': 2, 'time gap # s in the camera stream > reset_time_gap # s': 1, 'loop_boundary': 2}
 
 
 def test_accounting_of_every_image_sent():
