@@ -99,6 +99,11 @@ UNKNOWN_OUTPUT = 'unknown_output_stamp'
 INTERNAL_ERROR = 'internal_error'
 BUSY = 'busy'
 
+# How long after its receipt an image waits for the middleware's report of images lost right before it (Fast DDS
+# reports them when the next sample arrives, but the report and the image reach the node by separate callbacks):
+# a gap the report explains is no gap in the camera stream. Only images that end a gap no report explains yet wait.
+LOSS_REPORT_WAIT_S = 0.2
+
 
 def self_check() -> int:
     """Import every heavy dependency the node needs and print versions; 0 when all import."""
@@ -265,6 +270,7 @@ class DepthCameraNode(Node):
         self._mailbox = Mailbox(merge=merge_incoming)
         self._last_received_stamp_ns = None   # header stamp of the newest image received (callback thread only)
         self._gap_carry_ns = None             # longest image gap since the last push (worker thread only)
+        self._loss_carry: list = []           # stream_loss.Gap of images lost since the last push (worker thread)
         self._stop = threading.Event()
         self._last_stamp_ns = None
         self._last_size = None
@@ -467,6 +473,7 @@ class DepthCameraNode(Node):
     def _forget(self) -> None:
         """The node's own stream state after a restart: the carried image gap and the recent frame headers."""
         self._gap_carry_ns = None
+        self._loss_carry = []
         self._keyframe_meta.clear()
         self._frame_meta.clear()
 
@@ -497,7 +504,8 @@ class DepthCameraNode(Node):
         """One image, in named steps; each step reports and counts its own drops and returns None for them."""
         stamp_ns = M.stamp_to_ns(item.msg.header.stamp)
         # the stream's longest image gap since the last push: images dropped here (bad input, no pose) count too
-        self._gap_carry_ns = max_gap(self._gap_carry_ns, camera_gap_ns(item))
+        self._gap_carry_ns = max_gap(self._gap_carry_ns, item.gap_ns)
+        self._loss_carry.extend(item.loss_gaps)
         rgb = self._decode(item.msg, stamp_ns)
         if rgb is None or not self._check_continuity(stamp_ns, (rgb.shape[1], rgb.shape[0])):
             return
@@ -585,7 +593,7 @@ class DepthCameraNode(Node):
         frame_id = item.msg.header.frame_id or self.config['frame_id']
         stamp_s = stamp_ns / NS
         meta = _FrameMeta(stamp_ns, frame_id, rgb, K, rgb.shape[1], rgb.shape[0], item.receipt_mono, item.receipt_ns)
-        gap_ns, self._gap_carry_ns = self._gap_carry_ns, None
+        gap_ns = self._stream_gap_ns(item)
         frame = Frame(stamp=stamp_s, image=rgb, K_33=K, T_world_cam_44=pose, frame_id=frame_id,
                       sensor_gap_s=None if gap_ns is None else gap_ns / NS)
         t0 = time.perf_counter()
@@ -617,6 +625,17 @@ class DepthCameraNode(Node):
         self.n_processed += 1
         self._remember(stamp_s, meta, is_keyframe)
         return None if result is None else result.output
+
+    def _stream_gap_ns(self, item: Incoming) -> int | None:
+        """The camera stream's longest gap since the last push (Frame.sensor_gap_s), taking the carry: intervals with
+        images lost in transport count as one period when the middleware reported them lost, for which an image
+        waits up to LOSS_REPORT_WAIT_S after its receipt."""
+        pending, self._loss_carry = self._loss_carry, []
+        deadline = item.receipt_mono + LOSS_REPORT_WAIT_S
+        while any(not g.explained for g in pending) and time.monotonic() < deadline and not self._stop.is_set():
+            time.sleep(0.005)
+        gap_ns, self._gap_carry_ns = camera_gap_ns(self._gap_carry_ns, pending), None
+        return gap_ns
 
     def _on_degenerate(self, stamp_s: float, reason: str) -> None:
         """A degenerate image (no texture to measure depth from): dropped and counted (dropped.degenerate_image);

@@ -187,11 +187,11 @@ def merge_incoming(dropped: Incoming, new: Incoming) -> Incoming:
     return new
 
 
-def camera_gap_ns(item: Incoming) -> int | None:
-    """The camera stream's longest gap up to `item`: a stamp interval whose missing images were all reported lost
-    by the middleware counts as one frame period (the camera kept running; ``stream_loss.Gap.camera_gap_ns``). Read
-    when the worker takes the item, since the loss report may be handled after the image that ends the gap."""
-    gap = item.gap_ns
-    for lost in item.loss_gaps:
-        gap = max_gap(gap, lost.camera_gap_ns)
-    return gap
+def camera_gap_ns(gap_ns: int | None, loss_gaps) -> int | None:
+    """The camera stream's longest gap: the longest stamp interval between received images `gap_ns`, and the
+    intervals with images lost in transport (`loss_gaps`, stream_loss.Gap), each of which counts as one frame period
+    once the middleware reported all of its images lost (the camera kept running; ``Gap.camera_gap_ns``), else as
+    its stamp interval. Read it as late as possible: the report may be handled after the image that ends the gap."""
+    for lost in loss_gaps:
+        gap_ns = max_gap(gap_ns, lost.camera_gap_ns)
+    return gap_ns
