@@ -5,8 +5,9 @@ Start-up order, so that a signal at any moment gives a clean exit 0 and a failed
 1. ``install_signal_handlers()``: SIGINT / SIGTERM only set :data:`STOP` (no exception is ever raised into an
    import or into the node's construction). Nothing heavy is imported before this: this module imports only the
    standard library.
-2. ``apply_transport_settings()``: the place where the process's DDS transport settings are applied (environment
-   for the middleware), before rclpy is imported; and glibc's malloc arenas are capped before any thread exists
+2. ``apply_transport_settings()``: the node's own DDS transport (``dpv_sensor.transport``: the Fast DDS profile in
+   config/, unless the user chose a transport) goes into the process environment before rclpy is imported, since
+   the middleware reads it when rclpy initialises; and glibc's malloc arenas are capped before any thread exists
    (``process_memory``).
 3. the node module is imported (rclpy, torch, OpenCV: seconds on a loaded machine); a signal meanwhile only sets
    the flag, which is checked right after.
@@ -25,6 +26,8 @@ STOP = threading.Event()
 _installed = False
 # what limit_malloc_arenas() put in force (logged by the node), None before prepare()
 ARENAS_NOTE: str | None = None
+# what apply_transport_settings() did (logged by the node), None before it ran
+TRANSPORT_NOTE: str | None = None
 
 
 def _on_signal(_signum, _frame) -> None:
@@ -42,10 +45,15 @@ def install_signal_handlers() -> None:
     _installed = True
 
 
-def apply_transport_settings() -> None:
-    """Hook for the process's DDS transport settings (middleware profile, shared memory, ...), called before
-    rclpy is imported so that environment variables set here reach the middleware. Nothing to apply yet."""
-    return None
+def apply_transport_settings() -> str:
+    """The node's DDS transport settings (``dpv_sensor.transport.configure``: the Fast DDS profile, unless the user
+    chose a transport), applied to this process's environment before rclpy is imported so that they reach the
+    middleware. Idempotent; returns the line the node logs."""
+    global TRANSPORT_NOTE
+    if TRANSPORT_NOTE is None:
+        from dpv_sensor.transport import configure   # standard library only
+        TRANSPORT_NOTE = configure()
+    return TRANSPORT_NOTE
 
 
 def own_args(argv: list[str]) -> list[str]:

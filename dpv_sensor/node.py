@@ -6,7 +6,8 @@ dpv_sensor.msgs; image poses come from dpv_sensor.pose_buffer.
 
 Topics (relative names, remappable):
   in   image (sensor_msgs/Image rgb8/bgr8/rgba8/bgra8/mono8), camera_info (sensor_msgs/CameraInfo),
-       odom (nav_msgs/Odometry) - sensor-data QoS by default (input_reliability, input_depth)
+       odom (nav_msgs/Odometry) - QoS: input_reliability (auto: as the publishers offer), input_depth; transport:
+       dpv_sensor.transport (docs/transport.md), applied by the entry point before rclpy starts
   out  depth/image (32FC1 m, NaN = none | 16UC1 mm, 0 = none), depth/camera_info (K of the output size),
        rgb/image (rgb8: the colour image the depth was computed for, rectified when the node rectifies, at the
        depth's size) + rgb/camera_info, confidence/image (32FC1 in [0, 1]) + confidence/camera_info (all camera_info
@@ -33,12 +34,16 @@ Distorted input (camera_info with non-zero D, plumb_bob / rational_polynomial / 
 (dpv_sensor.rectify) before the estimator; every output then carries the rectified K with D zero.
 
 Diagnostics: per output a measured rate against expected_depth_rate / expected_points_rate, the share of recent
-images lost in transport (lost.*) or rejected as faulty (dropped.* other than busy) against drop_warn_share /
+images lost in transport (lost.transport) or rejected as faulty (dropped.* other than busy) against drop_warn_share /
 drop_error_share, the stamp age on the node's clock (sim time works), incompatible QoS events per topic.
 
 Bad input never stops the node: each kind of fault (unsupported encoding, inconsistent image, size change,
-missing or zero camera_info, NaN odometry, odometry gap or timeout, time going backwards, an exception inside the
-estimator) is counted, reported in /diagnostics and logged with a specific, rate-limited message.
+missing or zero camera_info, NaN odometry, odometry gap or timeout, conflicting odometry at one stamp, time going
+backwards, an empty image frame_id, a degenerate image, an exception inside the estimator) is counted, reported in
+/diagnostics and logged with a specific, rate-limited message. No image is lost uncounted: images lost before the
+callback (transport) are counted from the stamps and the middleware's reports (lost.*), images the node skips or
+refuses in dropped.*, so frames_received + lost.transport = images sent and frames_processed + dropped_total =
+frames_received (but for the one or two in flight).
 """
 from __future__ import annotations
 
@@ -74,10 +79,13 @@ from dpv_sensor import msgs as M
 from dpv_sensor import params as P
 from dpv_sensor.estimator import EstimatorConfig
 from dpv_sensor.frame import Frame
-from dpv_sensor.node_support import FaultLog, Incoming, LogBridge, Mailbox, RateMeter, max_gap, merge_incoming
-from dpv_sensor.pipeline import VO_LOST, Pipeline
+from dpv_sensor.node_support import (FaultLog, Incoming, LogBridge, Mailbox, RateMeter, camera_gap_ns, max_gap,
+                                     merge_incoming)
+from dpv_sensor.pipeline import DEGENERATE, VO_LOST, Pipeline
 from dpv_sensor.pose_buffer import PoseBuffer, pose7_to_matrix
 from dpv_sensor.rectify import RectifierCache, UnsupportedDistortion
+from dpv_sensor.stream_loss import StreamLoss
+from dpv_sensor.transport import choose_reliability
 
 NODE_NAME = 'dpv_sensor'
 NS = 1_000_000_000
@@ -95,6 +103,8 @@ ODOM_GAP = 'odometry_gap'
 ODOM_TIMEOUT = 'odometry_timeout'
 ODOM_TOO_OLD = 'odometry_too_old'
 ODOM_INVALID = 'odometry_invalid_bracket'
+ODOM_CONFLICT = 'odometry_conflict'            # two messages at one stamp with different poses (the first is kept)
+EMPTY_FRAME_ID = 'empty_frame_id'              # an image without header.frame_id (the frame_id parameter is used)
 TIME_BACKWARDS = 'time_backwards'
 DUPLICATE_STAMP = 'duplicate_stamp'
 ESTIMATOR_EXCEPTION = 'estimator_exception'
@@ -106,6 +116,11 @@ UNSUPPORTED_DISTORTION = 'unsupported_distortion'
 RECTIFY_SIZE = 'rectify_size_mismatch'
 MISSING_RGB = 'missing_output_colour'
 INCOMPATIBLE_QOS = 'incompatible_qos'
+
+# How long after its receipt an image waits for the middleware's report of images lost right before it (Fast DDS
+# reports them when the next sample arrives, but the report and the image reach the node by separate callbacks):
+# a gap the report explains is no gap in the camera stream. Only images that end a gap no report explains yet wait.
+LOSS_REPORT_WAIT_S = 0.2
 
 
 def self_check() -> int:
@@ -220,20 +235,22 @@ class DepthCameraNode(Node):
 
         # --- QoS, subscriptions, publishers ------------------------------------------------------------------
         rel = {'best_effort': ReliabilityPolicy.BEST_EFFORT, 'reliable': ReliabilityPolicy.RELIABLE}
-        in_qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=cfg['input_depth'],
-                            reliability=rel[cfg['input_reliability']], durability=DurabilityPolicy.VOLATILE)
         out_qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=cfg['output_depth'],
                              reliability=rel[cfg['output_reliability']], durability=DurabilityPolicy.VOLATILE)
-        self.sub_image = self.create_subscription(Image, 'image', self._on_image, in_qos,
-                                                  event_callbacks=self._qos_events('image', subscription=True))
-        self.sub_info = None
+        # inputs at the reliability the publishers offer (input_reliability auto: see _adapt_input_qos); images lost
+        # before _on_image are counted by stream_loss (callback thread only)
+        self.stream_loss = StreamLoss()
+        self._inputs = {'image': (Image, self._on_image)}
         if cfg['camera_info_source'] == 'topic':
-            self.sub_info = self.create_subscription(CameraInfo, 'camera_info', self._on_camera_info, in_qos,
-                                                     event_callbacks=self._qos_events('camera_info', subscription=True))
-        self.sub_odom = None
+            self._inputs['camera_info'] = (CameraInfo, self._on_camera_info)
         if cfg['odometry'] == 'topic':
-            self.sub_odom = self.create_subscription(Odometry, 'odom', self._on_odom, in_qos,
-                                                     event_callbacks=self._qos_events('odom', subscription=True))
+            self._inputs['odom'] = (Odometry, self._on_odom)
+        self._input_subs: dict = {}
+        self._input_reliability: dict = {}
+        for topic in self._inputs:
+            self._subscribe_input(topic, 'reliable' if cfg['input_reliability'] == 'reliable' else 'best_effort')
+        if cfg['input_reliability'] == 'auto':
+            self.create_timer(1.0, self._adapt_input_qos)
         pub = self._publisher
         self.pub_depth = pub(Image, 'depth/image', out_qos)
         self.pub_depth_info = pub(CameraInfo, 'depth/camera_info', out_qos)
@@ -290,11 +307,15 @@ class DepthCameraNode(Node):
         self._started_mono = time.monotonic()
         self._last_image_mono = None
         self._last_push_ms = 0.0
+        self._degenerate_run = 0              # consecutive degenerate images (worker thread only)
+        self._degenerate_reason = ''
+        self.n_degenerate_episodes = 0
 
         # --- worker ---------------------------------------------------------------------------------------------
         self._mailbox = Mailbox(merge=merge_incoming)
         self._last_received_stamp_ns = None   # header stamp of the newest image received (callback thread only)
         self._gap_carry_ns = None             # longest image gap since the last push (worker thread only)
+        self._loss_carry: list = []           # stream_loss.Gap of images lost since the last push (worker thread)
         self._stop = threading.Event()
         self._last_stamp_ns = None
         self._last_size = None
@@ -319,6 +340,46 @@ class DepthCameraNode(Node):
             f"image='{self.sub_image.topic_name}' camera_info="
             f"'{self.sub_info.topic_name if self.sub_info else 'parameters'}' "
             f"odom='{self.sub_odom.topic_name if self.sub_odom else 'none'}'")
+
+    # ------------------------------------------------------------------------------------------ input QoS
+    sub_image = property(lambda self: self._input_subs['image'])
+    sub_info = property(lambda self: self._input_subs.get('camera_info'))
+    sub_odom = property(lambda self: self._input_subs.get('odom'))
+
+    def _subscribe_input(self, topic: str, reliability: str) -> None:
+        """(Re)create the subscription of input `topic` with `reliability`; the image subscription also counts the
+        samples the middleware reports lost (where it reports them: Fast DDS does for best-effort readers)."""
+        old = self._input_subs.pop(topic, None)
+        if old is not None:
+            self.destroy_subscription(old)
+        policy = {'best_effort': ReliabilityPolicy.BEST_EFFORT, 'reliable': ReliabilityPolicy.RELIABLE}[reliability]
+        qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=self.config['input_depth'], reliability=policy,
+                         durability=DurabilityPolicy.VOLATILE)
+        incompatible = self._qos_events(topic, subscription=True).incompatible_qos
+        events = SubscriptionEventCallbacks(incompatible_qos=incompatible)
+        if topic == 'image':
+            events = SubscriptionEventCallbacks(
+                incompatible_qos=incompatible,
+                message_lost=lambda info: self.stream_loss.on_rmw_lost(int(info.total_count_change)))
+        msg_type, callback = self._inputs[topic]
+        self._input_subs[topic] = self.create_subscription(msg_type, topic, callback, qos, event_callbacks=events)
+        self._input_reliability[topic] = reliability
+
+    def _adapt_input_qos(self) -> None:
+        """input_reliability auto: follow what the publishers of each input offer (transport.choose_reliability):
+        reliable while every publisher is reliable (lost samples are repaired), else best effort."""
+        for topic, sub in list(self._input_subs.items()):
+            try:
+                infos = self.get_publishers_info_by_topic(sub.topic_name)
+            except Exception:   # the graph is not available (shutting down): try again next time
+                continue
+            offered = ['reliable' if i.qos_profile.reliability == ReliabilityPolicy.RELIABLE else 'best_effort'
+                       for i in infos]
+            want = choose_reliability('auto', offered)
+            if want != self._input_reliability[topic]:
+                self.get_logger().info(f"input {sub.topic_name}: publishers offer {', '.join(sorted(set(offered)))}"
+                                       f'; subscribing {want}')
+                self._subscribe_input(topic, want)
 
     # ------------------------------------------------------------------------------------------ construction
     def _qos_events(self, topic: str, subscription: bool):
@@ -381,7 +442,7 @@ class DepthCameraNode(Node):
     def _on_image(self, msg) -> None:
         self.n_received += 1
         if self.tf is not None:
-            self.tf.frames(image_frame=msg.header.frame_id)
+            self.tf.frames(image_frame=msg.header.frame_id or self.config['frame_id'])
         self._last_image_mono = time.monotonic()
         if self._first_image_mono is None:
             self._first_image_mono = self._last_image_mono
@@ -392,11 +453,27 @@ class DepthCameraNode(Node):
             stamp_ns = None
         last, self._last_received_stamp_ns = self._last_received_stamp_ns, stamp_ns
         gap_ns = stamp_ns - last if stamp_ns is not None and last is not None and stamp_ns > last else None
-        if self._mailbox.put(Incoming(msg, time.monotonic(), time.time_ns(), gap_ns)):
+        if not msg.header.frame_id:
+            self._on_empty_frame_id(stamp_ns)
+        # images missing before this one (lost in transport): counted; a gap the middleware reported as lost is
+        # judged by the worker (camera_gap_ns), as the report may come after this image
+        lost = self.stream_loss.on_image(stamp_ns) if stamp_ns is not None else None
+        item = Incoming(msg, time.monotonic(), time.time_ns(), None if lost else gap_ns, [lost] if lost else [])
+        if self._mailbox.put(item):
             with self._stats_lock:
                 self.dropped[BUSY] += 1
             self.faults.report(BUSY, 'estimator busy: dropping an older image that was still waiting (newest wins; '
                                'the count is in /diagnostics)', level='info', count=False, period_s=60.0)
+
+    def _on_empty_frame_id(self, stamp_ns) -> None:
+        """An image without header.frame_id: the outputs use the frame_id parameter (warned once, every one counted)."""
+        if self.faults.counts[EMPTY_FRAME_ID] == 0:
+            at = f' (first at {stamp_ns / NS:.3f} s)' if stamp_ns is not None else ''
+            self.faults.report(EMPTY_FRAME_ID, f"images arrive with an empty header.frame_id{at}; the outputs use the "
+                               f"frame_id parameter '{self.config['frame_id']}' (the camera driver should set its "
+                               'optical frame; this is not logged again, faults.empty_frame_id counts them)')
+        else:
+            self.faults.count(EMPTY_FRAME_ID)
 
     def _on_camera_info(self, msg) -> None:
         try:
@@ -430,8 +507,11 @@ class DepthCameraNode(Node):
         self._odom_frame = msg.header.frame_id or self._odom_frame
         if self.tf is not None and msg.child_frame_id:
             self.tf.frames(odom_child_frame=msg.child_frame_id)
-        jumps = self.pose_buffer.jumps
+        jumps, conflicts = self.pose_buffer.jumps, self.pose_buffer.conflicts
         cleared = self.pose_buffer.add(stamp_ns, T)
+        if self.pose_buffer.conflicts != conflicts:
+            self.faults.report(ODOM_CONFLICT, f'{self.pose_buffer.last_conflict}; keeping the first (two odometry '
+                               'sources publishing on one topic?)')
         if cleared and self.pose_buffer.jumps != jumps:
             self.faults.report(ODOM_JUMP, f'{cleared}: images before it are dropped and the estimator restarts '
                                '(relocalisation or loop closure in the odometry frame?)')
@@ -472,6 +552,7 @@ class DepthCameraNode(Node):
     def _forget(self) -> None:
         """The node's own stream state after a restart: the carried image gap and the recent frame headers."""
         self._gap_carry_ns = None
+        self._loss_carry = []
         self._keyframe_meta.clear()
         self._frame_meta.clear()
 
@@ -503,6 +584,7 @@ class DepthCameraNode(Node):
         stamp_ns = M.stamp_to_ns(item.msg.header.stamp)
         # the stream's longest image gap since the last push: images dropped here (bad input, no pose) count too
         self._gap_carry_ns = max_gap(self._gap_carry_ns, item.gap_ns)
+        self._loss_carry.extend(item.loss_gaps)
         rgb = self._decode(item.msg, stamp_ns)
         if rgb is None or not self._check_continuity(stamp_ns, (rgb.shape[1], rgb.shape[0])):
             return
@@ -600,10 +682,10 @@ class DepthCameraNode(Node):
 
     def _estimate(self, item: Incoming, stamp_ns: int, rgb, K, pose):
         """Push the frame through the pipeline; the output that became ready, or None."""
-        frame_id = item.msg.header.frame_id
+        frame_id = item.msg.header.frame_id or self.config['frame_id']
         stamp_s = stamp_ns / NS
         meta = _FrameMeta(stamp_ns, frame_id, rgb, K, rgb.shape[1], rgb.shape[0], item.receipt_mono, item.receipt_ns)
-        gap_ns, self._gap_carry_ns = self._gap_carry_ns, None
+        gap_ns = self._stream_gap_ns(item)
         frame = Frame(stamp=stamp_s, image=rgb, K_33=K, T_world_cam_44=pose, frame_id=frame_id,
                       sensor_gap_s=None if gap_ns is None else gap_ns / NS)
         t0 = time.perf_counter()
@@ -613,6 +695,12 @@ class DepthCameraNode(Node):
             except Exception as exc:
                 result = None
                 self._on_estimator_exception(exc)
+        if result is not None and result.drop == DEGENERATE:
+            self._gap_carry_ns = max_gap(self._gap_carry_ns, gap_ns)    # the stream state is untouched
+            self._on_degenerate(stamp_s, result.detail)
+            return None
+        if self._degenerate_run:
+            self._degenerate_episode_end(stamp_s)
         if result is not None and result.drop == VO_LOST:
             self._drop(VO_LOST)
             self.faults.report(VO_LOST, f'visual odometry lost at {stamp_s:.3f} s: {result.detail}; '
@@ -629,6 +717,36 @@ class DepthCameraNode(Node):
         self.n_processed += 1
         self._remember(stamp_s, meta, is_keyframe)
         return None if result is None else result.output
+
+    def _stream_gap_ns(self, item: Incoming) -> int | None:
+        """The camera stream's longest gap since the last push (Frame.sensor_gap_s), taking the carry: intervals with
+        images lost in transport count as one period when the middleware reported them lost, for which an image
+        waits up to LOSS_REPORT_WAIT_S after its receipt."""
+        pending, self._loss_carry = self._loss_carry, []
+        deadline = item.receipt_mono + LOSS_REPORT_WAIT_S
+        while any(not g.explained for g in pending) and time.monotonic() < deadline and not self._stop.is_set():
+            time.sleep(0.005)
+        gap_ns, self._gap_carry_ns = camera_gap_ns(self._gap_carry_ns, pending), None
+        return gap_ns
+
+    def _on_degenerate(self, stamp_s: float, reason: str) -> None:
+        """A degenerate image (no texture to measure depth from): dropped and counted (dropped.degenerate_image);
+        one log line when a run of them starts, one when it ends (rate-limited per kind, black / saturated / flat /
+        noise: a flickering camera is summarised, not logged at its frame rate)."""
+        self._drop(DEGENERATE)
+        if self._degenerate_run == 0:
+            self.n_degenerate_episodes += 1
+            self._degenerate_reason = reason
+            self.faults.report(DEGENERATE, f'degenerate images from {stamp_s:.3f} s on ({reason}): dropped, no depth '
+                               'published until they carry texture again (lens covered, exposure or a broken '
+                               'driver?)', count=False, key=f'{DEGENERATE}:{reason.split(":")[0]}')
+        self._degenerate_run += 1
+
+    def _degenerate_episode_end(self, stamp_s: float) -> None:
+        n, self._degenerate_run = self._degenerate_run, 0
+        self.faults.report(DEGENERATE, f'degenerate images ended at {stamp_s:.3f} s: {n} dropped '
+                           f'({self._degenerate_reason})', count=False, level='info',
+                           key=f'{DEGENERATE}:end:{self._degenerate_reason.split(":")[0]}')
 
     def _publish_output(self, out, rgb, stamp_ns: int) -> None:
         try:
@@ -783,6 +901,9 @@ class DepthCameraNode(Node):
         }
         for reason, n in sorted(dropped.items()):
             values[f'dropped.{reason}'] = n
+        values.update(self.stream_loss.counts())          # lost.* (images lost before the callback), input_period_ms
+        values['degenerate_episodes'] = self.n_degenerate_episodes
+        values['odometry_duplicates'] = self.pose_buffer.duplicates     # identical repeats, ignored
         for kind, n in sorted(self.faults.counts.items()):
             values[f'faults.{kind}'] = n
         values['filter_resets'] = st.get('resets', self._node_resets)
@@ -813,6 +934,8 @@ class DepthCameraNode(Node):
             values[f'qos_incompatible.{topic}'] = n
         # matched publishers of the inputs, as this node's subscriptions see them (0: nothing arrives)
         values['publishers.image'] = self.sub_image.get_publisher_count()
+        for topic, reliability in self._input_reliability.items():
+            values[f'input_qos.{topic}'] = reliability
         if self.sub_info is not None:
             values['publishers.camera_info'] = self.sub_info.get_publisher_count()
         if self.sub_odom is not None:
@@ -821,7 +944,7 @@ class DepthCameraNode(Node):
 
     def _drop_share_status(self, values: dict):
         """(level, problem or '') from the share of the images of the last rate_window that were lost in transport
-        (the lost.* values) or rejected as faulty (dropped.* other than busy: images replaced while the estimator
+        (lost.transport) or rejected as faulty (dropped.* other than busy: images replaced while the estimator
         was busy are the normal regime of a slow machine, reported but not warned about). Judged from 5 images
         on. Adds drop_share_window to `values`."""
         cfg = self.config
@@ -833,7 +956,7 @@ class DepthCameraNode(Node):
             except (TypeError, ValueError):
                 return 0.0
         faulty = sum(number(v) for k, v in values.items() if k.startswith('dropped.') and k != f'dropped.{BUSY}')
-        lost = sum(number(v) for k, v in values.items() if k.startswith('lost.'))
+        lost = number(values.get('lost.transport', 0))     # every image lost before the callback (stream_loss)
         hist = self._share_history
         hist.append((now, self.n_received, faulty, lost))
         while len(hist) > 1 and now - hist[1][0] >= cfg['rate_window']:
@@ -930,6 +1053,8 @@ def run(argv: list[str], stop: threading.Event) -> int:
     if arenas_note is None:
         from dpv_sensor.process_memory import limit_malloc_arenas
         arenas_note = limit_malloc_arenas()
+    # the node's DDS transport, before rclpy.init (applied by the entry point already; idempotent)
+    transport_note = entry.apply_transport_settings()
     if stop.is_set():
         return 0
     rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
@@ -941,6 +1066,7 @@ def run(argv: list[str], stop: threading.Event) -> int:
             return 0
         node = DepthCameraNode()
         node.get_logger().info(arenas_note)
+        node.get_logger().info(transport_note)
         executor = SingleThreadedExecutor()
         executor.add_node(node)
         while not stop.is_set() and not node.failed.is_set() and rclpy.ok():

@@ -7,9 +7,9 @@ import collections
 import logging
 import threading
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
-__all__ = ['Mailbox', 'RateMeter', 'FaultLog', 'LogBridge', 'Incoming', 'merge_incoming', 'max_gap']
+__all__ = ['Mailbox', 'RateMeter', 'FaultLog', 'LogBridge', 'Incoming', 'merge_incoming', 'max_gap', 'camera_gap_ns']
 
 
 class Mailbox:
@@ -107,6 +107,11 @@ class FaultLog:
         self._suppressed: collections.Counter = collections.Counter()
         self._lock = threading.Lock()
 
+    def count(self, kind: str, n: int = 1) -> None:
+        """Count `n` faults of `kind` without a message (one was logged already)."""
+        with self._lock:
+            self.counts[kind] += n
+
     def report(self, kind: str, message: str, level: str = 'warn', count: bool = True, key: str | None = None,
                period_s: float | None = None) -> bool:
         """Count one fault of `kind` and log `message` unless rate-limited; returns True when it was logged.
@@ -179,9 +184,22 @@ class Incoming:
     receipt_ns: int      # wall clock (ns) at receipt
     gap_ns: int | None = None  # longest stamp interval between consecutive received images up to this one, since
     #                            the previous item the worker took (None: first image, or time went backwards)
+    loss_gaps: list = field(default_factory=list)  # stream_loss.Gap of the intervals with images lost in transport
+    #                            (their interval is not in gap_ns: see camera_gap_ns)
 
 
 def merge_incoming(dropped: Incoming, new: Incoming) -> Incoming:
-    """Mailbox merge: the image replacing a dropped one inherits the dropped one's stream gap."""
+    """Mailbox merge: the image replacing a dropped one inherits the dropped one's stream gap and lost intervals."""
     new.gap_ns = max_gap(dropped.gap_ns, new.gap_ns)
+    new.loss_gaps = dropped.loss_gaps + new.loss_gaps
     return new
+
+
+def camera_gap_ns(gap_ns: int | None, loss_gaps) -> int | None:
+    """The camera stream's longest gap: the longest stamp interval between received images `gap_ns`, and the
+    intervals with images lost in transport (`loss_gaps`, stream_loss.Gap), each of which counts as one frame period
+    once the middleware reported all of its images lost (the camera kept running; ``Gap.camera_gap_ns``), else as
+    its stamp interval. Read it as late as possible: the report may be handled after the image that ends the gap."""
+    for lost in loss_gaps:
+        gap_ns = max_gap(gap_ns, lost.camera_gap_ns)
+    return gap_ns

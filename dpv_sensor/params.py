@@ -133,6 +133,10 @@ SPECS: tuple[ParamSpec, ...] = (
               'the camera driver or a URDF normally publishes the image frame already, and a second parent makes '
               'tf2 lookups of that frame flip between the two; turn it on when nothing else puts the camera in TF '
               '(a replayed bag without /tf_static, a webcam).', scope='node'),
+    ParamSpec('frame_id', 'camera_optical_frame', 'Frame of the outputs when an image arrives with an empty '
+              'header.frame_id (warned once, counted in faults.empty_frame_id); otherwise the outputs carry the '
+              "image's own frame. An optical frame (REP 103: z forward, x right, y down), as the depth is.",
+              scope='node'),
     ParamSpec('base_frame', '', 'Parent frame of the static TF: the frame T_base_camera is given in. Empty: the '
               "odometry's child_frame_id.", scope='node'),
     ParamSpec('pose_refinement', 'off', 'Sliding-window pose refinement with gtsam: off or window.',

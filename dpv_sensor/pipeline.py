@@ -28,9 +28,10 @@ import numpy as np
 from .estimator import Estimator, EstimatorConfig
 from .frame import DepthOutput, Frame
 
-__all__ = ['PoseSource', 'Pipeline', 'PushResult', 'VO_LOST', 'evaluate_offline']
+__all__ = ['PoseSource', 'Pipeline', 'PushResult', 'VO_LOST', 'DEGENERATE', 'evaluate_offline']
 
 VO_LOST = 'visual_odometry_lost'
+DEGENERATE = 'degenerate_image'    # the estimator refused the frame (reject_degenerate_frames, image_quality)
 
 
 @dataclass
@@ -117,9 +118,12 @@ class Pipeline:
         if T is not frame.T_world_cam_44:
             frame = Frame(stamp=frame.stamp, image=frame.image, K_33=frame.K_33, T_world_cam_44=T,
                           frame_id=frame.frame_id, sensor_gap_s=frame.sensor_gap_s)
-        before = int(self.estimator.status.get('keyframes', 0))
+        before = self.estimator.status
         out = self.estimator.push(frame)
-        is_keyframe = int(self.estimator.status.get('keyframes', 0)) > before
+        after = self.estimator.status
+        if int(after.get('frames_degenerate', 0)) > int(before.get('frames_degenerate', 0)):
+            return PushResult(output=out, drop=DEGENERATE, detail=str(after.get('last_degenerate_reason')))
+        is_keyframe = int(after.get('keyframes', 0)) > int(before.get('keyframes', 0))
         if is_keyframe and self.pose_source.visual_odometry is not None:
             self._keyframe_images[float(frame.stamp)] = (frame.image, np.asarray(frame.K_33, dtype=np.float64))
             while len(self._keyframe_images) > 2 * int(self.config.window_size) + 6:

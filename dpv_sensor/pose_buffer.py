@@ -21,6 +21,12 @@ interpolated across: with `max_speed` / `max_rate_deg` set, a step of more than 
 flagged) clears the older samples, counts it in `jumps` and is reported from `add`. Images before it then get
 'too old'; the caller should restart whatever it accumulated in the old pose frame.
 
+Two messages with the same stamp are one sample: an identical repeat (within `SAME_POSE_M` / `SAME_POSE_DEG`; a
+republished or re-bridged message) is ignored and counted in `duplicates`; one with another pose is a *conflict*
+(two odometry sources on one topic, a driver bug): the first message is kept, it is counted in `conflicts` and
+`last_conflict` says what differed, so the caller can warn. Which of two such poses is right cannot be known, and
+keeping the first keeps every pose already handed out consistent.
+
 Quaternions in this module are ROS order (x, y, z, w).
 """
 from __future__ import annotations
@@ -40,6 +46,11 @@ NS = 1_000_000_000
 # A step between consecutive odometry samples is only a teleport when it is also larger than these.
 JUMP_FLOOR_M = 0.1
 JUMP_FLOOR_DEG = 10.0
+
+# Two samples at one stamp are the same pose when they differ by at most this much (float round trips, re-bridged
+# messages); more is a conflict.
+SAME_POSE_M = 1e-4
+SAME_POSE_DEG = 0.01
 
 # Reasons pose_at() gives when it cannot answer.
 FUTURE = 'future'
@@ -116,6 +127,9 @@ class PoseBuffer:
         self.max_rate_deg = float(max_rate_deg)    # deg/s; 0 = no teleport check on rotation
         self.epoch = 0            # how many times time went backwards (and the buffer cleared itself)
         self.jumps = 0            # how many odometry teleports cleared the buffer
+        self.conflicts = 0        # messages at a stamp already held with another pose (ignored: the first is kept)
+        self.duplicates = 0       # messages at a stamp already held with the same pose (ignored)
+        self.last_conflict: str | None = None
         self.cleared_reason: str | None = None
 
     # ---- state -------------------------------------------------------------------------------------------
@@ -160,21 +174,39 @@ class PoseBuffer:
                            f'({self._stamps[-1] / NS:.3f} -> {stamp_ns / NS:.3f}); pose buffer cleared')
                 self._clear(cleared)
                 self.epoch += 1
-            elif t is not None and self._stamps and stamp_ns > self._stamps[-1] and self._t[-1] is not None:
+            i = bisect.bisect_left(self._stamps, stamp_ns)
+            if i < len(self._stamps) and self._stamps[i] == stamp_ns:   # same stamp again: the first is kept
+                differs = self._difference(self._t[i], self._q[i], t, q)
+                if differs is None:
+                    self.duplicates += 1
+                else:
+                    self.conflicts += 1
+                    self.last_conflict = f'conflicting odometry at {stamp_ns / NS:.3f} s: {differs}'
+                return None
+            if t is not None and self._stamps and stamp_ns > self._stamps[-1] and self._t[-1] is not None:
                 jump = self._jump(stamp_ns, t, q)
                 if jump:
                     cleared = f'odometry jumped {jump}; pose buffer cleared'
                     self._clear(cleared)
                     self.jumps += 1
             i = bisect.bisect_left(self._stamps, stamp_ns)
-            if i < len(self._stamps) and self._stamps[i] == stamp_ns:   # same stamp again: newest wins
-                self._t[i], self._q[i] = t, q
-            else:
-                self._stamps.insert(i, stamp_ns)
-                self._t.insert(i, t)
-                self._q.insert(i, q)
+            self._stamps.insert(i, stamp_ns)
+            self._t.insert(i, t)
+            self._q.insert(i, q)
             self._trim()
         return cleared
+
+    @staticmethod
+    def _difference(t0, q0, t1, q1) -> str | None:
+        """How two samples at one stamp differ ('0.050 m and 0.0 deg apart', 'one is invalid'), or None when they
+        are the same pose (see SAME_POSE_M / SAME_POSE_DEG)."""
+        if t0 is None or t1 is None:
+            return None if t0 is None and t1 is None else 'one of the two is invalid (NaN or non-unit quaternion)'
+        dist = float(np.linalg.norm(t1 - t0))
+        angle = math.degrees(2.0 * math.acos(min(1.0, abs(float(np.dot(q0, q1))))))
+        if dist <= SAME_POSE_M and angle <= SAME_POSE_DEG:
+            return None
+        return f'two poses {dist:.3f} m and {angle:.1f} deg apart'
 
     def _jump(self, stamp_ns: int, t: np.ndarray, q: np.ndarray) -> str | None:
         """Why the step from the newest sample to (t, q) at stamp_ns is a teleport, or None."""

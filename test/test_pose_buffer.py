@@ -207,3 +207,33 @@ def test_quaternion_helpers_round_trip():
                                [1, 2, 3, 0, 0, math.sqrt(0.5), math.sqrt(0.5)], atol=1e-12)
     with pytest.raises(ValueError):
         pb.pose7_to_matrix([0, 0, 0])
+
+
+def test_a_second_message_at_one_stamp_keeps_the_first_and_says_whether_it_conflicts():
+    buf = PoseBuffer(max_gap_s=1.0)
+    assert buf.add(0, translation(0.0, 0.0, 0.0)) is None
+    assert buf.add(S, translation(1.0, 0.0, 0.0)) is None
+    # an identical repeat (a republished message): ignored, counted as a duplicate, no conflict
+    assert buf.add(S, translation(1.0, 0.0, 0.0)) is None
+    assert (buf.duplicates, buf.conflicts, buf.last_conflict) == (1, 0, None)
+    # the same stamp 5 cm off: a conflict, the first pose stays
+    assert buf.add(S, translation(1.05, 0.0, 0.0)) is None
+    assert (buf.duplicates, buf.conflicts) == (1, 1)
+    assert buf.last_conflict == 'conflicting odometry at 1.000 s: two poses 0.050 m and 0.0 deg apart'
+    np.testing.assert_allclose(buf.pose_at(S // 2).T_world_cam_44, translation(0.5, 0.0, 0.0), atol=1e-12)
+    np.testing.assert_allclose(buf.pose_at(S).T_world_cam_44, translation(1.0, 0.0, 0.0), atol=1e-12)
+    # a rotation alone conflicts too; an invalid repeat of a valid sample conflicts; the buffer keeps 2 samples
+    assert buf.add(S, yaw(1.0, t=(1.0, 0.0, 0.0))) is None and buf.conflicts == 2
+    assert buf.last_conflict.endswith('0.000 m and 1.0 deg apart')
+    assert buf.add(S, None) is None and buf.conflicts == 3 and 'invalid' in buf.last_conflict
+    assert len(buf) == 2 and buf.epoch == 0
+
+
+def test_a_repeated_stamp_after_time_went_backwards_is_a_new_stream():
+    # a restarted bag repeats stamps the buffer still holds, but after newer ones: time went backwards, not a
+    # conflict
+    buf = PoseBuffer(max_gap_s=1.0)
+    buf.add(0, translation(0.0, 0.0, 0.0))
+    buf.add(S, translation(1.0, 0.0, 0.0))
+    assert 'went backwards' in buf.add(0, translation(5.0, 0.0, 0.0))
+    assert buf.conflicts == 0 and buf.epoch == 1 and len(buf) == 1

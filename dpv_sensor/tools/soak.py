@@ -6,17 +6,24 @@ end-to-end latency = (receipt time of an output) - (its image stamp). Reported a
 
   throughput   images offered / s, outputs received / s (keyframes only unless publish_between_keyframes)
   latency      median and p95 of output receipt - image stamp (ms), and the node's own receipt -> publish figure
-  drops        the node's /diagnostics counters (dropped.* by reason, faults.*)
-  memory       VmRSS of the node process (from /proc) after warm-up, at the end, and its maximum
+  accounting   images sent = received by the node + lost in transport (lost.*), received = processed + dropped
+               (dropped.* by reason) + the one or two in flight at the stop; faults.*
+  resets       the estimator's restarts from the node log, by cause; the one for the jump back to the start of the
+               trajectory at each loop start of the bag is reported apart as loop_boundary
+  memory       VmRSS of the node process (from /proc) after warm-up, at the end, its maximum, the median per
+               window, and the medians of the two halves after a 2-minute warm-up (flat memory: they agree)
 
 A tool, not a unit test: it takes minutes. Its `OutputCollector` (client.ros_io) is also used by the node tests.
 """
 from __future__ import annotations
 
 import argparse
+import bisect
+import collections
 import json
 import os
 import pathlib
+import re
 import signal
 import subprocess
 import sys
@@ -95,6 +102,68 @@ def rss_trend(samples, wall_s: float, parts: int = 6, min_window_s: float = 60.0
     return out
 
 
+def rss_halves(samples, wall_s: float, warmup_s: float = 120.0):
+    """Median resident memory (kB) of [warmup, middle) and [middle, end] with middle halfway from the warm-up to the
+    end (a 12-minute run: minutes 2-7 and 7-12), and later / earlier; Nones when a half has no sample."""
+    if not samples or not wall_s or wall_s != wall_s or wall_s <= warmup_s:
+        return {'windows_s': None, 'earlier_kib': None, 'later_kib': None, 'ratio': None}
+    mid = warmup_s + (wall_s - warmup_s) / 2.0
+    early = [r for t, r in samples if warmup_s <= t < mid]
+    late = [r for t, r in samples if t >= mid]
+    a = int(np.median(early)) if early else None
+    b = int(np.median(late)) if late else None
+    return {'windows_s': [round(warmup_s, 1), round(mid, 1), round(wall_s, 1)], 'earlier_kib': a, 'later_kib': b,
+            'ratio': round(b / a, 4) if a and b else None}
+
+
+# an rclpy console line: [LEVEL] [wall seconds] [logger]: message (the estimator's lines come through the node)
+_RESET_LINE = re.compile(r'\[(\d+\.\d+)\] \[[^\]]*\]: (?:\[[\w.]+\] )?estimator reset: (.*)')
+
+
+def reset_cause(reason: str) -> str:
+    """A reset reason without its figures, e.g. 'time gap # s in the camera stream > reset_time_gap # s'."""
+    return re.sub(r'-?\d+(?:\.\d+)?', '#', reason.strip())
+
+
+def classify_resets(log_text: str, loop_starts_ns) -> dict:
+    """The estimator's restarts in a node log by cause ({cause: count}). At each loop start of the bag (wall-clock
+    ns, as the rebased stamps) the poses jump back to the start of the trajectory: the first restart for a jump
+    logged after a loop start (and before the next one) is counted as 'loop_boundary', however late the busy node
+    got to it; every other restart is counted by its reason."""
+    starts = sorted(int(s) for s in loop_starts_ns)
+    causes: collections.Counter = collections.Counter()
+    claimed = set()
+    for line in log_text.splitlines():
+        m = _RESET_LINE.search(line)
+        if not m:
+            continue
+        t_ns = int(round(float(m.group(1)) * NS))
+        loop = bisect.bisect_right(starts, t_ns) - 1
+        if loop >= 0 and loop not in claimed and 'jumped' in m.group(2):
+            claimed.add(loop)
+            causes['loop_boundary'] += 1
+        else:
+            causes[reset_cause(m.group(2))] += 1
+    return dict(causes)
+
+
+def accounting(diag: dict, images_sent: int) -> dict:
+    """Where every image sent went, from the node's last /diagnostics: received + lost in transport, and
+    processed + dropped of those received; `in_flight` = what is left (the images still queued or in the worker
+    at the stop, or lost after the last one received, which no stamp gap shows)."""
+    def num(key):
+        try:
+            return int(diag.get(key, 0))
+        except (TypeError, ValueError):
+            return 0
+    received, lost = num('frames_received'), num('lost.transport')
+    processed, dropped = num('frames_processed'), num('dropped_total')
+    return {'sent': images_sent, 'received': received, 'lost_transport': lost, 'lost_rmw': num('lost.rmw'),
+            'lost_stamp_gaps_only': num('lost.stamp_gaps_only'), 'processed': processed, 'dropped': dropped,
+            'unaccounted': images_sent - processed - dropped - lost,
+            'received_not_done': received - processed - dropped}
+
+
 def _percentile(values, q):
     return float(np.percentile(values, q)) if len(values) else float('nan')
 
@@ -131,6 +200,15 @@ def run_soak(args) -> dict:
     node, executor = client.node, client.executor
     collector = OutputCollector(node, keep_messages=False)
     player = BagPlayer(node, bag, rate=args.rate, rebase_stamps=True, loop=True)
+    loop_starts_ns: list[int] = []        # the rebased stamp of each loop's first image
+    last_image = [None]
+
+    def on_publish(topic, _msg, bag_stamp_ns, stamp_ns):
+        if topic == R.IMAGE_TOPIC:
+            if last_image[0] is None or bag_stamp_ns < last_image[0]:
+                loop_starts_ns.append(stamp_ns)
+            last_image[0] = bag_stamp_ns
+    player.on_publish = on_publish
     result: dict = {'bag': str(bag), 'images_in_bag': n_images, 'minutes': args.minutes, 'rate': args.rate,
                     'params': params, 'threads': args.threads}
     try:
@@ -178,6 +256,13 @@ def run_soak(args) -> dict:
         wall = stats.wall_s if stats else float('nan')
         images_offered = stats.per_topic.get(R.IMAGE_TOPIC, 0) if stats else 0
         lat = collector.latency_ms
+        # the node has finished what it holds when a diagnostics message shows nothing more received
+        settle = time.monotonic() + 60.0
+        while time.monotonic() < settle:
+            acc = accounting(collector.diagnostics, images_offered)
+            if acc['received_not_done'] <= 0:
+                break
+            executor.spin_once(timeout_sec=0.1)
         d = collector.diagnostics
         result.update({
             'wall_s': round(wall, 1),
@@ -195,9 +280,14 @@ def run_soak(args) -> dict:
             'node_frames_processed': d.get('frames_processed'),
             'node_outputs_published': d.get('outputs_published'),
             'dropped': {k: v for k, v in d.items() if k.startswith('dropped')},
+            'lost': {k: v for k, v in d.items() if k.startswith('lost.') or k == 'input_period_ms'},
+            'accounting': accounting(d, images_offered),
             'faults': {k: v for k, v in d.items() if k.startswith('faults.')},
             'measurement_model': d.get('measurement_model'),
             'filter_resets': d.get('filter_resets'),
+            'output_resets': d.get('output_resets'),
+            'loop_starts': len(loop_starts_ns),
+            'loop_starts_ns': loop_starts_ns,
             'rss_kib_start': rss_start,
             'rss_kib_end': rss_end,
             'rss_kib_max': max((r for _t, r in rss_samples), default=None),
@@ -205,6 +295,7 @@ def run_soak(args) -> dict:
             'rss_kib_median_first_min': _median_rss(rss_samples, 0.0, 60.0),
             'rss_kib_median_last_min': _median_rss(rss_samples, wall - 60.0, wall + 1.0),
             'rss_kib_median_by_window': rss_trend(rss_samples, wall),
+            'rss_halves_after_warmup': rss_halves(rss_samples, wall),
             'rss_samples': rss_samples,
             'player_worst_lateness_ms': round(stats.late_ms_max, 1) if stats else None,
             'loops': stats.loops if stats else None,
@@ -213,6 +304,10 @@ def run_soak(args) -> dict:
         code = stop_node_process(proc)
         result['node_exit_code'] = code
         client.close()
+    try:
+        result['resets_by_cause'] = classify_resets(log_path.read_text(errors='replace'), loop_starts_ns)
+    except OSError:
+        result['resets_by_cause'] = None
     return result
 
 
@@ -228,8 +323,15 @@ def _print_report(r: dict) -> None:
           f"max {r.get('latency_ms_max')} ms (node receipt -> publish median {r.get('node_latency_ms_median')} ms; "
           f"estimator {r.get('node_keyframe_ms_median')} ms per keyframe, {r.get('node_processing_ms_median')} ms "
           'per processed frame)')
+    acc = r.get('accounting') or {}
+    print(f"accounting    sent {acc.get('sent')} = received {acc.get('received')} + lost in transport "
+          f"{acc.get('lost_transport')} (rmw {acc.get('lost_rmw')}, stamp gaps only {acc.get('lost_stamp_gaps_only')});"
+          f" processed {acc.get('processed')} + dropped {acc.get('dropped')} + lost {acc.get('lost_transport')} = "
+          f"sent - {acc.get('unaccounted')} (in flight at the stop)")
     print(f"drops         {r.get('dropped')}")
-    print(f"faults        {r.get('faults') or 'none'}; filter resets {r.get('filter_resets')}")
+    print(f"lost          {r.get('lost')}")
+    print(f"faults        {r.get('faults') or 'none'}; filter resets {r.get('filter_resets')}, by cause "
+          f"{r.get('resets_by_cause')} ({r.get('loop_starts')} loop starts)")
     t_start, rss_start = r.get('rss_kib_start') or (None, None)   # (seconds, kB) at the 5th output
     print(f"memory VmRSS  start {rss_start} kB (at {t_start} s, after 5 outputs), end {r.get('rss_kib_end')} kB, max "
           f"{r.get('rss_kib_max')} kB; median first minute {r.get('rss_kib_median_first_min')} kB, last minute "
@@ -237,8 +339,13 @@ def _print_report(r: dict) -> None:
     trend = r.get('rss_kib_median_by_window') or []
     if len(trend) > 1:
         print('memory trend  median per window: ' + ', '.join(
-            f"{a / 60:.0f}-{b / 60:.0f} min {m / 1024:.0f} MB" if m is not None else f"{a / 60:.0f}-{b / 60:.0f} min -"
+            f'{a / 60:.0f}-{b / 60:.0f} min {m / 1024:.0f} MB' if m is not None else f'{a / 60:.0f}-{b / 60:.0f} min -'
             for a, b, m in trend))
+    halves = r.get('rss_halves_after_warmup') or {}
+    if halves.get('windows_s'):
+        a, m, b = (x / 60 for x in halves['windows_s'])
+        print(f"memory halves median {a:.0f}-{m:.0f} min {halves['earlier_kib']} kB, {m:.0f}-{b:.0f} min "
+              f"{halves['later_kib']} kB (later / earlier {halves['ratio']})")
     print(f"node exit     {r.get('node_exit_code')}")
 
 
@@ -261,9 +368,9 @@ def main(argv=None) -> int:
     parser.add_argument('--json', help='write the report as JSON here')
     args = parser.parse_args(argv)
     result = run_soak(args)
-    _print_report(result)
-    if args.json:
+    if args.json:      # first: the figures of a long run survive a problem in the printout
         pathlib.Path(args.json).write_text(json.dumps(result, indent=1))
+    _print_report(result)
     return 0 if result.get('node_exit_code') == 0 else 1
 
 
