@@ -36,6 +36,9 @@ DISTORTION = [-0.12, 0.03, 0.001, -0.002, 0.0]
 OUTPUT_TOPICS = {'depth': 'depth/image', 'depth_info': 'depth/camera_info', 'rgb': 'rgb/image',
                  'rgb_info': 'rgb/camera_info', 'conf': 'confidence/image', 'conf_info': 'confidence/camera_info'}
 WARN = 1
+_Y, _X = np.mgrid[0:H, 0:W]
+_G = (((_X // 8 + _Y // 8) % 2) * 100 + 60 + _X // 4).astype(np.uint8)
+TEXTURE = np.stack([_G, _G, 255 - _G], -1)      # checkerboard on a ramp: an image the node accepts (not degenerate)
 
 
 @pytest.fixture(scope='module')
@@ -255,7 +258,7 @@ def test_diagnostics_warn_when_the_share_of_faulty_images_is_too_high(observer):
             stamp[0] += 33_000_000
             header = M.make_header(stamp[0], 'cam_optical')
             if encoding == 'rgb8':
-                msg = M.rgb_to_image(np.full((H, W, 3), 90, np.uint8), header)
+                msg = M.rgb_to_image(TEXTURE, header)
             else:     # 16-bit colour: not an encoding the node reads
                 msg = Image(header=header, height=4, width=4, encoding='rgb16', step=24, data=bytes(96))
             pub_info.publish(M.K_to_camera_info(np.array([[100.0, 0, 80], [0, 100.0, 64], [0, 0, 1]]), W, H, header))
@@ -298,7 +301,7 @@ def test_diagnostics_warn_when_the_share_of_faulty_images_is_too_high(observer):
     print(f'burst of 10: {busy} replaced while busy')
     assert burst[2]['drop_share_window'] == '0.0' and 'rejected as faulty' not in burst[1], \
         (burst[:2], {k: v for k, v in burst[2].items() if k.startswith(('dropped', 'faults'))})
-    assert int(burst[2]['dropped_total']) == busy, burst[2]      # only busy drops: the uniform images are fine
+    assert int(burst[2]['dropped_total']) == busy, burst[2]      # only busy drops: the textured images are fine
     assert below[2]['dropped.unsupported_encoding'] == '2' and below[2]['drop_share_window'] == '0.1', below
     assert 'rejected as faulty' not in below[1] and below[0] <= WARN, below[:2]
     assert above[0] == WARN and above[2]['dropped.unsupported_encoding'] == '10', above[:2]
