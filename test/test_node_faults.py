@@ -5,7 +5,8 @@ Faults in the bag (160x128 rendered frames at 30 Hz, replayed at 0.25x): no came
 camera_info with K all zeros, a 16UC1 image on the colour topic, an image whose data is shorter than step*height, a
 1x1 image (the estimator raises on it: an exception inside push), a stretch of 80x64 images (size change and back),
 a NaN odometry message at an image stamp, an odometry gap wider than max_odom_gap, every stamp jumping back by
-5 s (a bag restarting), and an odometry teleport (every pose 0.5 m off from one message on: a relocalisation). The node also starts with a corrupt weights file and must fall back to the classical model.
+5 s (a bag restarting), and an odometry teleport (every pose 0.5 m off from one message on: a relocalisation).
+The node also starts with a corrupt weights file and must fall back to the classical model.
 """
 import math
 import re
@@ -197,7 +198,8 @@ def test_fault_bag_replays_without_crash_and_every_fault_is_reported(fault_bag, 
 def test_mailbox_drops_keep_the_longest_stream_gap():
     """Newest-wins drops must not hide a stalled camera: the image that replaces a dropped one inherits its gap,
     so the frame the worker pushes carries the longest interval between received images (Frame.sensor_gap_s)."""
-    from dpv_sensor.node_support import Incoming as _Incoming, Mailbox, max_gap as _max_gap, merge_incoming as _merge_incoming
+    from dpv_sensor.node_support import Incoming as _Incoming, Mailbox
+    from dpv_sensor.node_support import max_gap as _max_gap, merge_incoming as _merge_incoming
     box = Mailbox(merge=_merge_incoming)
     assert not box.put(_Incoming('a', 0.0, 0, gap_ns=None))      # first image: gap unknown
     assert box.take(0.0).msg == 'a'

@@ -350,7 +350,7 @@ def table_rows(runs: List[Dict[str, Any]], sequences: List[str], noise_seeds: Li
                  if run_key(s, f'noisy{k}', params) in by_key]
         if noisy:
             row = {'sequence': s, 'poses': f'noisy ×{len(noisy)}', 'runs': len(noisy)}
-            for h, k, _f_ in COLUMNS:
+            for h, k, _ in COLUMNS:
                 vals = [v for v in (_value(r, k) for r in noisy) if v is not None]
                 row[h] = float(np.mean(vals)) if vals else None
             if row['resets'] is not None:      # resets: the total over the seeds
@@ -386,14 +386,14 @@ def markdown(rows: List[Dict[str, Any]]) -> str:
 
 LEGEND = ('Frame means over the keyframe outputs recorded from the node (lockstep replay: the node drops no image '
           'once it has its first camera_info; the drops are listed per run below). '
-          'poses: gt = the sequence\'s poses as odometry; noisy ×n = mean over n odometry noise seeds (2 % of each '
+          "poses: gt = the sequence's poses as odometry; noisy ×n = mean over n odometry noise seeds (2 % of each "
           'step, 0.1°/frame rotation random walk; abs_rel range over the seeds in brackets). ms = median-scaled. '
-          'conf½ = abs_rel of the most confident half of each frame\'s pixels / abs_rel of all. resets = outputs '
+          "conf½ = abs_rel of the most confident half of each frame's pixels / abs_rel of all. resets = outputs "
           'whose filter restarted (first output not counted; summed over the seeds). kf ms = median estimator time '
-          'per keyframe image in the node. const = the sequence\'s median GT depth as a constant, on the same '
+          "per keyframe image in the node. const = the sequence's median GT depth as a constant, on the same "
           'keyframes and pixels. odo t× / r× = Open3D RGB-D odometry (hybrid) between consecutive outputs: median '
-          'translation / rotation RPE on predicted depth ÷ on GT depth; col t× / r×: the same with the photometric-only '
-          '(color) Jacobian, steadier where the hybrid one drifts even on GT depth.')
+          'translation / rotation RPE on predicted depth ÷ on GT depth; col t× / r×: the same with the '
+          'photometric-only (color) Jacobian, steadier where the hybrid one drifts even on GT depth.')
 
 
 def run_details(runs: List[Dict[str, Any]]) -> str:
@@ -402,7 +402,7 @@ def run_details(runs: List[Dict[str, Any]]) -> str:
              '|---|---:|---:|---:|---|---|']
     for r in runs:
         t = r.get('timing') or {}
-        mins = ' + '.join(f"{(t.get(k) or 0) / 60:.1f}" for k in ('bag_s', 'node_s', 'score_s'))
+        mins = ' + '.join(f'{(t.get(k) or 0) / 60:.1f}' for k in ('bag_s', 'node_s', 'score_s'))
         reasons = '; '.join(r.get('output_reset_reasons') or []) or '-'
         lines.append(f"| {r['sequence']} {r['pose_source']} | {r.get('frames')} | {r.get('keyframes_scored')} | "
                      f"{_get(r, 'node', 'dropped_total')} | {(t.get('total_s') or 0) / 60:.1f} ({mins}) | {reasons} |")
