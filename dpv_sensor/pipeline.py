@@ -12,7 +12,10 @@ The pose source (:class:`PoseSource`), built from the :class:`~dpv_sensor.estima
   depth; when it loses tracking the frame is dropped (``PushResult.drop``) and the pipeline restarts;
 * ``pose_refinement='window'``: :class:`~dpv_sensor.poses.WindowPoseRefiner`, with the sigmas of the config
   (``odom_sigma_rot_deg``, ``odom_sigma_trans_m``, ``odom_sigma_trans_rel``), refines the keyframe poses of each
-  window inside the estimator (its tracking loss restarts the filter there).
+  window inside the estimator. A refinement that fails (an alignment that does not converge, too few usable
+  alignments, a refined pose implausibly far from the odometry) keeps the odometry poses for that keyframe when
+  the odometry comes from a topic (counted as a fallback, the filter goes on); with visual odometry it is a
+  tracking loss and restarts the filter.
 
 The stream-continuity rules are in ``dpv_sensor.continuity`` (applied by the estimator on every pushed frame).
 """
@@ -83,11 +86,16 @@ class PoseSource:
 
     @property
     def tracking(self) -> Optional[str]:
-        """'ok', 'lost: <reason>' of the refiner, or None without one."""
+        """'ok', 'odometry fallback: <reason>' (odometry from a topic) or 'lost: <reason>' of the refiner's last
+        window, or None without a refiner."""
         if self.refiner is None:
             return None
         last = getattr(self.refiner, 'last_result', None)
-        return 'ok' if last is None or last.tracking_ok else f'lost: {last.reason}'
+        if last is None or last.tracking_ok:
+            return 'ok'
+        if self.config.odometry == 'topic':
+            return f'odometry fallback: {last.reason}'
+        return f'lost: {last.reason}'
 
 
 class Pipeline:
