@@ -334,7 +334,7 @@ def pose_rpe(records: SequenceT[KeyframeRecord]) -> Optional[Dict[str, float]]:
     None without GT poses. Unlike the absolute pose error it does not grow with the odometry's drift."""
     et, er = [], []
     for a, b in zip(records[:-1], records[1:]):
-        if None in (a.T_world_cam_44, b.T_world_cam_44, a.gt_T_world_cam_44, b.gt_T_world_cam_44):
+        if any(T is None for T in (a.T_world_cam_44, b.T_world_cam_44, a.gt_T_world_cam_44, b.gt_T_world_cam_44)):
             continue
         est = np.linalg.inv(a.T_world_cam_44) @ b.T_world_cam_44
         gt = np.linalg.inv(a.gt_T_world_cam_44) @ b.gt_T_world_cam_44
