@@ -752,6 +752,11 @@ class Estimator:
                 for kf, T in zip(kfs, refined):
                     kf.T_world_cam_44 = T.copy()
         timings['pose_refinement'] = self._ms(t)
+        skipped = getattr(getattr(self.pose_refiner, 'last_result', None), 'skipped', None)
+        if skipped:
+            # the refiner kept the odometry for this window (e.g. the camera turns in place): a fallback
+            self._refine_fallbacks += 1
+            self._last_refine_fallback_reason = str(skipped)
         if getattr(self.pose_refiner, 'tracking_lost', False):
             result = getattr(self.pose_refiner, 'last_result', None)
             return str(getattr(result, 'reason', None) or 'the refiner reports tracking loss')
