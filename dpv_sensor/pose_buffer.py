@@ -18,7 +18,8 @@ A message that moves further from the previous one than a camera can move in bet
 a relocalisation, a loop-closure correction in a map frame, a driver restart at another pose) cannot be
 interpolated across: with `max_speed` / `max_rate_deg` set, a step of more than `max_speed * dt` metres or
 `max_rate_deg * dt` degrees (and at least `JUMP_FLOOR_M` / `JUMP_FLOOR_DEG`, so jitter of fast odometry is not
-flagged; the rule is ``continuity.teleport``, the same the estimator applies to offline pose steps) clears the older samples, counts it in `jumps` and is reported from `add`. Images before it then get
+flagged; the rule is ``continuity.teleport``, the same the estimator applies to offline pose steps)
+clears the older samples, counts it in `jumps` and is reported from `add`. Images before it then get
 'too old'; the caller should restart whatever it accumulated in the old pose frame.
 
 Quaternions in this module are ROS order (x, y, z, w).
