@@ -747,6 +747,25 @@ def test_new_keyframes_start_from_the_refined_trajectory_and_tracking_loss_resta
     assert all(o.reset_reason is None for o in outs[2:])
 
 
+def test_refiner_that_keeps_the_odometry_is_counted_as_a_fallback():
+    """A refiner that skipped a window (the camera turns in place) keeps tracking; the estimator counts it."""
+    class Refiner:
+        tracking_lost = False
+
+        def __init__(self):
+            self.last_result = None
+
+        def __call__(self, req):
+            self.last_result = type('R', (), {'skipped': 'turning in place: test', 'reason': None})()
+            return [kf.odom_T_world_cam_44 for kf in req.keyframes]
+
+    est = Estimator(small_config(), pose_refiner=Refiner())
+    outs = push_all(est, sideways(4))
+    assert est.status['resets'] == 0 and all(o is not None for o in outs[1:])
+    assert est.status['pose_refinement_fallbacks'] == 3           # one per window (keyframes 1, 2, 3)
+    assert est.status['last_pose_refinement_fallback_reason'] == 'turning in place: test'
+
+
 def test_pose_refinement_requested_without_refiner_is_noted():
     est = Estimator(small_config(pose_refinement='window'))
     assert any('no pose refiner' in n for n in est.status['notes'])
