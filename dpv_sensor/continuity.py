@@ -5,14 +5,22 @@ Rules between two consecutive frames of one camera stream:
 * time order (:func:`time_order`): a stamp equal to the previous one is a *duplicate* (the frame is dropped);
   a smaller one means time went *backwards* (a bag restarting, a simulator reset: everything restarts);
 * size (:func:`size_change`): another image size restarts the stream;
-* intrinsics, time gap and camera jump (:func:`stream_break`, which applies all rules for a posed frame):
+* intrinsics, time gap and teleport (:func:`stream_break`, which applies all rules for a posed frame):
   the time gap is the camera stream's own (``sensor_gap_s`` when the caller gives it, else the time since the
-  previous frame), and a jump is judged against the elapsed time (``jump_limit``): more than ``reset_translation``
-  m / ``reset_rotation_deg`` degrees per second, never less than those values. A threshold of 0 disables a rule.
+  previous frame; frames a busy caller left out do not make a gap), and a *teleport* (:func:`teleport`) is a pose
+  step no camera can make in the elapsed time: faster than ``odom_max_speed`` m/s and over
+  :data:`TELEPORT_FLOOR_M`, or turning faster than ``odom_max_rate_deg`` deg/s and over
+  :data:`TELEPORT_FLOOR_DEG`. A threshold of 0 disables a rule.
 
-The estimator applies :func:`stream_break` to every pushed frame (its resets); the node applies :func:`time_order`
-and :func:`size_change` to each received image before it looks up the image's pose (a stream that went backwards
-also restarts the odometry buffer). Odometry teleports are the pose buffer's rule (``pose_buffer``).
+Fast but smooth motion is no discontinuity: a 90 deg/s pan or a 1.5 m/s walk, with frames pushed a second apart,
+never resets (the filter's predict step warps the belief across any motion); a 0.5 m step between two frames
+1/30 s apart (15 m/s) does.
+
+One teleport rule for both places that see poses: the pose buffer (``pose_buffer``) applies :func:`teleport` to
+consecutive odometry messages, the estimator to consecutive pushed frames (offline, where poses come without a
+buffer). The estimator applies :func:`stream_break` to every pushed frame (its resets); the node applies
+:func:`time_order` and :func:`size_change` to each received image before it looks up the image's pose (a stream
+that went backwards also restarts the odometry buffer).
 """
 from __future__ import annotations
 
@@ -20,10 +28,14 @@ from typing import Optional, Tuple
 
 import numpy as np
 
-from .filter import jump_limit
 from .geometry import pose_delta_np
 
-__all__ = ['jump_limit', 'time_order', 'size_change', 'stream_break', 'BACKWARDS', 'DUPLICATE']
+__all__ = ['teleport', 'time_order', 'size_change', 'stream_break', 'BACKWARDS', 'DUPLICATE', 'TELEPORT_FLOOR_M',
+           'TELEPORT_FLOOR_DEG']
+
+# A pose step is only a teleport when it is also larger than these (jitter of fast odometry is not one).
+TELEPORT_FLOOR_M = 0.1
+TELEPORT_FLOOR_DEG = 10.0
 
 BACKWARDS = 'backwards'
 DUPLICATE = 'duplicate'
@@ -51,8 +63,23 @@ def size_change(previous: Optional[Tuple[int, int]], size: Tuple[int, int]) -> O
     return f'image size changed from {previous[0]}x{previous[1]} to {size[0]}x{size[1]}'
 
 
+def teleport(elapsed_s: float, distance_m: float, angle_deg: float, max_speed: float,
+             max_rate_deg: float) -> Optional[str]:
+    """Why a pose step of ``distance_m`` metres and ``angle_deg`` degrees in ``elapsed_s`` seconds is a teleport
+    (faster than ``max_speed`` m/s and over :data:`TELEPORT_FLOOR_M`, or faster than ``max_rate_deg`` deg/s and
+    over :data:`TELEPORT_FLOOR_DEG`), or None. A limit of 0 disables that half of the rule."""
+    dt = max(float(elapsed_s), 0.0)
+    if max_speed > 0 and distance_m > max(max_speed * dt, TELEPORT_FLOOR_M):
+        return (f'{distance_m:.3f} m in {dt:.3f} s ({distance_m / max(dt, 1e-9):.1f} m/s > '
+                f'odom_max_speed {max_speed:g} m/s)')
+    if max_rate_deg > 0 and angle_deg > max(max_rate_deg * dt, TELEPORT_FLOOR_DEG):
+        return (f'{angle_deg:.1f} deg in {dt:.3f} s ({angle_deg / max(dt, 1e-9):.0f} deg/s > '
+                f'odom_max_rate_deg {max_rate_deg:g} deg/s)')
+    return None
+
+
 def stream_break(last, stamp: float, T: np.ndarray, size, K_in, sensor_gap_s: Optional[float], *,
-                 reset_time_gap: float, reset_translation: float, reset_rotation_deg: float) -> Optional[str]:
+                 reset_time_gap: float, max_speed: float, max_rate_deg: float) -> Optional[str]:
     """Why the stream must restart at this frame, or None. ``last``: (stamp, T_world_cam, size, K) of the previous
     accepted frame, or None. Duplicates are the caller's (:func:`time_order`) and never reach here."""
     if last is None:
@@ -73,12 +100,6 @@ def stream_break(last, stamp: float, T: np.ndarray, size, K_in, sensor_gap_s: Op
     if reset_time_gap > 0 and gap > reset_time_gap:
         return f'time gap {gap:.3f} s {where} > reset_time_gap {reset_time_gap:g} s'
     dt, dr = pose_delta_np(last_T, T)
-    lim_t = jump_limit(reset_translation, elapsed)
-    lim_r = jump_limit(reset_rotation_deg, elapsed)
-    if reset_translation > 0 and dt > lim_t:
-        return (f'camera jumped {dt:.3f} m in {elapsed:.3f} s > {lim_t:.3f} m '
-                f'(reset_translation {reset_translation:g} m per second, at least that)')
-    if reset_rotation_deg > 0 and dr > lim_r:
-        return (f'camera turned {dr:.1f} deg in {elapsed:.3f} s > {lim_r:.1f} deg '
-                f'(reset_rotation_deg {reset_rotation_deg:g} deg per second, at least that)')
-    return None
+    jump = teleport(elapsed, dt, dr, max_speed, max_rate_deg)
+    return None if jump is None else f'pose teleported: {jump}'
+

@@ -10,22 +10,25 @@ What happens to a pushed frame
    ``status['last_drop_reason']``). The estimator *resets* (window, keyframe selector and filter; the
    reason goes to ``status['last_reset_reason']`` and to the ``reset_reason`` of the next output) when
    time goes backwards, when the image size or the intrinsics change, when the *camera stream* had a
-   gap longer than ``reset_time_gap`` seconds, or when the camera *jumps* (a threshold of 0 disables
+   gap longer than ``reset_time_gap`` seconds, or when the pose *teleports* (a threshold of 0 disables
    that rule). These rules catch real discontinuities of the sensor or the odometry, not gaps the
-   caller creates by leaving frames out (the node drops images while the estimator is busy):
+   caller creates by leaving frames out (the node drops images while the estimator is busy), and never
+   fast but smooth motion (which the filter's predict step follows):
 
    * time gap: ``Frame.sensor_gap_s`` when the caller gives it (the longest interval between images it
      received since the previous pushed frame, dropped or not), else the time since the previous pushed
      frame (offline use, where every frame is pushed);
-   * jump: the camera motion since the previous pushed frame, judged against the time elapsed
-     (``filter.jump_limit``): more than ``reset_translation`` m / ``reset_rotation_deg`` degrees per
-     second, and never less than those values (frames less than 1 s apart are held to them exactly).
-     A continuous motion of normal speed never resets however far apart the pushed frames are.
+   * teleport: the pose step since the previous pushed frame, judged against the time elapsed by the
+     one teleport rule (``continuity.teleport``: faster than ``odom_max_speed`` m/s and over 0.1 m, or
+     than ``odom_max_rate_deg`` deg/s and over 10 deg), the rule the node's pose buffer applies to
+     consecutive odometry messages. A 0.5 m step between frames 1/30 s apart resets; a 1.5 m/s walk or
+     a 90 deg/s pan with frames seconds apart does not.
 
-   The filter applies the same jump rule between *keyframes* (``DPVFilter(max_translation=...,
-   max_rotation_deg=...)``); its own time-gap rule is off (``max_time_gap=inf``): keyframes far apart
-   in time are no discontinuity, and a real stream gap already reset everything here. When the filter
-   restarts itself, its ``reset_reason`` is passed on in ``DepthOutput.reset_reason``.
+   The filter's own rules are off (``max_time_gap``, ``max_translation``, ``max_rotation_deg`` infinite):
+   it steps at keyframes only, keyframes far apart in time or space are no discontinuity, and every
+   discontinuity already reset everything here. A pose refiner's tracking loss restarts the filter too
+   (visual odometry); with odometry from a topic a failed refinement falls back to the odometry poses
+   for that keyframe instead (counted in ``status['pose_refinement_fallbacks']``).
 2. **Keyframe selection** (:class:`dpv_sensor.keyframes.KeyframeSelector`): baseline
    ``keyframe_translation``, rotation ``keyframe_rotation_deg`` since the last keyframe, at the latest
    every ``keyframe_max_interval`` frames (paper: every 5th frame).
@@ -293,6 +296,8 @@ class Estimator:
         self._keyframes = 0
         self._outputs = 0
         self._resets = 0
+        self._refine_fallbacks = 0
+        self._last_refine_fallback_reason: Optional[str] = None
         self._last_reset_reason: Optional[str] = None
         self._last_drop_reason: Optional[str] = None
         self._pending_reset_reason: Optional[str] = None
@@ -395,15 +400,11 @@ class Estimator:
                 self._note('filter_mode=knet needs the network (K-Net); using global damping with the '
                            'classical measurement model')
         self.filter_mode = mode
-        # a threshold of 0 disables the rule (the filter wants positive values: infinity never triggers).
-        # The filter steps at keyframes only: time between keyframes says nothing about the stream's
-        # continuity (the stream's own gap is checked in push, which resets the filter too), so its
-        # time-gap rule is off; its jump rule is the same speed limit as the stream's (filter.jump_limit).
-        def off(x):
-            return float(x) if x > 0 else math.inf
+        # The filter steps at keyframes only: time and motion between keyframes say nothing about the stream's
+        # continuity (every pushed frame is checked in push, by the stream rules and the teleport rule, and a
+        # discontinuity resets the filter there), so the filter's own time-gap and jump rules are off.
         self.filter = DPVFilter(mode=mode, damping=cfg.damping, knet=knet, max_time_gap=math.inf,
-                                max_translation=off(cfg.reset_translation),
-                                max_rotation_deg=off(cfg.reset_rotation_deg))
+                                max_translation=math.inf, max_rotation_deg=math.inf)
 
     def _cpu_bfloat16(self) -> bool:
         p = self.config.cpu_precision
@@ -466,6 +467,8 @@ class Estimator:
             'keyframes_in_window': len(self.window),
             'outputs': self._outputs,
             'resets': self._resets,
+            'pose_refinement_fallbacks': self._refine_fallbacks,
+            'last_pose_refinement_fallback_reason': self._last_refine_fallback_reason,
             'last_reset_reason': self._last_reset_reason,
             'last_drop_reason': self._last_drop_reason,
             'frames_degenerate': self._frames_degenerate,
@@ -582,7 +585,7 @@ class Estimator:
         """Why the stream must restart at this frame (``continuity.stream_break``), or None."""
         cfg = self.config
         return stream_break(self._last_frame, stamp, T, size, K_in, sensor_gap_s, reset_time_gap=cfg.reset_time_gap,
-                            reset_translation=cfg.reset_translation, reset_rotation_deg=cfg.reset_rotation_deg)
+                            max_speed=cfg.odom_max_speed, max_rate_deg=cfg.odom_max_rate_deg)
 
     # ------------------------------------------------------------------ keyframes
     def _prepare(self, image: np.ndarray, K_in: np.ndarray) -> Tuple[torch.Tensor, np.ndarray]:
@@ -616,8 +619,14 @@ class Estimator:
             return None
         ref, sources = sel
         lost = self._refine_poses(ref, sources, timings)
+        if lost is not None and self.config.odometry == 'topic':
+            # with odometry from a topic a failed refinement is no tracking loss: the refiner returned the odometry
+            # motion chained onto its last good poses for this window; keep the belief and go on
+            self._refine_fallbacks += 1
+            self._last_refine_fallback_reason = lost
+            lost = None
         if lost is not None:
-            # the refiner lost tracking: restart the filter, publish nothing for this keyframe
+            # the refiner (visual odometry) lost tracking: restart the filter, publish nothing for this keyframe
             self.filter.reset()
             self._posterior = None
             self._anchor_T_world = None
@@ -756,6 +765,11 @@ class Estimator:
                 for kf, T in zip(kfs, refined):
                     kf.T_world_cam_44 = T.copy()
         timings['pose_refinement'] = self._ms(t)
+        skipped = getattr(getattr(self.pose_refiner, 'last_result', None), 'skipped', None)
+        if skipped:
+            # the refiner kept the odometry for this window (e.g. the camera turns in place): a fallback
+            self._refine_fallbacks += 1
+            self._last_refine_fallback_reason = str(skipped)
         if getattr(self.pose_refiner, 'tracking_lost', False):
             result = getattr(self.pose_refiner, 'last_result', None)
             return str(getattr(result, 'reason', None) or 'the refiner reports tracking loss')

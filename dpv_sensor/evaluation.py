@@ -328,6 +328,25 @@ def score_records(records: SequenceT[KeyframeRecord], *, min_depth: Optional[flo
     return acc
 
 
+def pose_rpe(records: SequenceT[KeyframeRecord]) -> Optional[Dict[str, float]]:
+    """Relative pose error of the poses the estimator used (odometry, or refined), between consecutive records
+    (keyframe outputs) against the GT poses: median and mean translation (m) and rotation (deg) over the pairs, or
+    None without GT poses. Unlike the absolute pose error it does not grow with the odometry's drift."""
+    et, er = [], []
+    for a, b in zip(records[:-1], records[1:]):
+        if any(T is None for T in (a.T_world_cam_44, b.T_world_cam_44, a.gt_T_world_cam_44, b.gt_T_world_cam_44)):
+            continue
+        est = np.linalg.inv(a.T_world_cam_44) @ b.T_world_cam_44
+        gt = np.linalg.inv(a.gt_T_world_cam_44) @ b.gt_T_world_cam_44
+        t, r = relative_pose_error(est, gt)
+        et.append(t)
+        er.append(r)
+    if not et:
+        return None
+    return {'pairs': len(et), 'median_m': float(np.median(et)), 'mean_m': float(np.mean(et)),
+            'median_deg': float(np.median(er)), 'mean_deg': float(np.mean(er))}
+
+
 def relative_pose_error(T_est_44: np.ndarray, T_gt_44: np.ndarray) -> Tuple[float, float]:
     """(translation m, rotation deg) of ``inv(T_gt) @ T_est``: how far an estimated relative motion is from
     the true one."""
@@ -462,6 +481,9 @@ def summarize(acc: M.MetricAccumulator, records: SequenceT[KeyframeRecord], *,
     pr = np.array([row.get('pose_err_deg', np.nan) for row in acc.rows], np.float64)
     if np.isfinite(pe).any():
         s['pose_error'] = {'mean_m': float(np.nanmean(pe)), 'mean_deg': float(np.nanmean(pr))}
+    rpe = pose_rpe(records)
+    if rpe is not None:
+        s['pose_rpe'] = rpe
     if source is not None:
         s['source'] = source
     if configuration is not None:

@@ -306,10 +306,16 @@ def frames_from_records(records, poses: str = 'gt', use_images: bool = True):
 
 
 def write_mesh(path, mesh) -> pathlib.Path:
-    """Write a mesh (.ply, binary) and return its path."""
+    """Write a mesh (.ply, binary) and return its path. An empty mesh (e.g. no pixel passed the confidence mask)
+    is written as a PLY with no vertices (Open3D refuses to write one)."""
     o3d = open3d()
     path = pathlib.Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
+    if len(mesh.vertices) == 0:
+        path.write_text('ply\nformat ascii 1.0\ncomment empty mesh\nelement vertex 0\nproperty float x\n'
+                        'property float y\nproperty float z\nelement face 0\nproperty list uchar int vertex_indices\n'
+                        'end_header\n')
+        return path
     if not o3d.io.write_triangle_mesh(str(path), mesh, write_ascii=False):
         raise OSError(f'cannot write {path}')
     return path

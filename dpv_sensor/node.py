@@ -925,6 +925,8 @@ class DepthCameraNode(Node):
             values['estimator_notes'] = ' | '.join(notes)
         if 'pose_refinement_tracking' in st:
             values['pose_refinement_tracking'] = st['pose_refinement_tracking']
+            values['pose_refinement_fallbacks'] = st.get('pose_refinement_fallbacks', 0)
+            values['pose_refinement_last_fallback'] = st.get('last_pose_refinement_fallback_reason') or ''
         values['pose_buffer_size'] = len(self.pose_buffer)
         values['tf'] = self.tf.status() if self.tf is not None else 'off'
         rect = self._rectifier

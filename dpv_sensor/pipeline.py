@@ -12,7 +12,10 @@ The pose source (:class:`PoseSource`), built from the :class:`~dpv_sensor.estima
   depth; when it loses tracking the frame is dropped (``PushResult.drop``) and the pipeline restarts;
 * ``pose_refinement='window'``: :class:`~dpv_sensor.poses.WindowPoseRefiner`, with the sigmas of the config
   (``odom_sigma_rot_deg``, ``odom_sigma_trans_m``, ``odom_sigma_trans_rel``), refines the keyframe poses of each
-  window inside the estimator (its tracking loss restarts the filter there).
+  window inside the estimator. A refinement that fails (an alignment that does not converge, too few usable
+  alignments, a refined pose implausibly far from the odometry) keeps the odometry poses for that keyframe when
+  the odometry comes from a topic (counted as a fallback, the filter goes on); with visual odometry it is a
+  tracking loss and restarts the filter.
 
 The stream-continuity rules are in ``dpv_sensor.continuity`` (applied by the estimator on every pushed frame).
 """
@@ -84,11 +87,16 @@ class PoseSource:
 
     @property
     def tracking(self) -> Optional[str]:
-        """'ok', 'lost: <reason>' of the refiner, or None without one."""
+        """'ok', 'odometry fallback: <reason>' (odometry from a topic) or 'lost: <reason>' of the refiner's last
+        window, or None without a refiner."""
         if self.refiner is None:
             return None
         last = getattr(self.refiner, 'last_result', None)
-        return 'ok' if last is None or last.tracking_ok else f'lost: {last.reason}'
+        if last is None or last.tracking_ok:
+            return 'ok'
+        if self.config.odometry == 'topic':
+            return f'odometry fallback: {last.reason}'
+        return f'lost: {last.reason}'
 
 
 class Pipeline:
@@ -153,8 +161,8 @@ def evaluate_offline(sequence, config: EstimatorConfig, *, model=None, pose_refi
     ``sequence``: anything with ``len``, ``K``, ``image(i)``, ``depth(i)`` (metres, 0 = invalid),
     ``pose(i)`` and ``stamp(i)`` (``data.sequence.Sequence``, the synthetic renderer's sequences).
     Frames are pushed in order with their GT poses, or with ``input_poses[i]`` (T_world_cam per frame, e.g.
-    :func:`dpv_sensor.data.trajectory.corrupt_trajectory` of the GT: odometry-like poses). Each output is matched to its frame by stamp and
-    scored with ``metrics.MetricAccumulator`` (GT resized with nearest neighbour when the output is at
+    :func:`dpv_sensor.data.trajectory.corrupt_trajectory` of the GT: odometry-like poses). Each output is
+    matched to its frame by stamp and scored with ``metrics.MetricAccumulator`` (GT resized with nearest neighbour when the output is at
     the processing size); the GT range defaults to the estimator's depth planes [d_min, d_max].
 
     Returns ``{'rows': [per output: index, stamp, is_keyframe, abs_rel, rmse, delta1, ..., coverage,

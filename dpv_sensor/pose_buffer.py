@@ -18,7 +18,8 @@ A message that moves further from the previous one than a camera can move in bet
 a relocalisation, a loop-closure correction in a map frame, a driver restart at another pose) cannot be
 interpolated across: with `max_speed` / `max_rate_deg` set, a step of more than `max_speed * dt` metres or
 `max_rate_deg * dt` degrees (and at least `JUMP_FLOOR_M` / `JUMP_FLOOR_DEG`, so jitter of fast odometry is not
-flagged) clears the older samples, counts it in `jumps` and is reported from `add`. Images before it then get
+flagged; the rule is ``continuity.teleport``, the same the estimator applies to offline pose steps)
+clears the older samples, counts it in `jumps` and is reported from `add`. Images before it then get
 'too old'; the caller should restart whatever it accumulated in the old pose frame.
 
 Two messages with the same stamp are one sample: an identical repeat (within `SAME_POSE_M` / `SAME_POSE_DEG`; a
@@ -39,13 +40,14 @@ from dataclasses import dataclass
 import numpy as np
 
 # the pose maths has one home, geometry.py; these names are this module's vocabulary (bag I/O, the node)
+from .continuity import TELEPORT_FLOOR_DEG, TELEPORT_FLOOR_M, teleport
 from .geometry import interpolate_pose, make_pose, matrix_to_quat, quat_to_matrix, slerp  # noqa: F401
 
 NS = 1_000_000_000
 
 # A step between consecutive odometry samples is only a teleport when it is also larger than these.
-JUMP_FLOOR_M = 0.1
-JUMP_FLOOR_DEG = 10.0
+JUMP_FLOOR_M = TELEPORT_FLOOR_M
+JUMP_FLOOR_DEG = TELEPORT_FLOOR_DEG
 
 # Two samples at one stamp are the same pose when they differ by at most this much (float round trips, re-bridged
 # messages); more is a conflict.
@@ -212,14 +214,10 @@ class PoseBuffer:
         """Why the step from the newest sample to (t, q) at stamp_ns is a teleport, or None."""
         dt = (stamp_ns - self._stamps[-1]) / NS
         dist = float(np.linalg.norm(t - self._t[-1]))
-        if self.max_speed > 0 and dist > max(self.max_speed * dt, JUMP_FLOOR_M):
-            return (f'{dist:.3f} m in {dt:.3f} s at {stamp_ns / NS:.3f} s ({dist / max(dt, 1e-9):.1f} m/s > '
-                    f'{self.max_speed:g} m/s)')
         angle = math.degrees(2.0 * math.acos(min(1.0, abs(float(np.dot(q, self._q[-1]))))))
-        if self.max_rate_deg > 0 and angle > max(self.max_rate_deg * dt, JUMP_FLOOR_DEG):
-            return (f'{angle:.1f} deg in {dt:.3f} s at {stamp_ns / NS:.3f} s ({angle / max(dt, 1e-9):.0f} deg/s > '
-                    f'{self.max_rate_deg:g} deg/s)')
-        return None
+        why = teleport(dt, dist, angle, self.max_speed, self.max_rate_deg)
+        return None if why is None else f'{why} at {stamp_ns / NS:.3f} s'
+
 
     def _trim(self):
         newest = self._stamps[-1]

@@ -230,7 +230,7 @@ def test_cli_bag_and_bad_config(tmp_path, capsys):
 # ---------------------------------------------------------------------------------------------
 
 TINY = {'measurement': 'classical', 'processing_width': 40, 'processing_height': 32, 'num_planes': 8,
-        'keyframe_max_interval': 1, 'd_min': 1.0, 'd_max': 8.0, 'filter_mode': 'global'}
+        'keyframe_max_interval': 1, 'd_min': 1.0, 'd_max': 8.0, 'filter_mode': 'global', 'window_mode': 'causal'}
 
 
 def test_run_sequence_records_match_keyframes(tmp_path):

@@ -237,3 +237,22 @@ def test_a_repeated_stamp_after_time_went_backwards_is_a_new_stream():
     buf.add(S, translation(1.0, 0.0, 0.0))
     assert 'went backwards' in buf.add(0, translation(5.0, 0.0, 0.0))
     assert buf.conflicts == 0 and buf.epoch == 1 and len(buf) == 1
+
+
+def test_one_teleport_rule_for_odometry_and_offline_steps():
+    """continuity.teleport, the rule the pose buffer applies between odometry messages and the estimator between
+    pushed frames: a step no camera can make in the time, never fast but smooth motion."""
+    from dpv_sensor.continuity import teleport
+    assert 'odom_max_speed 10 m/s' in teleport(1 / 30, 0.5, 0.0, 10.0, 720.0)     # 15 m/s
+    assert teleport(1 / 30, 0.3, 0.0, 10.0, 720.0) is None                         # 9 m/s
+    assert teleport(1.5, 2.25, 0.0, 10.0, 720.0) is None                           # a 1.5 m/s walk, 1.5 s apart
+    assert teleport(1.5, 0.0, 135.0, 10.0, 720.0) is None                          # a 90 deg/s pan, 1.5 s apart
+    assert teleport(0.1, 0.0, 9.0, 10.0, 720.0) is None                            # 90 deg/s, 0.1 s apart
+    assert 'odom_max_rate_deg 720' in teleport(1 / 30, 0.0, 30.0, 10.0, 720.0)   # 900 deg/s
+    assert teleport(0.001, 0.09, 9.0, 10.0, 720.0) is None                         # under both floors
+    assert teleport(1 / 30, 5.0, 90.0, 0.0, 0.0) is None                           # 0 disables
+    buf = PoseBuffer(max_gap_s=1.0, max_speed=10.0, max_rate_deg=720.0)
+    buf.add(0, translation(0, 0, 0))
+    assert buf.add(S // 30, translation(0.3, 0, 0)) is None
+    assert buf.add(2 * S // 30, translation(0.8, 0, 0)) == (
+        'odometry jumped 0.500 m in 0.033 s (15.0 m/s > odom_max_speed 10 m/s) at 0.067 s; pose buffer cleared')

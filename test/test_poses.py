@@ -492,3 +492,35 @@ def test_gt_consistency_check_finds_a_wrong_ground_truth_pose(sequence):
     wrong = [T @ se3(rot_y(math.radians(0.6 * (-1) ** i)))[0].numpy() for i, T in enumerate(gt)]
     bad = gt_consistency('wrong', _Seq(wrong, imgs, depths))
     assert bad['moved_deg'] > 0.8 and bad['photo_aligned'] < 0.7 * bad['photo_gt']
+
+
+def _rot_pose(yaw_deg=0.0, x=0.0):
+    T = np.eye(4)
+    a = math.radians(yaw_deg)
+    T[:3, :3] = [[math.cos(a), 0.0, math.sin(a)], [0.0, 1.0, 0.0], [-math.sin(a), 0.0, math.cos(a)]]
+    T[0, 3] = x
+    return T
+
+
+@pytest.mark.parametrize('yaw,x,skipped', [(5.0, 0.005, True),      # 0.087 rad vs 0.0025 parallax: ratio 35
+                                          (1.0, 0.05, False)])      # 0.017 rad vs 0.025: ratio 0.7
+def test_turning_in_place_keeps_the_odometry(yaw, x, skipped):
+    """A window whose camera turns in place (rotation > 8x the parallax of the baseline at the predicted depth) is
+    not aligned: the odometry poses come back unchanged, tracking stays ok, and the result says why."""
+    rng = np.random.default_rng(0)
+    K = np.array([[60.0, 0, 32], [0, 60.0, 24], [0, 0, 1]])
+    img = rng.random((48, 64, 3)).astype(np.float32)
+    ref = WindowKeyframe(1.0, img, K, _rot_pose(yaw, x))
+    src = WindowKeyframe(0.0, img, K, _rot_pose())
+    refiner = WindowPoseRefiner(PoseRefinerConfig(max_sources=1))
+    init = {0.0: src.T_world_cam_odom_44, 1.0: ref.T_world_cam_odom_44}
+    why = refiner._turning_in_place(ref, [src], init, np.full((12, 16), 2.0))
+    assert (why is not None) == skipped
+    if skipped:
+        assert why.startswith('turning in place: 5.0 deg') and '> 8' in why
+        res = refiner.refine(ref, [src], np.full((48, 64), 2.0), np.ones((48, 64)))
+        assert res.tracking_ok and not res.refined and res.skipped == why
+        np.testing.assert_allclose(res.T_world_ref_44, ref.T_world_cam_odom_44, atol=1e-12)
+        assert all(a is None for a in res.alignments)
+    assert WindowPoseRefiner(PoseRefinerConfig(max_rotation_parallax=0.0))._turning_in_place(
+        ref, [src], init, np.full((12, 16), 2.0)) is None

@@ -93,7 +93,7 @@ def estimator_config(seq, measurement: str, filter_mode: str = 'global') -> Esti
     return EstimatorConfig(measurement='classical' if measurement == 'classical' else 'network',
                            preset='lite', processing_width=W, processing_height=H, filter_mode=filter_mode,
                            keyframe_translation=0.0, keyframe_rotation_deg=0.0, keyframe_max_interval=1,
-                           output_resolution='processing', reset_translation=0.0, reset_rotation_deg=0.0,
+                           output_resolution='processing', odom_max_speed=0.0, odom_max_rate_deg=0.0,
                            reset_time_gap=0.0, pose_refinement='window')
 
 

@@ -20,8 +20,9 @@ Columns (frame means over the recorded keyframe outputs unless said otherwise):
 - abs_rel, d1: metric depth; ms abs_rel: per-frame median-scaled abs_rel; coverage: scored / valid GT pixels.
 - conf½: confident-half ratio, abs_rel of the most confident half of a frame's scored pixels / abs_rel of all of
   them (dpv_sensor.metrics.confident_half_ratio), mean over frames (the pooled figure is in the JSON).
-- resets: published outputs whose filter restarted, whichever layer restarted it (estimator stream rules, the
-  filter's own jump rule between keyframes, a pose-refinement loss), the stream's first output not counted: the
+- resets: published outputs whose filter restarted, whichever layer restarted it (the estimator's stream rules,
+  an odometry teleport in the pose buffer, lost visual tracking; the filter's own rules are off), the stream's first
+  output not counted: the
   node's ``output_resets`` diagnostics counter; the reasons are in the JSON.
 - kf ms: median time of the node's estimator on a keyframe image (from the ``keyframe_ms_last`` values of the
   recorded /diagnostics: one per keyframe, since lockstep waits for the node to report each image).
