@@ -21,9 +21,8 @@ Columns (frame means over the recorded keyframe outputs unless said otherwise):
 - conf½: confident-half ratio, abs_rel of the most confident half of a frame's scored pixels / abs_rel of all of
   them (dpv_sensor.metrics.confident_half_ratio), mean over frames (the pooled figure is in the JSON).
 - resets: published outputs whose filter restarted, whichever layer restarted it (the estimator's stream rules,
-  an odometry teleport in the pose buffer, lost visual tracking; the filter's own rules are off), the stream's first
-  output not counted: the
-  node's ``output_resets`` diagnostics counter; the reasons are in the JSON.
+  an odometry teleport in the pose buffer, lost visual tracking; the filter's own rules are off), the stream's
+  first output not counted: the node's ``output_resets`` diagnostics counter; the reasons are in the JSON.
 - kf ms: median time of the node's estimator on a keyframe image (from the ``keyframe_ms_last`` values of the
   recorded /diagnostics: one per keyframe, since lockstep waits for the node to report each image).
 - const abs_rel, const d1: a constant depth equal to the median GT depth of the whole sequence (an oracle
