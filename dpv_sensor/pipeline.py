@@ -163,7 +163,8 @@ def evaluate_offline(sequence, config: EstimatorConfig, *, model=None, pose_refi
     Frames are pushed in order with their GT poses, or with ``input_poses[i]`` (T_world_cam per frame, e.g.
     :func:`dpv_sensor.data.trajectory.corrupt_trajectory` of the GT: odometry-like poses). Each output is
     matched to its frame by stamp and scored with ``metrics.MetricAccumulator`` (GT resized with nearest
-    neighbour when the output is at the processing size); the GT range defaults to the estimator's depth planes [d_min, d_max].
+    neighbour when the output is at the processing size); the GT range defaults to the estimator's depth planes
+    [d_min, d_max].
 
     Returns ``{'rows': [per output: index, stamp, is_keyframe, abs_rel, rmse, delta1, ..., coverage,
     ms_* (median-scaled), ause, mean_confidence, time_ms], 'summary': MetricAccumulator.summary(),
