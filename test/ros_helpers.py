@@ -53,3 +53,27 @@ def stop_process(proc: subprocess.Popen, sig=signal.SIGINT, timeout: float = 20.
     if proc.poll() is None:
         proc.send_signal(sig)
     return wait_exit(proc, timeout)
+
+
+def stop_all(*procs: subprocess.Popen) -> list[tuple[int, str]]:
+    """SIGINT every node process (each waited for in turn); their (exit code, output) in order."""
+    return [stop_process(p) for p in procs]
+
+
+def assert_clean_exits(results: list[tuple[int, str]]) -> None:
+    """Every stopped node exited with 0 and printed no Python traceback."""
+    out = ''.join(o for _, o in results)
+    assert all(code == 0 for code, _ in results), out
+    assert 'Traceback' not in out, out
+
+
+def write_rendered_bag(tmp_path_factory, seed: int, frames: int, width: int, height: int, name: str, *,
+                       start_ns: int, T_base_camera, camera_frame: str = 'cam_optical', odom_rate: float = 60.0):
+    """A rendered sequence written as a rosbag2 with odometry: (sequence, bag path, write summary)."""
+    from dpv_sensor.data import rosbag_io as R
+    from dpv_sensor.data.synthetic import render_sequence
+    seq = render_sequence(seed, frames, width=width, height=height)
+    bag = tmp_path_factory.mktemp('bags') / name
+    summary = R.write_sequence_bag(bag, seq, odom_rate=odom_rate, start_ns=start_ns, T_base_camera=T_base_camera,
+                                   camera_frame=camera_frame, progress=False)
+    return seq, bag, summary

@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 import rclpy
 
-from ros_helpers import start_node, stop_process, wait_for
+from ros_helpers import start_node, stop_process, wait_for, write_rendered_bag
 from dpv_sensor import msgs as M
 from dpv_sensor import params as P
 from dpv_sensor.data import rosbag_io as R
@@ -52,12 +52,8 @@ def abs_rel(depth, gt, d_min, d_max):
 
 @pytest.fixture(scope='module')
 def scene(tmp_path_factory):
-    from dpv_sensor.data.synthetic import render_sequence
-    seq = render_sequence(3, FRAMES, width=W, height=H)
-    bag = tmp_path_factory.mktemp('bags') / 'synthetic'
-    summary = R.write_sequence_bag(bag, seq, odom_rate=60.0, start_ns=START_NS, T_base_camera=T_BASE_CAMERA,
-                                   camera_frame='cam_optical', progress=False)
-    return seq, bag, summary
+    return write_rendered_bag(tmp_path_factory, 3, FRAMES, W, H, 'synthetic', start_ns=START_NS,
+                              T_base_camera=T_BASE_CAMERA)
 
 
 def run_estimator(seq, stamps_ns, frames, **overrides):

@@ -19,7 +19,7 @@ import cv2
 import numpy as np
 import pytest
 
-from ros_helpers import start_node, stop_process, wait_for
+from ros_helpers import assert_clean_exits, start_node, stop_all, stop_process, wait_for, write_rendered_bag
 from test_node_integration import COMMON, T_BASE_CAMERA, ros_args
 from dpv_sensor import msgs as M
 from dpv_sensor.data import rosbag_io as R
@@ -43,12 +43,8 @@ TEXTURE = np.stack([_G, _G, 255 - _G], -1)      # checkerboard on a ramp: an ima
 
 @pytest.fixture(scope='module')
 def scene(tmp_path_factory):
-    from dpv_sensor.data.synthetic import render_sequence
-    seq = render_sequence(5, FRAMES, width=W, height=H)
-    bag = tmp_path_factory.mktemp('bags') / 'outputs'
-    summary = R.write_sequence_bag(bag, seq, odom_rate=60.0, start_ns=START_NS, T_base_camera=T_BASE_CAMERA,
-                                   camera_frame='cam_optical', progress=False)
-    return seq, bag, summary
+    return write_rendered_bag(tmp_path_factory, 5, FRAMES, W, H, 'outputs', start_ns=START_NS,
+                              T_base_camera=T_BASE_CAMERA)
 
 
 class Outputs:
@@ -167,11 +163,9 @@ def test_rgb_confidence_info_compressed_points_and_rate_warning_in_both_resoluti
         assert done, f'replay did not finish: A {a.diagnostics} B {b.diagnostics}'
         wait_for(lambda: False, timeout=1.5, spin=spin)       # the last diagnostics of the run
     finally:
-        code_a, out_a = stop_process(proc_a)
-        code_b, out_b = stop_process(proc_b)
+        exits = stop_all(proc_a, proc_b)
         player.stop()
-    assert code_a == 0 and code_b == 0, out_a + out_b
-    assert 'Traceback' not in out_a + out_b, out_a + out_b
+    assert_clean_exits(exits)
     index = {s: i for i, s in enumerate(summary.image_stamps_ns)}
 
     # ---------------- node A: input resolution, the bag's colour image exactly

@@ -14,7 +14,7 @@ import threading
 import numpy as np
 import pytest
 
-from ros_helpers import start_node, stop_process, wait_for
+from ros_helpers import assert_clean_exits, start_node, stop_all, wait_for
 from test_node_integration import COMMON, FRAMES, H, START_NS, T_BASE_CAMERA, W, ros_args
 from dpv_sensor import msgs as M
 from dpv_sensor.data import rosbag_io as R
@@ -107,11 +107,9 @@ def test_refined_and_visual_odometry_poses_are_published_with_every_depth_image(
         assert done, (f'replay did not finish: ref {ref.diagnostics} poses {len(ref_poses.by_stamp)}; '
                       f'vo {vo.diagnostics} poses {len(vo_poses.by_stamp)}')
     finally:
-        code_ref, out_ref = stop_process(proc_ref)
-        code_vo, out_vo = stop_process(proc_vo)
+        exits = stop_all(proc_ref, proc_vo)
         player.stop()
-    assert code_ref == 0 and code_vo == 0, out_ref + out_vo
-    assert 'Traceback' not in out_ref + out_vo, out_ref + out_vo
+    assert_clean_exits(exits)
     idx = {t: i for i, t in enumerate(summary.image_stamps_ns)}
 
     # /ref: a refined pose for every depth image, in the bag's odometry frame, on the exact odometry
