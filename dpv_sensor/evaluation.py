@@ -54,6 +54,7 @@ import cv2
 import numpy as np
 
 from . import metrics as M
+from .geometry import relative_pose_error_np
 from .common import to_jsonable
 from . import params as P
 
@@ -288,9 +289,7 @@ def run_sequence(seq, config, options: Optional[EvalOptions] = None, *, model=No
 def _pose_error(T_est: Optional[np.ndarray], T_gt: Optional[np.ndarray]) -> Tuple[float, float]:
     if T_est is None or T_gt is None:
         return float('nan'), float('nan')
-    D = np.linalg.inv(T_gt) @ T_est
-    ang = math.degrees(math.acos(float(np.clip((np.trace(D[:3, :3]) - 1) / 2, -1.0, 1.0))))
-    return float(np.linalg.norm(D[:3, 3])), ang
+    return relative_pose_error_np(T_gt, T_est)
 
 
 def score_records(records: SequenceT[KeyframeRecord], *, min_depth: Optional[float] = None,

@@ -30,7 +30,8 @@ __all__ = [
     'scale_intrinsics', 'invert_se3', 'compose_se3', 'relative_se3', 'make_se3',
     'rotation_matrix_to_quaternion', 'quaternion_to_rotation_matrix', 'slerp_quaternion',
     'interpolate_se3', 'interpolate_se3_at_time', 'interpolate_se3_series', 'so3_exp', 'so3_log', 'se3_exp',
-    'rotation_angle', 'pixel_grid', 'backproject', 'project', 'transform_points',
+    'rotation_angle', 'rotation_angle_np', 'relative_pose_error_np', 'quat_angle_deg', 'pixel_grid', 'backproject',
+    'project', 'transform_points',
     'plane_sweep_warp', 'warp_volume', 'warp_image_with_depth', 'inverse_depth_index',
 ]
 
@@ -513,11 +514,27 @@ def pose_delta_np(T_world_a_44: np.ndarray, T_world_b_44: np.ndarray) -> Tuple[f
     Ta = np.asarray(T_world_a_44, dtype=np.float64)
     Tb = np.asarray(T_world_b_44, dtype=np.float64)
     translation = float(np.linalg.norm(Tb[:3, 3] - Ta[:3, 3]))
-    R = Ta[:3, :3].T @ Tb[:3, :3]
-    # atan2 form: accurate for small and large angles alike.
+    return translation, math.degrees(rotation_angle_np(Ta[:3, :3].T @ Tb[:3, :3]))
+
+
+def rotation_angle_np(R_33: np.ndarray) -> float:
+    """Rotation angle of a 3x3 rotation matrix in radians, in [0, pi]; the numpy twin of :func:`rotation_angle`
+    (atan2 form: accurate for small and large angles alike)."""
+    R = np.asarray(R_33, dtype=np.float64)
     v = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
-    angle = math.atan2(0.5 * float(np.linalg.norm(v)), 0.5 * (float(np.trace(R)) - 1.0))
-    return translation, math.degrees(angle)
+    return math.atan2(0.5 * float(np.linalg.norm(v)), 0.5 * (float(np.trace(R)) - 1.0))
+
+
+def relative_pose_error_np(T_a_44: np.ndarray, T_b_44: np.ndarray) -> Tuple[float, float]:
+    """(translation in metres, rotation in degrees) of ``T_a^-1 T_b``: how far pose b is from pose a, measured in
+    a's frame (an estimate against its reference, or one relative motion against another)."""
+    E = np.linalg.inv(np.asarray(T_a_44, dtype=np.float64)) @ np.asarray(T_b_44, dtype=np.float64)
+    return float(np.linalg.norm(E[:3, 3])), math.degrees(rotation_angle_np(E[:3, :3]))
+
+
+def quat_angle_deg(q0_4: np.ndarray, q1_4: np.ndarray) -> float:
+    """Angle in degrees between the rotations of two unit quaternions (either sign)."""
+    return math.degrees(2.0 * math.acos(min(1.0, abs(float(np.dot(q0_4, q1_4))))))
 
 
 def resample_to_camera(x_bchw: torch.Tensor, K_src_33, K_dst_33, dst_hw: Tuple[int, int],

@@ -25,7 +25,7 @@ from typing import List, Sequence
 import numpy as np
 import torch
 
-from .geometry import Z_EPS, backproject, project, transform_points
+from .geometry import Z_EPS, backproject, project, rotation_angle, transform_points
 
 __all__ = ['disparity_span', 'parallax_support', 'pose_parallax_score', 'select_sources', 'BAND_RATIO',
            'rotation_noise_px']
@@ -85,9 +85,7 @@ def rotation_noise_px(T_src_ref_bn44: torch.Tensor, f_px: float, fraction: float
     T = T_src_ref_bn44.to(torch.float32)
     if T.dim() == 3:
         T = T[None]
-    R = T[..., :3, :3]
-    cos = ((R.diagonal(dim1=-2, dim2=-1).sum(-1) - 1.0) / 2.0).clamp(-1.0, 1.0)
-    return float(fraction) * float(f_px) * torch.arccos(cos)
+    return float(fraction) * float(f_px) * rotation_angle(T[..., :3, :3])
 
 
 def parallax_support(span_bhw: torch.Tensor, full_px: float) -> torch.Tensor:

@@ -40,7 +40,8 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from dpv_sensor.geometry import BOUNDS_TOL, Z_EPS, backproject, project, scale_intrinsics, transform_points
+from dpv_sensor.geometry import (BOUNDS_TOL, Z_EPS, backproject, project, relative_pose_error_np, scale_intrinsics,
+                                 transform_points)
 
 __all__ = ['AlignmentConfig', 'AlignmentResult', 'Aligner', 'ImagePyramid', 'align_photometric', 'to_gray',
            'resample_map', 'pose_error', 'twist_to_gtsam_order', 'inverse_depth_std_from_confidence']
@@ -234,9 +235,7 @@ def inverse_depth_std_from_confidence(conf_hw, depths_d) -> torch.Tensor:
 
 def pose_error(T_a_44: np.ndarray, T_b_44: np.ndarray) -> Tuple[float, float]:
     """(translation error in metres, rotation error in degrees) of ``T_a^-1 T_b``."""
-    E = np.linalg.inv(np.asarray(T_a_44, dtype=np.float64)) @ np.asarray(T_b_44, dtype=np.float64)
-    c = np.clip((np.trace(E[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)
-    return float(np.linalg.norm(E[:3, 3])), float(np.degrees(np.arccos(c)))
+    return relative_pose_error_np(T_a_44, T_b_44)
 
 
 # ----------------------------------------------------------------------------------------------------------------

@@ -33,7 +33,6 @@ Quaternions in this module are ROS order (x, y, z, w).
 from __future__ import annotations
 
 import bisect
-import math
 import threading
 from dataclasses import dataclass
 
@@ -41,7 +40,7 @@ import numpy as np
 
 # the pose maths has one home, geometry.py; these names are this module's vocabulary (bag I/O, the node)
 from .continuity import TELEPORT_FLOOR_DEG, TELEPORT_FLOOR_M, teleport
-from .geometry import interpolate_pose, make_pose, matrix_to_quat, quat_to_matrix, slerp  # noqa: F401
+from .geometry import interpolate_pose, make_pose, matrix_to_quat, quat_angle_deg, quat_to_matrix, slerp  # noqa: F401
 
 NS = 1_000_000_000
 
@@ -205,7 +204,7 @@ class PoseBuffer:
         if t0 is None or t1 is None:
             return None if t0 is None and t1 is None else 'one of the two is invalid (NaN or non-unit quaternion)'
         dist = float(np.linalg.norm(t1 - t0))
-        angle = math.degrees(2.0 * math.acos(min(1.0, abs(float(np.dot(q0, q1))))))
+        angle = quat_angle_deg(q0, q1)
         if dist <= SAME_POSE_M and angle <= SAME_POSE_DEG:
             return None
         return f'two poses {dist:.3f} m and {angle:.1f} deg apart'
@@ -214,7 +213,7 @@ class PoseBuffer:
         """Why the step from the newest sample to (t, q) at stamp_ns is a teleport, or None."""
         dt = (stamp_ns - self._stamps[-1]) / NS
         dist = float(np.linalg.norm(t - self._t[-1]))
-        angle = math.degrees(2.0 * math.acos(min(1.0, abs(float(np.dot(q, self._q[-1]))))))
+        angle = quat_angle_deg(q, self._q[-1])
         why = teleport(dt, dist, angle, self.max_speed, self.max_rate_deg)
         return None if why is None else f'{why} at {stamp_ns / NS:.3f} s'
 

@@ -3,6 +3,7 @@ import math
 import os
 import sys
 
+import numpy as np
 import pytest
 import torch
 
@@ -324,3 +325,21 @@ def test_cuda_matches_cpu():
     logp = torch.log_softmax(torch.randn(1, 8, 12, 16), 1)
     assert torch.allclose(G.warp_volume(logp, K, T, planes),
                           G.warp_volume(logp.cuda(), K.cuda(), T.cuda(), planes.cuda()).cpu(), atol=1e-4)
+
+
+def test_numpy_rotation_angles_by_hand():
+    from dpv_sensor.geometry import quat_angle_deg, relative_pose_error_np, rotation_angle_np
+    Rz90 = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    assert rotation_angle_np(Rz90) == pytest.approx(np.pi / 2)
+    assert rotation_angle_np(np.eye(3)) == 0.0
+    Ta = np.eye(4)
+    Ta[:3, 3] = [1.0, 0.0, 0.0]
+    Tb = np.eye(4)
+    Tb[:3, :3] = Rz90
+    Tb[:3, 3] = [1.0, 2.0, 0.0]
+    # in a's frame b sits 2 m along y and is turned 90 degrees
+    t, r = relative_pose_error_np(Ta, Tb)
+    assert (t, r) == (pytest.approx(2.0), pytest.approx(90.0))
+    s = np.sqrt(0.5)
+    assert quat_angle_deg(np.array([0, 0, 0, 1.0]), np.array([0, 0, s, s])) == pytest.approx(90.0)
+    assert quat_angle_deg(np.array([0, 0, s, s]), -np.array([0, 0, s, s])) == pytest.approx(0.0, abs=1e-6)
