@@ -134,8 +134,8 @@ from .continuity import DUPLICATE, stream_break, time_order
 from . import image_quality, parallax
 from .frame import DepthOutput, Frame
 from .edge_filter import joint_weighted_median
-from .geometry import resample_to_camera, scale_intrinsics_np  # noqa: F401  (resample_to_camera: used here)
-from .keyframes import WINDOW_MODES, Keyframe, KeyframeSelector, KeyframeWindow  # noqa: F401
+from .geometry import resample_to_camera, scale_intrinsics_np
+from .keyframes import Keyframe, KeyframeSelector, KeyframeWindow
 from .nets.model import cpu_bf16_fast
 
 __all__ = ['EstimatorConfig', 'Estimator', 'PoseRefinementRequest', 'default_weights_path',
