@@ -247,6 +247,7 @@ class DepthCameraNode(Node):
             self._inputs['odom'] = (Odometry, self._on_odom)
         self._input_subs: dict = {}
         self._input_reliability: dict = {}
+        self._input_matched: dict = {}                # DDS-matched publishers per input (subscription events)
         for topic in self._inputs:
             self._subscribe_input(topic, 'reliable' if cfg['input_reliability'] == 'reliable' else 'best_effort')
         if cfg['input_reliability'] == 'auto':
@@ -356,11 +357,16 @@ class DepthCameraNode(Node):
         qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=self.config['input_depth'], reliability=policy,
                          durability=DurabilityPolicy.VOLATILE)
         incompatible = self._qos_events(topic, subscription=True).incompatible_qos
-        events = SubscriptionEventCallbacks(incompatible_qos=incompatible)
+        # DDS "subscription matched": a publisher the graph lists is not necessarily matched by this reader yet,
+        # and what it sends before the match is lost (volatile); a new subscription starts unmatched
+        self._input_matched[topic] = 0
+
+        def on_matched(info, topic=topic) -> None:
+            self._input_matched[topic] = int(info.current_count)
+        lost = None
         if topic == 'image':
-            events = SubscriptionEventCallbacks(
-                incompatible_qos=incompatible,
-                message_lost=lambda info: self.stream_loss.on_rmw_lost(int(info.total_count_change)))
+            lost = lambda info: self.stream_loss.on_rmw_lost(int(info.total_count_change))  # noqa: E731
+        events = SubscriptionEventCallbacks(incompatible_qos=incompatible, matched=on_matched, message_lost=lost)
         msg_type, callback = self._inputs[topic]
         self._input_subs[topic] = self.create_subscription(msg_type, topic, callback, qos, event_callbacks=events)
         self._input_reliability[topic] = reliability
@@ -934,14 +940,12 @@ class DepthCameraNode(Node):
             f'on ({rect.calibration.model}, K fx={rect.K[0, 0]:.2f} fy={rect.K[1, 1]:.2f})'
         for topic, n in sorted(self.qos_incompatible.items()):
             values[f'qos_incompatible.{topic}'] = n
-        # matched publishers of the inputs, as this node's subscriptions see them (0: nothing arrives)
-        values['publishers.image'] = self.sub_image.get_publisher_count()
+        # publishers of the inputs that this node's subscriptions have matched (listed in the graph and matched by
+        # the DDS reader: 0 means nothing arrives yet)
+        for topic, sub in self._input_subs.items():
+            values[f'publishers.{topic}'] = min(sub.get_publisher_count(), self._input_matched.get(topic, 0))
         for topic, reliability in self._input_reliability.items():
             values[f'input_qos.{topic}'] = reliability
-        if self.sub_info is not None:
-            values['publishers.camera_info'] = self.sub_info.get_publisher_count()
-        if self.sub_odom is not None:
-            values['publishers.odom'] = self.sub_odom.get_publisher_count()
         return values
 
     def _drop_share_status(self, values: dict):

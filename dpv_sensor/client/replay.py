@@ -338,6 +338,14 @@ def run_node_replay(steps: Steps, input_bag: pathlib.Path, output_bag: pathlib.P
             if missing:
                 raise ReplayError(f'the node did not subscribe to {missing} within {max(10.0, start_timeout):g} s '
                                 f'(log: {_rel(log_path)})')
+            # ... and the node's readers have matched the player's writers (DDS matching is not symmetric: what the
+            # player sends before the node's reader matched it is lost, e.g. the first camera_info messages)
+            roles = [r for r in ('image', 'camera_info', 'odom') if topics.get(r)]
+            wait_s = max(10.0, start_timeout)
+            if not spin_until(lambda: all(monitor.get_int(f'publishers.{r}') >= 1 for r in roles), wait_s):
+                unmatched = [r for r in roles if monitor.get_int(f'publishers.{r}') < 1]
+                raise ReplayError(f"the node's subscriptions did not match the player's {unmatched} publishers "
+                                  f'within {wait_s:g} s (log: {_rel(log_path)})')
             spin_until(lambda: not recorder.poll(), 10.0)
             still = recorder.poll()
             if still:
