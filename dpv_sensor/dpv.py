@@ -112,6 +112,18 @@ def argmax_depth(logp_bdhw: torch.Tensor, depths_d: torch.Tensor) -> torch.Tenso
     return _planes(depths_d, logp_bdhw)[logp_bdhw.argmax(1)]
 
 
+def cumsum_planes(x_bdhw: torch.Tensor) -> torch.Tensor:
+    """Running sum over the plane dim 1 (what ``x.cumsum(1)`` computes), plane by plane: each step adds one
+    contiguous (B, H, W) slice, where torch's CPU cumsum along a strided dim is several times slower (16 vs
+    2 ms for 32 planes at 320x256). Differentiable."""
+    acc = x_bdhw[:, 0]
+    out = [acc]
+    for k in range(1, x_bdhw.shape[1]):
+        acc = acc + x_bdhw[:, k]
+        out.append(acc)
+    return torch.stack(out, 1)
+
+
 def quantile_index(logp_bdhw: torch.Tensor, q: float = 0.5) -> torch.Tensor:
     """Fractional plane index where the DPV's cumulative mass reaches ``q``; shape (B, H, W).
 
@@ -122,7 +134,7 @@ def quantile_index(logp_bdhw: torch.Tensor, q: float = 0.5) -> torch.Tensor:
     """
     D = logp_bdhw.shape[1]
     p = torch.exp(logp_bdhw)
-    cdf = p.cumsum(1)
+    cdf = cumsum_planes(p)
     k = (cdf < q).sum(1, keepdim=True).clamp(max=D - 1)                  # first plane whose CDF >= q
     before = torch.where(k > 0, cdf.gather(1, (k - 1).clamp(min=0)), torch.zeros_like(cdf[:, :1]))
     pk = p.gather(1, k).clamp_min(torch.finfo(p.dtype).tiny)

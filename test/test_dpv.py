@@ -213,6 +213,15 @@ def test_median_by_hand():
     assert dpv.quantile_index(_logp([0, 0, 1]), q=0.99).item() == pytest.approx(2.0)
 
 
+def test_cumsum_planes_is_the_running_sum_over_planes():
+    # by hand: 1, 2, 3 on three planes -> 1, 3, 6 at every pixel
+    x = torch.tensor([1.0, 2.0, 3.0], dtype=DT).reshape(1, 3, 1, 1).expand(2, 3, 2, 2)
+    assert dpv.cumsum_planes(x)[:, :, 1, 1].tolist() == [[1.0, 3.0, 6.0]] * 2
+    y = torch.randn(2, 7, 3, 4, dtype=DT, requires_grad=True)
+    assert torch.allclose(dpv.cumsum_planes(y), y.cumsum(1), atol=1e-12)
+    assert torch.autograd.gradcheck(dpv.cumsum_planes, (y,))
+
+
 def test_relative_readout_by_hand():
     planes = dpv.depth_planes(1.0, 2.0, 2, dtype=DT)                   # 1 m and 2 m
     # p = (0.5, 0.5) reweighted by 1/d: (2/3, 1/3); the CDF reaches 0.5 inside plane 0's bin at
