@@ -530,7 +530,7 @@ def _montage_rows(records: SequenceT[KeyframeRecord], n: int) -> List[Dict]:
 
 def write_report(out_dir, acc: M.MetricAccumulator, records: SequenceT[KeyframeRecord], summary: Dict[str, Any],
                  *, montage_frames: int = 4, title: Optional[str] = None) -> Dict[str, str]:
-    """Write frames.csv, summary.json, montage.png and sparsification.png; return {name: path}."""
+    """Write frames.csv, summary.json, montage.png, sparsification.png and reliability.png; return {name: path}."""
     from . import plots
     out = pathlib.Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -543,6 +543,9 @@ def write_report(out_dir, acc: M.MetricAccumulator, records: SequenceT[KeyframeR
         files['sparsification'] = str(plots.sparsification_plot({title or 'prediction': curves},
                                                                 out / 'sparsification.png', title=title))
         summary.setdefault('confidence', {})['mean_curves'] = {k: np.asarray(v).tolist() for k, v in curves.items()}
+    if summary.get('calibration'):
+        files['reliability'] = str(plots.reliability_plot({title or 'prediction': summary['calibration']},
+                                                          out / 'reliability.png', title=title))
     summary['files'] = dict(files, summary=str(out / 'summary.json'))
     with open(out / 'summary.json', 'w') as f:
         json.dump(to_jsonable(summary), f, indent=1)
@@ -635,6 +638,10 @@ _TABLE_COLUMNS = [
     ('AUSE', ('confidence', 'ause_frame_mean'), '{:.4f}'),
     ('conf½/all', ('confidence', 'confident_half_ratio_frame_mean'), '{:.3f}'),
     ('conf½ pooled', ('confidence', 'confident_half_ratio_pooled'), '{:.3f}'),
+    ('ECE', ('calibration', 'ece'), '{:.3f}'),
+    ('mean conf', ('calibration', 'mean_confidence'), '{:.3f}'),
+    ('kept@0.9', ('calibration', 'kept', '0.9', 'share'), '{:.3f}'),
+    ('d1@0.9', ('calibration', 'kept', '0.9', 'delta1'), '{:.3f}'),
     ('odo t×', ('consumer_odometry', 'ratio_trans'), '{:.2f}'),
     ('odo r×', ('consumer_odometry', 'ratio_rot'), '{:.2f}'),
     ('ms/kf', ('time_ms_per_keyframe', 'mean'), '{:.0f}'),

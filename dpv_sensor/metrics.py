@@ -29,7 +29,10 @@ Confidence quality: sparsification curves (remove the least confident pixels fir
 rest) against the oracle (remove the largest true errors first) and random removal, the area
 between sparsification and oracle (AUSE, Ilg et al. 2018), and the ratio "abs_rel of the most
 confident half / abs_rel of all". The per-pixel error used is the *metric* absolute relative
-error (confidence is meant to predict metric error). The NLL of a DPV is in
+error (confidence is meant to predict metric error). Calibration: the published confidence is the probability
+that the true depth lies within x1.25 of the published one (the delta1 event), so the expected calibration
+error (ECE, 10 equal-width bins) compares each bin's mean confidence with its share of delta1 hits, and the
+share of pixels kept at a ``min_confidence`` of 0.5 / 0.7 / 0.9 is reported with their delta1. The NLL of a DPV is in
 :func:`dpv_sensor.dpv.nll`.
 """
 from __future__ import annotations
@@ -44,6 +47,8 @@ __all__ = [
     'ERROR_METRICS', 'DEFAULT_FRACTIONS', 'gt_valid_mask', 'pred_valid_mask', 'evaluation_mask',
     'median_scale', 'error_sums', 'metrics_from_sums', 'depth_metrics', 'frame_metrics',
     'temporal_consistency', 'sparsification', 'ause', 'aurg', 'confident_half_ratio', 'MetricAccumulator',
+    'CALIBRATION_BINS', 'KEPT_THRESHOLDS', 'DELTA1_RATIO', 'within_ratio', 'reliability_bins',
+    'expected_calibration_error', 'kept_at_thresholds', 'calibration_summary',
     'dpv_nll', 'EDGE_JUMP', 'EDGE_RADIUS', 'NORMAL_WINDOW', 'normal_window', 'PLANAR_CONSISTENCY', 'depth_edge_band',
     'depth_normals', 'planar_mask', 'edge_planarity_metrics',
 ]
@@ -51,6 +56,13 @@ __all__ = [
 ERROR_METRICS = ('abs_rel', 'sq_rel', 'rmse', 'rmse_log', 'delta1', 'delta2', 'delta3', 'si_log')
 # Fractions of pixels removed along a sparsification curve: 0, 0.01, ..., 0.99.
 DEFAULT_FRACTIONS = np.arange(100) / 100.0
+# The event the published confidence is a probability of: the true depth within this factor of the published one
+# (the delta1 band).
+DELTA1_RATIO = 1.25
+# Equal-width confidence bins of the reliability diagram and the ECE.
+CALIBRATION_BINS = 10
+# Confidence thresholds (min_confidence operating points) at which the share kept and its delta1 are reported.
+KEPT_THRESHOLDS = (0.5, 0.7, 0.9)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -489,6 +501,68 @@ def confident_half_ratio(err_n: np.ndarray, conf_n: np.ndarray) -> float:
     return float(err[keep].mean() / err.mean())
 
 
+def within_ratio(pred_n: np.ndarray, gt_n: np.ndarray, ratio: float = DELTA1_RATIO) -> np.ndarray:
+    """bool per pixel: ``max(pred / gt, gt / pred) < ratio`` (the delta1 event for ratio 1.25)."""
+    p = np.asarray(pred_n, np.float64)
+    g = np.asarray(gt_n, np.float64)
+    return np.maximum(p / g, g / p) < ratio
+
+
+def reliability_bins(conf_n: np.ndarray, hit_n: np.ndarray, bins: int = CALIBRATION_BINS) -> Dict[str, np.ndarray]:
+    """Reliability diagram data: ``bins`` equal-width confidence bins on [0, 1] (the last one closed); per bin
+    the pixel count, the mean confidence and the share of pixels whose event happened (``hit_n``).
+    Empty bins have NaN means."""
+    c = np.clip(np.asarray(conf_n, np.float64).ravel(), 0.0, 1.0)
+    h = np.asarray(hit_n, np.float64).ravel()
+    idx = np.minimum((c * bins).astype(np.int64), bins - 1)
+    count = np.bincount(idx, minlength=bins).astype(np.float64)
+    with np.errstate(invalid='ignore', divide='ignore'):
+        mean_conf = np.bincount(idx, weights=c, minlength=bins) / count
+        hit_rate = np.bincount(idx, weights=h, minlength=bins) / count
+    return {'edges': np.linspace(0.0, 1.0, bins + 1), 'count': count, 'mean_confidence': mean_conf,
+            'hit_rate': hit_rate}
+
+
+def expected_calibration_error(conf_n: np.ndarray, hit_n: np.ndarray, bins: int = CALIBRATION_BINS) -> float:
+    """ECE: sum over equal-width confidence bins of (share of pixels in the bin) x |mean confidence - share of
+    hits| (Guo et al. 2017). 0 = calibrated; NaN without pixels."""
+    r = reliability_bins(conf_n, hit_n, bins)
+    n = r['count'].sum()
+    if n == 0:
+        return float('nan')
+    used = r['count'] > 0
+    return float(np.sum(r['count'][used] / n * np.abs(r['mean_confidence'][used] - r['hit_rate'][used])))
+
+
+def kept_at_thresholds(conf_n: np.ndarray, hit_n: np.ndarray,
+                       thresholds: Iterable[float] = KEPT_THRESHOLDS) -> Dict[str, Dict[str, float]]:
+    """Per ``min_confidence`` threshold t: ``share`` of the pixels with confidence >= t and ``delta1`` (share of
+    hits) among them (NaN when none is kept). Keys are formatted like '0.9'."""
+    c = np.asarray(conf_n, np.float64).ravel()
+    h = np.asarray(hit_n, bool).ravel()
+    out = {}
+    for t in thresholds:
+        keep = c >= float(t)
+        out[f'{float(t):g}'] = {'share': float(keep.mean()) if c.size else float('nan'),
+                                'delta1': float(h[keep].mean()) if keep.any() else float('nan')}
+    return out
+
+
+def calibration_summary(conf_n: np.ndarray, hit_n: np.ndarray, bins: int = CALIBRATION_BINS,
+                        thresholds: Iterable[float] = KEPT_THRESHOLDS) -> Dict:
+    """How far the confidence is a probability of the delta1 event: ``ece``, ``mean_confidence`` vs ``hit_rate``
+    (the delta1 of all pixels), ``kept`` (:func:`kept_at_thresholds`) and the reliability ``bins``."""
+    c = np.asarray(conf_n, np.float64).ravel()
+    h = np.asarray(hit_n, bool).ravel()
+    r = reliability_bins(c, h, bins)
+    return {'ece': expected_calibration_error(c, h, bins),
+            'mean_confidence': float(c.mean()) if c.size else float('nan'),
+            'hit_rate': float(h.mean()) if h.size else float('nan'),
+            'num_pixels': int(c.size),
+            'kept': kept_at_thresholds(c, h, thresholds),
+            'bins': {k: v.tolist() for k, v in r.items()}}
+
+
 def dpv_nll(logp_bdhw, depths_d, gt_bhw, mask_bhw=None) -> float:
     """Mean NLL of the GT depth under a DPV (numpy or torch inputs): :func:`dpv_sensor.dpv.nll` with
     ``reduction='mean'`` (GT outside the planes' range and masked pixels excluded), as a float."""
@@ -540,6 +614,7 @@ class MetricAccumulator:
     _temporal: List[Tuple[float, int]] = field(default_factory=list)
     pool_stride: int = 8
     _pooled: List[Tuple[np.ndarray, np.ndarray]] = field(default_factory=list)
+    _pooled_hit: List[np.ndarray] = field(default_factory=list)
 
     def add(self, pred: np.ndarray, gt: np.ndarray, confidence: Optional[np.ndarray] = None,
             K: Optional[np.ndarray] = None, **extra) -> Dict:
@@ -581,7 +656,8 @@ class MetricAccumulator:
             conf = np.asarray(confidence, np.float64)
             if conf.shape != np.shape(gt):
                 raise ValueError(f'confidence shape {conf.shape} differs from GT shape {np.shape(gt)}')
-            err = np.abs(_clip(p, self.min_depth, self.max_depth) - g) / g
+            pc = _clip(p, self.min_depth, self.max_depth)
+            err = np.abs(pc - g) / g
             c = np.nan_to_num(conf[m], nan=0.0)
             row['mean_confidence'] = float(c.mean()) if c.size else float('nan')
             if err.size:
@@ -591,6 +667,7 @@ class MetricAccumulator:
                 row['confident_half_ratio'] = confident_half_ratio(err, c)
                 self._pooled.append((err[::self.pool_stride].astype(np.float32),
                                      c[::self.pool_stride].astype(np.float32)))
+                self._pooled_hit.append(within_ratio(pc[::self.pool_stride], g[::self.pool_stride]))
             else:
                 row['ause'] = float('nan')
                 row['confident_half_ratio'] = float('nan')
@@ -658,6 +735,9 @@ class MetricAccumulator:
                 'confident_half_ratio_pooled': self.pooled_confident_half_ratio(),
                 'mean_confidence': _nanmean(r.get('mean_confidence') for r in self.rows),
             }
+            if self._pooled:
+                out['calibration'] = calibration_summary(np.concatenate([c for _, c in self._pooled]),
+                                                         np.concatenate(self._pooled_hit))
         if self._temporal:
             vals = [v for v, n in self._temporal if n > 0 and np.isfinite(v)]
             tot = sum(n for v, n in self._temporal if n > 0 and np.isfinite(v))

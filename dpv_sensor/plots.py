@@ -143,6 +143,50 @@ def sparsification_plot(curves: Dict[str, Dict[str, np.ndarray]], path, *, title
     return _save(fig, path, dpi)
 
 
+def reliability_plot(calibration: Dict[str, Dict], path, *, title: Optional[str] = None,
+                     dpi: int = 110) -> pathlib.Path:
+    """Reliability diagram: per confidence bin, the share of pixels whose true depth lies within x1.25 of the
+    published one against the bin's mean confidence (the diagonal = calibrated), with the share of pixels per bin
+    underneath.
+
+    calibration: {name: ``metrics.calibration_summary(...)``}; the legend carries each one's ECE and the share kept
+    and delta1 at a confidence of 0.9.
+    """
+    plt = _plt()
+    fig, (ax, axn) = plt.subplots(2, 1, figsize=(5.2, 5.6), sharex=True, gridspec_kw={'height_ratios': [3, 1]})
+    colors = plt.rcParams['axes.prop_cycle'].by_key()['color']
+    ax.plot([0, 1], [0, 1], color='0.6', lw=1.0, ls='--', label='calibrated')
+    for k, (name, cal) in enumerate(calibration.items()):
+        if not cal:
+            continue
+        col = colors[k % len(colors)]
+        b = cal['bins']
+        conf = np.asarray(b['mean_confidence'], np.float64)
+        hit = np.asarray(b['hit_rate'], np.float64)
+        count = np.asarray(b['count'], np.float64)
+        edges = np.asarray(b['edges'], np.float64)
+        used = count > 0
+        kept = (cal.get('kept') or {}).get('0.9') or {}
+        ax.plot(conf[used], hit[used], 'o-', color=col, lw=1.6, ms=4,
+                label=f"{name}: ECE {cal['ece']:.3f}, conf>=0.9 keeps {kept.get('share', float('nan')):.0%} "
+                      f"(d1 {kept.get('delta1', float('nan')):.2f})")
+        centres = 0.5 * (edges[1:] + edges[:-1])
+        width = (edges[1] - edges[0]) / max(1, len(calibration))
+        axn.bar(centres - 0.5 * (edges[1] - edges[0]) + (k + 0.5) * width, count / max(1.0, count.sum()),
+                width=width, color=col)
+    ax.set_ylabel('share within x1.25 of the truth')
+    ax.set_xlim(0, 1)
+    ax.set_ylim(0, 1)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=7, loc='upper left')
+    axn.set_xlabel('published confidence')
+    axn.set_ylabel('share of pixels')
+    axn.grid(alpha=0.3)
+    if title:
+        ax.set_title(title, fontsize=10)
+    return _save(fig, path, dpi)
+
+
 def bar_table(values: Dict[str, float], path, *, ylabel: str = 'abs_rel', title: Optional[str] = None,
               dpi: int = 110) -> pathlib.Path:
     """A bar chart of one number per configuration."""

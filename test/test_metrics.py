@@ -409,3 +409,45 @@ def test_accumulator_reports_edges_and_normals():
     e = acc.summary()['edges']
     assert e['edge_abs_rel_frame_mean'] == pytest.approx(0.1)
     assert e['nonedge_abs_rel_frame_mean'] == pytest.approx(0.1)
+
+
+def test_ece_and_reliability_bins_by_hand():
+    # bin [0.2, 0.3): 4 pixels at 0.25, 1 hit; bin [0.9, 1]: 4 pixels at 0.95, 4 hits
+    conf = np.array([0.25] * 4 + [0.95] * 4)
+    hit = np.array([1, 0, 0, 0, 1, 1, 1, 1], bool)
+    r = M.reliability_bins(conf, hit)
+    assert r['count'][2] == 4 and r['count'][9] == 4 and r['count'].sum() == 8
+    assert r['hit_rate'][2] == pytest.approx(0.25) and r['mean_confidence'][9] == pytest.approx(0.95)
+    assert np.isnan(r['hit_rate'][0])
+    # |0.25 - 0.25| * 0.5 + |0.95 - 1| * 0.5
+    assert M.expected_calibration_error(conf, hit) == pytest.approx(0.025)
+    # confidence 1.0 falls in the last bin
+    assert M.reliability_bins(np.array([1.0]), np.array([True]))['count'][9] == 1
+    assert np.isnan(M.expected_calibration_error(np.zeros(0), np.zeros(0, bool)))
+
+
+def test_kept_at_thresholds_and_the_delta1_event():
+    pred = np.array([1.0, 1.0, 1.0, 1.0])
+    gt = np.array([1.0, 1.3, 0.79, 1.2])
+    hit = M.within_ratio(pred, gt)
+    np.testing.assert_array_equal(hit, [True, False, False, True])
+    kept = M.kept_at_thresholds(np.array([0.95, 0.92, 0.6, 0.3]), hit)
+    assert kept['0.9'] == {'share': 0.5, 'delta1': 0.5}
+    assert kept['0.5']['share'] == pytest.approx(0.75) and kept['0.5']['delta1'] == pytest.approx(1 / 3)
+    assert np.isnan(M.kept_at_thresholds(np.array([0.1]), np.array([True]))['0.9']['delta1'])
+
+
+def test_accumulator_calibration_of_an_honest_and_an_overconfident_confidence():
+    rng = np.random.default_rng(0)
+    gt = np.full((64, 64), 2.0)
+    # half of the pixels right (x1.1), half wrong (x1.5)
+    wrong = rng.random(gt.shape) < 0.5
+    pred = np.where(wrong, 3.0, 2.2)
+    honest, over = M.MetricAccumulator(pool_stride=1), M.MetricAccumulator(pool_stride=1)
+    honest.add(pred, gt, confidence=np.full(gt.shape, 0.5))
+    over.add(pred, gt, confidence=np.full(gt.shape, 0.95))
+    h, o = honest.summary()['calibration'], over.summary()['calibration']
+    assert h['hit_rate'] == pytest.approx(1.0 - wrong.mean())
+    assert h['ece'] == pytest.approx(abs(0.5 - h['hit_rate']))
+    assert o['ece'] == pytest.approx(0.95 - o['hit_rate'])
+    assert o['kept']['0.9']['share'] == 1.0 and h['kept']['0.9']['share'] == 0.0

@@ -21,8 +21,8 @@ from dpv_sensor.benchmarks import stream_table as ST
 from dpv_sensor.client.replay import parse_params
 
 NODE = ['measurement=classical', 'processing_width=96', 'processing_height=72', 'num_planes=32', 'window_mode=causal']
-ARGS = ['--seeds', '50', '--frames', '12', '--render-size', '96x72', '--no-gt', '--noise-seeds', '0', '--keep-bags',
-        '--quiet', '--params'] + NODE
+ARGS = ['--seeds', '50', '--frames', '12', '--render-size', '96x72', '--no-gt', '--offset-ms', '0', '--noise-seeds', '0',
+        '--keep-bags', '--quiet', '--params'] + NODE
 
 
 def _run(out, timeout=300):
@@ -82,6 +82,29 @@ def test_table_fields_match_independent_values(table_run):
     md = (out / f'stream_table_{ST.params_tag(parse_params(NODE))}.md').read_text()
     row = [ln for ln in md.splitlines() if ln.startswith('| synthetic_seed50 |')]
     assert len(row) == 1 and '| noisy ×1 |' in row[0] and f"| {run['abs_rel']:.3f} |" in row[0], md
+    # calibration of the run: ECE and the kept share recomputed from the recorded depth and confidence images
+    conf_imgs = R.read_depth_images(out / 'work' / key / 'output_bag', '/confidence/image')
+    assert [c.stamp_ns for c in conf_imgs] == [s.stamp_ns for s in depth]
+    confs, hits = [], []
+    for s, ci in zip(depth, conf_imgs):
+        j = int(np.argmin(np.abs(stamps - s.stamp_ns / 1e9)))
+        gt = np.asarray(seq.depth(j), np.float64)
+        p = np.asarray(s.data, np.float64)
+        m = np.isfinite(p) & (p > 0) & (gt > 0)
+        confs.append(np.asarray(ci.data, np.float64)[m][::8])
+        hits.append((np.maximum(p[m] / gt[m], gt[m] / p[m]) < 1.25)[::8])
+    conf, hit = np.concatenate(confs), np.concatenate(hits)
+    cal = run['calibration']
+    assert cal['num_pixels'] == conf.size
+    assert cal['hit_rate'] == pytest.approx(hit.mean(), abs=1e-9)
+    ece = 0.0
+    for b in range(10):
+        sel = (np.minimum((conf * 10).astype(int), 9) == b)
+        if sel.any():
+            ece += sel.mean() * abs(conf[sel].mean() - hit[sel].mean())
+    assert cal['ece'] == pytest.approx(ece, abs=1e-6)
+    assert cal['kept']['0.5']['share'] == pytest.approx((conf >= 0.5).mean(), abs=1e-9)
+    assert (out / 'plots' / f'{key}_reliability.png').is_file()
 
 
 def test_second_call_runs_nothing(table_run):
@@ -111,6 +134,18 @@ def test_odometry_noise_is_two_percent_of_each_step_and_a_tenth_of_a_degree():
         assert rot_err == pytest.approx(0.1, abs=1e-6)
     with pytest.raises(ValueError):
         ST.odometry_poses(seq, 'drift')
+
+
+def test_time_offset_source_is_the_gt_pose_later_by_the_offset():
+    from dpv_sensor.data.synthetic import render_sequence
+    seq = render_sequence(50, 6, width=32, height=24, lazy=True)
+    gt = ST.odometry_poses(seq, 'gt')
+    dt = seq.stamp(1) - seq.stamp(0)
+    half = ST.odometry_poses(seq, f'offset{1000 * dt / 2:g}ms')
+    # half a frame later: half way between the frames (linear translation), the last pose held
+    np.testing.assert_allclose(half[2][:3, 3], 0.5 * (gt[2][:3, 3] + gt[3][:3, 3]), atol=1e-9)
+    np.testing.assert_allclose(half[5], gt[5], atol=1e-12)
+    assert ST.noise_description('offset10ms') == {'time_offset_ms': 10.0}
 
 
 def _rot(T):

@@ -10,14 +10,18 @@ odometry at 100 Hz), the node is started as its own process at its defaults plus
 dropped) while the outputs are recorded, and the recorded bag is scored with ``evaluate bag``'s code
 (dpv_sensor.evaluation.records_from_bag / evaluate_records).
 
-Pose sources: ``gt`` (the sequence's poses as odometry) and ``noisy<k>`` for each noise seed k (odometry-like drift:
-2 % of each step's translation in a random direction and a 0.1 deg rotation about a random axis per frame, chained:
-dpv_sensor.data.trajectory.corrupt_trajectory). Depth is always scored against the GT depth, and consumer odometry
+Pose sources: ``gt`` (the sequence's poses as odometry), ``offset<t>ms`` (``--offset-ms``, default 10: the GT pose
+t ms after each image's stamp, a camera-odometry time offset) and ``noisy<k>`` for each noise seed k (odometry-like
+drift: 2 % of each step's translation in a random direction and a 0.1 deg rotation about a random axis per frame,
+chained: dpv_sensor.data.trajectory.corrupt_trajectory). Depth is always scored against the GT depth, and consumer odometry
 against the GT poses.
 
 Columns (frame means over the recorded keyframe outputs unless said otherwise):
 
 - abs_rel, d1: metric depth; ms abs_rel: per-frame median-scaled abs_rel; coverage: scored / valid GT pixels.
+- ECE, mean conf, d1 pooled, kept@.9, d1@.9, d1@.7: calibration of the published confidence as the probability of
+  the delta1 event (dpv_sensor.metrics.calibration_summary, pixels pooled over the run); a reliability diagram per
+  run in ``OUT/plots/<run>_reliability.png``.
 - conf½: confident-half ratio, abs_rel of the most confident half of a frame's scored pixels / abs_rel of all of
   them (dpv_sensor.metrics.confident_half_ratio), mean over frames (the pooled figure is in the JSON).
 - resets: published outputs whose filter restarted, whichever layer restarted it (the estimator's stream rules,
@@ -65,7 +69,9 @@ NOISE_TRANS_REL = 0.02
 NOISE_ROT_DEG = 0.1
 RENDER_FRAMES = 60
 RENDER_SIZE = (320, 240)
-RUN_VERSION = 1   # bump when a cached run's content changes meaning
+# the time-offset pose source: the odometry a camera image is paired with describes the pose this much later (ms)
+TIME_OFFSET_MS = 10.0
+RUN_VERSION = 2   # bump when a cached run's content changes meaning (2: calibration)
 
 
 # --------------------------------------------------------------------------------------------------------------
@@ -91,16 +97,38 @@ class PosedView:
 
 
 def odometry_poses(seq, pose_source: str) -> List[np.ndarray]:
-    """The poses written as odometry for a pose source: 'gt', or 'noisy<seed>' (corrupt_trajectory with the table's
-    noise, seeded)."""
+    """The poses written as odometry for a pose source: 'gt', 'noisy<seed>' (corrupt_trajectory with the table's
+    noise, seeded), or 'offset<ms>' (the GT pose ``ms`` milliseconds after each image's stamp, SLERP + linear
+    between frames: a camera-odometry time offset)."""
     gt = [np.asarray(seq.pose(i), np.float64) for i in range(len(seq))]
     if pose_source == 'gt':
         return gt
+    m = re.fullmatch(r'offset(\d+(?:\.\d+)?)ms', pose_source)
+    if m:
+        return time_shifted_poses(seq, gt, float(m.group(1)) / 1000.0)
     m = re.fullmatch(r'noisy(\d+)', pose_source)
     if not m:
         raise ValueError(f'pose source {pose_source!r} is neither gt nor noisy<seed>')
     from dpv_sensor.data.trajectory import corrupt_trajectory
     return corrupt_trajectory(gt, trans_noise_rel=NOISE_TRANS_REL, rot_noise_deg=NOISE_ROT_DEG, seed=int(m.group(1)))
+
+
+def time_shifted_poses(seq, poses: List[np.ndarray], offset_s: float) -> List[np.ndarray]:
+    """The trajectory ``poses`` (one per frame, at ``seq.stamp(i)``) evaluated ``offset_s`` seconds after each frame's
+    stamp (SLERP + linear between the two frames around it, held at the ends)."""
+    from dpv_sensor.geometry import interpolate_pose
+    stamps = np.array([float(seq.stamp(i)) for i in range(len(seq))], np.float64)
+    out = []
+    for t in stamps + float(offset_s):
+        j = int(np.searchsorted(stamps, t, side='right'))
+        if j <= 0:
+            out.append(poses[0].copy())
+        elif j >= len(stamps):
+            out.append(poses[-1].copy())
+        else:
+            a = (t - stamps[j - 1]) / (stamps[j] - stamps[j - 1])
+            out.append(interpolate_pose(poses[j - 1], poses[j], float(a)))
+    return out
 
 
 def sequence_folders(data: pathlib.Path) -> List[pathlib.Path]:
@@ -214,6 +242,16 @@ def _get(d, *path):
 # --------------------------------------------------------------------------------------------------------------
 # one run
 # --------------------------------------------------------------------------------------------------------------
+def noise_description(pose_source: str) -> Optional[Dict[str, float]]:
+    """What was done to the GT poses of a pose source (None for gt)."""
+    if pose_source == 'gt':
+        return None
+    m = re.fullmatch(r'offset(\d+(?:\.\d+)?)ms', pose_source)
+    if m:
+        return {'time_offset_ms': float(m.group(1))}
+    return {'trans_rel': NOISE_TRANS_REL, 'rot_deg_per_frame': NOISE_ROT_DEG}
+
+
 def run_one(seq_name: str, seq_dir: pathlib.Path, pose_source: str, user_params: Dict[str, Any],
             out: pathlib.Path, *, min_depth=None, max_depth=None, keep_bags: bool = False, progress: bool = True,
             start_timeout: float = 180.0, frame_timeout: float = 180.0) -> Dict[str, Any]:
@@ -262,12 +300,16 @@ def run_one(seq_name: str, seq_dir: pathlib.Path, pose_source: str, user_params:
     timing['score_s'] = round(time.perf_counter() - t, 1)
     timing['total_s'] = round(time.perf_counter() - t_all, 1)
 
+    if summary.get('calibration'):
+        from dpv_sensor import plots
+        plots.reliability_plot({f'{seq_name} {pose_source}': summary['calibration']},
+                               out / 'plots' / f'{key}_reliability.png', title=f'{seq_name}, poses {pose_source}')
     co = summary.get('consumer_odometry') or {}
     kf_vals = list(kf_ms.values())
     result = {
         'version': RUN_VERSION, 'key': key, 'sequence': seq_name, 'sequence_folder': str(seq_dir),
         'pose_source': pose_source, 'params': user_params, 'node_parameters': params,
-        'noise': None if pose_source == 'gt' else {'trans_rel': NOISE_TRANS_REL, 'rot_deg_per_frame': NOISE_ROT_DEG},
+        'noise': noise_description(pose_source),
         'frames': len(seq), 'size': list(seq.size) if hasattr(seq, 'size') else None,
         'keyframes_scored': len(records),
         'abs_rel': summary['metric']['frame_mean']['abs_rel'],
@@ -279,6 +321,7 @@ def run_one(seq_name: str, seq_dir: pathlib.Path, pose_source: str, user_params:
         'confident_half_ratio_pooled': _get(summary, 'confidence', 'confident_half_ratio_pooled'),
         'ause': _get(summary, 'confidence', 'ause_frame_mean'),
         'mean_confidence': _get(summary, 'confidence', 'mean_confidence'),
+        'calibration': summary.get('calibration'),
         'temporal': _get(summary, 'temporal_consistency', 'pair_mean'),
         'output_resets': int(D._as_number(d.get('output_resets'), -1)),
         'output_reset_reasons': reset_reasons(series),
@@ -320,6 +363,12 @@ COLUMNS = [   # (header, run key, format)
     ('d1', 'delta1', '{:.3f}'),
     ('ms abs_rel', 'ms_abs_rel', '{:.3f}'),
     ('conf½', 'confident_half_ratio', '{:.2f}'),
+    ('ECE', ('calibration', 'ece'), '{:.3f}'),
+    ('mean conf', ('calibration', 'mean_confidence'), '{:.2f}'),
+    ('d1 pooled', ('calibration', 'hit_rate'), '{:.2f}'),
+    ('kept@.9', ('calibration', 'kept', '0.9', 'share'), '{:.2f}'),
+    ('d1@.9', ('calibration', 'kept', '0.9', 'delta1'), '{:.2f}'),
+    ('d1@.7', ('calibration', 'kept', '0.7', 'delta1'), '{:.2f}'),
     ('coverage', 'coverage', '{:.3f}'),
     ('resets', 'output_resets', '{:g}'),
     ('kf ms', 'keyframe_ms_median', '{:.0f}'),
@@ -337,15 +386,17 @@ def _value(run: Dict[str, Any], key):
 
 
 def table_rows(runs: List[Dict[str, Any]], sequences: List[str], noise_seeds: List[int],
-               params: Dict[str, Any]) -> List[Dict[str, Any]]:
-    """One row per sequence and pose source ('gt'; 'noisy' = mean over the noise seeds that have run)."""
+               params: Dict[str, Any], single_sources: Tuple[str, ...] = ('gt',)) -> List[Dict[str, Any]]:
+    """One row per sequence and pose source (each of ``single_sources``, e.g. 'gt' and 'offset10ms'; 'noisy' = mean
+    over the noise seeds that have run)."""
     by_key = {r['key']: r for r in runs}
     rows = []
     for s in sequences:
-        gt = by_key.get(run_key(s, 'gt', params))
-        if gt is not None:
-            rows.append({'sequence': s, 'poses': 'gt', 'runs': 1,
-                         **{h: _value(gt, k) for h, k, _f_ in COLUMNS}})
+        for src in single_sources:
+            one = by_key.get(run_key(s, src, params))
+            if one is not None:
+                rows.append({'sequence': s, 'poses': src, 'runs': 1,
+                             **{h: _value(one, k) for h, k, _f_ in COLUMNS}})
         noisy = [by_key[run_key(s, f'noisy{k}', params)] for k in noise_seeds
                  if run_key(s, f'noisy{k}', params) in by_key]
         if noisy:
@@ -386,9 +437,13 @@ def markdown(rows: List[Dict[str, Any]]) -> str:
 
 LEGEND = ('Frame means over the keyframe outputs recorded from the node (lockstep replay: the node drops no image '
           'once it has its first camera_info; the drops are listed per run below). '
-          "poses: gt = the sequence's poses as odometry; noisy ×n = mean over n odometry noise seeds (2 % of each "
+          "poses: gt = the sequence's poses as odometry; offset<t>ms = the GT pose t ms after each image stamp (a "
+          'camera-odometry time offset); noisy ×n = mean over n odometry noise seeds (2 % of each '
           'step, 0.1°/frame rotation random walk; abs_rel range over the seeds in brackets). ms = median-scaled. '
-          "conf½ = abs_rel of the most confident half of each frame's pixels / abs_rel of all. resets = outputs "
+          "conf½ = abs_rel of the most confident half of each frame's pixels / abs_rel of all. ECE = expected "
+          'calibration error of the confidence against the event "true depth within ×1.25" (10 bins, pixels pooled '
+          'over the run); mean conf vs d1 pooled = the same two averages over all pooled pixels; kept@.9 / d1@.9 = '
+          'share of pixels with confidence >= 0.9 and their d1 (d1@.7 at 0.7). resets = outputs '
           'whose filter restarted (first output not counted; summed over the seeds). kf ms = median estimator time '
           "per keyframe image in the node. const = the sequence's median GT depth as a constant, on the same "
           'keyframes and pixels. odo t× / r× = Open3D RGB-D odometry (hybrid) between consecutive outputs: median '
@@ -410,11 +465,11 @@ def run_details(runs: List[Dict[str, Any]]) -> str:
 
 
 def write_table(out: pathlib.Path, runs, sequences, noise_seeds, params, command: str,
-                failures: Dict[str, str]) -> Tuple[str, Dict[str, Any]]:
-    rows = table_rows(runs, sequences, noise_seeds, params)
+                failures: Dict[str, str], single_sources: Tuple[str, ...] = ('gt',)) -> Tuple[str, Dict[str, Any]]:
+    rows = table_rows(runs, sequences, noise_seeds, params, single_sources)
     md = markdown(rows)
     done = len(runs)
-    wanted = len(sequences) * (1 + len(noise_seeds))
+    wanted = len(sequences) * (len(single_sources) + len(noise_seeds))
     times = [r['timing']['total_s'] for r in runs if _get(r, 'timing', 'total_s') is not None]
     head = (f'Command: `{command}`\n\nParameters: {params_tag(params)}; {done} of {wanted} runs done'
             + (f', {len(failures)} failed' if failures else '')
@@ -450,7 +505,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--render-size', default=f'{RENDER_SIZE[0]}x{RENDER_SIZE[1]}', metavar='WxH',
                    help=f'size of the rendered seeds ({RENDER_SIZE[0]}x{RENDER_SIZE[1]})')
     p.add_argument('--noise-seeds', default='0-2', help="odometry noise seeds ('' for GT poses only)")
-    p.add_argument('--no-gt', action='store_true', help='only the noisy pose sources')
+    p.add_argument('--no-gt', action='store_true', help='only the noisy (and time-offset) pose sources')
+    p.add_argument('--offset-ms', type=float, default=TIME_OFFSET_MS,
+                   help=f'add the time-offset pose source: GT poses taken this many ms after each image stamp '
+                        f'({TIME_OFFSET_MS:g}; 0 = none)')
     p.add_argument('--params', nargs='*', default=[], metavar='KEY=VALUE', help='node parameters over the defaults')
     p.add_argument('--out', default='out/stream_table', help='output folder (cache of runs, tables)')
     p.add_argument('--min-depth', type=float, default=None, help='smallest GT depth scored (default: all valid)')
@@ -500,7 +558,8 @@ def main(argv: Optional[List[str]] = None) -> int:
         folders[f'synthetic_seed{s}'] = None   # rendered when its first run starts
     if not folders:
         ap.error('nothing to run: give --data and/or --seeds')
-    sources = ([] if a.no_gt else ['gt']) + [f'noisy{k}' for k in noise_seeds]
+    single = tuple(([] if a.no_gt else ['gt']) + ([f'offset{a.offset_ms:g}ms'] if a.offset_ms > 0 else []))
+    sources = list(single) + [f'noisy{k}' for k in noise_seeds]
     sequences = list(folders)
     command = 'python -m dpv_sensor.benchmarks.stream_table ' + ' '.join(x for x in argv if x != '--table-only')
 
@@ -556,8 +615,8 @@ def main(argv: Optional[List[str]] = None) -> int:
             print(f"run {key}: abs_rel {res['abs_rel']:.4f}, d1 {res['delta1']:.3f}, {res['keyframes_scored']} "
                   f"keyframes, resets {res['output_resets']}, kf {res['keyframe_ms_median'] or float('nan'):.0f} ms, "
                   f"{res['timing']['total_s']:.0f} s", flush=True)
-            text, _ = write_table(out, cached_runs(), sequences, noise_seeds, params, command, failures)
-    text, _ = write_table(out, cached_runs(), sequences, noise_seeds, params, command, failures)
+            text, _ = write_table(out, cached_runs(), sequences, noise_seeds, params, command, failures, single)
+    text, _ = write_table(out, cached_runs(), sequences, noise_seeds, params, command, failures, single)
     print('\n' + text)
     return 1 if failures else 0
 
