@@ -239,12 +239,32 @@ def subplane_depth(logp_bdhw: torch.Tensor, depths_d: torch.Tensor, depth_bhw: t
     return index_to_depth(subplane_index(logp_bdhw, idx), d[0], d[-1], D).to(depth_bhw.dtype)
 
 
-def _mass_in_index_window(logp_bdhw: torch.Tensor, lo_b1hw: torch.Tensor, hi_b1hw: torch.Tensor) -> torch.Tensor:
+def _gauss_integral(u: torch.Tensor) -> torch.Tensor:
+    """``u Phi(u) + phi(u)``: the antiderivative of the standard normal CDF ``Phi``."""
+    return u * 0.5 * (1.0 + torch.erf(u * (0.5 ** 0.5))) + torch.exp(-0.5 * u * u) * (2.0 * math.pi) ** -0.5
+
+
+def _mass_in_index_window(logp_bdhw: torch.Tensor, lo_b1hw: torch.Tensor, hi_b1hw: torch.Tensor,
+                          sigma_b1hw: Optional[torch.Tensor] = None) -> torch.Tensor:
     """DPV mass inside the fractional index window [lo, hi], plane k covering [k - 0.5, k + 0.5] with its mass
-    spread uniformly (so uniform in inverse depth). (B, H, W) in [0, 1]."""
+    spread uniformly (so uniform in inverse depth). (B, H, W) in [0, 1].
+
+    With ``sigma_b1hw`` (planes, per pixel) the DPV is first convolved with a Gaussian of that std along the plane
+    index (an extra, independent error of the index): plane k then puts ``int_{k-1/2}^{k+1/2} [Phi((hi - x) / s) -
+    Phi((lo - x) / s)] dx`` inside the window, which is ``s [G((hi - k + 1/2) / s) - G((hi - k - 1/2) / s) - G((lo -
+    k + 1/2) / s) + G((lo - k - 1/2) / s)]`` with ``G(u) = u Phi(u) + phi(u)``; s -> 0 gives the plain overlap."""
     D = logp_bdhw.shape[1]
     k = torch.arange(D, dtype=logp_bdhw.dtype, device=logp_bdhw.device).reshape(1, D, 1, 1)
     overlap = (torch.minimum(k + 0.5, hi_b1hw) - torch.maximum(k - 0.5, lo_b1hw)).clamp(0.0, 1.0)
+    if sigma_b1hw is not None:
+        # beyond D planes the widened DPV is flat across any band; the cap also keeps the differences of G exact
+        s = sigma_b1hw.to(logp_bdhw.dtype).nan_to_num(nan=0.0, posinf=float(D)).clamp(0.0, float(D))
+        s_safe = s.clamp_min(1e-3)
+
+        def edge(c):
+            return s_safe * (_gauss_integral((c - k + 0.5) / s_safe) - _gauss_integral((c - k - 0.5) / s_safe))
+        widened = (edge(hi_b1hw) - edge(lo_b1hw)).clamp(0.0, 1.0)
+        overlap = torch.where(s > 1e-3, widened, overlap)
     return (torch.exp(logp_bdhw) * overlap).sum(1).clamp(0.0, 1.0)
 
 
@@ -276,7 +296,7 @@ def confidence(logp_bdhw: torch.Tensor, depths_d: torch.Tensor, readout: str = '
 
 
 def ratio_confidence(logp_bdhw: torch.Tensor, depths_d: torch.Tensor, depth_bhw: torch.Tensor,
-                     ratio: float = 1.25) -> torch.Tensor:
+                     ratio: float = 1.25, sigma_planes_bhw: Optional[torch.Tensor] = None) -> torch.Tensor:
     """Probability under the DPV that the true depth d lies within a factor ``ratio`` of the estimate:
     ``P(max(d / d_hat, d_hat / d) < ratio)``, i.e. that the pixel counts as correct by the delta < ratio
     accuracy measure (delta < 1.25 by default). Same bin model as :func:`confidence` (plane k's mass spread
@@ -284,6 +304,11 @@ def ratio_confidence(logp_bdhw: torch.Tensor, depths_d: torch.Tensor, depth_bhw:
     holds no mass. Unlike the +-1-plane window, whose width in depth grows with depth (planes are uniform in
     inverse depth), the band is the same relative width everywhere, so a DPV as wide in metres at 5 m as
     another at 1 m is less confident. (B, H, W) in [0, 1]; differentiable in the probabilities.
+
+    ``sigma_planes_bhw``: an independent error of the measured plane index (std in planes per pixel, e.g. the pose
+    uncertainty of ``dpv_sensor.pose_uncertainty``) that the probability accounts for: the DPV convolved with that
+    Gaussian (see ``_mass_in_index_window``). A larger sigma never raises the confidence of a unimodal DPV centred
+    in the band.
     """
     if not ratio > 1.0:
         raise ValueError(f'ratio must be > 1, got {ratio}')
@@ -291,7 +316,8 @@ def ratio_confidence(logp_bdhw: torch.Tensor, depths_d: torch.Tensor, depth_bhw:
     d = _planes(depths_d, logp_bdhw)
     lo = inverse_depth_index(depth_bhw / ratio, d[0], d[-1], D)[:, None]    # nearer -> smaller index
     hi = inverse_depth_index(depth_bhw * ratio, d[0], d[-1], D)[:, None]
-    return _mass_in_index_window(logp_bdhw, lo, hi)
+    sig = None if sigma_planes_bhw is None else sigma_planes_bhw[:, None]
+    return _mass_in_index_window(logp_bdhw, lo, hi, sig)
 
 
 CONFIDENCES = _params.choices('confidence')
@@ -299,15 +325,17 @@ DEFAULT_CONFIDENCE = _params.default('confidence')
 
 
 def published_confidence(logp_bdhw: torch.Tensor, depths_d: torch.Tensor, depth_bhw: torch.Tensor,
-                         mode: str = DEFAULT_CONFIDENCE, ratio: float = 1.25) -> torch.Tensor:
+                         mode: str = DEFAULT_CONFIDENCE, ratio: float = 1.25,
+                         sigma_planes_bhw: Optional[torch.Tensor] = None) -> torch.Tensor:
     """The confidence image the sensor publishes for the depth ``depth_bhw`` read out of a DPV (the node
     parameters ``confidence`` / ``confidence_ratio``): 'plane' = :func:`confidence` (mass within one plane
     of the estimate), 'ratio' = :func:`ratio_confidence` (probability that the depth is within a factor
-    ``ratio`` of the truth)."""
+    ``ratio`` of the truth). ``sigma_planes_bhw``: the pose uncertainty the ratio confidence accounts for (see
+    :func:`ratio_confidence`; the plane confidence ignores it)."""
     if mode == 'plane':
         return confidence(logp_bdhw, depths_d, depth_bhw=depth_bhw)
     if mode == 'ratio':
-        return ratio_confidence(logp_bdhw, depths_d, depth_bhw, ratio)
+        return ratio_confidence(logp_bdhw, depths_d, depth_bhw, ratio, sigma_planes_bhw)
     raise ValueError(f'confidence {mode!r} is not one of {list(CONFIDENCES)}')
 
 

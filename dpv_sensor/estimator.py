@@ -106,6 +106,17 @@ What happens to a pushed frame
    output, the stream state untouched); ``status['frames_degenerate']`` counts them and
    ``status['last_degenerate_reason']`` / ``last_image_quality`` say why (for the node's log and counter).
 
+11. **Pose uncertainty** (``pose_uncertainty``, :mod:`dpv_sensor.pose_uncertainty`, docs/pose_uncertainty.md): per
+   source, the uncertainty of its pose relative to the reference (the odometry's pose covariance where the frames
+   carry one (``Frame.pose_covariance_66``) and ``pose_uncertainty`` is auto, else the ``odom_drift_*`` figures over
+   the path between the two keyframes; plus ``odom_time_sync_ms`` times the change of velocity between them) moves
+   each pixel's match along the epipolar line; against the disparity span of item 9 this is a std of the measured
+   plane index per pixel (the sources combined as independent measurements). The measurement is widened by it
+   before the filter (``pose_uncertainty.widen_planes``), and the published ratio confidence of the keyframe counts
+   it again (``dpv.ratio_confidence(sigma_planes_bhw=...)``): the reference's pose error is common to every
+   measurement the filter fused into its belief, so fusion must not shrink it. ``status['pose_uncertainty']``: the
+   largest source's rotation (deg) and translation (mm) std and the median std in planes.
+
 Device and precision: ``config.device`` (``cpu``, ``cuda``, ``cuda:N``); everything runs under
 ``torch.no_grad()`` (not ``inference_mode``, so a pose refiner may still use autograd on the cached
 keyframe tensors); on CUDA the networks run under ``torch.autocast`` (bfloat16 by default); on the CPU in
@@ -131,7 +142,7 @@ from . import dpv as dpv_ops
 from . import params as P
 from . import geometry
 from .continuity import DUPLICATE, stream_break, time_order
-from . import image_quality, parallax
+from . import image_quality, parallax, pose_uncertainty
 from .frame import DepthOutput, Frame
 from .edge_filter import joint_weighted_median
 from .geometry import resample_to_camera, scale_intrinsics_np
@@ -311,6 +322,8 @@ class Estimator:
         self._last_degenerate_reason: Optional[str] = None
         self.last_image_quality: Optional[image_quality.ImageQuality] = None
         self._last_parallax: Dict[str, float] = {}
+        self._last_pose_sigma: Dict[str, float] = {}
+        self._twist: Optional[np.ndarray] = None
 
     # ------------------------------------------------------------------ construction helpers
     @staticmethod
@@ -474,6 +487,7 @@ class Estimator:
             'frames_degenerate': self._frames_degenerate,
             'last_degenerate_reason': self._last_degenerate_reason,
             'parallax': dict(self._last_parallax),
+            'pose_uncertainty': dict(self._last_pose_sigma),
             'tracking': self._tracking,
             'pose_refinement': cfg.pose_refinement,
             'pose_refiner': self.pose_refiner is not None,
@@ -526,6 +540,9 @@ class Estimator:
         reset = self._stream_reset_reason(stamp, T, size, K_in, frame.sensor_gap_s)
         if reset is not None:
             self.reset(reset)
+        # the camera's velocity, for the time-offset term of the pose uncertainty
+        self._twist = None if self._last_frame is None else \
+            pose_uncertainty.twist_between(self._last_frame[1], T, stamp - self._last_frame[0])
         self._last_frame = (stamp, T, size, K_in)
         self._frames_accepted += 1
         frame_index = self._frames_accepted - 1
@@ -607,7 +624,8 @@ class Estimator:
         kf = Keyframe(index=self._kf_counter, frame_index=frame_index, stamp=float(frame.stamp),
                       T_world_cam_44=self._chain_pose(T), image_b3hw=img_t,
                       K_b33=torch.as_tensor(K_proc, dtype=torch.float32, device=self.device)[None],
-                      input_size=size, input_K_33=K_in, frame_id=frame.frame_id, odom_T_world_cam_44=T)
+                      input_size=size, input_K_33=K_in, frame_id=frame.frame_id, odom_T_world_cam_44=T,
+                      twist_world_6=self._twist, pose_cov_66=self._pose_covariance(frame))
         self._kf_counter += 1
         self._keyframes += 1
         self.window.append(kf)
@@ -647,7 +665,13 @@ class Estimator:
         t = time.perf_counter()
         vol_hw = tuple(meas.logp_bdhw.shape[-2:])
         coverage = self._coverage(meas.K_vol_b33, vol_hw, T_src_ref_t[0])
-        weight = self._parallax_weight(meas, ref, T_src_ref_t, vol_hw)
+        geom = self._sweep_geometry(meas, ref, T_src_ref_t, vol_hw)
+        weight = self._parallax_weight(geom, ref, T_src_ref_t)
+        t_pose = time.perf_counter()
+        sigma_planes = self._pose_sigma_planes(meas, geom, ref, sources)
+        if sigma_planes is not None:
+            meas.logp_bdhw = pose_uncertainty.widen_planes(meas.logp_bdhw, sigma_planes)
+            timings['pose_uncertainty'] = self._ms(t_pose)
         step = self.filter.step(meas.logp_bdhw.float(), meas.K_vol_b33, self._filter_pose(ref.T_world_cam_44),
                                 ref.stamp, self.depths_d, image_b3hw=ref.image_b3hw, update_weight_bhw=weight)
         post = step.logp_bdhw
@@ -663,14 +687,17 @@ class Estimator:
             with self._autocast():
                 full = self.model.refine(post, meas.feats, ref.image_b3hw)
             full = full.float()
-            depth, conf = self._readout(full, ref.image_b3hw)
+            sig = None if sigma_planes is None else resample_to_camera(
+                sigma_planes[:, None].clamp_max(pose_uncertainty.WIDTH_LADDER[-1]), meas.K_vol_b33[0], K_proc_t,
+                (H, W))[:, 0]
+            depth, conf = self._readout(full, ref.image_b3hw, sig)
             if support is not None:
                 conf = conf * resample_to_camera(support[:, None], meas.K_vol_b33[0], K_proc_t, (H, W))[:, 0]
             valid = resample_to_camera(coverage[:, None].float(), meas.K_vol_b33[0], K_proc_t, (H, W),
                                        mode='nearest')[:, 0] > 0.5
             timings['refine'] = self._ms(t)
         else:
-            depth_v, conf_v = self._readout(post)
+            depth_v, conf_v = self._readout(post, None, sigma_planes)
             if support is not None:
                 conf_v = conf_v * support
             depth, conf, valid = self._volume_maps_to_processing(
@@ -713,8 +740,8 @@ class Estimator:
         self._pending_reset_reason = None
         return reason
 
-    def _readout(self, logp_bdhw: torch.Tensor, guide_b3hw: Optional[torch.Tensor] = None
-                 ) -> Tuple[torch.Tensor, torch.Tensor]:
+    def _readout(self, logp_bdhw: torch.Tensor, guide_b3hw: Optional[torch.Tensor] = None,
+                 sigma_planes_bhw: Optional[torch.Tensor] = None) -> Tuple[torch.Tensor, torch.Tensor]:
         """(depth, confidence), each (B, H, W), of a DPV with the configured ``depth_readout`` and
         ``confidence``; with ``depth_subplane`` the depth is refined between planes
         (``dpv.subplane_depth``), and with a colour ``guide_b3hw`` of the same size and
@@ -724,7 +751,8 @@ class Estimator:
         depth = dpv_ops.depth_estimate(logp_bdhw, self.depths_d, self.readout)
         if cfg.depth_subplane:
             depth = dpv_ops.subplane_depth(logp_bdhw, self.depths_d, depth)
-        conf = dpv_ops.published_confidence(logp_bdhw, self.depths_d, depth, cfg.confidence, cfg.confidence_ratio)
+        conf = dpv_ops.published_confidence(logp_bdhw, self.depths_d, depth, cfg.confidence, cfg.confidence_ratio,
+                                            sigma_planes_bhw)
         if guide_b3hw is not None and cfg.edge_filter_radius > 0 and guide_b3hw.shape[-2:] == depth.shape[-2:]:
             depth = joint_weighted_median(depth, conf, guide_b3hw, cfg.edge_filter_radius, cfg.edge_filter_step,
                                           cfg.edge_filter_sigma)
@@ -791,16 +819,13 @@ class Estimator:
         return _Measurement(logp.float(), K_vol.float())
 
     # ------------------------------------------------------------------ parallax
-    def _parallax_weight(self, meas: _Measurement, ref: Keyframe, T_src_ref_t: torch.Tensor,
-                         vol_hw) -> Optional[torch.Tensor]:
-        """(1, h, w) weight in [0, 1] of this measurement per pixel (``parallax.parallax_support`` of the
-        disparity span, in processing-size pixels, of the band [d / 1.25, d * 1.25] (``parallax.BAND_RATIO``)
-        around the measurement's own depth estimate ``d``, but no nearer than its median, over the window's
-        sources); None when the
-        parallax rule is off (``parallax_full_px`` = 0)."""
-        full = float(self.config.parallax_full_px)
-        if full <= 0:
-            self._last_parallax = {}
+    def _sweep_geometry(self, meas: _Measurement, ref: Keyframe, T_src_ref_t: torch.Tensor,
+                        vol_hw) -> Optional[Tuple[torch.Tensor, torch.Tensor]]:
+        """(depth (1, h, w), spans (N, 1, h, w)) at the volume resolution: the measurement's own depth estimate
+        ``d``, but no nearer than its median, and per source the disparity span (processing-size pixels) of the band
+        [d / 1.25, d * 1.25] (``parallax.BAND_RATIO``) around it; None when neither the parallax rule nor the pose
+        uncertainty needs them."""
+        if self.config.parallax_full_px <= 0 and self.config.pose_uncertainty == 'off':
             return None
         depth = dpv_ops.depth_estimate(meas.logp_bdhw.float(), self.depths_d, self.readout)
         # a wrong, too-near estimate would claim parallax it does not have: depths are taken no nearer
@@ -809,6 +834,60 @@ class Estimator:
         spans = parallax.disparity_span(depth, meas.K_vol_b33, T_src_ref_t, parallax.BAND_RATIO, src_hw=vol_hw,
                                         per_source=True)                       # N, 1, h, w
         spans = spans * float(ref.K_b33[0, 0, 0] / meas.K_vol_b33[0, 0, 0])  # volume -> processing pixels
+        return depth, spans
+
+    def _pose_covariance(self, frame: Frame) -> Optional[np.ndarray]:
+        """The frame's odometry pose covariance when ``pose_uncertainty`` is auto and it has one."""
+        cov = getattr(frame, 'pose_covariance_66', None)
+        if cov is None or self.config.pose_uncertainty != 'auto':
+            return None
+        cov = np.asarray(cov, np.float64)
+        return cov.reshape(6, 6) if cov.size == 36 else None
+
+    def _drift_model(self) -> pose_uncertainty.DriftModel:
+        cfg = self.config
+        return pose_uncertainty.DriftModel(trans_per_m=cfg.odom_drift_trans, rot_deg_per_m=cfg.odom_drift_rot_deg_per_m,
+                                           rot_per_deg=cfg.odom_drift_rot, sync_s=cfg.odom_time_sync_ms / 1000.0)
+
+    def _pose_sigma_planes(self, meas: _Measurement, geom, ref: Keyframe,
+                           sources: List[Keyframe]) -> Optional[torch.Tensor]:
+        """(1, h, w) std (planes, volume resolution) of the measured plane index that the sources' pose uncertainty
+        relative to the reference causes (``dpv_sensor.pose_uncertainty``); None with ``pose_uncertainty`` off.
+        ``status['pose_uncertainty']``: the largest source's rotation / translation std and the median (planes)."""
+        if self.config.pose_uncertainty == 'off' or geom is None:
+            self._last_pose_sigma = {}
+            return None
+        depth, spans = geom
+        model = self._drift_model()
+        kfs = sorted([ref] + list(sources), key=lambda k: k.index)
+        r = kfs.index(ref)
+        shifts, sig_r, sig_t = [], [], []
+        to_proc = float(ref.K_b33[0, 0, 0] / meas.K_vol_b33[0, 0, 0])     # volume -> processing pixels (as spans)
+        for s in sources:
+            i = kfs.index(s)
+            chain = [k.T_world_cam_44 for k in kfs[min(i, r):max(i, r) + 1]]
+            sig = pose_uncertainty.relative_pose_sigma(model, chain, cov_ref_66=ref.pose_cov_66,
+                                                       cov_src_66=s.pose_cov_66, twist_ref_6=ref.twist_world_6,
+                                                       twist_src_6=s.twist_world_6)
+            sig_r.append(sig.rot_rad)
+            sig_t.append(sig.trans_m)
+            shifts.append(pose_uncertainty.match_shift_px(depth, meas.K_vol_b33, sig) * to_proc)
+        sigma_rho = pose_uncertainty.inverse_depth_sigma(depth, spans, torch.stack(shifts, 0), parallax.BAND_RATIO)
+        step_rho = (1.0 / self.d_min - 1.0 / self.d_max) / max(1, self.num_planes - 1)
+        sigma_planes = sigma_rho / step_rho
+        self._last_pose_sigma = {'rot_deg_max': math.degrees(max(sig_r)), 'trans_mm_max': 1000.0 * max(sig_t),
+                                 'median_planes': float(sigma_planes.clamp_max(1e3).median())}
+        return sigma_planes
+
+    def _parallax_weight(self, geom, ref: Keyframe, T_src_ref_t: torch.Tensor) -> Optional[torch.Tensor]:
+        """(1, h, w) weight in [0, 1] of this measurement per pixel (``parallax.parallax_support`` of the
+        disparity span, in processing-size pixels, of the band around the measurement's depth over the window's
+        sources: :meth:`_sweep_geometry`); None when the parallax rule is off (``parallax_full_px`` = 0)."""
+        full = float(self.config.parallax_full_px)
+        if full <= 0 or geom is None:
+            self._last_parallax = {}
+            return None
+        _depth, spans = geom
         span = spans.amax(0)
         if self.config.parallax_rotation_noise > 0:
             # each source's span counts against full_px plus the pose error its rotation brings

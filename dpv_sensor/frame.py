@@ -20,6 +20,10 @@ class Frame:
     reset (``reset_time_gap``) judges this value, so deliberate drops do not restart the filter while a
     camera stream that really stalled still does. None (offline use, replaying every frame): unknown; the
     estimator then uses the time since the previous pushed frame.
+
+    pose_covariance_66: covariance of the camera pose from the odometry (6x6, ROS order: x, y, z, rotation about
+    x, y, z), None when the odometry does not fill it; it sets the pose uncertainty of the measurement
+    (``pose_uncertainty``: auto).
     """
     stamp: float
     image: np.ndarray
@@ -27,6 +31,7 @@ class Frame:
     T_world_cam_44: np.ndarray | None = None
     frame_id: str = 'camera'
     sensor_gap_s: float | None = None
+    pose_covariance_66: np.ndarray | None = None
 
 
 @dataclass

@@ -114,7 +114,9 @@ class Keyframe:
     ``image_b3hw`` is the processing-size image (float in [0, 1], on the estimator's device) and
     ``K_b33`` its intrinsics. ``cache`` holds per-keyframe results that must not be recomputed when the
     keyframe serves as a source again (network features). ``index`` counts keyframes since the last
-    reset; ``frame_index`` counts accepted frames.
+    reset; ``frame_index`` counts accepted frames. ``twist_world_6`` is the camera's world-frame velocity
+    (vx, vy, vz, wx, wy, wz) when the frame arrived and ``pose_cov_66`` the odometry's pose covariance (ROS order),
+    when known: what the pose uncertainty of the measurement is computed from (``dpv_sensor.pose_uncertainty``).
     """
     index: int
     frame_index: int
@@ -127,6 +129,8 @@ class Keyframe:
     frame_id: str = 'camera'
     odom_T_world_cam_44: Optional[np.ndarray] = None
     cache: Dict[str, Any] = field(default_factory=dict)
+    twist_world_6: Optional[np.ndarray] = None
+    pose_cov_66: Optional[np.ndarray] = None
 
     def __post_init__(self):
         self.T_world_cam_44 = np.array(self.T_world_cam_44, dtype=np.float64, copy=True)

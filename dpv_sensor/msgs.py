@@ -334,6 +334,17 @@ def odometry_to_matrix(msg) -> np.ndarray:
     return _pose_fields_to_matrix(msg.pose.pose, 'odometry')
 
 
+def odometry_covariance(msg) -> np.ndarray | None:
+    """The pose covariance of a nav_msgs/Odometry as 6x6 (x, y, z, rotation about x, y, z), or None when the
+    publisher did not fill it (a diagonal that is not all finite and positive: zeros, or -1 for unknown)."""
+    cov = np.asarray(msg.pose.covariance, dtype=np.float64)
+    if cov.size != 36:
+        return None
+    cov = cov.reshape(6, 6)
+    d = np.diag(cov)
+    return cov if bool(np.all(np.isfinite(d)) and np.all(d > 0)) else None
+
+
 def pose_msg_to_matrix(pose) -> np.ndarray:
     """geometry_msgs/Pose (or PoseStamped) -> 4x4. Raises BadOdometry for NaN / non-unit quaternions."""
     return _pose_fields_to_matrix(getattr(pose, 'pose', pose), 'pose')

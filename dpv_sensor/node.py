@@ -82,7 +82,7 @@ from dpv_sensor.frame import Frame
 from dpv_sensor.node_support import (FaultLog, Incoming, LogBridge, Mailbox, RateMeter, camera_gap_ns, max_gap,
                                      merge_incoming)
 from dpv_sensor.pipeline import DEGENERATE, VO_LOST, Pipeline
-from dpv_sensor.pose_buffer import PoseBuffer, pose7_to_matrix
+from dpv_sensor.pose_buffer import CovarianceTrack, PoseBuffer, pose7_to_matrix
 from dpv_sensor.rectify import RectifierCache, UnsupportedDistortion
 from dpv_sensor.stream_loss import StreamLoss
 from dpv_sensor.transport import choose_reliability
@@ -223,6 +223,7 @@ class DepthCameraNode(Node):
         self.pose_buffer = PoseBuffer(max_gap_s=cfg['max_odom_gap'], history_s=max(10.0, 4 * cfg['max_odom_gap']),
                                       T_base_camera_44=self.T_base_camera, max_speed=cfg['odom_max_speed'],
                                       max_rate_deg=cfg['odom_max_rate_deg'])
+        self.pose_covariance = CovarianceTrack()     # the odometry's pose covariance (pose_uncertainty: auto)
         self._inputs_cv = threading.Condition()      # notified when odometry or camera_info arrives
         self._K = None                                # (K 3x3, (w, h)) from camera_info or the parameters
         if cfg['camera_info_source'] == 'parameters':
@@ -515,6 +516,7 @@ class DepthCameraNode(Node):
             self.tf.frames(odom_child_frame=msg.child_frame_id)
         jumps, conflicts = self.pose_buffer.jumps, self.pose_buffer.conflicts
         cleared = self.pose_buffer.add(stamp_ns, T)
+        self.pose_covariance.add(stamp_ns, M.odometry_covariance(msg))
         if self.pose_buffer.conflicts != conflicts:
             self.faults.report(ODOM_CONFLICT, f'{self.pose_buffer.last_conflict}; keeping the first (two odometry '
                                'sources publishing on one topic?)')
@@ -693,7 +695,8 @@ class DepthCameraNode(Node):
         meta = _FrameMeta(stamp_ns, frame_id, rgb, K, rgb.shape[1], rgb.shape[0], item.receipt_mono, item.receipt_ns)
         gap_ns = self._stream_gap_ns(item)
         frame = Frame(stamp=stamp_s, image=rgb, K_33=K, T_world_cam_44=pose, frame_id=frame_id,
-                      sensor_gap_s=None if gap_ns is None else gap_ns / NS)
+                      sensor_gap_s=None if gap_ns is None else gap_ns / NS,
+                      pose_covariance_66=self.pose_covariance.at(stamp_ns) if pose is not None else None)
         t0 = time.perf_counter()
         with self._estimator_lock:
             try:

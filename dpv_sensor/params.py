@@ -182,6 +182,21 @@ SPECS: tuple[ParamSpec, ...] = (
               'parallax_full_px plus this fraction of the image motion its rotation from the reference causes '
               '(f x angle): pose errors of real cameras (time sync, rolling shutter) grow with the rotation. '
               '0: rotation adds nothing.', min_value=0.0, max_value=1.0),
+    ParamSpec('pose_uncertainty', 'auto', "How each source's pose error relative to the reference widens its "
+              'measurement (and so lowers the confidence where the pose error moves the match by more of the depth '
+              "band than the parallax): auto (the odometry's pose covariance where the publisher fills it, else the "
+              'odom_drift_* figures), drift (always the odom_drift_* figures) or off (poses taken as exact).',
+              choices=('auto', 'drift', 'off')),
+    ParamSpec('odom_drift_trans', 0.02, 'Pose uncertainty: translation error of the odometry per metre travelled '
+              '(0.02 = 2 %: wheel and visual-inertial odometry drift 0.5-3 % of the distance).',
+              min_value=0.0, max_value=1.0),
+    ParamSpec('odom_drift_rot_deg_per_m', 1.0, 'Pose uncertainty: rotation error of the odometry (deg) per metre '
+              'travelled.', min_value=0.0, max_value=90.0),
+    ParamSpec('odom_drift_rot', 0.02, 'Pose uncertainty: rotation error of the odometry per degree turned '
+              '(0.02 = 2 %: gyro scale error, timing).', min_value=0.0, max_value=1.0),
+    ParamSpec('odom_time_sync_ms', 5.0, 'Pose uncertainty: std of the time offset between the camera images and '
+              'the odometry (ms); pose error = offset x the change of velocity between two views.',
+              min_value=0.0, max_value=1000.0),
     ParamSpec('source_pool', 0, "Choose the window's source keyframes from this many recent keyframes by how well "
               "their baseline and overlap constrain the reference's depth (the closest in time that move its "
               'pixels by parallax_full_px across that band), instead of the latest ones. 0 (or at most '

@@ -273,3 +273,41 @@ class PoseBuffer:
         if q.ok:
             q.T_world_cam_44 = q.T_world_cam_44 @ self.T_base_camera
         return q
+
+
+class CovarianceTrack:
+    """The odometry's pose covariance over time (6x6 per sample, None where the publisher leaves it unfilled),
+    linearly interpolated at an image stamp; the newest ``max_samples`` are kept. Thread-safe."""
+
+    def __init__(self, max_samples: int = 2000):
+        self.max_samples = int(max_samples)
+        self._stamps: list[int] = []
+        self._cov: list[np.ndarray | None] = []
+        self._lock = threading.Lock()
+
+    def add(self, stamp_ns: int, cov_66) -> None:
+        with self._lock:
+            if self._stamps and int(stamp_ns) < self._stamps[-1]:
+                self._stamps.clear()
+                self._cov.clear()
+            self._stamps.append(int(stamp_ns))
+            self._cov.append(None if cov_66 is None else np.asarray(cov_66, np.float64).reshape(6, 6))
+            if len(self._stamps) > self.max_samples:
+                del self._stamps[0], self._cov[0]
+
+    def at(self, stamp_ns: int) -> np.ndarray | None:
+        """The covariance at ``stamp_ns`` (interpolated between the samples around it, the nearest at the ends);
+        None without samples or where one of them is unfilled."""
+        with self._lock:
+            if not self._stamps:
+                return None
+            i = bisect.bisect_left(self._stamps, int(stamp_ns))
+            if i <= 0 or i >= len(self._stamps):
+                c = self._cov[0 if i <= 0 else -1]
+                return None if c is None else c.copy()
+            c0, c1 = self._cov[i - 1], self._cov[i]
+            if c0 is None or c1 is None:
+                return None
+            t0, t1 = self._stamps[i - 1], self._stamps[i]
+            a = (int(stamp_ns) - t0) / (t1 - t0) if t1 > t0 else 1.0
+            return (1.0 - a) * c0 + a * c1

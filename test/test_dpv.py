@@ -5,6 +5,7 @@ i.e. planes at 1, 1.6 and 4 m.
 """
 import math
 
+import numpy as np
 import pytest
 import torch
 
@@ -284,3 +285,28 @@ def test_auto_readout_depends_on_the_measurement_model():
     assert dpv.resolve_readout('median', learned=False) == 'median'
     with pytest.raises(ValueError, match='readout'):
         dpv.resolve_readout('mode', learned=True)
+
+
+def test_ratio_confidence_with_an_index_error_integrates_the_gaussian():
+    from dpv_sensor import dpv as dpv_ops
+    from dpv_sensor.geometry import inverse_depth_index
+    D = 32
+    depths = dpv_ops.depth_planes(0.5, 8.0, D)
+    logp = torch.full((1, D, 1, 1), -1e4)
+    logp[:, 12] = 0.0
+    logp = torch.log_softmax(logp, 1)
+    d = dpv_ops.index_to_depth(torch.tensor([[[12.0]]]), 0.5, 8.0, D)
+    plain = dpv_ops.ratio_confidence(logp, depths, d, 1.25)
+    assert float(dpv_ops.ratio_confidence(logp, depths, d, 1.25, torch.zeros(1, 1, 1))) == pytest.approx(float(plain))
+    lo = float(inverse_depth_index(d / 1.25, 0.5, 8.0, D))
+    hi = float(inverse_depth_index(d * 1.25, 0.5, 8.0, D))
+    # by numeric integration: plane 12 uniform over [11.5, 12.5], convolved with N(0, 2^2), inside [lo, hi]
+    x = np.linspace(11.5, 12.5, 2001)
+    from scipy.stats import norm
+    want = np.trapezoid(norm.cdf((hi - x) / 2.0) - norm.cdf((lo - x) / 2.0), x)
+    got = float(dpv_ops.ratio_confidence(logp, depths, d, 1.25, torch.full((1, 1, 1), 2.0)))
+    assert got == pytest.approx(want, abs=1e-5)
+    # never above the plain confidence, falling with sigma, finite for an infinite sigma
+    vals = [float(dpv_ops.ratio_confidence(logp, depths, d, 1.25, torch.full((1, 1, 1), s)))
+            for s in (0.5, 1.0, 4.0, 16.0, float('inf'))]
+    assert all(b <= a + 1e-7 for a, b in zip([float(plain)] + vals, vals)) and math.isfinite(vals[-1])

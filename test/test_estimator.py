@@ -834,3 +834,41 @@ def test_output_size_keeps_the_input_aspect_ratio():
     assert output_size(proc, (1280, 720)) == (320, 180)
     assert output_size(proc, (752, 480)) == (320, 204)          # 204.26 rounded
     assert output_size(small_config(output_resolution='input'), (640, 480)) == (640, 480)
+
+
+# ----------------------------------------------------------------------------------------------------
+# pose uncertainty
+# ----------------------------------------------------------------------------------------------------
+
+def _with_covariance(frames, var_per_frame):
+    """The frames with an odometry pose covariance growing by ``var_per_frame`` per frame (integrated odometry)."""
+    out = []
+    for i, f in enumerate(frames):
+        cov = np.eye(6) * (1e-9 + var_per_frame * i)
+        out.append(Frame(stamp=f.stamp, image=f.image, K_33=f.K_33, T_world_cam_44=f.T_world_cam_44,
+                         frame_id=f.frame_id, pose_covariance_66=cov))
+    return out
+
+
+def test_a_larger_odometry_covariance_never_raises_the_confidence_and_off_ignores_it():
+    frames = sideways(6, step=0.05, w=160, h=120)
+    means = []
+    for var in (0.0, 1e-6, 1e-5, 1e-4):
+        est = Estimator(small_config(num_planes=32, processing_width=128, processing_height=96))
+        out = push_all(est, _with_covariance(frames, var))[-1]
+        means.append(float(np.nanmean(out.confidence_hw)))
+        st = est.status['pose_uncertainty']
+        # the covariance's growth between two keyframes (one frame apart) is the relative pose's
+        assert st['rot_deg_max'] == pytest.approx(math.degrees(math.sqrt(var * 4 if var else 0.0)), abs=2e-4)
+    assert all(b <= a + 1e-6 for a, b in zip(means, means[1:]))
+    assert means[-1] < means[0] - 0.05
+    off = Estimator(small_config(num_planes=32, processing_width=128, processing_height=96, pose_uncertainty='off'))
+    out_off = push_all(off, _with_covariance(frames, 1e-4))[-1]
+    assert off.status['pose_uncertainty'] == {}
+    assert float(np.nanmean(out_off.confidence_hw)) > means[-1]
+    # drift: the odom_drift_* figures over the path (5 cm per keyframe, 4 sources back): never above exact poses
+    drift = Estimator(small_config(num_planes=32, processing_width=128, processing_height=96,
+                                   pose_uncertainty='drift', odom_time_sync_ms=0.0))
+    push_all(drift, _with_covariance(frames, 1e-4))
+    assert drift.status['pose_uncertainty']['trans_mm_max'] == pytest.approx(1000 * 0.02 * 0.20 / math.sqrt(3),
+                                                                            rel=1e-3)

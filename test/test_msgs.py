@@ -192,6 +192,14 @@ def test_odometry_round_trip_and_rejections():
         M.odometry_to_matrix(odom)
 
 
+def test_odometry_covariance_filled_or_not():
+    odom = M.matrix_to_odometry(np.eye(4), header(frame_id='odom'), 'base_link', position_sigma=0.1,
+                                rotation_sigma=0.02)
+    cov = M.odometry_covariance(odom)
+    np.testing.assert_allclose(np.diag(cov), [0.01] * 3 + [0.0004] * 3)
+    assert M.odometry_covariance(M.matrix_to_odometry(np.eye(4), header(frame_id='odom'), 'base_link')) is None
+
+
 def test_pose_stamped_round_trip():
     T = make_pose([0.1, 0.2, 0.3], [0.5, 0.5, 0.5, 0.5])
     msg = M.matrix_to_pose_stamped(T, header(frame_id='odom'))

@@ -256,3 +256,17 @@ def test_one_teleport_rule_for_odometry_and_offline_steps():
     assert buf.add(S // 30, translation(0.3, 0, 0)) is None
     assert buf.add(2 * S // 30, translation(0.8, 0, 0)) == (
         'odometry jumped 0.500 m in 0.033 s (15.0 m/s > odom_max_speed 10 m/s) at 0.067 s; pose buffer cleared')
+
+
+def test_covariance_track_interpolates_and_reports_unfilled():
+    from dpv_sensor.pose_buffer import CovarianceTrack
+    tr = CovarianceTrack()
+    assert tr.at(5) is None
+    tr.add(0, np.eye(6) * 1.0)
+    tr.add(10, np.eye(6) * 3.0)
+    np.testing.assert_allclose(tr.at(5), np.eye(6) * 2.0)
+    np.testing.assert_allclose(tr.at(20), np.eye(6) * 3.0)
+    tr.add(20, None)
+    assert tr.at(15) is None
+    tr.add(5, np.eye(6))          # time went backwards: the track starts again
+    np.testing.assert_allclose(tr.at(100), np.eye(6))

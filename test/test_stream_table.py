@@ -21,8 +21,8 @@ from dpv_sensor.benchmarks import stream_table as ST
 from dpv_sensor.client.replay import parse_params
 
 NODE = ['measurement=classical', 'processing_width=96', 'processing_height=72', 'num_planes=32', 'window_mode=causal']
-ARGS = ['--seeds', '50', '--frames', '12', '--render-size', '96x72', '--no-gt', '--offset-ms', '0', '--noise-seeds', '0',
-        '--keep-bags', '--quiet', '--params'] + NODE
+ARGS = ['--seeds', '50', '--frames', '12', '--render-size', '96x72', '--no-gt', '--offset-ms', '0',
+        '--noise-seeds', '0', '--keep-bags', '--quiet', '--params'] + NODE
 
 
 def _run(out, timeout=300):

@@ -13,8 +13,8 @@ dropped) while the outputs are recorded, and the recorded bag is scored with ``e
 Pose sources: ``gt`` (the sequence's poses as odometry), ``offset<t>ms`` (``--offset-ms``, default 10: the GT pose
 t ms after each image's stamp, a camera-odometry time offset) and ``noisy<k>`` for each noise seed k (odometry-like
 drift: 2 % of each step's translation in a random direction and a 0.1 deg rotation about a random axis per frame,
-chained: dpv_sensor.data.trajectory.corrupt_trajectory). Depth is always scored against the GT depth, and consumer odometry
-against the GT poses.
+chained: dpv_sensor.data.trajectory.corrupt_trajectory). Depth is always scored against the GT depth, and consumer
+odometry against the GT poses.
 
 Columns (frame means over the recorded keyframe outputs unless said otherwise):
 
