@@ -252,7 +252,9 @@ def _mass_in_index_window(logp_bdhw: torch.Tensor, lo_b1hw: torch.Tensor, hi_b1h
     With ``sigma_b1hw`` (planes, per pixel) the DPV is first convolved with a Gaussian of that std along the plane
     index (an extra, independent error of the index): plane k then puts ``int_{k-1/2}^{k+1/2} [Phi((hi - x) / s) -
     Phi((lo - x) / s)] dx`` inside the window, which is ``s [G((hi - k + 1/2) / s) - G((hi - k - 1/2) / s) - G((lo -
-    k + 1/2) / s) + G((lo - k - 1/2) / s)]`` with ``G(u) = u Phi(u) + phi(u)``; s -> 0 gives the plain overlap."""
+    k + 1/2) / s) + G((lo - k - 1/2) / s)]`` with ``G(u) = u Phi(u) + phi(u)``; s -> 0 gives the plain overlap.
+    Eight transcendental functions per plane and pixel: meant for the volume resolution (the estimator applies
+    the ratio it gives there to the full-resolution confidence)."""
     D = logp_bdhw.shape[1]
     k = torch.arange(D, dtype=logp_bdhw.dtype, device=logp_bdhw.device).reshape(1, D, 1, 1)
     overlap = (torch.minimum(k + 0.5, hi_b1hw) - torch.maximum(k - 0.5, lo_b1hw)).clamp(0.0, 1.0)

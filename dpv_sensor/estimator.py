@@ -687,10 +687,10 @@ class Estimator:
             with self._autocast():
                 full = self.model.refine(post, meas.feats, ref.image_b3hw)
             full = full.float()
-            sig = None if sigma_planes is None else resample_to_camera(
-                sigma_planes[:, None].clamp_max(pose_uncertainty.WIDTH_LADDER[-1]), meas.K_vol_b33[0], K_proc_t,
-                (H, W))[:, 0]
-            depth, conf = self._readout(full, ref.image_b3hw, sig)
+            depth, conf = self._readout(full, ref.image_b3hw)
+            if sigma_planes is not None:
+                factor = self._pose_confidence_factor(post, sigma_planes)
+                conf = conf * resample_to_camera(factor[:, None], meas.K_vol_b33[0], K_proc_t, (H, W))[:, 0]
             if support is not None:
                 conf = conf * resample_to_camera(support[:, None], meas.K_vol_b33[0], K_proc_t, (H, W))[:, 0]
             valid = resample_to_camera(coverage[:, None].float(), meas.K_vol_b33[0], K_proc_t, (H, W),
@@ -878,6 +878,19 @@ class Estimator:
         self._last_pose_sigma = {'rot_deg_max': math.degrees(max(sig_r)), 'trans_mm_max': 1000.0 * max(sig_t),
                                  'median_planes': float(sigma_planes.clamp_max(1e3).median())}
         return sigma_planes
+
+    def _pose_confidence_factor(self, post_bdhw: torch.Tensor, sigma_planes_bhw: torch.Tensor) -> torch.Tensor:
+        """(1, h, w) in [0, 1]: how much of the belief's published confidence survives the pose uncertainty, at the
+        volume resolution: the ratio confidence of the belief convolved with ``sigma_planes_bhw`` over the plain one
+        (1 where the plain one is 0, and for the ``plane`` confidence). The network's full-resolution confidence is
+        multiplied by it (upsampled), which costs a volume-resolution readout instead of a full-resolution one."""
+        cfg = self.config
+        if cfg.confidence != 'ratio':
+            return torch.ones_like(sigma_planes_bhw)
+        depth = dpv_ops.depth_estimate(post_bdhw, self.depths_d, self.readout)
+        plain = dpv_ops.ratio_confidence(post_bdhw, self.depths_d, depth, cfg.confidence_ratio)
+        widened = dpv_ops.ratio_confidence(post_bdhw, self.depths_d, depth, cfg.confidence_ratio, sigma_planes_bhw)
+        return torch.where(plain > 1e-6, widened / plain.clamp_min(1e-6), torch.ones_like(plain)).clamp(0.0, 1.0)
 
     def _parallax_weight(self, geom, ref: Keyframe, T_src_ref_t: torch.Tensor) -> Optional[torch.Tensor]:
         """(1, h, w) weight in [0, 1] of this measurement per pixel (``parallax.parallax_support`` of the
