@@ -853,7 +853,9 @@ class Estimator:
                            sources: List[Keyframe]) -> Optional[torch.Tensor]:
         """(1, h, w) std (planes, volume resolution) of the measured plane index that the sources' pose uncertainty
         relative to the reference causes (``dpv_sensor.pose_uncertainty``); None with ``pose_uncertainty`` off.
-        ``status['pose_uncertainty']``: the largest source's rotation / translation std and the median (planes)."""
+        ``status['pose_uncertainty']``: where the uncertainty came from (``covariance`` when every source's came
+        from the odometry's covariance, else ``drift``), the largest source's rotation (deg) / translation (mm)
+        per-axis std and the median std in planes."""
         if self.config.pose_uncertainty == 'off' or geom is None:
             self._last_pose_sigma = {}
             return None
@@ -861,7 +863,7 @@ class Estimator:
         model = self._drift_model()
         kfs = sorted([ref] + list(sources), key=lambda k: k.index)
         r = kfs.index(ref)
-        shifts, sig_r, sig_t = [], [], []
+        shifts, sig_r, sig_t, from_cov = [], [], [], []
         to_proc = float(ref.K_b33[0, 0, 0] / meas.K_vol_b33[0, 0, 0])     # volume -> processing pixels (as spans)
         for s in sources:
             i = kfs.index(s)
@@ -869,13 +871,15 @@ class Estimator:
             sig = pose_uncertainty.relative_pose_sigma(model, chain, cov_ref_66=ref.pose_cov_66,
                                                        cov_src_66=s.pose_cov_66, twist_ref_6=ref.twist_world_6,
                                                        twist_src_6=s.twist_world_6)
+            from_cov.append(pose_uncertainty.covariance_sigma(ref.pose_cov_66, s.pose_cov_66) is not None)
             sig_r.append(sig.rot_rad)
             sig_t.append(sig.trans_m)
             shifts.append(pose_uncertainty.match_shift_px(depth, meas.K_vol_b33, sig) * to_proc)
         sigma_rho = pose_uncertainty.inverse_depth_sigma(depth, spans, torch.stack(shifts, 0), parallax.BAND_RATIO)
         step_rho = (1.0 / self.d_min - 1.0 / self.d_max) / max(1, self.num_planes - 1)
         sigma_planes = sigma_rho / step_rho
-        self._last_pose_sigma = {'rot_deg_max': math.degrees(max(sig_r)), 'trans_mm_max': 1000.0 * max(sig_t),
+        self._last_pose_sigma = {'source': 'covariance' if all(from_cov) else 'drift',
+                                 'rot_deg_max': math.degrees(max(sig_r)), 'trans_mm_max': 1000.0 * max(sig_t),
                                  'median_planes': float(sigma_planes.clamp_max(1e3).median())}
         return sigma_planes
 

@@ -925,6 +925,7 @@ class DepthCameraNode(Node):
         values['precision'] = st.get('precision', '')
         values['filter_mode'] = st.get('filter_mode', self.config['filter_mode'])
         values['tracking'] = st.get('tracking', '')
+        values['pose_uncertainty'] = _pose_uncertainty_text(st.get('pose_uncertainty'), self.config['pose_uncertainty'])
         values['estimator_keyframes'] = st.get('keyframes', '')
         values['estimator_outputs'] = st.get('outputs', '')
         values['estimator_dropped'] = st.get('frames_dropped', '')
@@ -1050,6 +1051,14 @@ class DepthCameraNode(Node):
                                        hardware_id=f"dpv_sensor ({values.get('device', '?')})",
                                        values=[KeyValue(key=k, value=str(v)) for k, v in values.items()])]
         self.pub_diag.publish(arr)
+
+
+def _pose_uncertainty_text(last: dict | None, setting: str) -> str:
+    """The /diagnostics value of the last keyframe's pose uncertainty: its source and size, or the setting."""
+    if setting == 'off' or not last:
+        return setting if setting == 'off' else f'{setting} (no keyframe yet)'
+    return (f"{last['source']}: rotation {last['rot_deg_max']:.3f} deg, translation {last['trans_mm_max']:.2f} mm "
+            f"(largest source, per axis), median {last['median_planes']:.2f} planes")
 
 
 def run(argv: list[str], stop: threading.Event) -> int:

@@ -343,6 +343,7 @@ def run_one(seq_name: str, seq_dir: pathlib.Path, pose_source: str, user_params:
                  'faults': {k[7:]: v for k, v in d.items() if k.startswith('faults.')},
                  'measurement_model': d.get('measurement_model'), 'measurement_reason': d.get('measurement_reason'),
                  'filter_mode': d.get('filter_mode'), 'device': d.get('device'), 'precision': d.get('precision'),
+                 'pose_uncertainty': d.get('pose_uncertainty'),
                  'exit_code': replay.node_exit_code, 'peak_rss_mib': replay.node_peak_rss_mib,
                  'command': replay.node_command, 'warnings': replay.warnings},
         'bag': {'frames': bs.frames, 'odometry': bs.odometry, 'duration_s': bs.duration_s},

@@ -424,6 +424,7 @@ def main(argv: Optional[List[str]] = None) -> int:
             'dropped': {k[8:]: v for k, v in d.items() if k.startswith('dropped.')},
             'faults': {k[7:]: v for k, v in d.items() if k.startswith('faults.')},
             'filter_resets': d.get('filter_resets'), 'output_resets': d.get('output_resets'),
+            'pose_uncertainty': d.get('pose_uncertainty'),
             'processing_ms_median_all_images': d.get('processing_ms_median'),
             'receipt_to_publish_ms_median': d.get('latency_ms_median'),
             'sent_to_recorded_ms': replay.e2e_ms,
