@@ -254,8 +254,11 @@ def noise_description(pose_source: str) -> Optional[Dict[str, float]]:
 
 def run_one(seq_name: str, seq_dir: pathlib.Path, pose_source: str, user_params: Dict[str, Any],
             out: pathlib.Path, *, min_depth=None, max_depth=None, keep_bags: bool = False, progress: bool = True,
-            start_timeout: float = 180.0, frame_timeout: float = 180.0) -> Dict[str, Any]:
-    """Replay one sequence with one pose source through the node and score it; returns the run's JSON dict."""
+            start_timeout: float = 180.0, frame_timeout: float = 180.0,
+            consumer_odometry: bool = True) -> Dict[str, Any]:
+    """Replay one sequence with one pose source through the node and score it; returns the run's JSON dict
+    (``consumer_odometry`` False: without the Open3D odometry check, which is most of the scoring time on long
+    sequences)."""
     from dpv_sensor import evaluation as E
     from dpv_sensor.data import rosbag_io as R
     from dpv_sensor.data.sequence import Sequence
@@ -292,7 +295,7 @@ def run_one(seq_name: str, seq_dir: pathlib.Path, pose_source: str, user_params:
     if not records:
         raise RuntimeError(f'no recorded depth image matched a GT frame ({info})')
     options = E.EvalOptions(min_depth=min_depth, max_depth=max_depth, progress=progress,
-                            consumer_odometry=True).validate()
+                            consumer_odometry=consumer_odometry).validate()
     summary = E.evaluate_records(records, None, options, source=str(output_bag), extra={'input': info})
     constant = constant_on_same_pixels(records, oracle_constant(seq, min_depth, max_depth), min_depth, max_depth)
     series = diagnostics_series(output_bag)
@@ -517,6 +520,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--domain-id', type=int, default=None,
                    help='ROS_DOMAIN_ID of the node and the player (default: $ROS_DOMAIN_ID, else a random one)')
     p.add_argument('--keep-bags', action='store_true', help='keep the input / output bags of every run')
+    p.add_argument('--no-consumer-odometry', action='store_true',
+                   help='skip the consumer check (Open3D RGB-D odometry on predicted vs GT depth: the odo/col '
+                        'columns), most of the scoring time on long sequences')
     p.add_argument('--table-only', action='store_true', help='run nothing, rebuild the table from the cache')
     p.add_argument('--quiet', action='store_true', help='no progress bars')
     return p
@@ -601,7 +607,8 @@ def main(argv: Optional[List[str]] = None) -> int:
                     folders[s] = rendered_sequence(out, int(s[len('synthetic_seed'):]), a.frames, progress,
                                                    render_size)
                 res = run_one(s, folders[s], src, params, out, min_depth=a.min_depth, max_depth=a.max_depth,
-                              keep_bags=a.keep_bags, progress=progress)
+                              keep_bags=a.keep_bags, progress=progress,
+                              consumer_odometry=not a.no_consumer_odometry)
             except KeyboardInterrupt:
                 print('\ninterrupted; finished runs are cached, run the same command again to go on', flush=True)
                 return 1
