@@ -876,8 +876,7 @@ class Estimator:
             sig_t.append(sig.trans_m)
             shifts.append(pose_uncertainty.match_shift_px(depth, meas.K_vol_b33, sig) * to_proc)
         sigma_rho = pose_uncertainty.inverse_depth_sigma(depth, spans, torch.stack(shifts, 0), parallax.BAND_RATIO)
-        step_rho = (1.0 / self.d_min - 1.0 / self.d_max) / max(1, self.num_planes - 1)
-        sigma_planes = sigma_rho / step_rho
+        sigma_planes = sigma_rho / geometry.inverse_depth_step(self.d_min, self.d_max, self.num_planes)
         self._last_pose_sigma = {'source': 'covariance' if all(from_cov) else 'drift',
                                  'rot_deg_max': math.degrees(max(sig_r)), 'trans_mm_max': 1000.0 * max(sig_t),
                                  'median_planes': float(sigma_planes.clamp_max(1e3).median())}

@@ -32,7 +32,7 @@ __all__ = [
     'interpolate_se3', 'interpolate_se3_at_time', 'interpolate_se3_series', 'so3_exp', 'so3_log', 'se3_exp',
     'rotation_angle', 'rotation_angle_np', 'relative_pose_error_np', 'quat_angle_deg', 'pixel_grid', 'backproject',
     'project', 'transform_points',
-    'plane_sweep_warp', 'warp_volume', 'warp_image_with_depth', 'inverse_depth_index',
+    'plane_sweep_warp', 'warp_volume', 'warp_image_with_depth', 'inverse_depth_index', 'inverse_depth_step',
 ]
 
 
@@ -328,6 +328,12 @@ def inverse_depth_index(depth: torch.Tensor, d_min, d_max, D: int) -> torch.Tens
     inv_min = 1.0 / d_min
     inv_max = 1.0 / d_max
     return (inv_min - inv) / (inv_min - inv_max) * (D - 1)
+
+
+def inverse_depth_step(d_min, d_max, D: int) -> float:
+    """Spacing (1/m) of D planes uniform in inverse depth from d_min to d_max: one plane index in inverse depth
+    (the slope of :func:`inverse_depth_index`)."""
+    return (1.0 / d_min - 1.0 / d_max) / (D - 1)
 
 
 # ----------------------------------------------------------------------------------------------

@@ -343,3 +343,12 @@ def test_numpy_rotation_angles_by_hand():
     s = np.sqrt(0.5)
     assert quat_angle_deg(np.array([0, 0, 0, 1.0]), np.array([0, 0, s, s])) == pytest.approx(90.0)
     assert quat_angle_deg(np.array([0, 0, s, s]), -np.array([0, 0, s, s])) == pytest.approx(0.0, abs=1e-6)
+
+
+def test_inverse_depth_step_is_the_slope_of_the_plane_index():
+    from dpv_sensor.geometry import inverse_depth_index, inverse_depth_step
+    step = inverse_depth_step(0.5, 8.0, 16)
+    assert step == pytest.approx((2.0 - 0.125) / 15)
+    i1 = float(inverse_depth_index(torch.tensor(1.0), 0.5, 8.0, 16))
+    i2 = float(inverse_depth_index(torch.tensor(1.0 / (1.0 - step)), 0.5, 8.0, 16))
+    assert i2 - i1 == pytest.approx(1.0, rel=1e-5)
