@@ -4,7 +4,8 @@ This module owns ROS plumbing only: parameters, QoS, subscriptions, publishing, 
 algorithm lives in dpv_sensor.estimator (Estimator.push(Frame) -> DepthOutput | None); messages are converted by
 dpv_sensor.msgs; image poses come from dpv_sensor.pose_buffer.
 
-Topics (relative names, remappable):
+Topics (relative names, remappable; a camera_info or compressedDepth follows its remapped image topic as
+image_transport names them, unless remapped itself: dpv_sensor.topic_names):
   in   image (sensor_msgs/Image rgb8/bgr8/rgba8/bgra8/mono8), camera_info (sensor_msgs/CameraInfo),
        odom (nav_msgs/Odometry) - QoS: input_reliability (auto: as the publishers offer), input_depth; transport:
        dpv_sensor.transport (docs/transport.md), applied by the entry point before rclpy starts
@@ -85,6 +86,7 @@ from dpv_sensor.pipeline import DEGENERATE, VO_LOST, Pipeline
 from dpv_sensor.pose_buffer import PoseBuffer, pose7_to_matrix
 from dpv_sensor.rectify import RectifierCache, UnsupportedDistortion
 from dpv_sensor.stream_loss import StreamLoss
+from dpv_sensor.topic_names import topic_name
 from dpv_sensor.transport import choose_reliability
 
 NODE_NAME = 'dpv_sensor'
@@ -368,7 +370,8 @@ class DepthCameraNode(Node):
             lost = lambda info: self.stream_loss.on_rmw_lost(int(info.total_count_change))  # noqa: E731
         events = SubscriptionEventCallbacks(incompatible_qos=incompatible, matched=on_matched, message_lost=lost)
         msg_type, callback = self._inputs[topic]
-        self._input_subs[topic] = self.create_subscription(msg_type, topic, callback, qos, event_callbacks=events)
+        self._input_subs[topic] = self.create_subscription(msg_type, self._topic(topic), callback, qos,
+                                                           event_callbacks=events)
         self._input_reliability[topic] = reliability
 
     def _adapt_input_qos(self) -> None:
@@ -404,7 +407,12 @@ class DepthCameraNode(Node):
         return PublisherEventCallbacks(incompatible_qos=on_incompatible)
 
     def _publisher(self, msg_type, topic: str, qos):
-        return self.create_publisher(msg_type, topic, qos, event_callbacks=self._qos_events(topic, subscription=False))
+        return self.create_publisher(msg_type, self._topic(topic), qos,
+                                     event_callbacks=self._qos_events(topic, subscription=False))
+
+    def _topic(self, name: str) -> str:
+        """The topic name of `name`: a camera_info or transport follows its remapped image topic (topic_names)."""
+        return topic_name(name, lambda topic, expand: self.resolve_topic_name(topic, only_expand=expand))
 
     def _make_pipeline(self) -> Pipeline:
         try:
