@@ -13,7 +13,7 @@ image_transport names them, unless remapped itself: dpv_sensor.topic_names):
        rgb/image (rgb8: the colour image the depth was computed for, rectified when the node rectifies, at the
        depth's size) + rgb/camera_info, confidence/image (32FC1 in [0, 1]) + confidence/camera_info (all camera_info
        the same: K of the output size, D zero), depth/image/compressedDepth (with publish_compressed_depth),
-       points (PointCloud2 XYZRGB, only computed while subscribed; points_decimation, points_max_rate),
+       depth/points (PointCloud2 XYZRGB, only computed while subscribed; points_decimation, points_max_rate),
        pose (PoseStamped, with pose_refinement or odometry none), /diagnostics (DiagnosticArray)
        with publish_tf: /tf_static (base_frame -> image frame, T_base_camera) and /tf (<image frame>_refined,
        with the pose output), tf2_msgs/TFMessage (dpv_sensor.tf_publisher)
@@ -268,7 +268,7 @@ class DepthCameraNode(Node):
         if cfg['publish_compressed_depth']:
             # image_transport's topic name for the compressedDepth transport of depth/image
             self.pub_compressed = pub(CompressedImage, 'depth/image/compressedDepth', out_qos)
-        self.pub_points = pub(PointCloud2, 'points', out_qos)
+        self.pub_points = pub(PointCloud2, 'depth/points', out_qos)
         self.pub_pose = None
         if cfg['pose_refinement'] != 'off' or cfg['odometry'] == 'none':
             # the refined pose, or the visual odometry's (the user has no other pose source then), in the odometry
@@ -1002,7 +1002,7 @@ class DepthCameraNode(Node):
         out = []
         checks = [('depth/image', values.get('depth_rate_hz', 0.0), cfg['expected_depth_rate'])]
         if self.pub_points.get_subscription_count() > 0:
-            checks.append(('points', values.get('points_rate_hz', 0.0), cfg['expected_points_rate']))
+            checks.append(('depth/points', values.get('points_rate_hz', 0.0), cfg['expected_points_rate']))
         for name, rate, expected in checks:
             if expected > 0 and rate < expected * (1.0 - cfg['rate_tolerance']):
                 level = DiagnosticStatus.ERROR if rate == 0 else DiagnosticStatus.WARN

@@ -63,8 +63,8 @@ def test_remappings_presets_overrides_and_extra_pairs(launch_module):
     assert remappings('realsense', odom='/odometry/filtered')[-1] == ('odom', '/odometry/filtered')
     assert remappings('zed', image='/zed/zed_node/rgb/color/raw/image')[0] == \
         ('image', '/zed/zed_node/rgb/color/raw/image')
-    assert remappings(remaps='depth/image:=/dpv/depth  points:=/dpv/points') == \
-        [('depth/image', '/dpv/depth'), ('points', '/dpv/points')]
+    assert remappings(remaps='depth/image:=/dpv/depth  depth/points:=/dpv/points') == \
+        [('depth/image', '/dpv/depth'), ('depth/points', '/dpv/points')]
     for name, target in remappings('zed', remaps='pose:=/cam_pose'):
         assert name and target and ':=' not in name + target
 

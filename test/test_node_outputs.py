@@ -60,7 +60,7 @@ class Outputs:
         self.diagnostics: dict = {}
         self.lock = threading.Lock()
         types = {'depth': Image, 'rgb': Image, 'conf': Image, 'points': PointCloud2, 'compressed': CompressedImage}
-        topics = dict(OUTPUT_TOPICS, points='points', compressed='depth/image/compressedDepth')
+        topics = dict(OUTPUT_TOPICS, points='depth/points', compressed='depth/image/compressedDepth')
         self.subs = {}
         for kind in list(OUTPUT_TOPICS) + list(extra):
             self.subs[kind] = node.create_subscription(types.get(kind, CameraInfo), f'{ns}/{topics[kind]}',

@@ -35,7 +35,7 @@ def test_camera_info_is_the_image_topics_sibling():
     ({'depth/image': '/dpv/depth'}, 'depth/image/compressedDepth', '/dpv/depth/compressedDepth'),
     ({'rgb/image': '/dpv/rgb'}, 'rgb/camera_info', '/dpv/camera_info'),
     ({'depth/image': '/dpv/depth'}, 'confidence/camera_info', 'confidence/camera_info'),
-    ({'depth/image': '/dpv/depth'}, 'points', 'points'),
+    ({'depth/image': '/dpv/depth'}, 'depth/points', 'depth/points'),
 ])
 def test_followers_follow_their_remapped_image(remaps, name, expected):
     assert topic_name(name, _resolver(remaps)) == expected
@@ -77,7 +77,7 @@ def test_a_remapped_output_image_takes_its_camera_info_and_compressed_depth(obse
         ['-r', 'depth/image:=/dpv/depth', '-r', 'rgb/camera_info:=/mine/rgb_info']
     proc = start_node(args)
     want = {'/dpv/depth', '/dpv/camera_info', '/dpv/depth/compressedDepth', '/mine/rgb_info', '/rgb/image',
-            '/confidence/camera_info', '/points'}
+            '/confidence/camera_info', '/depth/points'}
 
     def published() -> set:
         return {name for name, _types in node.get_topic_names_and_types()

@@ -298,7 +298,7 @@ class Received:
 class OutputCollector:
     """Subscribes (reliable) to a node's outputs under `namespace` and groups them by header stamp.
 
-    Topics: depth/image, depth/camera_info, confidence/image, optionally points, and /diagnostics (the latest status
+    Topics: depth/image, depth/camera_info, confidence/image, optionally depth/points, and /diagnostics (the latest status
     of the node named `diagnostics_name` is kept in `diagnostics`, as a {key: value} dict).
     """
 
@@ -329,7 +329,7 @@ class OutputCollector:
         ]
         self.points_sub = None
         if points:
-            self.points_sub = node.create_subscription(PointCloud2, f'{ns}/points', lambda m: self._on(m, 'points'),
+            self.points_sub = node.create_subscription(PointCloud2, f'{ns}/depth/points', lambda m: self._on(m, 'points'),
                                                        qos)
 
     def _on(self, msg, kind: str) -> None:
