@@ -44,7 +44,11 @@ backwards, an empty image frame_id, a degenerate image, an exception inside the 
 /diagnostics and logged with a specific, rate-limited message. No image is lost uncounted: images lost before the
 callback (transport) are counted from the stamps and the middleware's reports (lost.*), images the node skips or
 refuses in dropped.*, so frames_received + lost.transport = images sent and frames_processed + dropped_total =
-frames_received (but for the one or two in flight).
+frames_received (but for the one or two in flight). A loss is counted only on evidence (a middleware report, or a
+stamp gap the stream around it confirms): a camera that lowers its rate loses nothing (input_rate_changes) and a
+stamp jump is a discontinuity (input_stamp_jumps, faults.stamp_jump). Images are checked on receipt
+(dpv_sensor.receipt), so a bad one is counted and logged even when the newest-wins mailbox would have replaced it;
+a change of the odometry frame_id is logged and counted (faults.odometry_frame_change).
 """
 from __future__ import annotations
 
@@ -85,6 +89,7 @@ from dpv_sensor.node_support import (FaultLog, Incoming, LogBridge, Mailbox, Rat
 from dpv_sensor.pipeline import DEGENERATE, VO_LOST, Pipeline
 from dpv_sensor.pose_buffer import PoseBuffer, pose7_to_matrix
 from dpv_sensor.rectify import RectifierCache, UnsupportedDistortion
+from dpv_sensor.receipt import BAD_IMAGE, UNSUPPORTED_ENCODING, ImageReceipt, OdomFrameWatch
 from dpv_sensor.stream_loss import StreamLoss
 from dpv_sensor.topic_names import topic_name
 from dpv_sensor.transport import choose_reliability
@@ -93,8 +98,6 @@ NODE_NAME = 'dpv_sensor'
 NS = 1_000_000_000
 
 # fault kinds (counter names in /diagnostics; each has its own log message)
-UNSUPPORTED_ENCODING = 'unsupported_encoding'
-BAD_IMAGE = 'bad_image'
 SIZE_CHANGE = 'image_size_change'
 NO_CAMERA_INFO = 'no_camera_info'
 BAD_CAMERA_INFO = 'bad_camera_info'
@@ -242,6 +245,8 @@ class DepthCameraNode(Node):
         # inputs at the reliability the publishers offer (input_reliability auto: see _adapt_input_qos); images lost
         # before _on_image are counted by stream_loss (callback thread only)
         self.stream_loss = StreamLoss()
+        self._receipt = ImageReceipt(self.faults, self._drop, self.stream_loss)
+        self._odom_frames = OdomFrameWatch(self.faults)
         self._inputs = {'image': (Image, self._on_image)}
         if cfg['camera_info_source'] == 'topic':
             self._inputs['camera_info'] = (CameraInfo, self._on_camera_info)
@@ -469,11 +474,9 @@ class DepthCameraNode(Node):
         gap_ns = stamp_ns - last if stamp_ns is not None and last is not None and stamp_ns > last else None
         if not msg.header.frame_id:
             self._on_empty_frame_id(stamp_ns)
-        # images missing before this one (lost in transport): counted; a gap the middleware reported as lost is
-        # judged by the worker (camera_gap_ns), as the report may come after this image
-        lost = self.stream_loss.on_image(stamp_ns) if stamp_ns is not None else None
-        item = Incoming(msg, time.monotonic(), time.time_ns(), None if lost else gap_ns, [lost] if lost else [])
-        if self._mailbox.put(item):
+        # lost images, stamp jumps and unusable images: judged here, before the mailbox (dpv_sensor.receipt)
+        item = self._receipt.image(msg, stamp_ns, gap_ns, time.monotonic(), time.time_ns())
+        if item is not None and self._mailbox.put(item):
             with self._stats_lock:
                 self.dropped[BUSY] += 1
             self.faults.report(BUSY, 'estimator busy: dropping an older image that was still waiting (newest wins; '
@@ -518,7 +521,7 @@ class DepthCameraNode(Node):
             self.faults.report(NAN_ODOMETRY, f'ignoring odometry at {stamp_ns / NS:.3f} s: {exc}; images '
                                'interpolated across it are dropped')
             T = None
-        self._odom_frame = msg.header.frame_id or self._odom_frame
+        self._odom_frame = self._odom_frames.update(msg.header.frame_id, stamp_ns)
         if self.tf is not None and msg.child_frame_id:
             self.tf.frames(odom_child_frame=msg.child_frame_id)
         jumps, conflicts = self.pose_buffer.jumps, self.pose_buffer.conflicts
@@ -738,7 +741,7 @@ class DepthCameraNode(Node):
         waits up to LOSS_REPORT_WAIT_S after its receipt."""
         pending, self._loss_carry = self._loss_carry, []
         deadline = item.receipt_mono + LOSS_REPORT_WAIT_S
-        while any(not g.explained for g in pending) and time.monotonic() < deadline and not self._stop.is_set():
+        while any(not g.settled for g in pending) and time.monotonic() < deadline and not self._stop.is_set():
             time.sleep(0.005)
         gap_ns, self._gap_carry_ns = camera_gap_ns(self._gap_carry_ns, pending), None
         return gap_ns

@@ -21,7 +21,7 @@ class StreamDriver:
 
     def __init__(self, args: list[str], topics: dict | None = None, frames: int = 40, seed: int = 4,
                  reliability: str = 'reliable', name: str = 'stream_driver', env: dict | None = None,
-                 namespace: str = ''):
+                 namespace: str = '', depth: int = 50):
         from nav_msgs.msg import Odometry
         from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
         from sensor_msgs.msg import CameraInfo, Image
@@ -34,7 +34,7 @@ class StreamDriver:
         self.client = ClientNode(name)
         self.node, self.executor = self.client.node, self.client.executor
         rel = ReliabilityPolicy.RELIABLE if reliability == 'reliable' else ReliabilityPolicy.BEST_EFFORT
-        qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=50, reliability=rel,
+        qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth, reliability=rel,
                          durability=DurabilityPolicy.VOLATILE)
         types = {'image': Image, 'camera_info': CameraInfo, 'odom': Odometry}
         self.pubs = {k: self.node.create_publisher(types[k], t, qos) for k, t in topics.items()}
