@@ -26,8 +26,8 @@ interval between consecutive images the node *received* since the previous frame
 included), so the estimator's time-gap reset fires only when the camera stream itself stalled; its jump rules judge
 the motion against the elapsed time, so a slow machine that pushes a frame every few seconds keeps its filter.
 Every output carries exactly the input image's header (stamp and frame_id). The worker builds the estimator when
-the node starts ('ready' is logged once topics and parameters are up, 'estimator ready' once the model is loaded);
-if it cannot be built (e.g. measurement=network without weights) the node exits with code 2.
+the node starts ('starting' is logged once topics and parameters are up, 'ready' once the model is loaded); if it
+cannot be built (e.g. measurement=network without weights) the node logs that one error and exits with code 2.
 SIGINT / SIGTERM stop the node cleanly (exit 0), also while it is still starting: the entry point
 (dpv_sensor.entry) installs the handlers before this module's heavy imports.
 
@@ -338,7 +338,7 @@ class DepthCameraNode(Node):
                           clock=Clock(clock_type=ClockType.STEADY_TIME))
 
         log.info(
-            f"ready: preset={cfg['preset']} device={cfg['device']}"
+            f"starting (building the estimator): preset={cfg['preset']} device={cfg['device']}"
             f" cpu_precision={cfg['cpu_precision']} measurement={cfg['measurement']} "
             f"filter={cfg['filter_mode']} readout={cfg['depth_readout']} confidence={cfg['confidence']}"
             f"{' ' + format(cfg['confidence_ratio'], 'g') if cfg['confidence'] == 'ratio' else ''} "
@@ -441,7 +441,7 @@ class DepthCameraNode(Node):
             self.pipeline = pipeline
         st = pipeline.status
         self.get_logger().info(
-            f"estimator ready: measurement={st.get('measurement')} ({st.get('measurement_reason')}) "
+            f"ready: measurement={st.get('measurement')} ({st.get('measurement_reason')}) "
             f"device={st.get('device')} filter={st.get('filter_mode')} window={st.get('window_mode')} "
             f"planes={st.get('num_planes')} depth range={st.get('depth_range')}")
         return True
@@ -1105,8 +1105,7 @@ def run(argv: list[str], stop: threading.Event) -> int:
         if rclpy.ok():
             rclpy.shutdown()
     if node is not None and node.fatal_error:
-        print(f'[{NODE_NAME}] {node.fatal_error}', file=sys.stderr)
-        return 2
+        return 2            # the worker logged it (one ERROR line)
     return code
 
 
