@@ -69,8 +69,6 @@ import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import Odometry
-from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
-from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
 from rclpy.clock import Clock, ClockType
 from rclpy.event_handler import PublisherEventCallbacks, SubscriptionEventCallbacks
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
@@ -84,6 +82,7 @@ from dpv_sensor import msgs as M
 from dpv_sensor import params as P
 from dpv_sensor.estimator import EstimatorConfig
 from dpv_sensor.frame import Frame
+from dpv_sensor.node_params import RuntimeParameters, declare_parameters
 from dpv_sensor.node_support import (FaultLog, Incoming, LogBridge, Mailbox, RateMeter, camera_gap_ns, max_gap,
                                      merge_incoming)
 from dpv_sensor.pipeline import DEGENERATE, VO_LOST, Pipeline
@@ -150,38 +149,6 @@ def self_check() -> int:
         return 1
     print('self-check ok')
     return 0
-
-
-def _descriptor(spec: P.ParamSpec):
-    desc = ParameterDescriptor(name=spec.name, description=spec.description, read_only=True)
-    if spec.choices:
-        desc.additional_constraints = 'one of: ' + ', '.join(map(str, spec.choices))
-    if spec.kind is float and (spec.min_value is not None or spec.max_value is not None):
-        desc.floating_point_range = [FloatingPointRange(
-            from_value=float(spec.min_value if spec.min_value is not None else -1e300),
-            to_value=float(spec.max_value if spec.max_value is not None else 1e300), step=0.0)]
-    if spec.kind is int and (spec.min_value is not None or spec.max_value is not None):
-        desc.integer_range = [IntegerRange(
-            from_value=int(spec.min_value if spec.min_value is not None else -(2 ** 62)),
-            to_value=int(spec.max_value if spec.max_value is not None else 2 ** 62), step=1)]
-    return desc
-
-
-def declare_parameters(node) -> dict:
-    """Declare every parameter of params.SPECS on `node` and return their validated values.
-
-    A value rclpy refuses (type or range of the descriptor) is checked again with the table, so the node gives
-    the same message as the estimator and the tools."""
-    for spec in P.SPECS:
-        try:
-            node.declare_parameter(spec.name, spec.default, _descriptor(spec))
-        except (InvalidParameterTypeException, InvalidParameterValueException) as exc:
-            override = getattr(node, '_parameter_overrides', {}).get(spec.name)
-            if override is not None:
-                P.check_value(spec, override.value)         # raises the table's message
-            raise P.ParameterError(f"parameter '{spec.name}' rejected: {exc}") from None
-    values = {spec.name: node.get_parameter(spec.name).value for spec in P.SPECS}
-    return P.validate(values)
 
 
 class StartupError(RuntimeError):
@@ -336,6 +303,7 @@ class DepthCameraNode(Node):
         # on the steady clock: diagnostics keep coming while sim time (use_sim_time) is paused or not yet published
         self.create_timer(cfg['diagnostics_period'], self._publish_diagnostics,
                           clock=Clock(clock_type=ClockType.STEADY_TIME))
+        self._runtime_params = RuntimeParameters(self, cfg, self._apply_parameters)
 
         log.info(
             f"starting (building the estimator): preset={cfg['preset']} device={cfg['device']}"
@@ -445,6 +413,14 @@ class DepthCameraNode(Node):
             f"device={st.get('device')} filter={st.get('filter_mode')} window={st.get('window_mode')} "
             f"planes={st.get('num_planes')} depth range={st.get('depth_range')}")
         return True
+
+    def _apply_parameters(self, values: dict, changes: dict) -> None:
+        """Accepted runtime parameter changes (params.RUNTIME): the node reads its settings from self.config at use;
+        the estimator's are set on the running pipeline (a pipeline built later takes them from self.config)."""
+        with self._estimator_lock:
+            self.config = values
+            if self.pipeline is not None:
+                self.pipeline.apply_settings(changes)
 
     def close(self) -> bool:
         """Stop the worker and release resources before the node is destroyed; True when the worker stopped."""

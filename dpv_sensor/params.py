@@ -4,7 +4,7 @@
 streaming core and its pose source: the same names offline, in ``evaluate --config`` and in the node) and
 ``node`` (topics, QoS, encodings, the odometry buffer, camera intrinsics: fields of :class:`NodeConfig`).
 ``LIBRARY_SPECS`` are estimator settings that are not node parameters (window size, volume scale, coverage,
-autocast dtype). From this one table come: the node's parameter declarations (``node.declare_parameters``),
+autocast dtype). From this one table come: the node's parameter declarations (``node_params.declare_parameters``),
 ``EstimatorConfig`` and ``NodeConfig`` (:func:`make_config_class`), ``config/dpv_sensor.yaml``
 (:func:`yaml_text`; a test keeps the file equal to it), the ``key=value`` parser of the tools
 (:func:`parse_assignments`), and validation (:func:`check_value`, :func:`validate`), so a bad value is refused
@@ -248,8 +248,27 @@ ESTIMATOR_SPECS = tuple(s for s in SPECS + LIBRARY_SPECS if s.scope in ('estimat
 NODE_SPECS = tuple(s for s in SPECS if s.scope == 'node')
 
 
+# Node parameters that may change while the node runs (`ros2 param set`); every other one needs a restart.
+RUNTIME = frozenset({'min_confidence', 'damping', 'edge_filter_radius', 'edge_filter_sigma', 'depth_encoding',
+                     'points_decimation', 'points_max_rate', 'expected_depth_rate', 'expected_points_rate',
+                     'rate_tolerance', 'drop_warn_share', 'drop_error_share', 'odom_wait_timeout', 'frame_id'})
+
+
 class ParameterError(ValueError):
     """A parameter value outside its type, choices or range."""
+
+
+def check_changes(values: dict[str, Any], changes: dict[str, Any]) -> dict[str, Any]:
+    """``values`` with ``changes`` applied, each checked against the table (and the relations); a setting outside
+    ``RUNTIME`` is refused: it needs a restart."""
+    out = dict(values)
+    for name, value in changes.items():
+        if name not in RUNTIME:
+            raise ParameterError(f"parameter '{name}' cannot change while the node runs (restart it with the new "
+                                 f"value); these can: {', '.join(sorted(RUNTIME))}")
+        out[name] = check_value(spec(name), value)
+    check_relations(out)
+    return out
 
 
 def spec(name: str) -> ParamSpec:
@@ -439,6 +458,9 @@ def yaml_text() -> str:
              '# Every parameter the node declares is listed here with its default; ranges are checked at start.',
              '# Generated from dpv_sensor/params.py (python -m dpv_sensor.params > config/dpv_sensor.yaml).',
              '# Keyed /** so that it applies to the node in any namespace and under any node name.',
+             *textwrap.wrap('Changeable while the node runs (ros2 param set): ' + ', '.join(sorted(RUNTIME)) +
+                            '. Every other parameter needs a restart.', width=112, initial_indent='# ',
+                            subsequent_indent='# ', break_on_hyphens=False),
              '/**:', '  ros__parameters:']
     for s in SPECS:
         text = s.description + _constraint(s)
