@@ -84,7 +84,7 @@ from dpv_sensor.estimator import EstimatorConfig
 from dpv_sensor.frame import Frame
 from dpv_sensor.node_params import RuntimeParameters, declare_parameters
 from dpv_sensor.node_support import (FaultLog, Incoming, LogBridge, Mailbox, RateMeter, camera_gap_ns, max_gap,
-                                     merge_incoming)
+                                     merge_incoming, plausible_age_ms)
 from dpv_sensor.pipeline import DEGENERATE, VO_LOST, Pipeline
 from dpv_sensor.pose_buffer import PoseBuffer, pose7_to_matrix
 from dpv_sensor.rectify import RectifierCache, UnsupportedDistortion
@@ -271,6 +271,7 @@ class DepthCameraNode(Node):
         self.keyframe_ms: collections.deque[float] = collections.deque(maxlen=50)   # estimator.push, keyframes
         self.n_received = self.n_processed = self.n_published = self.n_keyframes_published = 0
         self.n_points = 0
+        self.n_age_implausible = 0            # outputs whose stamp is more than an hour off the node's clock
         self._node_resets = 0
         # published outputs whose filter restarted (estimator, filter or pose-refinement restart; the first output of
         # the stream, whose filter starts by definition, is not counted) and the reason of the latest one
@@ -828,7 +829,11 @@ class DepthCameraNode(Node):
         self.n_keyframes_published += int(bool(out.is_keyframe))
         self.out_rate.tick()
         self.latency_ms.append((time.monotonic() - meta.receipt_mono) * 1000.0)
-        self.age_ms.append((now_ns - meta.stamp_ns) / 1e6)
+        age = plausible_age_ms(now_ns, meta.stamp_ns)
+        if age is None:
+            self.n_age_implausible += 1
+        else:
+            self.age_ms.append(age)
 
     def _publish_points(self, depth, rgb, K, header, stamp_ns: int) -> None:
         """The organised cloud (every points_decimation-th pixel), at most points_max_rate per second of image
@@ -881,7 +886,9 @@ class DepthCameraNode(Node):
             'point_clouds_published': self.n_points,
             'latency_ms_median': round(float(np.median(lat)), 1) if lat else 'n/a',
             'latency_ms_p95': round(float(np.percentile(lat, 95)), 1) if lat else 'n/a',
-            'stamp_age_ms_median': round(float(np.median(age)), 1) if age else 'n/a',   # on the node's clock
+            # on the node's clock, for stamps within an hour of it
+            'stamp_age_ms_median': round(float(np.median(age)), 1) if age else 'n/a',
+            'stamp_age_implausible': self.n_age_implausible,
             'depth_rate_hz': round(self.out_rate.mean_rate(self._first_image_mono), 3),
             'expected_depth_rate_hz': self.config['expected_depth_rate'],
             'points_rate_hz': round(self.points_rate.mean_rate(self._first_image_mono), 3),

@@ -131,7 +131,7 @@ def test_rgb_confidence_info_compressed_points_and_rate_warning_in_both_resoluti
                        'points_decimation': 2, 'points_max_rate': POINTS_RATE, 'expected_depth_rate': 50.0,
                        'rate_window': 2.0}, ['-r', '__ns:=/pr'])
     # the first remap rule of a name wins: node B's camera_info is the distorted one published here
-    args_b[args_b.index('camera_info:=/camera/camera_info')] = 'camera_info:=/distorted/camera_info'
+    args_b[args_b.index('camera_info:=/camera_info')] = 'camera_info:=/distorted/camera_info'
     proc_b = start_node(args_b, env=env)
     player = BagPlayer(node, bag, rate=0.25)
     # node A runs on sim time: /clock follows the bag's stamps
@@ -236,8 +236,8 @@ def test_diagnostics_warn_when_the_share_of_faulty_images_is_too_high(observer):
 
     def events(topic):
         return PublisherEventCallbacks(matched=lambda info: matched.update({topic: info.current_count}))
-    pub_img = node.create_publisher(Image, '/camera/image', qos, event_callbacks=events('image'))
-    pub_info = node.create_publisher(CameraInfo, '/camera/camera_info', qos, event_callbacks=events('info'))
+    pub_img = node.create_publisher(Image, '/image', qos, event_callbacks=events('image'))
+    pub_info = node.create_publisher(CameraInfo, '/camera_info', qos, event_callbacks=events('info'))
     pub_odom = node.create_publisher(Odometry, '/odom', qos, event_callbacks=events('odom'))
     proc = start_node(ros_args({**COMMON, 'drop_warn_share': 0.3, 'drop_error_share': 1.0, 'rate_window': 30.0}))
     stamp = [START_NS]

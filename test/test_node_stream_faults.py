@@ -5,6 +5,7 @@ a discontinuity with a warning, and a bad image is counted and logged on receipt
 """
 import re
 
+from ros_helpers import wait_for
 from stream_driver import FAST_PARAMS, StreamDriver, params_args
 from dpv_sensor.pose_buffer import NS
 
@@ -79,3 +80,21 @@ def test_bad_images_in_a_burst_are_counted_on_receipt_and_a_slow_stream_after_it
     assert int(after_burst.get('dropped.busy', 0)) > 0, after_burst
     assert len(re.findall(r'dropping image at [\d.]+ s: .*data length', log)) >= 1, log
     assert int(diag['lost.transport']) == int(after_burst['lost.transport']) == 0, diag
+
+
+def test_stamps_far_off_the_node_clock_report_no_stamp_age():
+    """A bag written from a folder without stamps starts at stamp 0: its age on the node's clock (56 years) is no
+    latency, so none is reported and the outputs are counted in stamp_age_implausible."""
+    drv = _driver('stamp_age')
+    try:
+        drv.wait_ready()
+        for i in range(8):
+            drv.send(i, (i + 1) * P30)
+            assert drv.wait_accounted(i + 1), drv.outputs.diagnostics
+        assert wait_for(lambda: drv.outputs.depth_count > 0, timeout=30.0, spin=drv.spin)
+        diag = drv.wait_diagnostics()
+    finally:
+        log = drv.stop()
+    assert drv.code == 0, log
+    assert diag['stamp_age_ms_median'] == 'n/a', diag
+    assert int(diag['stamp_age_implausible']) == int(diag['outputs_published']) >= 1, diag

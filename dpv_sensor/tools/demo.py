@@ -11,7 +11,7 @@ Steps (each prints a progress line and its time):
            in the validation range 0..99 that training refuses, and not among the seeds 0..3 the packaged
            checkpoint was validated on) and save it as a sequence folder: OUT/sequence (the ground truth:
            images as lossless PNG, depth PNG in mm, poses, K, stamps).
-2. bag     write it as a rosbag2 (MCAP): OUT/input_bag with /camera/image, /camera/camera_info and /odom
+2. bag     write it as a rosbag2 (MCAP): OUT/input_bag with /image, /camera_info and /odom
            (odometry at 100 Hz, interpolated between the frames; the stamps are the sequence's).
 3. node    start the node as its own process (`python -m dpv_sensor.node --ros-args -p ... -r ...`) with a private
            ROS_DOMAIN_ID (localhost only) and ROS_LOG_DIR under OUT/logs; wait until its estimator is built and its
@@ -55,6 +55,7 @@ import contextlib
 import io
 import json
 import math
+import os
 import pathlib
 import shlex
 import shutil
@@ -249,7 +250,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help='seconds to wait for the node to start and subscribe (default 180; >= 10)')
     n.add_argument('--frame-timeout', type=float, default=180.0,
                    help='lockstep: longest wait for the node to finish one image (default 180 s)')
-    n.add_argument('--domain-id', type=int, default=None, help='ROS_DOMAIN_ID (default: a random private one)')
+    n.add_argument('--domain-id', type=int, default=None,
+                   help='ROS_DOMAIN_ID (default: $ROS_DOMAIN_ID when set, else a random private one)')
     f = p.add_argument_group('fusion')
     f.add_argument('--voxel', type=float, default=0.03, help='TSDF voxel size in m (default 0.03)')
     f.add_argument('--fuse-min-confidence', type=float, default=0.9,
@@ -306,7 +308,10 @@ def main(argv: Optional[List[str]] = None) -> int:
             p.unlink()
     logs = out / 'logs'
     logs.mkdir(parents=True, exist_ok=True)
-    ros_env = private_ros_env(out, a.domain_id)
+    domain_id = a.domain_id
+    if domain_id is None and os.environ.get('ROS_DOMAIN_ID', '').isdigit():
+        domain_id = int(os.environ['ROS_DOMAIN_ID'])
+    ros_env = private_ros_env(out, domain_id)
 
     seq_dir = out / 'sequence'
     input_bag = input_bag if user_bag else out / 'input_bag'
