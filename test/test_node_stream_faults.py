@@ -98,3 +98,26 @@ def test_stamps_far_off_the_node_clock_report_no_stamp_age():
     assert drv.code == 0, log
     assert diag['stamp_age_ms_median'] == 'n/a', diag
     assert int(diag['stamp_age_implausible']) == int(diag['outputs_published']) >= 1, diag
+
+
+def test_a_lens_cap_with_sensor_noise_and_a_nearly_saturated_frame_are_dropped_as_degenerate():
+    import numpy as np
+    from stream_driver import H, W, lens_cap
+    rng = np.random.default_rng(0)
+    cap = np.clip(lens_cap(rng, 4, 2.0), 0, 10)                                        # covered lens, dark noise
+    glare = np.clip(rng.normal(253, 1.5, (H, W, 3)), 250, 255).astype(np.uint8)       # overexposed, clipping
+    drv = _driver('degenerate_noise')
+    frames = {6: cap, 7: cap, 9: glare}          # two episodes: a textured frame between them
+    try:
+        drv.wait_ready()
+        for i in range(12):
+            drv.send(i, drv.stamp_ns(i), image=frames.get(i))
+            assert drv.wait_accounted(i + 1), drv.outputs.diagnostics
+        diag = drv.wait_diagnostics()
+        published = set(drv.outputs.by_stamp)
+    finally:
+        log = drv.stop()
+    assert drv.code == 0, log
+    assert int(diag['dropped.degenerate_image']) == 3, diag
+    assert not {drv.stamp_ns(i) for i in frames} & published
+    assert 'degenerate images from' in log and '(black' in log and '(saturated' in log, log
