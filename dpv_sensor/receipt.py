@@ -36,7 +36,7 @@ class ImageReceipt:
         if loss.stamp_jumps != jumps:
             self.faults.report(STAMP_JUMP, f'image stamps jumped {loss.last_jump_ns / NS:.3f} s forward at '
                                f'{stamp_ns / NS:.3f} s: a discontinuity (camera stalled, or its clock or /clock '
-                               'jumped), not counted as lost images; the filter restarts')
+                               'jumped), not counted as lost images; a gap over reset_time_gap restarts the filter')
         if loss.rate_changes != changes:
             self.faults.report('input_rate_change', f'the camera changed its frame rate: period now '
                                f'{loss.period_ns / 1e6:.1f} ms (input_rate_changes counts them; no image was lost)',
