@@ -204,17 +204,17 @@ SPECS: tuple[ParamSpec, ...] = (
     ParamSpec('publish_compressed_depth', False, 'Also publish depth/image/compressedDepth (sensor_msgs/'
               "CompressedImage, PNG as image_transport's compressedDepth plugin encodes it, in depth_encoding).",
               scope='node'),
-    ParamSpec('points_decimation', 1, 'points: every n-th pixel in each direction (organised cloud of '
+    ParamSpec('points_decimation', 1, 'depth/points: every n-th pixel in each direction (organised cloud of '
               'ceil(H/n) x ceil(W/n); 640x480 at 4: 4.9 MB -> 0.31 MB per cloud).', min_value=1, max_value=16,
               scope='node'),
-    ParamSpec('points_max_rate', 0.0, 'points: at most this many clouds per second of image time (an output whose '
-              "stamp is closer than 1/rate to the previous cloud's is skipped and counted). 0: every output.",
+    ParamSpec('points_max_rate', 0.0, 'depth/points: at most this many clouds per second of image time (an output '
+              "whose stamp is closer than 1/rate to the previous cloud's is skipped and counted). 0: every output.",
               min_value=0.0, max_value=1000.0, scope='node'),
     ParamSpec('expected_depth_rate', 0.0, 'Expected rate of depth/image (and rgb, confidence) in Hz: /diagnostics '
               'warns while the measured rate is below it by more than rate_tolerance. Keyframe outputs come at '
               'about a fifth of the camera rate at most. 0: no expectation.', min_value=0.0, max_value=1000.0,
               scope='node'),
-    ParamSpec('expected_points_rate', 0.0, 'Expected rate of points in Hz (as expected_depth_rate; only while '
+    ParamSpec('expected_points_rate', 0.0, 'Expected rate of depth/points in Hz (as expected_depth_rate; only while '
               'someone subscribes). 0: no expectation.', min_value=0.0, max_value=1000.0, scope='node'),
     ParamSpec('rate_tolerance', 0.1, 'Share below an expected rate that is still fine (0.1: 10 %).',
               min_value=0.0, max_value=1.0, scope='node'),
