@@ -39,6 +39,7 @@ class StreamDriver:
         types = {'image': Image, 'camera_info': CameraInfo, 'odom': Odometry}
         self.pubs = {k: self.node.create_publisher(types[k], t, qos) for k, t in topics.items()}
         self.outputs = OutputCollector(self.node, namespace=namespace)
+        self.reliability = reliability
         self.proc = start_node(args, env={'OMP_NUM_THREADS': '1', **(env or {})})
         self.log = ''
         self.code = None
@@ -53,9 +54,12 @@ class StreamDriver:
         return self.diag('frames_processed') + self.diag('dropped_total')
 
     def wait_ready(self, timeout: float = 90.0) -> None:
-        """The estimator is built, every input is matched both ways and the collector hears the outputs."""
+        """The estimator is built, every input is subscribed at the publishers' reliability (input_reliability auto
+        re-subscribes once it has seen them: what is sent meanwhile is lost) and matched both ways, and the collector
+        hears the outputs."""
         out = self.outputs
         ok = wait_for(lambda: out.diagnostics.get('measurement_model', 'starting') != 'starting'
+                      and all(out.diagnostics.get(f'input_qos.{k}') == self.reliability for k in self.pubs)
                       and all(self.diag(f'publishers.{k}') == 1 for k in self.pubs)
                       and all(p.get_subscription_count() == 1 for p in self.pubs.values())
                       and out.subs[0].get_publisher_count() == 1, timeout=timeout, spin=self.spin)
