@@ -776,6 +776,30 @@ def _records_from_arrays(items, gt, *, tolerance: float, stamp_offset: float,
     return records, {'matched': len(records), 'unmatched': unmatched, 'stamp_offset_s': stamp_offset}
 
 
+def first_image_stamp(bag, topic: str) -> float:
+    """Header stamp (s) of the first message on `topic` of a rosbag2."""
+    from . import msgs as MS
+    from .data import rosbag_io as R
+    messages = R.read_messages(bag, [topic])
+    try:
+        first = next(messages)[3]
+    except StopIteration:
+        raise R.BagError(f'{bag}: no message on {topic}') from None
+    finally:
+        messages.close()            # closes the bag reader
+    return MS.stamp_to_ns(first.header.stamp) / R.NS
+
+
+def gt_stamp_offset(first_stamp_s: float, gt_seq, tolerance: float = 1e-3) -> float:
+    """The offset (s) to subtract from bag stamps to get GT stamps, from the bag's first camera image: 0 when that
+    stamp is one of the GT frames' own stamps (stamps.txt in the bag's clock), else the bag's first image is GT
+    frame 0 (a folder without stamps.txt counts from 0 at 30 Hz; a bag written from it may start at any epoch)."""
+    stamps = np.array([float(gt_seq.stamp(i)) for i in range(len(gt_seq))])
+    if stamps.size and float(np.min(np.abs(stamps - first_stamp_s))) <= tolerance:
+        return 0.0
+    return first_stamp_s - float(gt_seq.stamp(0))
+
+
 def records_from_bag(bag, gt, *, depth_topic: Optional[str] = None, confidence_topic: Optional[str] = None,
                      info_topic: Optional[str] = None, image_topic: Optional[str] = None,
                      stamp_offset: Union[float, str] = 'auto',
@@ -808,13 +832,7 @@ def records_from_bag(bag, gt, *, depth_topic: Optional[str] = None, confidence_t
                                             required=False)
         offset = 0.0
         if img_topic is not None:
-            messages = R.read_messages(bag, [img_topic])
-            try:
-                first = next(messages)[3]
-            finally:
-                messages.close()            # closes the bag reader
-            from . import msgs as MS
-            offset = MS.stamp_to_ns(first.header.stamp) / R.NS - float(gt_seq.stamp(0))
+            offset = gt_stamp_offset(first_image_stamp(bag, img_topic), gt_seq, tolerance)
         gt = gt_seq
     else:
         offset = float(stamp_offset)

@@ -170,11 +170,10 @@ def _image_array(msg, bytes_per_pixel: int, what: str) -> np.ndarray:
     return data.reshape(h, step)[:, :w * bytes_per_pixel].reshape(h, w, bytes_per_pixel)
 
 
-def image_to_rgb(msg) -> np.ndarray:
-    """sensor_msgs/Image (rgb8, bgr8, rgba8, bgra8, mono8) -> HxWx3 uint8 RGB (a new, contiguous array).
-
-    Raises UnsupportedEncoding for any other encoding and BadImage when size, step and data disagree.
-    """
+def check_colour_image(msg) -> tuple[int, tuple]:
+    """(channels, channel order) of a colour sensor_msgs/Image whose encoding, size, step and data length agree,
+    without touching the pixels (cheap enough for the subscription callback). Raises UnsupportedEncoding for an
+    encoding other than rgb8, bgr8, rgba8, bgra8, mono8 and BadImage when size, step and data disagree."""
     enc = str(msg.encoding).strip().lower()
     if enc not in _COLOUR:
         what = _NOT_COLOUR.get(enc)
@@ -182,6 +181,22 @@ def image_to_rgb(msg) -> np.ndarray:
         raise UnsupportedEncoding(f"unsupported image encoding '{msg.encoding}'{hint}; the colour input must be one "
                                   f"of {', '.join(COLOUR_ENCODINGS)}")
     channels, order = _COLOUR[enc]
+    h, w, step, what = int(msg.height), int(msg.width), int(msg.step), f"'{msg.encoding}' image"
+    if h <= 0 or w <= 0:
+        raise BadImage(f'{what} has zero size ({w}x{h})')
+    if step < w * channels:
+        raise BadImage(f'{what} step {step} is smaller than width*bytes per pixel = {w}*{channels}')
+    if len(msg.data) != step * h:
+        raise BadImage(f'{what} data length {len(msg.data)} does not match step*height = {step}*{h} = {step * h}')
+    return channels, order
+
+
+def image_to_rgb(msg) -> np.ndarray:
+    """sensor_msgs/Image (rgb8, bgr8, rgba8, bgra8, mono8) -> HxWx3 uint8 RGB (a new, contiguous array).
+
+    Raises UnsupportedEncoding for any other encoding and BadImage when size, step and data disagree.
+    """
+    channels, order = check_colour_image(msg)
     px = _image_array(msg, channels, f"'{msg.encoding}' image")
     if channels == 1:
         return np.repeat(px, 3, axis=2)

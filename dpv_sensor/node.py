@@ -4,7 +4,8 @@ This module owns ROS plumbing only: parameters, QoS, subscriptions, publishing, 
 algorithm lives in dpv_sensor.estimator (Estimator.push(Frame) -> DepthOutput | None); messages are converted by
 dpv_sensor.msgs; image poses come from dpv_sensor.pose_buffer.
 
-Topics (relative names, remappable):
+Topics (relative names, remappable; a camera_info or compressedDepth follows its remapped image topic as
+image_transport names them, unless remapped itself: dpv_sensor.topic_names):
   in   image (sensor_msgs/Image rgb8/bgr8/rgba8/bgra8/mono8), camera_info (sensor_msgs/CameraInfo),
        odom (nav_msgs/Odometry) - QoS: input_reliability (auto: as the publishers offer), input_depth; transport:
        dpv_sensor.transport (docs/transport.md), applied by the entry point before rclpy starts
@@ -12,7 +13,7 @@ Topics (relative names, remappable):
        rgb/image (rgb8: the colour image the depth was computed for, rectified when the node rectifies, at the
        depth's size) + rgb/camera_info, confidence/image (32FC1 in [0, 1]) + confidence/camera_info (all camera_info
        the same: K of the output size, D zero), depth/image/compressedDepth (with publish_compressed_depth),
-       points (PointCloud2 XYZRGB, only computed while subscribed; points_decimation, points_max_rate),
+       depth/points (PointCloud2 XYZRGB, only computed while subscribed; points_decimation, points_max_rate),
        pose (PoseStamped, with pose_refinement or odometry none), /diagnostics (DiagnosticArray)
        with publish_tf: /tf_static (base_frame -> image frame, T_base_camera) and /tf (<image frame>_refined,
        with the pose output), tf2_msgs/TFMessage (dpv_sensor.tf_publisher)
@@ -25,8 +26,8 @@ interval between consecutive images the node *received* since the previous frame
 included), so the estimator's time-gap reset fires only when the camera stream itself stalled; its jump rules judge
 the motion against the elapsed time, so a slow machine that pushes a frame every few seconds keeps its filter.
 Every output carries exactly the input image's header (stamp and frame_id). The worker builds the estimator when
-the node starts ('ready' is logged once topics and parameters are up, 'estimator ready' once the model is loaded);
-if it cannot be built (e.g. measurement=network without weights) the node exits with code 2.
+the node starts ('starting' is logged once topics and parameters are up, 'ready' once the model is loaded); if it
+cannot be built (e.g. measurement=network without weights) the node logs that one error and exits with code 2.
 SIGINT / SIGTERM stop the node cleanly (exit 0), also while it is still starting: the entry point
 (dpv_sensor.entry) installs the handlers before this module's heavy imports.
 
@@ -43,7 +44,11 @@ backwards, an empty image frame_id, a degenerate image, an exception inside the 
 /diagnostics and logged with a specific, rate-limited message. No image is lost uncounted: images lost before the
 callback (transport) are counted from the stamps and the middleware's reports (lost.*), images the node skips or
 refuses in dropped.*, so frames_received + lost.transport = images sent and frames_processed + dropped_total =
-frames_received (but for the one or two in flight).
+frames_received (but for the one or two in flight). A loss is counted only on evidence (a middleware report, or a
+stamp gap the stream around it confirms): a camera that lowers its rate loses nothing (input_rate_changes) and a
+stamp jump is a discontinuity (input_stamp_jumps, faults.stamp_jump). Images are checked on receipt
+(dpv_sensor.receipt), so a bad one is counted and logged even when the newest-wins mailbox would have replaced it;
+a change of the odometry frame_id is logged and counted (faults.odometry_frame_change).
 """
 from __future__ import annotations
 
@@ -64,8 +69,6 @@ import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import Odometry
-from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
-from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
 from rclpy.clock import Clock, ClockType
 from rclpy.event_handler import PublisherEventCallbacks, SubscriptionEventCallbacks
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
@@ -79,20 +82,21 @@ from dpv_sensor import msgs as M
 from dpv_sensor import params as P
 from dpv_sensor.estimator import EstimatorConfig
 from dpv_sensor.frame import Frame
+from dpv_sensor.node_params import RuntimeParameters, declare_parameters
 from dpv_sensor.node_support import (FaultLog, Incoming, LogBridge, Mailbox, RateMeter, camera_gap_ns, max_gap,
-                                     merge_incoming)
+                                     merge_incoming, plausible_age_ms)
 from dpv_sensor.pipeline import DEGENERATE, VO_LOST, Pipeline
 from dpv_sensor.pose_buffer import CovarianceTrack, PoseBuffer, pose7_to_matrix
 from dpv_sensor.rectify import RectifierCache, UnsupportedDistortion
+from dpv_sensor.receipt import BAD_IMAGE, UNSUPPORTED_ENCODING, ImageReceipt, OdomFrameWatch
 from dpv_sensor.stream_loss import StreamLoss
+from dpv_sensor.topic_names import topic_name
 from dpv_sensor.transport import choose_reliability
 
 NODE_NAME = 'dpv_sensor'
 NS = 1_000_000_000
 
 # fault kinds (counter names in /diagnostics; each has its own log message)
-UNSUPPORTED_ENCODING = 'unsupported_encoding'
-BAD_IMAGE = 'bad_image'
 SIZE_CHANGE = 'image_size_change'
 NO_CAMERA_INFO = 'no_camera_info'
 BAD_CAMERA_INFO = 'bad_camera_info'
@@ -145,38 +149,6 @@ def self_check() -> int:
         return 1
     print('self-check ok')
     return 0
-
-
-def _descriptor(spec: P.ParamSpec):
-    desc = ParameterDescriptor(name=spec.name, description=spec.description, read_only=True)
-    if spec.choices:
-        desc.additional_constraints = 'one of: ' + ', '.join(map(str, spec.choices))
-    if spec.kind is float and (spec.min_value is not None or spec.max_value is not None):
-        desc.floating_point_range = [FloatingPointRange(
-            from_value=float(spec.min_value if spec.min_value is not None else -1e300),
-            to_value=float(spec.max_value if spec.max_value is not None else 1e300), step=0.0)]
-    if spec.kind is int and (spec.min_value is not None or spec.max_value is not None):
-        desc.integer_range = [IntegerRange(
-            from_value=int(spec.min_value if spec.min_value is not None else -(2 ** 62)),
-            to_value=int(spec.max_value if spec.max_value is not None else 2 ** 62), step=1)]
-    return desc
-
-
-def declare_parameters(node) -> dict:
-    """Declare every parameter of params.SPECS on `node` and return their validated values.
-
-    A value rclpy refuses (type or range of the descriptor) is checked again with the table, so the node gives
-    the same message as the estimator and the tools."""
-    for spec in P.SPECS:
-        try:
-            node.declare_parameter(spec.name, spec.default, _descriptor(spec))
-        except (InvalidParameterTypeException, InvalidParameterValueException) as exc:
-            override = getattr(node, '_parameter_overrides', {}).get(spec.name)
-            if override is not None:
-                P.check_value(spec, override.value)         # raises the table's message
-            raise P.ParameterError(f"parameter '{spec.name}' rejected: {exc}") from None
-    values = {spec.name: node.get_parameter(spec.name).value for spec in P.SPECS}
-    return P.validate(values)
 
 
 class StartupError(RuntimeError):
@@ -241,6 +213,8 @@ class DepthCameraNode(Node):
         # inputs at the reliability the publishers offer (input_reliability auto: see _adapt_input_qos); images lost
         # before _on_image are counted by stream_loss (callback thread only)
         self.stream_loss = StreamLoss()
+        self._receipt = ImageReceipt(self.faults, self._drop, self.stream_loss)
+        self._odom_frames = OdomFrameWatch(self.faults)
         self._inputs = {'image': (Image, self._on_image)}
         if cfg['camera_info_source'] == 'topic':
             self._inputs['camera_info'] = (CameraInfo, self._on_camera_info)
@@ -267,7 +241,7 @@ class DepthCameraNode(Node):
         if cfg['publish_compressed_depth']:
             # image_transport's topic name for the compressedDepth transport of depth/image
             self.pub_compressed = pub(CompressedImage, 'depth/image/compressedDepth', out_qos)
-        self.pub_points = pub(PointCloud2, 'points', out_qos)
+        self.pub_points = pub(PointCloud2, 'depth/points', out_qos)
         self.pub_pose = None
         if cfg['pose_refinement'] != 'off' or cfg['odometry'] == 'none':
             # the refined pose, or the visual odometry's (the user has no other pose source then), in the odometry
@@ -298,6 +272,7 @@ class DepthCameraNode(Node):
         self.keyframe_ms: collections.deque[float] = collections.deque(maxlen=50)   # estimator.push, keyframes
         self.n_received = self.n_processed = self.n_published = self.n_keyframes_published = 0
         self.n_points = 0
+        self.n_age_implausible = 0            # outputs whose stamp is more than an hour off the node's clock
         self._node_resets = 0
         # published outputs whose filter restarted (estimator, filter or pose-refinement restart; the first output of
         # the stream, whose filter starts by definition, is not counted) and the reason of the latest one
@@ -330,9 +305,10 @@ class DepthCameraNode(Node):
         # on the steady clock: diagnostics keep coming while sim time (use_sim_time) is paused or not yet published
         self.create_timer(cfg['diagnostics_period'], self._publish_diagnostics,
                           clock=Clock(clock_type=ClockType.STEADY_TIME))
+        self._runtime_params = RuntimeParameters(self, cfg, self._apply_parameters)
 
         log.info(
-            f"ready: preset={cfg['preset']} device={cfg['device']}"
+            f"starting (building the estimator): preset={cfg['preset']} device={cfg['device']}"
             f" cpu_precision={cfg['cpu_precision']} measurement={cfg['measurement']} "
             f"filter={cfg['filter_mode']} readout={cfg['depth_readout']} confidence={cfg['confidence']}"
             f"{' ' + format(cfg['confidence_ratio'], 'g') if cfg['confidence'] == 'ratio' else ''} "
@@ -369,7 +345,8 @@ class DepthCameraNode(Node):
             lost = lambda info: self.stream_loss.on_rmw_lost(int(info.total_count_change))  # noqa: E731
         events = SubscriptionEventCallbacks(incompatible_qos=incompatible, matched=on_matched, message_lost=lost)
         msg_type, callback = self._inputs[topic]
-        self._input_subs[topic] = self.create_subscription(msg_type, topic, callback, qos, event_callbacks=events)
+        self._input_subs[topic] = self.create_subscription(msg_type, self._topic(topic), callback, qos,
+                                                           event_callbacks=events)
         self._input_reliability[topic] = reliability
 
     def _adapt_input_qos(self) -> None:
@@ -405,7 +382,12 @@ class DepthCameraNode(Node):
         return PublisherEventCallbacks(incompatible_qos=on_incompatible)
 
     def _publisher(self, msg_type, topic: str, qos):
-        return self.create_publisher(msg_type, topic, qos, event_callbacks=self._qos_events(topic, subscription=False))
+        return self.create_publisher(msg_type, self._topic(topic), qos,
+                                     event_callbacks=self._qos_events(topic, subscription=False))
+
+    def _topic(self, name: str) -> str:
+        """The topic name of `name`: a camera_info or transport follows its remapped image topic (topic_names)."""
+        return topic_name(name, lambda topic, expand: self.resolve_topic_name(topic, only_expand=expand))
 
     def _make_pipeline(self) -> Pipeline:
         try:
@@ -429,10 +411,18 @@ class DepthCameraNode(Node):
             self.pipeline = pipeline
         st = pipeline.status
         self.get_logger().info(
-            f"estimator ready: measurement={st.get('measurement')} ({st.get('measurement_reason')}) "
+            f"ready: measurement={st.get('measurement')} ({st.get('measurement_reason')}) "
             f"device={st.get('device')} filter={st.get('filter_mode')} window={st.get('window_mode')} "
             f"planes={st.get('num_planes')} depth range={st.get('depth_range')}")
         return True
+
+    def _apply_parameters(self, values: dict, changes: dict) -> None:
+        """Accepted runtime parameter changes (params.RUNTIME): the node reads its settings from self.config at use;
+        the estimator's are set on the running pipeline (a pipeline built later takes them from self.config)."""
+        with self._estimator_lock:
+            self.config = values
+            if self.pipeline is not None:
+                self.pipeline.apply_settings(changes)
 
     def close(self) -> bool:
         """Stop the worker and release resources before the node is destroyed; True when the worker stopped."""
@@ -462,11 +452,9 @@ class DepthCameraNode(Node):
         gap_ns = stamp_ns - last if stamp_ns is not None and last is not None and stamp_ns > last else None
         if not msg.header.frame_id:
             self._on_empty_frame_id(stamp_ns)
-        # images missing before this one (lost in transport): counted; a gap the middleware reported as lost is
-        # judged by the worker (camera_gap_ns), as the report may come after this image
-        lost = self.stream_loss.on_image(stamp_ns) if stamp_ns is not None else None
-        item = Incoming(msg, time.monotonic(), time.time_ns(), None if lost else gap_ns, [lost] if lost else [])
-        if self._mailbox.put(item):
+        # lost images, stamp jumps and unusable images: judged here, before the mailbox (dpv_sensor.receipt)
+        item = self._receipt.image(msg, stamp_ns, gap_ns, time.monotonic(), time.time_ns())
+        if item is not None and self._mailbox.put(item):
             with self._stats_lock:
                 self.dropped[BUSY] += 1
             self.faults.report(BUSY, 'estimator busy: dropping an older image that was still waiting (newest wins; '
@@ -511,7 +499,7 @@ class DepthCameraNode(Node):
             self.faults.report(NAN_ODOMETRY, f'ignoring odometry at {stamp_ns / NS:.3f} s: {exc}; images '
                                'interpolated across it are dropped')
             T = None
-        self._odom_frame = msg.header.frame_id or self._odom_frame
+        self._odom_frame = self._odom_frames.update(msg.header.frame_id, stamp_ns)
         if self.tf is not None and msg.child_frame_id:
             self.tf.frames(odom_child_frame=msg.child_frame_id)
         jumps, conflicts = self.pose_buffer.jumps, self.pose_buffer.conflicts
@@ -733,7 +721,7 @@ class DepthCameraNode(Node):
         waits up to LOSS_REPORT_WAIT_S after its receipt."""
         pending, self._loss_carry = self._loss_carry, []
         deadline = item.receipt_mono + LOSS_REPORT_WAIT_S
-        while any(not g.explained for g in pending) and time.monotonic() < deadline and not self._stop.is_set():
+        while any(not g.settled for g in pending) and time.monotonic() < deadline and not self._stop.is_set():
             time.sleep(0.005)
         gap_ns, self._gap_carry_ns = camera_gap_ns(self._gap_carry_ns, pending), None
         return gap_ns
@@ -844,7 +832,11 @@ class DepthCameraNode(Node):
         self.n_keyframes_published += int(bool(out.is_keyframe))
         self.out_rate.tick()
         self.latency_ms.append((time.monotonic() - meta.receipt_mono) * 1000.0)
-        self.age_ms.append((now_ns - meta.stamp_ns) / 1e6)
+        age = plausible_age_ms(now_ns, meta.stamp_ns)
+        if age is None:
+            self.n_age_implausible += 1
+        else:
+            self.age_ms.append(age)
 
     def _publish_points(self, depth, rgb, K, header, stamp_ns: int) -> None:
         """The organised cloud (every points_decimation-th pixel), at most points_max_rate per second of image
@@ -897,7 +889,9 @@ class DepthCameraNode(Node):
             'point_clouds_published': self.n_points,
             'latency_ms_median': round(float(np.median(lat)), 1) if lat else 'n/a',
             'latency_ms_p95': round(float(np.percentile(lat, 95)), 1) if lat else 'n/a',
-            'stamp_age_ms_median': round(float(np.median(age)), 1) if age else 'n/a',   # on the node's clock
+            # on the node's clock, for stamps within an hour of it
+            'stamp_age_ms_median': round(float(np.median(age)), 1) if age else 'n/a',
+            'stamp_age_implausible': self.n_age_implausible,
             'depth_rate_hz': round(self.out_rate.mean_rate(self._first_image_mono), 3),
             'expected_depth_rate_hz': self.config['expected_depth_rate'],
             'points_rate_hz': round(self.points_rate.mean_rate(self._first_image_mono), 3),
@@ -998,7 +992,7 @@ class DepthCameraNode(Node):
         out = []
         checks = [('depth/image', values.get('depth_rate_hz', 0.0), cfg['expected_depth_rate'])]
         if self.pub_points.get_subscription_count() > 0:
-            checks.append(('points', values.get('points_rate_hz', 0.0), cfg['expected_points_rate']))
+            checks.append(('depth/points', values.get('points_rate_hz', 0.0), cfg['expected_points_rate']))
         for name, rate, expected in checks:
             if expected > 0 and rate < expected * (1.0 - cfg['rate_tolerance']):
                 level = DiagnosticStatus.ERROR if rate == 0 else DiagnosticStatus.WARN
@@ -1106,8 +1100,7 @@ def run(argv: list[str], stop: threading.Event) -> int:
         if rclpy.ok():
             rclpy.shutdown()
     if node is not None and node.fatal_error:
-        print(f'[{NODE_NAME}] {node.fatal_error}', file=sys.stderr)
-        return 2
+        return 2            # the worker logged it (one ERROR line)
     return code
 
 

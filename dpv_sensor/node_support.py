@@ -9,7 +9,8 @@ import threading
 import time
 from dataclasses import dataclass, field
 
-__all__ = ['Mailbox', 'RateMeter', 'FaultLog', 'LogBridge', 'Incoming', 'merge_incoming', 'max_gap', 'camera_gap_ns']
+__all__ = ['Mailbox', 'RateMeter', 'FaultLog', 'LogBridge', 'Incoming', 'merge_incoming', 'max_gap', 'camera_gap_ns',
+           'plausible_age_ms']
 
 
 class Mailbox:
@@ -203,3 +204,14 @@ def camera_gap_ns(gap_ns: int | None, loss_gaps) -> int | None:
     for lost in loss_gaps:
         gap_ns = max_gap(gap_ns, lost.camera_gap_ns)
     return gap_ns
+
+
+PLAUSIBLE_AGE_NS = 3600 * 1_000_000_000
+
+
+def plausible_age_ms(now_ns: int, stamp_ns: int) -> float | None:
+    """The age (ms) of a header stamp on the node's clock, or None when it is more than an hour off either way: the
+    stamps are then not on this clock (a bag written from stamp 0, a replay without use_sim_time) and their age says
+    nothing about latency."""
+    age = now_ns - stamp_ns
+    return age / 1e6 if abs(age) <= PLAUSIBLE_AGE_NS else None

@@ -4,7 +4,7 @@
 streaming core and its pose source: the same names offline, in ``evaluate --config`` and in the node) and
 ``node`` (topics, QoS, encodings, the odometry buffer, camera intrinsics: fields of :class:`NodeConfig`).
 ``LIBRARY_SPECS`` are estimator settings that are not node parameters (window size, volume scale, coverage,
-autocast dtype). From this one table come: the node's parameter declarations (``node.declare_parameters``),
+autocast dtype). From this one table come: the node's parameter declarations (``node_params.declare_parameters``),
 ``EstimatorConfig`` and ``NodeConfig`` (:func:`make_config_class`), ``config/dpv_sensor.yaml``
 (:func:`yaml_text`; a test keeps the file equal to it), the ``key=value`` parser of the tools
 (:func:`parse_assignments`), and validation (:func:`check_value`, :func:`validate`), so a bad value is refused
@@ -219,17 +219,17 @@ SPECS: tuple[ParamSpec, ...] = (
     ParamSpec('publish_compressed_depth', False, 'Also publish depth/image/compressedDepth (sensor_msgs/'
               "CompressedImage, PNG as image_transport's compressedDepth plugin encodes it, in depth_encoding).",
               scope='node'),
-    ParamSpec('points_decimation', 1, 'points: every n-th pixel in each direction (organised cloud of '
+    ParamSpec('points_decimation', 1, 'depth/points: every n-th pixel in each direction (organised cloud of '
               'ceil(H/n) x ceil(W/n); 640x480 at 4: 4.9 MB -> 0.31 MB per cloud).', min_value=1, max_value=16,
               scope='node'),
-    ParamSpec('points_max_rate', 0.0, 'points: at most this many clouds per second of image time (an output whose '
-              "stamp is closer than 1/rate to the previous cloud's is skipped and counted). 0: every output.",
+    ParamSpec('points_max_rate', 0.0, 'depth/points: at most this many clouds per second of image time (an output '
+              "whose stamp is closer than 1/rate to the previous cloud's is skipped and counted). 0: every output.",
               min_value=0.0, max_value=1000.0, scope='node'),
     ParamSpec('expected_depth_rate', 0.0, 'Expected rate of depth/image (and rgb, confidence) in Hz: /diagnostics '
               'warns while the measured rate is below it by more than rate_tolerance. Keyframe outputs come at '
               'about a fifth of the camera rate at most. 0: no expectation.', min_value=0.0, max_value=1000.0,
               scope='node'),
-    ParamSpec('expected_points_rate', 0.0, 'Expected rate of points in Hz (as expected_depth_rate; only while '
+    ParamSpec('expected_points_rate', 0.0, 'Expected rate of depth/points in Hz (as expected_depth_rate; only while '
               'someone subscribes). 0: no expectation.', min_value=0.0, max_value=1000.0, scope='node'),
     ParamSpec('rate_tolerance', 0.1, 'Share below an expected rate that is still fine (0.1: 10 %).',
               min_value=0.0, max_value=1.0, scope='node'),
@@ -263,8 +263,27 @@ ESTIMATOR_SPECS = tuple(s for s in SPECS + LIBRARY_SPECS if s.scope in ('estimat
 NODE_SPECS = tuple(s for s in SPECS if s.scope == 'node')
 
 
+# Node parameters that may change while the node runs (`ros2 param set`); every other one needs a restart.
+RUNTIME = frozenset({'min_confidence', 'damping', 'edge_filter_radius', 'edge_filter_sigma', 'depth_encoding',
+                     'points_decimation', 'points_max_rate', 'expected_depth_rate', 'expected_points_rate',
+                     'rate_tolerance', 'drop_warn_share', 'drop_error_share', 'odom_wait_timeout', 'frame_id'})
+
+
 class ParameterError(ValueError):
     """A parameter value outside its type, choices or range."""
+
+
+def check_changes(values: dict[str, Any], changes: dict[str, Any]) -> dict[str, Any]:
+    """``values`` with ``changes`` applied, each checked against the table (and the relations); a setting outside
+    ``RUNTIME`` is refused: it needs a restart."""
+    out = dict(values)
+    for name, value in changes.items():
+        if name not in RUNTIME:
+            raise ParameterError(f"parameter '{name}' cannot change while the node runs (restart it with the new "
+                                 f"value); these can: {', '.join(sorted(RUNTIME))}")
+        out[name] = check_value(spec(name), value)
+    check_relations(out)
+    return out
 
 
 def spec(name: str) -> ParamSpec:
@@ -454,6 +473,9 @@ def yaml_text() -> str:
              '# Every parameter the node declares is listed here with its default; ranges are checked at start.',
              '# Generated from dpv_sensor/params.py (python -m dpv_sensor.params > config/dpv_sensor.yaml).',
              '# Keyed /** so that it applies to the node in any namespace and under any node name.',
+             *textwrap.wrap('Changeable while the node runs (ros2 param set): ' + ', '.join(sorted(RUNTIME)) +
+                            '. Every other parameter needs a restart.', width=112, initial_indent='# ',
+                            subsequent_indent='# ', break_on_hyphens=False),
              '/**:', '  ros__parameters:']
     for s in SPECS:
         text = s.description + _constraint(s)

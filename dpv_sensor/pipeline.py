@@ -141,6 +141,15 @@ class Pipeline:
             self.pose_source.keyframe_output(out, image, K_in)
         return PushResult(output=out, is_keyframe=is_keyframe)
 
+    def apply_settings(self, changes: dict) -> None:
+        """Settings changed while running (the estimator-scope ones of params.RUNTIME, read at use: min_confidence,
+        damping, the edge filter): set on the estimator's config, and the damping on its running filter."""
+        for name, value in changes.items():
+            if hasattr(self.estimator.config, name):
+                setattr(self.estimator.config, name, value)
+        if 'damping' in changes and getattr(self.estimator, 'filter', None) is not None:
+            self.estimator.filter.damping = float(changes['damping'])
+
     def reset(self, reason: str) -> None:
         """Restart the estimator (window, keyframes, filter) and the pose source."""
         self.estimator.reset(reason)

@@ -1,32 +1,42 @@
-"""Images lost between the camera and the node: counted from gaps in the header stamps and from the middleware's
-message-lost reports, each lost image once. Pure Python (no rclpy).
+"""Images lost between the camera and the node: counted only where there is evidence of a loss, each lost image
+once. Pure Python (no rclpy).
 
-The camera's frame period is estimated from the stamps of the images that arrive: a low quantile of the recent
-intervals picks an interval of one period even when many images are lost (a median would pick two or more), and
-the period is then the median of every recent interval divided by its whole number of periods. An interval of
-`n` periods (n >= 2, rounded; 1.5 periods and more) means `n - 1` images are missing.
+Evidence of a loss is either
 
-Two sources, one count: the RMW (rclpy's message-lost event, where the middleware reports it: Fast DDS does for
-best-effort readers from the sequence numbers) says *how many* samples were lost; the stamps say *where*. Each
-missing image in a stamp gap is matched with a reported loss when one is unmatched (in either order: the event
+- the middleware's report (rclpy's message-lost event, where the middleware gives it: Fast DDS does for best-effort
+  readers, from the writer's sequence numbers), which says *how many* samples were lost, or
+- a gap in the header stamps against the camera's frame period, confirmed by the stream around it: an interval of
+  `n` periods (n >= 2, rounded; 1.5 periods and more) means `n - 1` images are missing once a later interval of one
+  period shows the camera still runs at that rate.
+
+The frame period is estimated from the stamps of the images that arrive: a low quantile of the recent intervals
+picks an interval of one period even when many images are lost (a median would pick two or more), and the period is
+the median of every recent interval divided by its whole number of periods. It is re-estimated when the rate
+changes: `rate_change_intervals` consecutive gaps of the same length (within 15 %) without a loss report are a
+camera that lowered its rate (auto-exposure, a driver setting, a burst followed by the normal rate), not lost images:
+those gaps are withdrawn and the period becomes their length. A stamp interval longer than `max_loss_gap_ns` (and 8
+periods) that no report explains is a discontinuity (the camera stalled, or its clock or /clock jumped): counted in
+`stamp_jumps`, never as lost images, and the estimate restarts after it.
+
+Each missing image in a stamp gap is matched with a reported loss when one is unmatched (in either order: the event
 may be handled before or after the image that ends the gap), so
 
     lost_total = lost_rmw + lost_stamp_gap_only
 
-where ``lost_stamp_gap_only`` are missing images no report accounts for (a reliable reader, a middleware that does
-not report, or images the camera driver itself never sent) and ``lost_rmw`` includes reports no gap shows (the
-stamps were irregular, or the stream ended).
+where ``lost_stamp_gap_only`` are confirmed missing images no report accounts for (a reliable reader, a middleware
+that does not report) and ``lost_rmw`` includes reports no gap shows (irregular stamps, or the stream ended).
 
-A gap counts as *transport loss* (:attr:`Gap.explained`) once every image missing in it is matched with a
-reported loss: the camera kept running, so the camera stream's own gap is one period (:attr:`Gap.camera_gap_ns`),
-and a consumer that restarts on stream interruptions should not restart for it. Gaps the reports do not
-explain keep their stamp interval (a camera or driver that stalled looks the same in the stamps).
+A gap counts as *transport loss* (:attr:`Gap.explained`) once every image missing in it is matched with a reported
+loss: the camera kept running, so the camera stream's own gap is one period (:attr:`Gap.camera_gap_ns`), and a
+consumer that restarts on stream interruptions should not restart for it. Other gaps keep their stamp interval.
 """
 from __future__ import annotations
 
 import collections
 import statistics
 from dataclasses import dataclass
+
+PENDING, CONFIRMED, WITHDRAWN = 'pending', 'confirmed', 'withdrawn'
 
 
 @dataclass
@@ -36,11 +46,17 @@ class Gap:
     period_ns: int       # the estimated frame period at the time
     missing: int         # images missing in it (>= 1)
     matched: int = 0     # of them, matched with losses the RMW reported
+    state: str = CONFIRMED   # pending (waiting for the next interval), confirmed, or withdrawn (a rate change)
 
     @property
     def explained(self) -> bool:
         """Every missing image is a loss the middleware reported (the camera did not stall)."""
         return self.matched >= self.missing
+
+    @property
+    def settled(self) -> bool:
+        """Nothing later can change how this interval counts: explained by reports, or withdrawn (a rate change)."""
+        return self.explained or self.state == WITHDRAWN
 
     @property
     def camera_gap_ns(self) -> int:
@@ -53,21 +69,33 @@ class StreamLoss:
 
     history: how many recent intervals the period estimate uses; quantile: the low quantile that picks a
     one-period interval; min_intervals: intervals needed before gaps are counted (earlier gaps are not counted);
-    keep_gaps: how many recent unexplained gaps late loss reports may still match."""
+    keep_gaps: how many recent unexplained gaps late loss reports may still match; rate_change_intervals:
+    consecutive equal gaps that make a new rate; max_pending: gaps waiting for confirmation before the oldest is
+    confirmed anyway; max_loss_gap_ns: the longest unreported stamp gap counted as lost images."""
 
-    def __init__(self, history: int = 64, quantile: float = 0.1, min_intervals: int = 8, keep_gaps: int = 16):
-        if history < 1 or not 0.0 <= quantile <= 1.0 or min_intervals < 1 or keep_gaps < 0:
-            raise ValueError('StreamLoss: history >= 1, 0 <= quantile <= 1, min_intervals >= 1, keep_gaps >= 0')
+    def __init__(self, history: int = 64, quantile: float = 0.1, min_intervals: int = 8, keep_gaps: int = 16,
+                 rate_change_intervals: int = 3, max_pending: int = 8, max_loss_gap_ns: int = 1_000_000_000):
+        if history < 1 or not 0.0 <= quantile <= 1.0 or min_intervals < 1 or keep_gaps < 0 \
+                or rate_change_intervals < 2 or max_pending < rate_change_intervals or max_loss_gap_ns <= 0:
+            raise ValueError('StreamLoss: history >= 1, 0 <= quantile <= 1, min_intervals >= 1, keep_gaps >= 0, '
+                             'rate_change_intervals >= 2, max_pending >= rate_change_intervals, max_loss_gap_ns > 0')
         self.quantile = quantile
         self.min_intervals = min_intervals
+        self.rate_change_intervals = rate_change_intervals
+        self.max_pending = max_pending
+        self.max_loss_gap_ns = max_loss_gap_ns
         self._intervals: collections.deque[int] = collections.deque(maxlen=history)
         self._last_stamp_ns: int | None = None
         self._open_gaps: collections.deque[Gap] = collections.deque(maxlen=keep_gaps)   # with unmatched images
+        self._pending: list[Gap] = []      # consecutive gaps waiting for the next interval
         self._unmatched_reports = 0
         self.lost_rmw = 0              # images the RMW reported lost
-        self.lost_stamp_gap_only = 0   # images missing in the stamps that no report accounts for
-        self.gaps = 0                  # intervals with images missing
+        self.lost_stamp_gap_only = 0   # confirmed missing images that no report accounts for
+        self.gaps = 0                  # intervals with images counted missing
         self.unexplained_gaps = 0      # of them, not (yet) explained by reported losses
+        self.rate_changes = 0          # times the frame period was re-estimated from a run of equal gaps
+        self.stamp_jumps = 0           # forward stamp discontinuities (not counted as lost images)
+        self.last_jump_ns = 0          # the stamp interval of the latest one
 
     # ------------------------------------------------------------------------------------------------ estimate
     @property
@@ -90,51 +118,112 @@ class StreamLoss:
             return
         self.lost_rmw += count
         self._unmatched_reports += count
-        # a report that comes after its gap was seen: the gap's images were counted as stamp-gap losses
+        # a report that comes after its gap was seen: a confirmed gap's images were counted as stamp-gap losses
         while self._unmatched_reports and self._open_gaps:
             gap = self._open_gaps[0]
+            if gap.state == WITHDRAWN:
+                self._open_gaps.popleft()
+                continue
             n = min(gap.missing - gap.matched, self._unmatched_reports)
-            was_explained = gap.explained
-            gap.matched += n
-            self._unmatched_reports -= n
-            self.lost_stamp_gap_only -= n
+            self._match(gap, n)
             if gap.explained:
                 self._open_gaps.popleft()
-                if not was_explained:
-                    self.unexplained_gaps -= 1
+
+    def _match(self, gap: Gap, n: int) -> None:
+        was_explained = gap.explained
+        gap.matched += n
+        self._unmatched_reports -= n
+        if gap.state == CONFIRMED:
+            self.lost_stamp_gap_only -= n
+            if gap.explained and not was_explained:
+                self.unexplained_gaps -= 1
+        elif gap.state == PENDING and gap.explained:   # the reports are the evidence: counted, no longer pending
+            self._pending.remove(gap)
+            self._confirm(gap)
+
+    def _confirm(self, gap: Gap) -> None:
+        gap.state = CONFIRMED
+        self.gaps += 1
+        self.lost_stamp_gap_only += gap.missing - gap.matched
+        if not gap.explained:
+            self.unexplained_gaps += 1
+
+    def _confirm_pending(self) -> None:
+        for gap in self._pending:
+            self._confirm(gap)
+        self._pending = []
+
+    def _restart(self) -> None:
+        """A new stream (time went backwards, a stamp jump): no period, nothing pending."""
+        for gap in self._pending:
+            gap.state = WITHDRAWN
+        self._pending = []
+        self._intervals.clear()
 
     def on_image(self, stamp_ns: int) -> Gap | None:
-        """An image with header stamp `stamp_ns` arrived; returns the Gap it ends, or None (no image missing, the
-        first image, a period not known yet, or time going backwards, which restarts the estimate)."""
+        """An image with header stamp `stamp_ns` arrived; returns the Gap it ends (pending until the stream around
+        it confirms it), or None (no image missing, the first image, a period not known yet, a stamp jump, or time
+        going backwards, which restarts the estimate)."""
         last, self._last_stamp_ns = self._last_stamp_ns, stamp_ns
         if last is None:
             return None
         if stamp_ns <= last:
             if stamp_ns < last:     # a restarted bag or simulator: a new stream
-                self._intervals.clear()
+                self._restart()
             return None
         interval = stamp_ns - last
         period = self.period_ns
+        if period is not None and period > 0 and interval > max(self.max_loss_gap_ns, 8 * period) \
+                and self._unmatched_reports < round(interval / period) - 1:
+            self.stamp_jumps += 1
+            self.last_jump_ns = interval
+            self._confirm_pending()      # the images before the jump ran at the rate: their gaps were losses
+            self._restart()
+            return None
         self._intervals.append(interval)
         if period is None or period <= 0:
             return None
         multiple = round(interval / period)
         if interval < 1.5 * period or multiple < 2:
+            self._confirm_pending()      # the camera still runs at the estimated rate
             return None
-        gap = Gap(interval_ns=interval, period_ns=period, missing=int(multiple) - 1)
-        self.gaps += 1
-        gap.matched = min(gap.missing, self._unmatched_reports)
-        self._unmatched_reports -= gap.matched
-        self.lost_stamp_gap_only += gap.missing - gap.matched
-        if not gap.explained:
-            self.unexplained_gaps += 1
-            self._open_gaps.append(gap)
+        gap = Gap(interval_ns=interval, period_ns=period, missing=int(multiple) - 1, state=PENDING)
+        n = min(gap.missing, self._unmatched_reports)
+        gap.matched = n
+        self._unmatched_reports -= n
+        if gap.explained:
+            self._confirm(gap)
+            return gap
+        self._pending.append(gap)
+        self._open_gaps.append(gap)
+        self._judge_pending()
         return gap
+
+    def _judge_pending(self) -> None:
+        """A run of equal unreported gaps is a new rate (withdrawn, the period re-estimated); too many pending gaps
+        of varying length are losses after all (heavy loss at the same rate)."""
+        run = self._pending[-self.rate_change_intervals:]
+        if len(run) == self.rate_change_intervals and all(g.matched == 0 for g in run):
+            mid = statistics.median(g.interval_ns for g in run)
+            if all(abs(g.interval_ns - mid) <= 0.15 * mid for g in run):
+                for gap in self._pending:
+                    if gap.matched == 0 and abs(gap.interval_ns - mid) <= 0.15 * mid:
+                        gap.state = WITHDRAWN
+                    else:
+                        self._confirm(gap)
+                self._pending = []
+                self._intervals.clear()
+                self._intervals.extend([int(mid)] * self.min_intervals)
+                self.rate_changes += 1
+                return
+        while len(self._pending) > self.max_pending:
+            self._confirm(self._pending.pop(0))
 
     def counts(self) -> dict:
         """The counters for /diagnostics (period in ms, 'n/a' until known)."""
         period = self.period_ns
         return {'lost.transport': self.lost_total, 'lost.rmw': self.lost_rmw,
                 'lost.stamp_gaps_only': self.lost_stamp_gap_only, 'lost.gaps': self.gaps,
-                'lost.unexplained_gaps': self.unexplained_gaps,
+                'lost.unexplained_gaps': self.unexplained_gaps, 'input_rate_changes': self.rate_changes,
+                'input_stamp_jumps': self.stamp_jumps,
                 'input_period_ms': round(period / 1e6, 3) if period else 'n/a'}

@@ -35,10 +35,23 @@ mkdir -p "$cache"
 rm -rf "$target"
 "$python" -m venv "$target"
 "$target/bin/pip" install --quiet --upgrade pip
-"$target/bin/pip" install --quiet -r "$req"
+# The ROS wheels and what the message generation needs come first; tf2_msgs is then generated in the background
+# while pip installs the rest (torch, open3d, gtsam, ...: most of the download), so the two overlap.
+build_reqs=$(mktemp "${TMPDIR:-/tmp}/dpv_build_reqs.XXXXXX")
+build_log=$(mktemp "${TMPDIR:-/tmp}/dpv_build_interfaces.XXXXXX")
+trap 'rm -f "$build_reqs" "$build_log"' EXIT
+grep -E '^(ros-jazzy-|catkin-pkg==|numpy==)' "$req" > "$build_reqs"
+"$target/bin/pip" install --quiet -r "$build_reqs"
+CMAKE_BUILD_PARALLEL_LEVEL=$(nproc 2>/dev/null || echo 2) scripts/build_interfaces.sh "$target" >"$build_log" 2>&1 &
+build_pid=$!
+"$target/bin/pip" install --quiet -r "$req" || { kill "$build_pid" 2>/dev/null; wait "$build_pid" 2>/dev/null; exit 1; }
 # torch from PyPI drags in triton (~1 GB) which only serves CUDA kernels compiled at run time.
 "$target/bin/pip" uninstall --quiet -y triton || true
-scripts/build_interfaces.sh "$target"
+if ! wait "$build_pid"; then
+  cat "$build_log" >&2
+  exit 1
+fi
+cat "$build_log"
 touch "$target/.complete"
 rm -rf .venv && ln -s "$target" .venv
 echo "ensure_venv: ready"

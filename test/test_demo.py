@@ -98,7 +98,7 @@ def test_node_stopped_cleanly_and_nothing_was_lost(demo_run):
     assert 'Traceback' not in (out / 'logs' / 'node.log').read_text()
     # a private DDS domain and the ROS logs under OUT
     assert s['ros_env']['ROS_LOG_DIR'].startswith(str(out))
-    assert s['ros_env']['ROS_DOMAIN_ID'] != os.environ.get('ROS_DOMAIN_ID')
+    assert s['ros_env']['ROS_DOMAIN_ID'] == os.environ['ROS_DOMAIN_ID']    # honoured when set (conftest sets it)
 
 
 def test_printed_metrics_equal_evaluate_by_hand(demo_run, tmp_path):
@@ -136,7 +136,7 @@ def _renamed_bag(src, dst, names, extra_image=None):
     return dst
 
 
-USER_NAMES = {'/camera/image': '/rover/cam0/rgb', '/camera/camera_info': '/rover/cam0/intrinsics',
+USER_NAMES = {'/image': '/rover/cam0/rgb', '/camera_info': '/rover/cam0/intrinsics',
               '/odom': '/rover/wheel_odometry'}
 
 
@@ -186,7 +186,7 @@ def test_bag_mode_names_missing_topics(tmp_path, demo_run):
     proc = _run_demo(['--out', str(tmp_path / 'x'), '--bag', str(out / 'input_bag'), '--image-topic', '/nope'])
     assert proc.returncode == 1
     assert "no topic '/nope' for image" in proc.stdout
-    assert '/camera/image [sensor_msgs/msg/Image, 20 messages]' in proc.stdout
+    assert '/image [sensor_msgs/msg/Image, 20 messages]' in proc.stdout
 
 
 def test_parse_params_types_and_rejects_unknown_names():
@@ -202,3 +202,36 @@ def test_parse_params_types_and_rejects_unknown_names():
     assert cmd[:4] == [sys.executable, '-m', 'dpv_sensor.node', '--ros-args']
     assert cmd[4:] == ['-p', "weights:=''", '-p', 'damping:=0.5', '-p', 'T_base_camera:=[0.0,0.0,0.0,0.0,0.0,0.0,1.0]',
                        '-r', 'image:=/cam']
+
+
+def test_own_bag_with_epoch_stamps_and_gt_without_stamps_scores_without_stamp_offset(demo_run, tmp_path):
+    """A GT folder without stamps.txt (its frame 0 is the bag's first image) and a bag recorded at real epoch
+    stamps: the demo scores it with no --stamp-offset."""
+    import shutil
+    from dpv_sensor.data import rosbag_io as R
+    from dpv_sensor.evaluation import load_sequence
+    out, _ = demo_run
+    gt = tmp_path / 'gt'
+    shutil.copytree(out / 'sequence', gt)
+    (gt / 'stamps.txt').unlink(missing_ok=True)
+    bag = tmp_path / 'epoch_bag'
+    R.write_sequence_bag(bag, load_sequence(gt), odom_rate=60.0, start_ns=1_700_000_000 * 10**9, progress=False)
+    mine = tmp_path / 'mine'
+    proc = _run_demo(['--out', str(mine), '--bag', str(bag), '--gt', str(gt), '--no-fusion', '--params'] + NODE)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    s = json.loads((mine / 'summary.json').read_text())
+    assert abs(s['stamp_offset_s'] - 1_700_000_000) < 1.0, s.get('stamp_offset_s')
+    assert s['evaluation']['num_keyframes'] == s['node']['recorded']['/depth/image'] >= 1, s['evaluation']
+    assert not any('matched no ground-truth frame' in w for w in s['warnings']), s['warnings']
+
+
+def test_a_run_refused_on_its_arguments_keeps_the_previous_results(demo_run, tmp_path):
+    out, _ = demo_run
+    kept = tmp_path / 'kept'
+    (kept / 'eval').mkdir(parents=True)
+    (kept / 'summary.json').write_text('{"ok": true}')
+    for args in (['--bag', str(tmp_path / 'no_such.mcap')], ['--bag', str(out / 'input_bag'), '--image-topic', '/x'],
+                 ['--gt', str(tmp_path / 'no_such_gt')]):
+        proc = _run_demo(['--out', str(kept)] + args)
+        assert proc.returncode == 1, proc.stdout + proc.stderr
+        assert (kept / 'summary.json').read_text() == '{"ok": true}' and (kept / 'eval').is_dir(), args

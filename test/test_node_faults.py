@@ -108,8 +108,8 @@ def fault_bag(tmp_path_factory):
 
 
 EXPECTED_LOGS = {
-    'no_camera_info': 'no camera_info received yet on /camera/camera_info; waiting',
-    'bad_camera_info': 'ignoring camera_info on /camera/camera_info: camera_info K is all zeros',
+    'no_camera_info': 'no camera_info received yet on /camera_info; waiting',
+    'bad_camera_info': 'ignoring camera_info on /camera_info: camera_info K is all zeros',
     'unsupported_encoding': "unsupported image encoding '16UC1' (a 16-bit depth/mono image)",
     'bad_image': 'data length 61433 does not match step*height = 480*128 = 61440',
     'image_size_change': 'image size changed from 160x128 to 80x64; resetting the estimator',
@@ -131,7 +131,7 @@ def test_fault_bag_replays_without_crash_and_every_fault_is_reported(fault_bag, 
               'num_planes': 32, 'max_odom_gap': 0.05, 'odom_wait_timeout': 0.5, 'input_reliability': 'reliable',
               'input_depth': 50, 'diagnostics_period': 0.5}
     args = ['--ros-args'] + [a for k, v in params.items() for a in ('-p', f'{k}:={v}')] + [
-        '-r', 'image:=/camera/image', '-r', 'camera_info:=/camera/camera_info', '-r', 'odom:=/odom']
+        '-r', 'image:=/image', '-r', 'camera_info:=/camera_info', '-r', 'odom:=/odom']
     proc = start_node(args, env={'OMP_NUM_THREADS': '1'})
     player = BagPlayer(node, bag, rate=0.25)
     played = {}

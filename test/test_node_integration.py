@@ -33,7 +33,7 @@ T_BASE_CAMERA = [0.05, -0.02, 0.3, -0.5, 0.5, -0.5, 0.5]   # base_link (x forwar
 COMMON = {'measurement': 'classical', 'processing_width': W, 'processing_height': H, 'num_planes': 32,
           'input_reliability': 'reliable', 'input_depth': 50, 'odom_wait_timeout': 2.0, 'diagnostics_period': 0.5,
           'window_mode': 'causal'}
-REMAP = ['-r', 'image:=/camera/image', '-r', 'camera_info:=/camera/camera_info', '-r', 'odom:=/odom']
+REMAP = ['-r', 'image:=/image', '-r', 'camera_info:=/camera_info', '-r', 'odom:=/odom']
 
 
 def ros_args(params: dict, extra=()):
@@ -232,7 +232,7 @@ def test_intrinsics_from_parameters(scene, observer):
                          and a.diag_int('publishers.image') == 1 and a.diag_int('publishers.odom') == 1
                          and a.subs[0].get_publisher_count() == 1, timeout=60.0, spin=spin)
         assert proc.poll() is None and ready, f'the node never got ready: {a.diagnostics}'
-        assert node.count_subscribers('/camera/camera_info') == 0, 'parameters mode subscribed to camera_info'
+        assert node.count_subscribers('/camera_info') == 0, 'parameters mode subscribed to camera_info'
         assert not player.wait_for_subscribers(timeout=10.0, spin=spin)
         thread = threading.Thread(target=lambda: played.update(stats=player.play(duration=120.0)), daemon=True)
         thread.start()
@@ -270,9 +270,9 @@ def test_bag_play_command_line_replays_exact_messages(tmp_path, observer):
     for extra in ([], ['--rebase-stamps']):
         got.clear()
         t0 = time.time_ns()
-        player = start_node(['play', str(tmp_path / 'bag'), '--topics', '/camera/image', '--wait-timeout', '30',
+        player = start_node(['play', str(tmp_path / 'bag'), '--topics', '/image', '--wait-timeout', '30',
                              '--rate', '2', '--no-progress'] + extra
-                            + ['--ros-args', '-r', '/camera/image:=/replayed'],
+                            + ['--ros-args', '-r', '/image:=/replayed'],
                             executable=[sys.executable, '-m', 'dpv_sensor.tools.bag'])
         finished = wait_for(lambda: player.poll() is not None and len(got) == n, timeout=60.0, spin=spin)
         code, out = stop_process(player)

@@ -10,10 +10,13 @@ Checked, for every output of each node:
   output size (B);
 - A's compressedDepth decodes to its depth/image (32FC1 inverse-depth code: within its quantisation);
 - B's clouds are the decimated grid and no two are closer than 1/points_max_rate in image time, the skipped ones
-  counted in /diagnostics; B's /diagnostics warns that depth/image is below its expected rate, A's never does.
+  counted in /diagnostics; B's /diagnostics warns that depth/image is below its expected rate, A's never does (B
+  judges its rate once images have come for a whole rate_window of wall time: it hears slow images after the replay
+  until it has, so the check waits on that condition, not on the replay's timing under load).
 A second test: /diagnostics warns once more than drop_warn_share of the recent images are rejected as faulty.
 """
 import threading
+import time
 
 import cv2
 import numpy as np
@@ -57,10 +60,11 @@ class Outputs:
         qos = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
         self.by_stamp: dict[int, dict] = {}
         self.diag_history: list[tuple[int, str]] = []
+        self.diag_count = 0
         self.diagnostics: dict = {}
         self.lock = threading.Lock()
         types = {'depth': Image, 'rgb': Image, 'conf': Image, 'points': PointCloud2, 'compressed': CompressedImage}
-        topics = dict(OUTPUT_TOPICS, points='points', compressed='depth/image/compressedDepth')
+        topics = dict(OUTPUT_TOPICS, points='depth/points', compressed='depth/image/compressedDepth')
         self.subs = {}
         for kind in list(OUTPUT_TOPICS) + list(extra):
             self.subs[kind] = node.create_subscription(types.get(kind, CameraInfo), f'{ns}/{topics[kind]}',
@@ -78,6 +82,7 @@ class Outputs:
                 level = int.from_bytes(st.level, 'little') if isinstance(st.level, bytes) else int(st.level)
                 self.diag_history.append((level, st.message))
                 self.diagnostics = {kv.key: kv.value for kv in st.values}
+                self.diag_count += 1
 
     def diag_int(self, key):
         try:
@@ -110,6 +115,32 @@ def _check_pairing(recs, frame_id, size, K_expected):
         assert list(d['rgb_info'].k) == list(d['depth_info'].k) == list(d['conf_info'].k)
 
 
+def _wait_rate_warning(node, b, seq, summary, spin, timeout=60.0):
+    """Node B's rate warnings: those of the replay, else after more images (one every 0.2 s of wall time, stamps
+    going on after the bag's, the camera standing at its last pose) until it has judged its rate."""
+    from nav_msgs.msg import Odometry
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from sensor_msgs.msg import Image
+    from dpv_sensor.pose_buffer import pose7_to_matrix
+
+    def warned():
+        return [(lvl, m) for lvl, m in list(b.diag_history) if 'depth/image at' in m]
+    if warned():
+        return warned()
+    qos = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE)
+    pub_img = node.create_publisher(Image, R.IMAGE_TOPIC, qos)
+    pub_odom = node.create_publisher(Odometry, R.ODOM_TOPIC, qos)
+    T_world_base = seq.pose(len(seq) - 1) @ np.linalg.inv(pose7_to_matrix(T_BASE_CAMERA))
+    stamp = summary.image_stamps_ns[-1]
+    deadline = time.monotonic() + timeout
+    while not warned() and time.monotonic() < deadline:
+        stamp += 1_000_000_000 // 30
+        pub_odom.publish(M.matrix_to_odometry(T_world_base, stamp, 'base_link', 'odom'))
+        pub_img.publish(M.rgb_to_image(seq.image(len(seq) - 1), stamp, 'cam_optical'))
+        wait_for(lambda: False, timeout=0.2, spin=spin)      # pacing of the slow stream, not a condition
+    return warned()
+
+
 def test_rgb_confidence_info_compressed_points_and_rate_warning_in_both_resolutions(scene, observer):
     from sensor_msgs.msg import CameraInfo
     seq, bag, summary = scene
@@ -131,7 +162,7 @@ def test_rgb_confidence_info_compressed_points_and_rate_warning_in_both_resoluti
                        'points_decimation': 2, 'points_max_rate': POINTS_RATE, 'expected_depth_rate': 50.0,
                        'rate_window': 2.0}, ['-r', '__ns:=/pr'])
     # the first remap rule of a name wins: node B's camera_info is the distorted one published here
-    args_b[args_b.index('camera_info:=/camera/camera_info')] = 'camera_info:=/distorted/camera_info'
+    args_b[args_b.index('camera_info:=/camera_info')] = 'camera_info:=/distorted/camera_info'
     proc_b = start_node(args_b, env=env)
     player = BagPlayer(node, bag, rate=0.25)
     # node A runs on sim time: /clock follows the bag's stamps
@@ -161,7 +192,17 @@ def test_rgb_confidence_info_compressed_points_and_rate_warning_in_both_resoluti
                                 and o.diag_int('outputs_published') == len(o.complete()) for o in (a, b)),
                         timeout=120.0, spin=spin)
         assert done, f'replay did not finish: A {a.diagnostics} B {b.diagnostics}'
-        wait_for(lambda: False, timeout=1.5, spin=spin)       # the last diagnostics of the run
+        # the last diagnostics of the run (two more ticks of each node) and every cloud node B counted
+        ticks = (a.diag_count, b.diag_count)
+        settled = wait_for(lambda: a.diag_count >= ticks[0] + 2 and b.diag_count >= ticks[1] + 2 and
+                           len([1 for d in list(b.by_stamp.values()) if 'points' in d]) ==
+                           b.diag_int('point_clouds_published'), timeout=30.0, spin=spin)
+        assert settled, b.diagnostics
+        snapshot_a, by_stamp_a, history_a = dict(a.diagnostics), dict(a.by_stamp), list(a.diag_history)
+        snapshot_b, by_stamp_b = dict(b.diagnostics), dict(b.by_stamp)
+        # node B judges its rate once images have arrived for a whole rate_window (wall clock): on a loaded machine
+        # the replay's images can reach it within less than that, so it hears slow images until it has judged
+        warned = _wait_rate_warning(node, b, seq, summary, spin)
     finally:
         exits = stop_all(proc_a, proc_b)
         player.stop()
@@ -169,8 +210,8 @@ def test_rgb_confidence_info_compressed_points_and_rate_warning_in_both_resoluti
     index = {s: i for i, s in enumerate(summary.image_stamps_ns)}
 
     # ---------------- node A: input resolution, the bag's colour image exactly
-    recs_a = a.complete()
-    assert len(recs_a) >= 4 and len(recs_a) == len(a.by_stamp), (len(recs_a), len(a.by_stamp))
+    recs_a = {s: d for s, d in by_stamp_a.items() if set(OUTPUT_TOPICS) <= set(d)}
+    assert len(recs_a) >= 4 and len(recs_a) == len(by_stamp_a), (len(recs_a), len(by_stamp_a))
     _check_pairing(recs_a, 'cam_optical', (W, H), seq.K)
     for stamp, d in recs_a.items():
         np.testing.assert_array_equal(M.image_to_rgb(d['rgb']), seq.image(index[stamp]))
@@ -181,35 +222,35 @@ def test_rgb_confidence_info_compressed_points_and_rate_warning_in_both_resoluti
         ok = np.isfinite(decoded)
         # inverse-depth code: one step of q = a / d + b is d^2 / a, a = 10100
         assert np.all(np.abs(decoded[ok] - depth[ok]) <= depth[ok] ** 2 / 10100 * 1.01 + 1e-6)
-    assert not any('depth/image at' in m for _lvl, m in a.diag_history), a.diag_history
-    # stamp age on the node's (sim) clock: at most the bag's span, not the years since the recording
-    age = float(a.diagnostics['stamp_age_ms_median'])
-    assert -50.0 <= age <= FRAMES / 30 * 1000, age
+    assert not any('depth/image at' in m for _lvl, m in history_a), history_a
+    # stamp age on the node's (sim) clock: within the bag's span (its /clock may lag or lead the images a little
+    # under load), not the years since the recording
+    age = float(snapshot_a['stamp_age_ms_median'])
+    assert abs(age) <= FRAMES / 30 * 1000, age
 
     # ---------------- node B: processing width with the input's aspect, rectified colour, K of that size
     rect = RectifierCache().for_camera_info(distorted)
     K_b = M.scale_K(rect.K, (W, H), OUT_B)
-    recs_b = b.complete()
-    assert len(recs_b) >= 4 and len(recs_b) == len(b.by_stamp), (len(recs_b), len(b.by_stamp))
+    recs_b = {s: d for s, d in by_stamp_b.items() if set(OUTPUT_TOPICS) <= set(d)}
+    assert len(recs_b) >= 4 and len(recs_b) == len(by_stamp_b), (len(recs_b), len(by_stamp_b))
     _check_pairing(recs_b, 'cam_optical', OUT_B, K_b)
     for stamp, d in recs_b.items():
         expected = cv2.resize(rect.rectify(seq.image(index[stamp])), OUT_B, interpolation=cv2.INTER_AREA)
         assert not np.array_equal(expected, cv2.resize(seq.image(index[stamp]), OUT_B, interpolation=cv2.INTER_AREA))
         np.testing.assert_array_equal(M.image_to_rgb(d['rgb']), expected)
     # points: decimated grid, at most POINTS_RATE per second of image time, the rest counted
-    clouds = sorted(s for s, d in b.by_stamp.items() if 'points' in d)
+    clouds = sorted(s for s, d in by_stamp_b.items() if 'points' in d)
     assert clouds and set(clouds) <= set(recs_b)
     for s in clouds:
-        cloud = b.by_stamp[s]['points']
+        cloud = by_stamp_b[s]['points']
         assert (cloud.width, cloud.height) == ((OUT_B[0] + 1) // 2, (OUT_B[1] + 1) // 2)
     assert all(t1 - t0 >= 1e9 / POINTS_RATE for t0, t1 in zip(clouds, clouds[1:])), np.diff(clouds) / 1e9
-    skipped = b.diag_int('points_skipped_rate_cap')
+    skipped = int(snapshot_b['points_skipped_rate_cap'])
     assert skipped > 0 and skipped + len(clouds) == len(recs_b), (skipped, len(clouds), len(recs_b))
-    assert b.diag_int('point_clouds_published') == len(clouds)
+    assert int(snapshot_b['point_clouds_published']) == len(clouds)
     # the keyframe outputs come far below the 50 Hz node B expects: /diagnostics says so
-    warned = [(lvl, m) for lvl, m in b.diag_history if 'depth/image at' in m]
     assert warned and all(lvl >= WARN for lvl, _m in warned), b.diag_history
-    assert float(b.diagnostics['depth_rate_hz']) < 45.0
+    assert float(snapshot_b['depth_rate_hz']) < 45.0
 
 
 def test_diagnostics_warn_when_the_share_of_faulty_images_is_too_high(observer):
@@ -236,8 +277,8 @@ def test_diagnostics_warn_when_the_share_of_faulty_images_is_too_high(observer):
 
     def events(topic):
         return PublisherEventCallbacks(matched=lambda info: matched.update({topic: info.current_count}))
-    pub_img = node.create_publisher(Image, '/camera/image', qos, event_callbacks=events('image'))
-    pub_info = node.create_publisher(CameraInfo, '/camera/camera_info', qos, event_callbacks=events('info'))
+    pub_img = node.create_publisher(Image, '/image', qos, event_callbacks=events('image'))
+    pub_info = node.create_publisher(CameraInfo, '/camera_info', qos, event_callbacks=events('info'))
     pub_odom = node.create_publisher(Odometry, '/odom', qos, event_callbacks=events('odom'))
     proc = start_node(ros_args({**COMMON, 'drop_warn_share': 0.3, 'drop_error_share': 1.0, 'rate_window': 30.0}))
     stamp = [START_NS]

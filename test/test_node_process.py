@@ -24,7 +24,7 @@ def test_node_joins_graph_and_stops_cleanly(observer, sig):
     finally:
         code, out = stop_process(proc, sig)
     assert code == 0, out
-    assert 'ready' in out
+    assert 'starting (building the estimator)' in out
     assert 'Traceback' not in out, out
     gone = wait_for(lambda: not _visible(node), timeout=15.0, spin=lambda t: executor.spin_once(timeout_sec=t))
     assert gone, 'node still listed in the graph after it stopped'

@@ -3,6 +3,7 @@ SIGTERM at any moment of the start-up (or later) gives exit 0 without a tracebac
 (`python -m dpv_sensor.node` and the console script `ros2 run dpv_sensor node` runs)."""
 import concurrent.futures
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -44,6 +45,9 @@ def test_missing_weights_with_network_measurement_exits_2_every_time():
     assert not bad, '\n\n'.join(f'run {i}: exit {code}\n{out}' for i, code, out in bad[:3])
     for _code, out in results:
         assert 'nonexistent/x.safetensors' in out
+        # one message, and never 'ready' for a node that is about to exit
+        assert out.count('cannot build the estimator') == 1, out
+        assert not re.search(r'\bready\b', out), out
 
 
 @pytest.mark.parametrize('delay', [0.2, 0.5, 1.0, 1.5, 3.0])

@@ -34,8 +34,8 @@ def test_sequence_round_trips_through_a_bag(tmp_path, storage):
     summary = R.write_sequence_bag(tmp_path / 'bag', seq, storage=storage, T_base_camera=T_BASE_CAM, progress=False)
     assert summary.frames == N and summary.odometry == N and summary.storage == storage
     topics = R.bag_topics(tmp_path / 'bag')
-    assert topics == {'/camera/image': ('sensor_msgs/msg/Image', N),
-                      '/camera/camera_info': ('sensor_msgs/msg/CameraInfo', N),
+    assert topics == {'/image': ('sensor_msgs/msg/Image', N),
+                      '/camera_info': ('sensor_msgs/msg/CameraInfo', N),
                       '/odom': ('nav_msgs/msg/Odometry', N)}
     expect_ns = [100 * NS + i * NS // 10 for i in range(N)]
     images = R.read_images(tmp_path / 'bag')
@@ -55,7 +55,7 @@ def test_sequence_round_trips_through_a_bag(tmp_path, storage):
     for i, s in enumerate(odom):
         assert s.stamp_ns == expect_ns[i]
         np.testing.assert_allclose(s.data @ T_bc, seq.pose(i), atol=1e-12)
-    qos = R.bag_qos(tmp_path / 'bag')['/camera/image'][0]
+    qos = R.bag_qos(tmp_path / 'bag')['/image'][0]
     assert qos.reliability.name == 'RELIABLE'
 
 
@@ -82,11 +82,11 @@ def test_camera_rate_override_and_messages_in_time_order(tmp_path):
     msgs = list(R.read_messages(tmp_path / 'bag'))
     log = [m[2] for m in msgs]
     assert log == sorted(log)
-    images = [m for m in msgs if m[0] == '/camera/image']
+    images = [m for m in msgs if m[0] == '/image']
     assert [M.stamp_to_ns(m[3].header.stamp) for m in images] == [7 * NS + i * NS // 5 for i in range(N)]
     # odometry at an image stamp comes before the camera_info, which comes before the image
     first = [m[0] for m in msgs if m[2] == 7 * NS]
-    assert first == ['/odom', '/camera/camera_info', '/camera/image']
+    assert first == ['/odom', '/camera_info', '/image']
 
 
 def test_odometry_noise_and_dropouts(tmp_path):
@@ -198,7 +198,7 @@ def test_bag_command_line_write_and_export(tmp_path, capsys):
     assert 'wrote' in capsys.readouterr().out
     assert list((tmp_path / 'bag').glob('*.db3'))
     topics = R.bag_topics(tmp_path / 'bag')
-    assert topics['/camera/image'] == ('sensor_msgs/msg/Image', N)
+    assert topics['/image'] == ('sensor_msgs/msg/Image', N)
     assert 0 < topics['/odom'][1] <= 2 * (N - 1) + 1
     images = R.read_images(tmp_path / 'bag')
     assert [s.stamp_ns - images[0].stamp_ns for s in images] == [i * NS // 10 for i in range(N)]

@@ -39,7 +39,7 @@ def test_resets_are_split_by_cause_and_loop_boundary():
         prefix.format('1000000106.000000000') + 'odometry jumped',             # the loop's jump, 6 s late: busy
         prefix.format('1000000108.000000000') + 'odometry jumped',             # a second one in the same loop
         prefix.format('1000000110.500000000') + 'odometry jumped',             # the next loop's
-        '[INFO] [1000000111.000000000] [dpv_sensor]: estimator ready: nothing to count here'])
+        '[INFO] [1000000111.000000000] [dpv_sensor]: ready: nothing to count here'])
     assert classify_resets(log, loop_starts_ns) == {
         'odometry jumped': 2, 'time gap # s in the camera stream > reset_time_gap # s': 1, 'loop_boundary': 2}
 

@@ -22,6 +22,9 @@ def test_no_gap_counted_until_the_period_is_known_then_missing_images_are_counte
     gap = loss.on_image(10**18 + 8 * P)      # 4 -> 8: frames 5, 6, 7 missing
     assert gap.missing == 3 and gap.interval_ns == 4 * P and gap.period_ns == P
     assert not gap.explained and gap.camera_gap_ns == 4 * P
+    assert gap.state == 'pending' and loss.lost_total == 0    # no evidence yet: the camera may have slowed down
+    feed(loss, [9])                          # one period later: the camera runs at its rate, the 3 were lost
+    assert gap.state == 'confirmed'
     assert loss.counts()['lost.transport'] == 3 and loss.lost_stamp_gap_only == 3 and loss.lost_rmw == 0
     assert loss.gaps == 1 and loss.unexplained_gaps == 1
 
@@ -30,10 +33,11 @@ def test_period_from_a_low_quantile_survives_heavy_loss():
     """Most intervals span several periods (only every 3rd or 4th image arrives); the median of the raw intervals
     would be 3P, the estimate stays P."""
     loss = StreamLoss(min_intervals=4, quantile=0.1)
-    feed(loss, [0, 1, 4, 7, 11, 14, 17, 18, 21])   # intervals P, 3P, 3P, 4P, 3P, 3P, P, 3P
+    feed(loss, [0, 1, 4, 7, 11, 14, 18, 19, 21, 22])   # intervals P, 3P, 3P, 4P, 3P, 4P, P, 2P, P
     assert loss.period_ns == P
-    # missing so far: counted from the 5th interval on (after 4 intervals): 11->14, 14->17 (2 + 2), 18->21 (2)
-    assert loss.lost_stamp_gap_only == 6
+    # counted from the 5th interval on (after 4 intervals), each confirmed by a later interval of one period:
+    # 11->14, 14->18 (2 + 3), 19->21 (1)
+    assert loss.lost_stamp_gap_only == 6 and loss.rate_changes == 0
 
 
 def test_jitter_is_not_a_gap_and_1_4_periods_is_not_a_lost_image():
@@ -61,6 +65,7 @@ def test_report_after_the_gap_explains_it_later():
     loss = StreamLoss(min_intervals=3)
     feed(loss, [0, 1, 2, 3])
     gap = loss.on_image(10**18 + 7 * P)      # frames 4, 5, 6 missing; no report yet
+    feed(loss, [8])
     assert not gap.explained and loss.lost_total == 3 and loss.unexplained_gaps == 1
     loss.on_rmw_lost(1)
     assert gap.matched == 1 and not gap.explained and loss.lost_total == 3
@@ -78,7 +83,7 @@ def test_reports_without_a_gap_and_gaps_without_reports_both_count():
     assert gap.explained and loss.lost_total == 4
     feed(loss, [8])                          # a later gap of 2 (frames 6, 7) takes two of the 3 spare reports
     assert loss.lost_total == 4 and loss.lost_stamp_gap_only == 0
-    feed(loss, [11])                         # 9, 10 missing: one spare report left, one image unreported
+    feed(loss, [11, 12])                     # 9, 10 missing: one spare report left, one image unreported
     assert (loss.lost_rmw, loss.lost_stamp_gap_only, loss.lost_total) == (4, 1, 5)
     assert loss.unexplained_gaps == 1
 
@@ -96,7 +101,8 @@ def test_time_going_backwards_restarts_the_estimate():
 def test_counts_and_arguments():
     loss = StreamLoss()
     assert loss.counts() == {'lost.transport': 0, 'lost.rmw': 0, 'lost.stamp_gaps_only': 0, 'lost.gaps': 0,
-                             'lost.unexplained_gaps': 0, 'input_period_ms': 'n/a'}
+                             'lost.unexplained_gaps': 0, 'input_rate_changes': 0, 'input_stamp_jumps': 0,
+                             'input_period_ms': 'n/a'}
     loss.on_rmw_lost(0)
     loss.on_rmw_lost(-3)
     assert loss.lost_rmw == 0
@@ -104,3 +110,59 @@ def test_counts_and_arguments():
         StreamLoss(history=0)
     assert Gap(10, 2, 4, 4).camera_gap_ns == 2 and Gap(10, 2, 4, 3).camera_gap_ns == 10
 
+
+
+def stream(loss, t0, period_ns, n):
+    """n images `period_ns` apart after t0; returns the last stamp."""
+    t = t0
+    for _ in range(n):
+        t += period_ns
+        loss.on_image(t)
+    return t
+
+
+@pytest.mark.parametrize('new_hz', [15.0, 4.0, 2.0])
+def test_a_camera_that_lowers_its_rate_loses_nothing(new_hz):
+    """Auto-exposure: 30 Hz, then a lower rate with every image arriving: no image counted lost, the period is
+    re-estimated, and a loss at the new rate is still counted."""
+    loss = StreamLoss()
+    t = stream(loss, 0, P, 40)
+    new = int(NS / new_hz)
+    t = stream(loss, t, new, 60)
+    assert loss.lost_total == 0 and loss.rate_changes == 1 and loss.stamp_jumps == 0, loss.counts()
+    assert abs(loss.period_ns - new) < MS
+    t += 2 * new                              # one image lost at the new rate, then the stream goes on
+    loss.on_image(t)
+    stream(loss, t, new, 3)
+    assert loss.lost_total == 1, loss.counts()
+
+
+def test_a_stamp_jump_is_a_discontinuity_not_lost_images():
+    loss = StreamLoss()
+    t = stream(loss, 0, P, 40)
+    assert loss.on_image(t + 3600 * NS) is None           # all streams 1 h ahead (or a /clock jump)
+    stream(loss, t + 3600 * NS, P, 40)
+    assert loss.lost_total == 0 and loss.stamp_jumps == 1 and loss.last_jump_ns == 3600 * NS, loss.counts()
+    assert loss.period_ns == P
+
+
+def test_a_burst_then_a_slow_stream_counts_no_phantom_losses():
+    """200 images at 1 ms spacing, then a clean 4 Hz stream: nothing lost in either."""
+    loss = StreamLoss()
+    t = stream(loss, 0, MS, 200)
+    stream(loss, t, NS // 4, 40)
+    assert loss.lost_total == 0 and loss.rate_changes == 1, loss.counts()
+
+
+def test_reported_losses_during_a_rate_drop_still_count():
+    loss = StreamLoss()
+    t = stream(loss, 0, P, 40)
+    loss.on_rmw_lost(1)
+    t += 2 * P
+    gap = loss.on_image(t)                   # the report explains this gap: counted at once
+    assert gap.explained and loss.lost_total == 1
+    stream(loss, t, 2 * P, 20)               # then 15 Hz: no more
+    assert loss.lost_total == 1 and loss.rate_changes == 1, loss.counts()
+
+
+NS = 1_000_000_000

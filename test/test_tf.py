@@ -62,7 +62,7 @@ def _feed_one_image_and_odometry(node, executor, proc):
     from dpv_sensor import msgs as M
     spin = lambda t: executor.spin_once(timeout_sec=t)  # noqa: E731
     qos = QoSProfile(depth=5, reliability=ReliabilityPolicy.RELIABLE)
-    pub_img = node.create_publisher(Image, '/camera/image', qos)
+    pub_img = node.create_publisher(Image, '/image', qos)
     pub_odom = node.create_publisher(Odometry, '/odom', qos)
     assert wait_for(lambda: pub_img.get_subscription_count() == 1 and pub_odom.get_subscription_count() == 1,
                     timeout=60.0, spin=spin), 'the node never subscribed to its inputs'

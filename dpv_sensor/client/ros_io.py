@@ -298,8 +298,8 @@ class Received:
 class OutputCollector:
     """Subscribes (reliable) to a node's outputs under `namespace` and groups them by header stamp.
 
-    Topics: depth/image, depth/camera_info, confidence/image, optionally points, and /diagnostics (the latest status
-    of the node named `diagnostics_name` is kept in `diagnostics`, as a {key: value} dict).
+    Topics: depth/image, depth/camera_info, confidence/image, optionally depth/points, and /diagnostics (the latest
+    status of the node named `diagnostics_name` is kept in `diagnostics`, as a {key: value} dict).
     """
 
     def __init__(self, node, namespace: str = '', points: bool = False, keep_messages: bool = True,
@@ -329,8 +329,8 @@ class OutputCollector:
         ]
         self.points_sub = None
         if points:
-            self.points_sub = node.create_subscription(PointCloud2, f'{ns}/points', lambda m: self._on(m, 'points'),
-                                                       qos)
+            self.points_sub = node.create_subscription(PointCloud2, f'{ns}/depth/points',
+                                                       lambda m: self._on(m, 'points'), qos)
 
     def _on(self, msg, kind: str) -> None:
         now = time.time_ns()

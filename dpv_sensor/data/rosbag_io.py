@@ -1,7 +1,7 @@
 """rosbag2 read / write for dpv_sensor with the `rosbags` library (no rclpy; ROS 2 Jazzy message definitions).
 
 - `write_sequence_bag`: a posed image sequence (a `Sequence`, the synthetic renderer's output, or plain arrays via
-  `ArraySequence`) -> a bag with sensor_msgs/Image on /camera/image, sensor_msgs/CameraInfo on /camera/camera_info
+  `ArraySequence`) -> a bag with sensor_msgs/Image on /image, sensor_msgs/CameraInfo on /camera_info
   and nav_msgs/Odometry on /odom, odometry at its own rate (interpolated between frames), with optional noise and
   dropouts. MCAP by default, sqlite3 on request.
 - `BagWriter`: a generic writer (rosbags messages or raw CDR bytes) — what `bag record` uses for a live graph.
@@ -30,8 +30,8 @@ from dpv_sensor.pose_buffer import PoseBuffer, interpolate_pose, make_pose, pose
 
 NS = 1_000_000_000
 
-IMAGE_TOPIC = '/camera/image'
-CAMERA_INFO_TOPIC = '/camera/camera_info'
+IMAGE_TOPIC = '/image'
+CAMERA_INFO_TOPIC = '/camera_info'
 ODOM_TOPIC = '/odom'
 DEPTH_TOPIC = '/depth/image'
 CONFIDENCE_TOPIC = '/confidence/image'

@@ -4,7 +4,7 @@
                                      odometry (--rate, --odom-rate, --odom-noise, --odom-dropout, --format)
   bag play BAG                       replay into the live ROS graph at real time (or --rate x), with the recorded
                                      QoS, after waiting for subscribers (--wait-for, --wait-timeout); topics are
-                                     remapped the ROS way: bag play BAG --ros-args -r /camera/image:=/cam/image
+                                     remapped the ROS way: bag play BAG --ros-args -r /image:=/cam/image
   bag record OUT_BAG [TOPIC ...]     subscribe and write a bag until Ctrl-C or --duration
   bag export BAG OUT_DIR             a recorded depth/confidence bag -> depth PNG (mm) + confidence PNG folder
 

@@ -11,7 +11,7 @@ Steps (each prints a progress line and its time):
            in the validation range 0..99 that training refuses, and not among the seeds 0..3 the packaged
            checkpoint was validated on) and save it as a sequence folder: OUT/sequence (the ground truth:
            images as lossless PNG, depth PNG in mm, poses, K, stamps).
-2. bag     write it as a rosbag2 (MCAP): OUT/input_bag with /camera/image, /camera/camera_info and /odom
+2. bag     write it as a rosbag2 (MCAP): OUT/input_bag with /image, /camera_info and /odom
            (odometry at 100 Hz, interpolated between the frames; the stamps are the sequence's).
 3. node    start the node as its own process (`python -m dpv_sensor.node --ros-args -p ... -r ...`) with a private
            ROS_DOMAIN_ID (localhost only) and ROS_LOG_DIR under OUT/logs; wait until its estimator is built and its
@@ -55,6 +55,7 @@ import contextlib
 import io
 import json
 import math
+import os
 import pathlib
 import shlex
 import shutil
@@ -194,6 +195,28 @@ def _fmt(v, f='{:.4f}'):
 # --------------------------------------------------------------------------------------------------------------
 # main
 # --------------------------------------------------------------------------------------------------------------
+def _bag_inputs(a, values: Dict[str, Any], input_bag: pathlib.Path):
+    """(topics, how they were chosen, bag topics) of the user's bag; DemoError naming what is missing."""
+    from dpv_sensor.data import rosbag_io as R
+    if not input_bag.exists():
+        raise DemoError(f'{input_bag}: no such bag')
+    bt = R.bag_topics(input_bag)
+    need = ['image'] + (['camera_info'] if values['camera_info_source'] == 'topic' else []) + \
+        (['odom'] if values['odometry'] == 'topic' else [])
+    hints = {'image': '--image-topic (IMAGE_TOPIC= with make)',
+             'camera_info': '--camera-info-topic (CAMERA_INFO_TOPIC= with make; or --params '
+                            'camera_info_source=parameters fx=.. fy=.. cx=.. cy=..)',
+             'odom': '--odom-topic (ODOM_TOPIC= with make; or --params odometry=none for visual odometry)'}
+    try:
+        topics, how = R.detect_input_topics(bt, image=a.image_topic, camera_info=a.camera_info_topic,
+                                            odom=a.odom_topic, need=need, options=hints)
+    except R.BagError as exc:
+        raise DemoError(f'{input_bag}: {exc}') from None
+    topics = {role: (t if role in need else None) for role, t in topics.items()}
+    how = {role: h for role, h in how.items() if topics[role] is not None}
+    return topics, how, bt
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog='demo', description=__doc__.split('\n\n')[0],
                                 epilog=__doc__.split('\n\n', 1)[1],
@@ -227,7 +250,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help='seconds to wait for the node to start and subscribe (default 180; >= 10)')
     n.add_argument('--frame-timeout', type=float, default=180.0,
                    help='lockstep: longest wait for the node to finish one image (default 180 s)')
-    n.add_argument('--domain-id', type=int, default=None, help='ROS_DOMAIN_ID (default: a random private one)')
+    n.add_argument('--domain-id', type=int, default=None,
+                   help='ROS_DOMAIN_ID (default: $ROS_DOMAIN_ID when set, else a random private one)')
     f = p.add_argument_group('fusion')
     f.add_argument('--voxel', type=float, default=0.03, help='TSDF voxel size in m (default 0.03)')
     f.add_argument('--fuse-min-confidence', type=float, default=0.9,
@@ -262,6 +286,18 @@ def main(argv: Optional[List[str]] = None) -> int:
         print('demo: --start-timeout must be at least 10 s', file=sys.stderr)
         return 2
 
+    user_bag = a.bag is not None
+    input_bag = pathlib.Path(a.bag).resolve() if user_bag else None
+    bag_inputs = None
+    try:        # the arguments are checked before the previous run's results are removed
+        if a.gt and not pathlib.Path(a.gt).is_dir():
+            raise DemoError(f'{a.gt}: no such ground-truth sequence folder')
+        if user_bag:
+            bag_inputs = _bag_inputs(a, values, input_bag)
+    except Exception as exc:    # DemoError, BagError
+        print(f'demo: {exc}', flush=True)
+        return 1
+
     out = pathlib.Path(a.out).resolve()
     out.mkdir(parents=True, exist_ok=True)
     for item in OUT_ITEMS:
@@ -272,11 +308,13 @@ def main(argv: Optional[List[str]] = None) -> int:
             p.unlink()
     logs = out / 'logs'
     logs.mkdir(parents=True, exist_ok=True)
-    ros_env = private_ros_env(out, a.domain_id)
+    domain_id = a.domain_id
+    if domain_id is None and os.environ.get('ROS_DOMAIN_ID', '').isdigit():
+        domain_id = int(os.environ['ROS_DOMAIN_ID'])
+    ros_env = private_ros_env(out, domain_id)
 
-    user_bag = a.bag is not None
     seq_dir = out / 'sequence'
-    input_bag = pathlib.Path(a.bag).resolve() if user_bag else out / 'input_bag'
+    input_bag = input_bag if user_bag else out / 'input_bag'
     output_bag = out / 'output_bag'
     gt_dir = pathlib.Path(a.gt).resolve() if a.gt else (None if user_bag else seq_dir)
     steps = Steps(8)
@@ -301,22 +339,7 @@ def main(argv: Optional[List[str]] = None) -> int:
                                 'odom_rate_hz': ODOM_RATE_HZ, 'sequence': str(seq_dir), 'bag': str(input_bag)}
             del seq
         else:
-            if not input_bag.exists():
-                raise DemoError(f'{input_bag}: no such bag')
-            bt = R.bag_topics(input_bag)
-            need = ['image'] + (['camera_info'] if values['camera_info_source'] == 'topic' else []) + \
-                (['odom'] if values['odometry'] == 'topic' else [])
-            hints = {'image': '--image-topic (IMAGE_TOPIC= with make)',
-                     'camera_info': '--camera-info-topic (CAMERA_INFO_TOPIC= with make; or --params '
-                                    'camera_info_source=parameters fx=.. fy=.. cx=.. cy=..)',
-                     'odom': '--odom-topic (ODOM_TOPIC= with make; or --params odometry=none for visual odometry)'}
-            try:
-                topics, how = R.detect_input_topics(bt, image=a.image_topic, camera_info=a.camera_info_topic,
-                                                    odom=a.odom_topic, need=need, options=hints)
-            except R.BagError as exc:
-                raise DemoError(f'{input_bag}: {exc}') from None
-            topics = {role: (t if role in need else None) for role, t in topics.items()}
-            how = {role: h for role, h in how.items() if topics[role] is not None}
+            topics, how, bt = bag_inputs
             print(f'demo: input topics: {R.describe_choice(topics, how)}', flush=True)
             steps.skip('render', f'using your bag {_rel(input_bag)}')
             steps.skip('bag', f"{bt[topics['image']][1]} images on {topics['image']}")
@@ -336,6 +359,13 @@ def main(argv: Optional[List[str]] = None) -> int:
         # ---------------------------------------------------------------- 6: evaluate
         eval_dir = out / 'eval'
         offset = [] if a.stamp_offset == 'auto' else ['--stamp-offset', str(a.stamp_offset)]
+        if gt_dir is not None and a.stamp_offset == 'auto':
+            # from the input bag's first image (the recorded outputs hold no camera image): GT frame 0 unless the
+            # GT's own stamps are the bag's
+            from dpv_sensor.evaluation import first_image_stamp, gt_stamp_offset, load_sequence
+            auto = gt_stamp_offset(first_image_stamp(input_bag, topics['image']), load_sequence(gt_dir))
+            offset = ['--stamp-offset', f'{auto:.9f}']
+            summary['stamp_offset_s'] = auto
         if gt_dir is not None:
             from dpv_sensor.tools import evaluate as EV
             eval_argv = ['bag', str(output_bag), '--gt', str(gt_dir), '--out', str(eval_dir)] + offset
@@ -378,8 +408,7 @@ def main(argv: Optional[List[str]] = None) -> int:
             from dpv_sensor.tools import fuse as FU
             fuse_argv = ['bag', str(output_bag), '--gt', str(gt_dir), '--out', str(fusion_dir), '--voxel',
                          f'{a.voxel:g}', '--min-confidence', f'{a.fuse_min_confidence:g}']
-            if a.stamp_offset != 'auto':
-                fuse_argv += ['--stamp-offset', str(a.stamp_offset)]
+            fuse_argv += offset
             summary['fuse_command'] = ('python -m dpv_sensor.tools.fuse bag ' + _rel(output_bag) + ' --gt ' +
                                        _rel(gt_dir) + ' --out ' + _rel(out / 'fusion_by_hand') +
                                        f' --voxel {a.voxel:g} --min-confidence {a.fuse_min_confidence:g}' +
