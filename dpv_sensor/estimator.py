@@ -838,15 +838,19 @@ class Estimator:
         return depth, spans
 
     def _pose_covariance(self, frame: Frame) -> Optional[np.ndarray]:
-        """The frame's odometry pose covariance when ``pose_uncertainty`` is auto and it has one."""
+        """The frame's odometry pose covariance when ``pose_uncertainty`` reads it (covariance, auto) and the
+        frame has one."""
         cov = getattr(frame, 'pose_covariance_66', None)
-        if cov is None or self.config.pose_uncertainty != 'auto':
+        if cov is None or self.config.pose_uncertainty not in ('covariance', 'auto'):
             return None
         cov = np.asarray(cov, np.float64)
         return cov.reshape(6, 6) if cov.size == 36 else None
 
     def _drift_model(self) -> pose_uncertainty.DriftModel:
+        """The drift figures (all zero with ``pose_uncertainty: covariance``: only the odometry's covariance)."""
         cfg = self.config
+        if cfg.pose_uncertainty == 'covariance':
+            return pose_uncertainty.DriftModel(0.0, 0.0, 0.0, 0.0)
         return pose_uncertainty.DriftModel(trans_per_m=cfg.odom_drift_trans, rot_deg_per_m=cfg.odom_drift_rot_deg_per_m,
                                            rot_per_deg=cfg.odom_drift_rot, sync_s=cfg.odom_time_sync_ms / 1000.0)
 
@@ -855,10 +859,14 @@ class Estimator:
         """(1, h, w) std (planes, volume resolution) of the measured plane index that the sources' pose uncertainty
         relative to the reference causes (``dpv_sensor.pose_uncertainty``); None with ``pose_uncertainty`` off.
         ``status['pose_uncertainty']``: where the uncertainty came from (``covariance`` when every source's came
-        from the odometry's covariance, else ``drift``), the largest source's rotation (deg) / translation (mm)
-        per-axis std and the median std in planes."""
+        from the odometry's covariance, else ``drift``; ``none`` with ``covariance`` and no covariance), the largest
+        source's rotation (deg) / translation (mm) per-axis std and the median std in planes."""
         if self.config.pose_uncertainty == 'off' or geom is None:
             self._last_pose_sigma = {}
+            return None
+        if self.config.pose_uncertainty == 'covariance' and not any(
+                pose_uncertainty.covariance_sigma(ref.pose_cov_66, s.pose_cov_66) is not None for s in sources):
+            self._last_pose_sigma = {'source': 'none (no odometry covariance)'}
             return None
         depth, spans = geom
         model = self._drift_model()

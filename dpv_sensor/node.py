@@ -1051,6 +1051,8 @@ def _pose_uncertainty_text(last: dict | None, setting: str) -> str:
     """The /diagnostics value of the last keyframe's pose uncertainty: its source and size, or the setting."""
     if setting == 'off' or not last:
         return setting if setting == 'off' else f'{setting} (no keyframe yet)'
+    if 'rot_deg_max' not in last:
+        return str(last.get('source'))
     return (f"{last['source']}: rotation {last['rot_deg_max']:.3f} deg, translation {last['trans_mm_max']:.2f} mm "
             f"(largest source, per axis), median {last['median_planes']:.2f} planes")
 

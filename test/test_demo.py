@@ -82,8 +82,8 @@ def test_node_stopped_cleanly_and_nothing_was_lost(demo_run):
     assert nd['exit_code'] == 0
     assert 'SIGINT -> exit code 0' in proc.stdout
     assert nd['measurement_model'] == 'classical' and nd['filter_mode'] == 'global'
-    # the demo's odometry fills no covariance: the pose uncertainty of the last keyframe came from the drift figures
-    assert nd['pose_uncertainty'].startswith('drift: rotation '), nd['pose_uncertainty']
+    # the demo's odometry fills no covariance: with the default pose_uncertainty (covariance) the poses count as exact
+    assert nd['pose_uncertainty'] == 'none (no odometry covariance)', nd['pose_uncertainty']
     assert nd['images_sent'] == 20 and int(nd['frames_received']) == 20 and int(nd['frames_processed']) == 20
     assert int(nd['dropped_total']) == 0, nd['dropped']
     n_out = int(nd['outputs_published'])

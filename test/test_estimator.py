@@ -872,3 +872,18 @@ def test_a_larger_odometry_covariance_never_raises_the_confidence_and_off_ignore
     push_all(drift, _with_covariance(frames, 1e-4))
     assert drift.status['pose_uncertainty']['trans_mm_max'] == pytest.approx(1000 * 0.02 * 0.20 / math.sqrt(3),
                                                                             rel=1e-3)
+
+
+def test_default_pose_uncertainty_reads_only_the_odometry_covariance():
+    frames = sideways(6, step=0.05, w=160, h=120)
+    cfg = dict(num_planes=32, processing_width=128, processing_height=96)
+    assert small_config(**cfg).pose_uncertainty == 'covariance'
+    plain = push_all(Estimator(small_config(**cfg)), frames)[-1]
+    off = push_all(Estimator(small_config(pose_uncertainty='off', **cfg)), frames)[-1]
+    np.testing.assert_array_equal(plain.confidence_hw, off.confidence_hw)      # no covariance: poses are exact
+    np.testing.assert_array_equal(plain.depth_hw, off.depth_hw)
+    drift = push_all(Estimator(small_config(pose_uncertainty='auto', **cfg)), frames)[-1]
+    assert float(np.nanmean(drift.confidence_hw)) < float(np.nanmean(plain.confidence_hw))
+    est = Estimator(small_config(**cfg))
+    push_all(est, _with_covariance(frames, 1e-5))
+    assert est.status['pose_uncertainty']['source'] == 'covariance'
