@@ -68,7 +68,8 @@ class StreamLoss:
     """Counts images lost in a camera stream (see the module docs). Not thread-safe: call from one thread.
 
     history: how many recent intervals the period estimate uses; quantile: the low quantile that picks a
-    one-period interval; min_intervals: intervals needed before gaps are counted (earlier gaps are not counted);
+    one-period interval; min_intervals: intervals needed before the period is known (the gaps among them are
+    judged once it is);
     keep_gaps: how many recent unexplained gaps late loss reports may still match; rate_change_intervals:
     consecutive equal gaps that make a new rate; max_pending: gaps waiting for confirmation before the oldest is
     confirmed anyway; max_loss_gap_ns: the longest unreported stamp gap counted as lost images."""
@@ -88,6 +89,7 @@ class StreamLoss:
         self._last_stamp_ns: int | None = None
         self._open_gaps: collections.deque[Gap] = collections.deque(maxlen=keep_gaps)   # with unmatched images
         self._pending: list[Gap] = []      # consecutive gaps waiting for the next interval
+        self._early: list[int] = []        # intervals seen before the period was known (judged once it is)
         self._unmatched_reports = 0
         self.lost_rmw = 0              # images the RMW reported lost
         self.lost_stamp_gap_only = 0   # confirmed missing images that no report accounts for
@@ -158,6 +160,7 @@ class StreamLoss:
         for gap in self._pending:
             gap.state = WITHDRAWN
         self._pending = []
+        self._early = []
         self._intervals.clear()
 
     def on_image(self, stamp_ns: int) -> Gap | None:
@@ -182,6 +185,9 @@ class StreamLoss:
             return None
         self._intervals.append(interval)
         if period is None or period <= 0:
+            self._early.append(interval)
+            if self.period_ns:
+                self._judge_early()
             return None
         multiple = round(interval / period)
         if interval < 1.5 * period or multiple < 2:
@@ -198,6 +204,24 @@ class StreamLoss:
         self._open_gaps.append(gap)
         self._judge_pending()
         return gap
+
+    def _judge_early(self) -> None:
+        """The period just became known: the intervals before it are judged against it. The stream that gave the
+        period runs at that rate, so their gaps are losses (confirmed, matched with reports where there are any);
+        without this, images lost in the first `min_intervals` intervals of a stream would never be counted."""
+        period = self.period_ns
+        for interval in self._early:
+            multiple = round(interval / period)
+            if interval < 1.5 * period or multiple < 2 or interval > max(self.max_loss_gap_ns, 8 * period):
+                continue
+            gap = Gap(interval_ns=interval, period_ns=period, missing=int(multiple) - 1, state=PENDING)
+            n = min(gap.missing, self._unmatched_reports)
+            gap.matched = n
+            self._unmatched_reports -= n
+            self._confirm(gap)
+            if not gap.explained:
+                self._open_gaps.append(gap)
+        self._early = []
 
     def _judge_pending(self) -> None:
         """A run of equal unreported gaps is a new rate (withdrawn, the period re-estimated); too many pending gaps

@@ -12,21 +12,22 @@ def feed(loss, frame_indices, base=10**18):
     return [loss.on_image(base + i * P) for i in frame_indices]
 
 
-def test_no_gap_counted_until_the_period_is_known_then_missing_images_are_counted():
+def test_gaps_before_the_period_is_known_count_once_it_is_then_missing_images_are_counted():
     loss = StreamLoss(min_intervals=3)
-    # frames 0, 2: one interval of 2 periods, but no period is known yet -> not counted
+    # frames 0, 2: one interval of 2 periods, but no period is known yet -> not counted yet
     assert feed(loss, [0, 2]) == [None, None]
-    assert loss.period_ns is None
+    assert loss.period_ns is None and loss.lost_total == 0
     feed(loss, [3, 4])                       # intervals 2P, P, P: low quantile = P, ratios P, P, P
     assert loss.period_ns == P
+    assert loss.lost_total == 1 and loss.gaps == 1     # the stream runs at P: frame 1 was lost
     gap = loss.on_image(10**18 + 8 * P)      # 4 -> 8: frames 5, 6, 7 missing
     assert gap.missing == 3 and gap.interval_ns == 4 * P and gap.period_ns == P
     assert not gap.explained and gap.camera_gap_ns == 4 * P
-    assert gap.state == 'pending' and loss.lost_total == 0    # no evidence yet: the camera may have slowed down
+    assert gap.state == 'pending' and loss.lost_total == 1    # no evidence yet: the camera may have slowed down
     feed(loss, [9])                          # one period later: the camera runs at its rate, the 3 were lost
     assert gap.state == 'confirmed'
-    assert loss.counts()['lost.transport'] == 3 and loss.lost_stamp_gap_only == 3 and loss.lost_rmw == 0
-    assert loss.gaps == 1 and loss.unexplained_gaps == 1
+    assert loss.counts()['lost.transport'] == 4 and loss.lost_stamp_gap_only == 4 and loss.lost_rmw == 0
+    assert loss.gaps == 2 and loss.unexplained_gaps == 2
 
 
 def test_period_from_a_low_quantile_survives_heavy_loss():
@@ -35,9 +36,9 @@ def test_period_from_a_low_quantile_survives_heavy_loss():
     loss = StreamLoss(min_intervals=4, quantile=0.1)
     feed(loss, [0, 1, 4, 7, 11, 14, 18, 19, 21, 22])   # intervals P, 3P, 3P, 4P, 3P, 4P, P, 2P, P
     assert loss.period_ns == P
-    # counted from the 5th interval on (after 4 intervals), each confirmed by a later interval of one period:
-    # 11->14, 14->18 (2 + 3), 19->21 (1)
-    assert loss.lost_stamp_gap_only == 6 and loss.rate_changes == 0
+    # the first 4 intervals are judged once the period is known (1->4, 4->7, 7->11: 2 + 2 + 3), the later ones each
+    # confirmed by a later interval of one period: 11->14, 14->18 (2 + 3), 19->21 (1)
+    assert loss.lost_stamp_gap_only == 13 and loss.rate_changes == 0
 
 
 def test_jitter_is_not_a_gap_and_1_4_periods_is_not_a_lost_image():
@@ -166,3 +167,17 @@ def test_reported_losses_during_a_rate_drop_still_count():
 
 
 NS = 1_000_000_000
+
+
+def test_images_lost_before_the_period_is_known_are_counted_once_it_is():
+    from dpv_sensor.stream_loss import StreamLoss
+    sl = StreamLoss(min_intervals=8)
+    period = 33_333_333
+    # images 1-3 lost right at the start, then a clean stream: 3 lost, counted once the period is known
+    stamps = [0] + [k * period for k in range(4, 20)]
+    for t in stamps:
+        sl.on_image(t)
+    assert sl.lost_total == 3 and sl.gaps == 1
+    # a loss report for them afterwards matches the gap instead of counting the images twice
+    sl.on_rmw_lost(3)
+    assert sl.lost_total == 3 and sl.lost_rmw == 3 and sl.lost_stamp_gap_only == 0

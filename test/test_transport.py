@@ -73,7 +73,8 @@ def test_every_image_is_received_or_counted_as_lost(observer, reliability, trans
     received, lost = int(diag['frames_received']), int(diag['lost.transport'])
     figures = {k: diag.get(k) for k in ('frames_received', 'frames_processed', 'dropped_total', 'lost.transport',
                                         'lost.rmw', 'lost.stamp_gaps_only', 'lost.unexplained_gaps',
-                                        'input_period_ms', 'filter_resets', 'last_reset_reason')}
+                                        'input_period_ms', 'input_rate_changes', 'input_stamp_jumps', 'filter_resets',
+                                        'last_reset_reason')}
     print(reliability, transport, figures)
     if transport == 'node':
         assert 'transport: UDPv4 with 4 MiB socket buffers' in log
