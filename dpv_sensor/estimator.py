@@ -1,129 +1,9 @@
 """The streaming core of the virtual depth camera: ``Estimator(config).push(Frame) -> DepthOutput | None``.
 
-No ROS import here (layer 6); the node (``dpv_sensor/node.py``) only converts messages to :class:`Frame`
-and :class:`DepthOutput` back to messages.
-
-What happens to a pushed frame
-------------------------------
-1. **Checks.** A frame whose pose is missing (``None``) or non-finite / not rigid, whose stamp is not
-   finite, or whose stamp equals the previous one is dropped (``push`` returns None, the reason is in
-   ``status['last_drop_reason']``). The estimator *resets* (window, keyframe selector and filter; the
-   reason goes to ``status['last_reset_reason']`` and to the ``reset_reason`` of the next output) when
-   time goes backwards, when the image size or the intrinsics change, when the *camera stream* had a
-   gap longer than ``reset_time_gap`` seconds, or when the pose *teleports* (a threshold of 0 disables
-   that rule). These rules catch real discontinuities of the sensor or the odometry, not gaps the
-   caller creates by leaving frames out (the node drops images while the estimator is busy), and never
-   fast but smooth motion (which the filter's predict step follows):
-
-   * time gap: ``Frame.sensor_gap_s`` when the caller gives it (the longest interval between images it
-     received since the previous pushed frame, dropped or not), else the time since the previous pushed
-     frame (offline use, where every frame is pushed);
-   * teleport: the pose step since the previous pushed frame, judged against the time elapsed by the
-     one teleport rule (``continuity.teleport``: faster than ``odom_max_speed`` m/s and over 0.1 m, or
-     than ``odom_max_rate_deg`` deg/s and over 10 deg), the rule the node's pose buffer applies to
-     consecutive odometry messages. A 0.5 m step between frames 1/30 s apart resets; a 1.5 m/s walk or
-     a 90 deg/s pan with frames seconds apart does not.
-
-   The filter's own rules are off (``max_time_gap``, ``max_translation``, ``max_rotation_deg`` infinite):
-   it steps at keyframes only, keyframes far apart in time or space are no discontinuity, and every
-   discontinuity already reset everything here. A pose refiner's tracking loss restarts the filter too
-   (visual odometry); with odometry from a topic a failed refinement falls back to the odometry poses
-   for that keyframe instead (counted in ``status['pose_refinement_fallbacks']``).
-2. **Keyframe selection** (:class:`dpv_sensor.keyframes.KeyframeSelector`): baseline
-   ``keyframe_translation``, rotation ``keyframe_rotation_deg`` since the last keyframe, at the latest
-   every ``keyframe_max_interval`` frames (paper: every 5th frame).
-3. **Keyframes** are resized to the processing size (area averaging when shrinking, bilinear when
-   growing; K scaled as ``fx' = fx*s``, ``cx' = (cx + 0.5)*s - 0.5``) and enter a window of 5
-   keyframes (:class:`dpv_sensor.keyframes.KeyframeWindow`):
-
-   * ``causal`` — reference = the newest keyframe, sources = the (up to 4) keyframes before it; no
-     latency. The first keyframe after a (re)start has no stereo partner and gives **no output**;
-     outputs start with the second keyframe (1 source), the window fills up by the fifth.
-   * ``centered`` — the paper's window: reference = the middle of 5 keyframes, sources on both sides.
-     The output for keyframe k is produced when keyframe k + 2 arrives (two keyframes of latency) and
-     carries keyframe k's stamp, pose and size. The first output comes with the third keyframe
-     (reference = first keyframe, sources = keyframes 2, 3). Keyframes still pending when the stream
-     resets are dropped (their window can no longer be completed).
-4. **Pose refinement hook**: when a ``pose_refiner`` callable is given, it is called before
-   the plane sweep with a :class:`PoseRefinementRequest` (the window's keyframes, the reference index,
-   the depth and confidence the filter predicts for the reference) and returns refined ``T_world_cam``
-   poses for the window's keyframes (or None to keep them). Refined poses replace the keyframes' poses
-   (also for later windows); the odometry pose is kept in ``Keyframe.odom_T_world_cam_44``. A new
-   frame's pose starts as its odometry motion since the newest keyframe chained onto that keyframe's
-   refined pose (so the filter's prediction and the between-keyframe outputs follow the refined
-   trajectory). A refiner that exposes ``tracking_lost`` (True after a failed refinement, reason in
-   ``last_result.reason``) makes the estimator restart the filter and publish nothing for that
-   keyframe; ``reset()`` also calls the refiner's ``reset()`` when it has one.
-5. **Measurement**: the D-Net of ``nets.model.DPVNet`` when weights for the preset load (``config.weights``
-   or the packaged ``dpv_sensor/weights/<preset>.safetensors``); per-keyframe features are extracted once
-   and cached, so a source frame is never re-processed (the classical model takes images; each
-   keyframe's processing-size image tensor is kept, and its grey/gradient features are cheap to redo).
-   Otherwise (no file, corrupt file: a
-   ``CheckpointError``) a warning with the reason is logged and the classical NCC plane sweep
-   (``classical.ClassicalMeasurement``) is used; ``measurement='classical'`` forces it and
-   ``measurement='network'`` makes a missing/corrupt checkpoint an error.
-6. **Filter**: ``filter.DPVFilter`` carries the DPV between keyframes at the volume resolution (1/4 of the
-   processing size); it gets poses relative to the first keyframe since the last reset (computed in
-   float64), so large odometry coordinates lose no precision in its float32 arithmetic. Mode ``knet``
-   uses the network's K-Net; with the classical model it falls back to ``global`` damping (logged once,
-   noted in the status).
-7. **Output**: depth = ``dpv.depth_estimate`` with the ``depth_readout`` (``auto``: the relative-error
-   optimum for the network, the expectation of paper eq. 1 for the classical model), confidence =
-   ``dpv.published_confidence`` of that depth (``confidence``: ``ratio`` = the probability that the depth
-   is within a factor ``confidence_ratio`` of the truth, ``plane`` = the mass within one plane of it);
-   depth below ``min_confidence`` is NaN.
-
-   * network: from the R-Net's full-resolution (processing size) DPV;
-   * classical (and frames between keyframes): depth and confidence are computed from the volume-
-     resolution DPV and upsampled to the processing size - depth bilinearly in *inverse* depth (the
-     planes are uniform in inverse depth), confidence bilinearly. This costs O(H W) instead of the
-     O(D H W) of upsampling the whole DPV and gives the same result where the DPV is smooth.
-
-   A pixel has no estimate (depth NaN, confidence 0) when fewer than ``min_coverage`` (default half) of
-   its ray's plane samples project into at least one source view of the window (the ray lies outside
-   the sources' frustums). With ``output_resolution='input'`` the
-   maps are resized to the input image size with centre-aligned **nearest** neighbour (no depth is ever
-   interpolated across an occlusion edge, no "flying pixels" in point clouds; NaN stays NaN) and K is
-   the input K; with ``'processing'`` they are resized the same way to processing_width wide with the
-   input's aspect ratio (:func:`output_size`), with the input K scaled to that size.
-8. **Frames between keyframes** (``publish_between_keyframes``, causal mode): the filter's last
-   posterior is warped into the frame's pose (``geometry.warp_volume``, the filter's predict step) and
-   depth/confidence are taken from it - no network run. In ``centered`` mode such outputs would be
-   newer than the pending keyframe outputs (stamps out of order on one topic), so they are not produced
-   there (noted in the status).
-9. **Parallax** (``parallax_full_px``, :mod:`dpv_sensor.parallax`): per volume pixel, the disparity span
-   (processing-size pixels) that the band ``[d / 1.25, d * 1.25]`` (``parallax.BAND_RATIO``) around the
-   measurement's depth ``d`` (no nearer than its median) covers in the window's sources, the largest over the
-   sources that see the point. Its support ``w = min(1, span / parallax_full_px)`` weights the filter update
-   per pixel (``DPVFilter.step(update_weight_bhw=w)``: w = 0 keeps the predicted belief, which after a pure
-   rotation is the previous belief warped exactly; after a restart, the uniform one), and the belief's
-   support ``s = w + (1 - w) * s_predicted`` (carried like the belief; 0 for pixels never seen with parallax)
-   multiplies the published confidence. ``status['parallax']``: the last keyframe's median span and mean w.
-   With ``source_pool`` > ``window_size`` the sources are chosen from that many recent keyframes by
-   ``parallax.pose_parallax_score`` (``KeyframeWindow.select``), the reference and latency unchanged.
-10. **Degenerate frames** (``reject_degenerate_frames``, :mod:`dpv_sensor.image_quality`): an all-black,
-   saturated, flat or noise frame is dropped before anything else changes (no keyframe, no filter step, no
-   output, the stream state untouched); ``status['frames_degenerate']`` counts them and
-   ``status['last_degenerate_reason']`` / ``last_image_quality`` say why (for the node's log and counter).
-
-11. **Pose uncertainty** (``pose_uncertainty``, :mod:`dpv_sensor.pose_uncertainty`, docs/pose_uncertainty.md): per
-   source, the uncertainty of its pose relative to the reference (the odometry's pose covariance where the frames
-   carry one (``Frame.pose_covariance_66``) and ``pose_uncertainty`` is auto, else the ``odom_drift_*`` figures over
-   the path between the two keyframes; plus ``odom_time_sync_ms`` times the change of velocity between them) moves
-   each pixel's match along the epipolar line; against the disparity span of item 9 this is a std of the measured
-   plane index per pixel (the sources combined as independent measurements). The measurement is widened by it
-   before the filter (``pose_uncertainty.widen_planes``), and the published ratio confidence of the keyframe counts
-   it again (``dpv.ratio_confidence(sigma_planes_bhw=...)``): the reference's pose error is common to every
-   measurement the filter fused into its belief, so fusion must not shrink it. ``status['pose_uncertainty']``: the
-   largest source's rotation (deg) and translation (mm) std and the median std in planes.
-
-Device and precision: ``config.device`` (``cpu``, ``cuda``, ``cuda:N``); everything runs under
-``torch.no_grad()`` (not ``inference_mode``, so a pose refiner may still use autograd on the cached
-keyframe tensors); on CUDA the networks run under ``torch.autocast`` (bfloat16 by default); on the CPU in
-float32 or under bfloat16 autocast, as ``cpu_precision`` says (node parameter; ``auto``, the default, is
-bfloat16 where the CPU has AMX / AVX512-BF16, see ``nets.cpu_bf16_fast``, else float32: a keyframe 1.25-1.4x
-faster, with the same accuracy on the selection scenes to 4 digits). The geometry, the filter and all DPV
-normalisations stay float32.
+No ROS import here; the node only converts messages to :class:`Frame` and :class:`DepthOutput` back to messages.
+What happens to a pushed frame, step by step (checks and resets, keyframes, the window, pose refinement, the
+measurement, the filter, the parallax rule, the pose uncertainty, the outputs, degenerate frames, device and
+precision), is written out in docs/estimator.md; the items there are numbered as referred to below.
 """
 from __future__ import annotations
 
@@ -131,8 +11,7 @@ import logging
 import math
 import pathlib
 import time
-from dataclasses import dataclass
-from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
+from typing import Any, Dict, List, Optional, Tuple
 
 import cv2
 import numpy as np
@@ -146,6 +25,9 @@ from . import image_quality, parallax, pose_uncertainty
 from .frame import DepthOutput, Frame
 from .edge_filter import joint_weighted_median
 from .geometry import resample_to_camera, scale_intrinsics_np
+from .depth_output import compose_output, volume_maps_to_processing
+from .estimator_config import (EstimatorConfig, PoseRefinementRequest, PoseRefiner, _Measurement,  # noqa: F401
+                               _Posterior, default_weights_path, output_size)
 from .keyframes import Keyframe, KeyframeSelector, KeyframeWindow
 from .nets.model import cpu_bf16_fast
 
@@ -160,88 +42,6 @@ OUTPUT_RESOLUTIONS = P.choices('output_resolution')
 CPU_PRECISIONS = P.choices('cpu_precision')
 # planes sampled per ray for the "seen by some source view" mask (see Estimator._coverage)
 COVERAGE_PLANES = 16
-
-
-def default_weights_path(preset: str) -> pathlib.Path:
-    """The packaged checkpoint of a preset: ``<dpv_sensor package>/weights/<preset>.safetensors``
-    (``nets.checkpoint.default_weights_path``; the file may not exist)."""
-    from .nets.checkpoint import default_weights_path as _default
-    return _default(preset)
-
-
-# ------------------------------------------------------------------------------------------------------
-# configuration
-# ------------------------------------------------------------------------------------------------------
-
-def output_size(config, input_size) -> Tuple[int, int]:
-    """(width, height) of the published maps for an input image of ``input_size`` (width, height): the input's
-    with ``output_resolution='input'``; with ``'processing'`` processing_width wide with the input's aspect ratio
-    (height rounded, at least 1), so the output pairs with the camera's colour images (depth_image_proc refuses
-    a depth image whose aspect differs from the colour image's)."""
-    in_w, in_h = int(input_size[0]), int(input_size[1])
-    if config.output_resolution == 'input':
-        return in_w, in_h
-    w = int(config.processing_width)
-    return w, max(1, int(round(w * in_h / in_w)))
-
-
-def _processing_size(self) -> Tuple[int, int]:
-    """(width, height) the images are resized to."""
-    return int(self.processing_width), int(self.processing_height)
-
-
-EstimatorConfig = P.make_config_class('EstimatorConfig', P.ESTIMATOR_SPECS, """Everything the estimator and its
-pose source need: one field per ``estimator`` / ``library`` setting of the table in ``dpv_sensor.params``
-(description, default, range and choices live there, once). :meth:`from_params` takes the fields from the
-node's parameter dict (other keys are ignored); :meth:`validate` applies the table's checks, with the same
-messages as the node and ``evaluate``. ``torch_threads`` > 0 is applied with ``torch.set_num_threads`` when the
-Estimator is built (it is process-wide); 0 leaves torch's setting alone.""",
-                                       {'processing_size': property(_processing_size)})
-EstimatorConfig.__module__ = __name__
-
-
-@dataclass
-class PoseRefinementRequest:
-    """What a pose refiner gets before the plane sweep of a window (paper eq. 11).
-
-    keyframes: the window's keyframes in time order (reference included; ``Keyframe.T_world_cam_44`` is
-    the current pose estimate, ``image_b3hw`` / ``K_b33`` the processing-size image and intrinsics).
-    reference: index of the reference keyframe in ``keyframes``.
-    depth_hw / confidence_hw: the depth and confidence the filter predicts for the reference (its last
-    posterior warped into the reference pose); the confidence is always the +-1-plane mass
-    (``dpv.confidence``, what ``photometric.inverse_depth_std_from_confidence`` expects), whatever the
-    published ``confidence`` is; torch (h, w) at the volume resolution with intrinsics
-    ``K_depth_33`` (numpy); None when the filter has no state yet (first window after a reset).
-    The refiner returns a list of ``T_world_cam`` 4x4 arrays, one per keyframe (same order), or None.
-    """
-    keyframes: List[Keyframe]
-    reference: int
-    depth_hw: Optional[torch.Tensor]
-    confidence_hw: Optional[torch.Tensor]
-    K_depth_33: Optional[np.ndarray]
-    depths_d: torch.Tensor
-
-
-PoseRefiner = Callable[[PoseRefinementRequest], Optional[Sequence[np.ndarray]]]
-
-
-@dataclass
-class _Posterior:
-    """The filter's latest posterior and where it lives (for between-keyframe outputs and prediction)."""
-    logp_bdhw: torch.Tensor
-    T_world_cam_44: np.ndarray
-    K_vol_b33: torch.Tensor
-    coverage_bhw: torch.Tensor          # bool, volume resolution
-    stamp: float
-    support_bhw: Optional[torch.Tensor] = None   # parallax support in [0, 1], volume resolution (None: rule off)
-    median_depth: Optional[float] = None         # computed on demand (source scoring)
-
-
-@dataclass
-class _Measurement:
-    logp_bdhw: torch.Tensor
-    K_vol_b33: torch.Tensor
-    feats: Any = None
 
 
 # ------------------------------------------------------------------------------------------------------
@@ -259,7 +59,7 @@ def _is_rigid(T_44: np.ndarray, tol: float = 1e-3) -> bool:
 # ------------------------------------------------------------------------------------------------------
 
 class Estimator:
-    """Streaming depth estimation from posed frames (see the module docstring).
+    """Streaming depth estimation from posed frames (see docs/estimator.md).
 
     Args:
         config: an :class:`EstimatorConfig` (``EstimatorConfig.from_params(params.validate(...))`` in the
@@ -512,7 +312,7 @@ class Estimator:
         self.log.info(f'estimator reset: {reason}')
 
     def push(self, frame: Frame) -> Optional[DepthOutput]:
-        """Process one frame; returns the depth output that became ready (or None). See the module docs."""
+        """Process one frame; returns the depth output that became ready (or None). See docs/estimator.md."""
         t0 = time.perf_counter()
         self._frames_received += 1
         image = self._check_image(frame)
@@ -701,15 +501,15 @@ class Estimator:
             depth_v, conf_v = self._readout(post, None, sigma_planes)
             if support is not None:
                 conf_v = conf_v * support
-            depth, conf, valid = self._volume_maps_to_processing(
+            depth, conf, valid = volume_maps_to_processing(
                 depth_v, conf_v, coverage,
                 meas.K_vol_b33[0], K_proc_t, (H, W))
             timings['upsample'] = self._ms(t)
 
         t = time.perf_counter()
         reason = self._take_reset_reason(step.reset_reason)
-        out = self._compose(depth, conf, valid, ref.input_size, ref.input_K_33, ref.stamp, ref.T_world_cam_44,
-                            True, reason)
+        out = compose_output(self.config, depth, conf, valid, ref.input_size, ref.input_K_33, ref.stamp,
+                             ref.T_world_cam_44, True, reason)
         timings['output'] = self._ms(t)
         timings['total'] = self._ms(t0)
         out.timings_ms = timings
@@ -857,52 +657,26 @@ class Estimator:
     def _pose_sigma_planes(self, meas: _Measurement, geom, ref: Keyframe,
                            sources: List[Keyframe]) -> Optional[torch.Tensor]:
         """(1, h, w) std (planes, volume resolution) of the measured plane index that the sources' pose uncertainty
-        relative to the reference causes (``dpv_sensor.pose_uncertainty``); None with ``pose_uncertainty`` off.
-        ``status['pose_uncertainty']``: where the uncertainty came from (``covariance`` when every source's came
-        from the odometry's covariance, else ``drift``; ``none`` with ``covariance`` and no covariance), the largest
-        source's rotation (deg) / translation (mm) per-axis std and the median std in planes."""
-        if self.config.pose_uncertainty == 'off' or geom is None:
+        relative to the reference causes (``pose_uncertainty.window_sigma_planes``); None with ``pose_uncertainty``
+        off, or covariance and no covariance. ``status['pose_uncertainty']`` says where it came from and its size."""
+        mode = self.config.pose_uncertainty
+        if mode == 'off' or geom is None:
             self._last_pose_sigma = {}
             return None
-        if self.config.pose_uncertainty == 'covariance' and not any(
-                pose_uncertainty.covariance_sigma(ref.pose_cov_66, s.pose_cov_66) is not None for s in sources):
-            self._last_pose_sigma = {'source': 'none (no odometry covariance)'}
-            return None
         depth, spans = geom
-        model = self._drift_model()
-        kfs = sorted([ref] + list(sources), key=lambda k: k.index)
-        r = kfs.index(ref)
-        shifts, sig_r, sig_t, from_cov = [], [], [], []
-        to_proc = float(ref.K_b33[0, 0, 0] / meas.K_vol_b33[0, 0, 0])     # volume -> processing pixels (as spans)
-        for s in sources:
-            i = kfs.index(s)
-            chain = [k.T_world_cam_44 for k in kfs[min(i, r):max(i, r) + 1]]
-            sig = pose_uncertainty.relative_pose_sigma(model, chain, cov_ref_66=ref.pose_cov_66,
-                                                       cov_src_66=s.pose_cov_66, twist_ref_6=ref.twist_world_6,
-                                                       twist_src_6=s.twist_world_6)
-            from_cov.append(pose_uncertainty.covariance_sigma(ref.pose_cov_66, s.pose_cov_66) is not None)
-            sig_r.append(sig.rot_rad)
-            sig_t.append(sig.trans_m)
-            shifts.append(pose_uncertainty.match_shift_px(depth, meas.K_vol_b33, sig) * to_proc)
-        sigma_rho = pose_uncertainty.inverse_depth_sigma(depth, spans, torch.stack(shifts, 0), parallax.BAND_RATIO)
-        sigma_planes = sigma_rho / geometry.inverse_depth_step(self.d_min, self.d_max, self.num_planes)
-        self._last_pose_sigma = {'source': 'covariance' if all(from_cov) else 'drift',
-                                 'rot_deg_max': math.degrees(max(sig_r)), 'trans_mm_max': 1000.0 * max(sig_t),
-                                 'median_planes': float(sigma_planes.clamp_max(1e3).median())}
-        return sigma_planes
+        sigma, self._last_pose_sigma = pose_uncertainty.window_sigma_planes(
+            ref, sources, depth, spans, meas.K_vol_b33, self._drift_model(),
+            geometry.inverse_depth_step(self.d_min, self.d_max, self.num_planes), covariance_only=mode == 'covariance')
+        return sigma
 
     def _pose_confidence_factor(self, post_bdhw: torch.Tensor, sigma_planes_bhw: torch.Tensor) -> torch.Tensor:
-        """(1, h, w) in [0, 1]: how much of the belief's published confidence survives the pose uncertainty, at the
-        volume resolution: the ratio confidence of the belief convolved with ``sigma_planes_bhw`` over the plain one
-        (1 where the plain one is 0, and for the ``plane`` confidence). The network's full-resolution confidence is
-        multiplied by it (upsampled), which costs a volume-resolution readout instead of a full-resolution one."""
+        """(1, h, w) in [0, 1]: the share of the belief's ratio confidence that survives the pose uncertainty
+        (``pose_uncertainty.confidence_factor``; 1 everywhere for the ``plane`` confidence)."""
         cfg = self.config
         if cfg.confidence != 'ratio':
             return torch.ones_like(sigma_planes_bhw)
-        depth = dpv_ops.depth_estimate(post_bdhw, self.depths_d, self.readout)
-        plain = dpv_ops.ratio_confidence(post_bdhw, self.depths_d, depth, cfg.confidence_ratio)
-        widened = dpv_ops.ratio_confidence(post_bdhw, self.depths_d, depth, cfg.confidence_ratio, sigma_planes_bhw)
-        return torch.where(plain > 1e-6, widened / plain.clamp_min(1e-6), torch.ones_like(plain)).clamp(0.0, 1.0)
+        return pose_uncertainty.confidence_factor(post_bdhw, self.depths_d, self.readout, cfg.confidence_ratio,
+                                                  sigma_planes_bhw)
 
     def _parallax_weight(self, geom, ref: Keyframe, T_src_ref_t: torch.Tensor) -> Optional[torch.Tensor]:
         """(1, h, w) weight in [0, 1] of this measurement per pixel (``parallax.parallax_support`` of the
@@ -988,43 +762,6 @@ class Estimator:
         return (seen >= self.config.min_coverage)[None]
 
     # ------------------------------------------------------------------ outputs
-    def _volume_maps_to_processing(self, depth_bhw, conf_bhw, valid_bhw, K_vol_33, K_proc_33, hw):
-        """Volume-resolution depth/confidence/validity -> processing size (inverse depth bilinear)."""
-        inv = 1.0 / depth_bhw.clamp_min(1e-6)
-        maps = torch.stack([inv, conf_bhw], 1)
-        up = resample_to_camera(maps, K_vol_33, K_proc_33, hw, mode='bilinear')
-        valid = resample_to_camera(valid_bhw[:, None].float(), K_vol_33, K_proc_33, hw, mode='nearest')[:, 0] > 0.5
-        return 1.0 / up[:, 0].clamp_min(1e-6), up[:, 1], valid
-
-    def _compose(self, depth_bhw, conf_bhw, valid_bhw, input_size, K_in_33, stamp, T_world_cam, is_keyframe,
-                 reset_reason) -> DepthOutput:
-        """Mask, resize to the output size (nearest) and convert to numpy float32.
-
-        Pixels without an estimate get NaN depth and confidence 0; with ``min_confidence`` > 0, depth whose
-        confidence is below it is NaN too (no estimate), while its confidence is kept."""
-        valid = valid_bhw & torch.isfinite(depth_bhw) & (depth_bhw > 0)
-        conf = torch.where(valid, conf_bhw.clamp(0.0, 1.0), torch.zeros_like(conf_bhw))
-        if self.config.min_confidence > 0.0:
-            valid = valid & (conf >= self.config.min_confidence)
-        depth = torch.where(valid, depth_bhw, torch.full_like(depth_bhw, float('nan')))
-        H, W = depth.shape[-2:]
-        # the processing K in float64, exactly as the resize convention gives it
-        K_out = scale_intrinsics_np(K_in_33, W / input_size[0], H / input_size[1])
-        out_w, out_h = output_size(self.config, input_size)
-        if (out_w, out_h) != (W, H):
-            K_target = np.array(K_in_33, dtype=np.float64, copy=True) if (out_w, out_h) == tuple(input_size[:2]) \
-                else scale_intrinsics_np(K_in_33, out_w / input_size[0], out_h / input_size[1])
-            maps = torch.stack([depth, conf], 1)
-            maps = resample_to_camera(maps, K_out, K_target, (out_h, out_w), mode='nearest')
-            depth, conf = maps[:, 0], maps[:, 1]
-            K_out = K_target
-        return DepthOutput(stamp=float(stamp),
-                           depth_hw=depth[0].float().cpu().numpy(),
-                           confidence_hw=conf[0].float().cpu().numpy(),
-                           K_33=K_out, is_keyframe=is_keyframe,
-                           T_world_cam_44=np.array(T_world_cam, dtype=np.float64, copy=True),
-                           reset_reason=reset_reason)
-
     def _between_output(self, frame: Frame, T, size, K_in, t0) -> Optional[DepthOutput]:
         """A non-keyframe: the filter's posterior warped into this frame's pose (no network run)."""
         cfg = self.config
@@ -1051,8 +788,8 @@ class Estimator:
         W, H = cfg.processing_size
         K_proc = torch.as_tensor(scale_intrinsics_np(K_in, W / size[0], H / size[1]), dtype=torch.float32,
                                  device=self.device)
-        depth, conf, valid = self._volume_maps_to_processing(depth_v, conf_v, valid_v, p.K_vol_b33[0], K_proc, (H, W))
-        out = self._compose(depth, conf, valid, size, K_in, float(frame.stamp), T, False, None)
+        depth, conf, valid = volume_maps_to_processing(depth_v, conf_v, valid_v, p.K_vol_b33[0], K_proc, (H, W))
+        out = compose_output(self.config, depth, conf, valid, size, K_in, float(frame.stamp), T, False, None)
         out.timings_ms = {'between': self._ms(t), 'total': self._ms(t0)}
         self._last_timings = dict(out.timings_ms)
         return out

@@ -47,10 +47,13 @@ from typing import Optional, Sequence, Tuple
 import numpy as np
 import torch
 
+from . import dpv as dpv_ops
 from .geometry import rotation_angle_np
+from .parallax import BAND_RATIO
 
 __all__ = ['DriftModel', 'PoseSigma', 'relative_pose_sigma', 'path_between', 'covariance_sigma', 'twist_between',
-           'match_shift_px', 'inverse_depth_sigma', 'widen_planes', 'WIDTH_LADDER', 'SQRT3']
+           'match_shift_px', 'inverse_depth_sigma', 'window_sigma_planes', 'confidence_factor', 'widen_planes',
+           'WIDTH_LADDER', 'SQRT3', 'BAND_RATIO']
 
 SQRT3 = math.sqrt(3.0)
 # Gaussian widths (planes) the per-pixel widening interpolates between; 0 = unchanged.
@@ -166,6 +169,51 @@ def inverse_depth_sigma(depth_bhw: torch.Tensor, span_nbhw: torch.Tensor, shift_
     info = torch.where(seen, (span_nbhw / (shift_nbhw * band).clamp_min(1e-12)) ** 2, torch.zeros_like(span_nbhw))
     total = info.sum(0)
     return torch.where(total > 0, total.clamp_min(1e-30).rsqrt(), torch.full_like(total, math.inf))
+
+
+def window_sigma_planes(ref, sources: Sequence, depth_bhw: torch.Tensor, span_nbhw: torch.Tensor,
+                        K_vol_b33: torch.Tensor, model: DriftModel, plane_step_rho: float, *,
+                        covariance_only: bool = False) -> Tuple[Optional[torch.Tensor], dict]:
+    """(B, H, W) std in planes of the measured plane index of a window, and a status dict (items 1-3 of the module
+    docstring, all sources).
+
+    ref / sources: keyframes with ``index``, ``T_world_cam_44``, ``K_b33`` (processing size), ``pose_cov_66`` and
+    ``twist_world_6``. depth_bhw / span_nbhw: the measurement's depth and each source's disparity span (processing
+    pixels) on the volume grid ``K_vol_b33``. plane_step_rho: the plane spacing in inverse depth. covariance_only:
+    without any source's covariance, None (the poses count as exact). Status: ``source`` (covariance when every
+    source's came from the odometry's covariance, else drift; none without covariance in covariance_only), the
+    largest per-axis rotation (deg) and translation (mm) std and the median std in planes."""
+    from_cov = [covariance_sigma(ref.pose_cov_66, s.pose_cov_66) is not None for s in sources]
+    if covariance_only and not any(from_cov):
+        return None, {'source': 'none (no odometry covariance)'}
+    kfs = sorted([ref] + list(sources), key=lambda k: k.index)
+    r = kfs.index(ref)
+    to_proc = float(ref.K_b33[0, 0, 0] / K_vol_b33[0, 0, 0])     # volume -> processing pixels (as the spans)
+    shifts, sig_r, sig_t = [], [], []
+    for s in sources:
+        i = kfs.index(s)
+        chain = [k.T_world_cam_44 for k in kfs[min(i, r):max(i, r) + 1]]
+        sig = relative_pose_sigma(model, chain, cov_ref_66=ref.pose_cov_66, cov_src_66=s.pose_cov_66,
+                                  twist_ref_6=ref.twist_world_6, twist_src_6=s.twist_world_6)
+        sig_r.append(sig.rot_rad)
+        sig_t.append(sig.trans_m)
+        shifts.append(match_shift_px(depth_bhw, K_vol_b33, sig) * to_proc)
+    sigma_planes = inverse_depth_sigma(depth_bhw, span_nbhw, torch.stack(shifts, 0), BAND_RATIO) / plane_step_rho
+    status = {'source': 'covariance' if all(from_cov) else 'drift',
+              'rot_deg_max': math.degrees(max(sig_r)), 'trans_mm_max': 1000.0 * max(sig_t),
+              'median_planes': float(sigma_planes.clamp_max(1e3).median())}
+    return sigma_planes, status
+
+
+def confidence_factor(logp_bdhw: torch.Tensor, depths_d: torch.Tensor, readout: str, ratio: float,
+                      sigma_planes_bhw: torch.Tensor) -> torch.Tensor:
+    """(B, H, W) in [0, 1]: the ratio confidence of a belief convolved with ``sigma_planes_bhw`` over its plain one
+    (1 where the plain one is 0), at the belief's resolution. The estimator multiplies the network's
+    full-resolution confidence by it (upsampled): a volume-resolution readout instead of a full-resolution one."""
+    depth = dpv_ops.depth_estimate(logp_bdhw, depths_d, readout)
+    plain = dpv_ops.ratio_confidence(logp_bdhw, depths_d, depth, ratio)
+    widened = dpv_ops.ratio_confidence(logp_bdhw, depths_d, depth, ratio, sigma_planes_bhw)
+    return torch.where(plain > 1e-6, widened / plain.clamp_min(1e-6), torch.ones_like(plain)).clamp(0.0, 1.0)
 
 
 def _blur_matrix(D: int, sigma: float, device, dtype=torch.float32) -> torch.Tensor:
