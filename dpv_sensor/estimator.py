@@ -340,8 +340,9 @@ class Estimator:
         reset = self._stream_reset_reason(stamp, T, size, K_in, frame.sensor_gap_s)
         if reset is not None:
             self.reset(reset)
-        # the camera's velocity, for the time-offset term of the pose uncertainty
-        self._twist = None if self._last_frame is None else \
+        # the camera's velocity, for the time-sync term of the pose uncertainty (only where that term is used)
+        uses_sync = self.config.pose_uncertainty in ('auto', 'drift') and self.config.odom_time_sync_ms > 0
+        self._twist = None if self._last_frame is None or not uses_sync else \
             pose_uncertainty.twist_between(self._last_frame[1], T, stamp - self._last_frame[0])
         self._last_frame = (stamp, T, size, K_in)
         self._frames_accepted += 1
