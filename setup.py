@@ -7,7 +7,7 @@ PACKAGE = 'dpv_sensor'
 
 # Console tools, each runnable as `ros2 run dpv_sensor <name>`.
 TOOLS = {
-    'node': 'dpv_sensor.entry:console_main',
+    'node': 'dpv_sensor.ros.entry:console_main',
     'evaluate': 'dpv_sensor.tools.evaluate:main',
     'fuse': 'dpv_sensor.tools.fuse:main',
     'train': 'dpv_sensor.tools.train:main',

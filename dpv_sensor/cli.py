@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import argparse
 
-from . import params as P
+from dpv_sensor import params as P
 
 __all__ = ['add_setting', 'add_config']
 

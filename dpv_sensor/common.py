@@ -34,7 +34,7 @@ def to_jsonable(obj):
 
 def code_version() -> str:
     """``dpv_sensor.__version__`` plus ``+g<short hash>`` (and ``.dirty``) when inside a git checkout."""
-    from . import __version__
+    from dpv_sensor import __version__
     try:
         h = subprocess.run(['git', '-C', str(REPO), 'rev-parse', '--short', 'HEAD'], capture_output=True,
                            text=True, timeout=5)

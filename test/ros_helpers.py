@@ -27,8 +27,8 @@ def wait_for(condition: Callable[[], bool], timeout: float, spin=None, period: f
 
 def start_node(args: list[str] | None = None, executable: list[str] | None = None,
                env: dict | None = None) -> subprocess.Popen:
-    """Start `python -m dpv_sensor.node` (or `executable`) as a separate process with its output captured."""
-    cmd = (executable or [sys.executable, '-m', 'dpv_sensor.node']) + (args or [])
+    """Start `python -m dpv_sensor.ros.node` (or `executable`) as a separate process with its output captured."""
+    cmd = (executable or [sys.executable, '-m', 'dpv_sensor.ros.node']) + (args or [])
     full_env = dict(os.environ)
     full_env.update(env or {})
     full_env.setdefault('PYTHONUNBUFFERED', '1')

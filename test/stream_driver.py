@@ -6,8 +6,8 @@ from __future__ import annotations
 import numpy as np
 
 from ros_helpers import start_node, stop_process, wait_for
-from dpv_sensor import msgs as M
-from dpv_sensor.pose_buffer import NS
+from dpv_sensor.ros import msgs as M
+from dpv_sensor.stream.pose_buffer import NS
 
 W, H = 160, 128
 BASE_NS = 1_760_000_000 * NS
@@ -17,7 +17,7 @@ FAST_PARAMS = {'measurement': 'classical', 'processing_width': W, 'processing_he
 
 class StreamDriver:
     """Publishes a rendered sequence to a node process started with `args` (the node's command line after
-    `python -m dpv_sensor.node`); topics: the absolute names the node is expected to subscribe."""
+    `python -m dpv_sensor.ros.node`); topics: the absolute names the node is expected to subscribe."""
 
     def __init__(self, args: list[str], topics: dict | None = None, frames: int = 40, seed: int = 4,
                  reliability: str = 'reliable', name: str = 'stream_driver', env: dict | None = None,

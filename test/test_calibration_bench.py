@@ -25,7 +25,7 @@ def one_thread():
 
 @pytest.fixture(scope='module')
 def model():
-    from dpv_sensor.nets.model import DPVNet
+    from dpv_sensor.core.nets.model import DPVNet
     torch.manual_seed(0)
     return DPVNet('lite').eval()        # random init: the benchmark's plumbing, not the weights' quality
 

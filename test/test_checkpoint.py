@@ -10,9 +10,9 @@ import pytest
 import torch
 
 import dpv_sensor
-from dpv_sensor.nets import DPVNet, get_preset
-from dpv_sensor.nets import checkpoint as ck
-from dpv_sensor.nets.checkpoint import CheckpointError, default_weights_path, load_checkpoint, save_checkpoint
+from dpv_sensor.core.nets import DPVNet, get_preset
+from dpv_sensor.core.nets import checkpoint as ck
+from dpv_sensor.core.nets.checkpoint import CheckpointError, default_weights_path, load_checkpoint, save_checkpoint
 
 torch.set_num_threads(min(2, torch.get_num_threads()))
 

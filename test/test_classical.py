@@ -1,4 +1,4 @@
-"""Tests of dpv_sensor.classical (plane-sweep ZNCC measurement) on analytic scenes and on SUN3D."""
+"""Tests of dpv_sensor.core.classical (plane-sweep ZNCC measurement) on analytic scenes and on SUN3D."""
 import math
 import os
 import sys
@@ -11,10 +11,12 @@ import torch
 sys.path.insert(0, os.path.dirname(__file__))
 from synthetic_planes import DT, Rect, intrinsics, render_scene, rot_y, se3  # noqa: E402
 
-from dpv_sensor import dpv, geometry as G  # noqa: E402
-from dpv_sensor.classical import (ClassicalMeasurement, box_downscale, grey_features, select_source_frames,  # noqa: E402
+from dpv_sensor.core import dpv  # noqa: E402
+
+from dpv_sensor.core import geometry as G
+from dpv_sensor.core.classical import (ClassicalMeasurement, box_downscale, grey_features, select_source_frames,  # noqa: E402
                                   to_grey)
-from dpv_sensor.filter import DPVFilter  # noqa: E402
+from dpv_sensor.core.filter import DPVFilter  # noqa: E402
 
 W, H, S = 160, 120, 4            # input size and downscale -> 40 x 30 volume
 D, D_MIN, D_MAX = 32, 0.5, 6.0

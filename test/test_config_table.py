@@ -7,9 +7,9 @@ import pathlib
 import numpy as np
 import pytest
 
-from dpv_sensor import evaluation as E
+from dpv_sensor.evaluation import offline as E
 from dpv_sensor import params as P
-from dpv_sensor.estimator import EstimatorConfig
+from dpv_sensor.stream.estimator import EstimatorConfig
 
 PACKAGE = pathlib.Path(__file__).resolve().parents[1] / 'dpv_sensor'
 SETTINGS = {s.name for s in P.SPECS + P.LIBRARY_SPECS}
@@ -125,7 +125,7 @@ def _sequence(n=6):
 
 def test_evaluate_passes_the_refiner_sigmas_from_the_config(monkeypatch):
     import torch
-    from dpv_sensor import poses
+    from dpv_sensor.stream import poses
     torch.set_num_threads(1)
     built = []
     real = poses.WindowPoseRefiner

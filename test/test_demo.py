@@ -199,7 +199,7 @@ def test_parse_params_types_and_rejects_unknown_names():
     with pytest.raises(ValueError, match='KEY=VALUE'):
         D.parse_params(['preset'])
     cmd = node_command({'weights': '', 'damping': 0.5, 'T_base_camera': [0, 0, 0, 0, 0, 0, 1]}, {'image': '/cam'})
-    assert cmd[:4] == [sys.executable, '-m', 'dpv_sensor.node', '--ros-args']
+    assert cmd[:4] == [sys.executable, '-m', 'dpv_sensor.ros.node', '--ros-args']
     assert cmd[4:] == ['-p', "weights:=''", '-p', 'damping:=0.5', '-p', 'T_base_camera:=[0.0,0.0,0.0,0.0,0.0,0.0,1.0]',
                        '-r', 'image:=/cam']
 
@@ -209,7 +209,7 @@ def test_own_bag_with_epoch_stamps_and_gt_without_stamps_scores_without_stamp_of
     stamps: the demo scores it with no --stamp-offset."""
     import shutil
     from dpv_sensor.data import rosbag_io as R
-    from dpv_sensor.evaluation import load_sequence
+    from dpv_sensor.evaluation.offline import load_sequence
     out, _ = demo_run
     gt = tmp_path / 'gt'
     shutil.copytree(out / 'sequence', gt)

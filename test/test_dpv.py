@@ -1,4 +1,4 @@
-"""Tests of dpv_sensor.dpv, with values computed by hand.
+"""Tests of dpv_sensor.core.dpv, with values computed by hand.
 
 Hand example used throughout: d_min = 1, d_max = 4, D = 3 -> inverse depths 1, 0.625, 0.25,
 i.e. planes at 1, 1.6 and 4 m.
@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from dpv_sensor import dpv
+from dpv_sensor.core import dpv
 
 DT = torch.float64
 
@@ -288,8 +288,8 @@ def test_auto_readout_depends_on_the_measurement_model():
 
 
 def test_ratio_confidence_with_an_index_error_integrates_the_gaussian():
-    from dpv_sensor import dpv as dpv_ops
-    from dpv_sensor.geometry import inverse_depth_index
+    from dpv_sensor.core import dpv as dpv_ops
+    from dpv_sensor.core.geometry import inverse_depth_index
     D = 32
     depths = dpv_ops.depth_planes(0.5, 8.0, D)
     logp = torch.full((1, D, 1, 1), -1e4)

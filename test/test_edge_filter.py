@@ -3,8 +3,8 @@ from __future__ import annotations
 
 import torch
 
-from dpv_sensor import dpv
-from dpv_sensor.edge_filter import joint_weighted_median
+from dpv_sensor.core import dpv
+from dpv_sensor.core.edge_filter import joint_weighted_median
 
 
 def _gaussian_logp(centres_hw: torch.Tensor, D: int = 32, sigma: float = 0.35) -> torch.Tensor:

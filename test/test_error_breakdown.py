@@ -46,7 +46,7 @@ def test_window_sources_follow_the_mode():
 
 def test_keyframe_frames_replays_the_selector():
     """A straight walk at 2 cm a frame with the 5 cm baseline: keyframes every third frame (6 cm > 5 cm)."""
-    from dpv_sensor.estimator import EstimatorConfig
+    from dpv_sensor.stream.estimator import EstimatorConfig
     poses = [_pose(0.02 * i) for i in range(10)]
     assert eb.keyframe_frames(poses, EstimatorConfig()) == [0, 3, 6, 9]
 
@@ -110,10 +110,10 @@ def test_texture_thirds_put_a_flat_wall_in_the_weak_third():
 def test_cli_streams_rendered_seeds_and_writes_json_and_png(tmp_path, capsys):
     """The CLI on a short rendered sequence with random lite weights: its pooled abs_rel equals the pooled abs_rel
     of the same run scored by the evaluation module; bad seeds and unreadable weights are refused (exit 2)."""
-    from dpv_sensor.evaluation import evaluate_sequence, EvalOptions
+    from dpv_sensor.evaluation.offline import evaluate_sequence, EvalOptions
     from dpv_sensor.data.synthetic import render_sequence
-    from dpv_sensor.nets.checkpoint import save_checkpoint
-    from dpv_sensor.nets.model import DPVNet
+    from dpv_sensor.core.nets.checkpoint import save_checkpoint
+    from dpv_sensor.core.nets.model import DPVNet
     torch.manual_seed(5)
     model = DPVNet('lite').eval()
     w = tmp_path / 'w.safetensors'

@@ -13,10 +13,10 @@ import pytest
 import torch
 
 from dpv_sensor import params as P
-from dpv_sensor.estimator import Estimator, EstimatorConfig, PoseRefinementRequest
-from dpv_sensor.pipeline import evaluate_offline
-from dpv_sensor.frame import DepthOutput, Frame
-from dpv_sensor.keyframes import KeyframeSelector, KeyframeWindow, pose_delta
+from dpv_sensor.stream.estimator import Estimator, EstimatorConfig, PoseRefinementRequest
+from dpv_sensor.evaluation.offline import evaluate_offline
+from dpv_sensor.stream.frame import DepthOutput, Frame
+from dpv_sensor.stream.keyframes import KeyframeSelector, KeyframeWindow, pose_delta
 
 torch.set_num_threads(1)
 
@@ -173,7 +173,7 @@ def test_window_selection_causal_and_centered():
     win = KeyframeWindow(5)
 
     def add(i):
-        from dpv_sensor.keyframes import Keyframe
+        from dpv_sensor.stream.keyframes import Keyframe
         win.append(Keyframe(index=i, frame_index=i, stamp=float(i), T_world_cam_44=np.eye(4), image_b3hw=None,
                             K_b33=None, input_size=(4, 4), input_K_33=np.eye(3)))
 
@@ -302,7 +302,7 @@ def test_missing_weights_fall_back_to_classical(tmp_path):
 
 
 def test_corrupt_weights_fall_back_to_classical(tmp_path):
-    from dpv_sensor.nets import DPVNet, save_checkpoint
+    from dpv_sensor.core.nets import DPVNet, save_checkpoint
     torch.manual_seed(0)
     path = tmp_path / 'lite.safetensors'
     save_checkpoint(path, DPVNet('lite'), {'training_data': 'none (test)'})
@@ -368,13 +368,13 @@ def test_min_confidence_masks_depth_and_keeps_confidence():
 
 
 def test_measurement_network_without_weights_is_an_error(tmp_path):
-    from dpv_sensor.nets import CheckpointError
+    from dpv_sensor.core.nets import CheckpointError
     with pytest.raises(CheckpointError, match='not found'):
         Estimator(small_config(measurement='network', weights=str(tmp_path / 'missing.safetensors')))
 
 
 def test_network_measurement_caches_features_and_uses_knet():
-    from dpv_sensor.nets import DPVNet
+    from dpv_sensor.core.nets import DPVNet
     torch.manual_seed(0)
     net = DPVNet('lite')
     calls = []
@@ -400,7 +400,7 @@ def test_cpu_bfloat16_gives_the_float32_depths(precision):
     within a fraction of a plane (the cost volume, filter and readout stay float32), and the status says
     which precision ran; 'auto' is bfloat16 exactly where the CPU has native kernels."""
     from conftest import cpu_native_bf16
-    from dpv_sensor.nets import default_weights_path, load_checkpoint
+    from dpv_sensor.core.nets import default_weights_path, load_checkpoint
     net, _ = load_checkpoint(default_weights_path('lite'), preset='lite')
     frames = sideways(6, step=0.05, w=160, h=120)
     outs, status = {}, {}
@@ -552,7 +552,7 @@ def test_offline_pose_step_of_half_a_metre_resets():
     assert est.status['last_reset_reason'].startswith('pose teleported: 0.500 m in 0.033 s (15.0 m/s > '
                                                       'odom_max_speed 10 m/s)')
     assert outs[3] is None                                      # first keyframe of the restarted stream
-    from dpv_sensor.pipeline import Pipeline
+    from dpv_sensor.stream.pipeline import Pipeline
     pipe = Pipeline(small_config())
     for f in frames:
         f.sensor_gap_s = None
@@ -820,7 +820,7 @@ def test_cuda_matches_cpu():
     assert both.mean() > 0.8 and np.isfinite(a).mean() == pytest.approx(np.isfinite(b).mean(), abs=0.02)
     assert np.median(np.abs(a[both] - b[both])) < 1e-3
     # the network under autocast (bfloat16) runs and gives depths in range
-    from dpv_sensor.nets import DPVNet
+    from dpv_sensor.core.nets import DPVNet
     torch.manual_seed(0)
     est = Estimator(small_config(device='cuda', measurement='auto', filter_mode='knet'), model=DPVNet('lite'))
     out = push_all(est, sideways(4))[-1]
@@ -828,7 +828,7 @@ def test_cuda_matches_cpu():
 
 
 def test_output_size_keeps_the_input_aspect_ratio():
-    from dpv_sensor.estimator import output_size
+    from dpv_sensor.stream.estimator import output_size
     proc = small_config(processing_width=320, processing_height=256, output_resolution='processing')
     assert output_size(proc, (640, 480)) == (320, 240)          # not the 320x256 processing grid
     assert output_size(proc, (1280, 720)) == (320, 180)

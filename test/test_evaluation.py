@@ -9,7 +9,7 @@ import cv2
 import numpy as np
 import pytest
 
-from dpv_sensor import evaluation as E
+from dpv_sensor.evaluation import offline as E
 from dpv_sensor.data.sequence import Sequence
 
 H, W = 30, 40
@@ -160,7 +160,7 @@ def test_depth_limits_restrict_scored_pixels():
 # ---------------------------------------------------------------------------------------------
 
 def _write_output_bag(path, seq, frames, scale, start_ns):
-    from dpv_sensor import msgs as MS
+    from dpv_sensor.ros import msgs as MS
     from dpv_sensor.data import rosbag_io as R
     NS = R.NS
     with R.BagWriter(path) as bag:

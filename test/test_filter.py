@@ -1,4 +1,4 @@
-"""Tests of dpv_sensor.filter.DPVFilter: update modes, fusion on analytic scenes, reset rules."""
+"""Tests of dpv_sensor.core.filter.DPVFilter: update modes, fusion on analytic scenes, reset rules."""
 import math
 import os
 import sys
@@ -9,8 +9,8 @@ import torch
 sys.path.insert(0, os.path.dirname(__file__))
 from synthetic_planes import DT, Rect, intrinsics, render_scene, rot_y, se3  # noqa: E402
 
-from dpv_sensor import dpv  # noqa: E402
-from dpv_sensor.filter import MOTION_REFERENCE_S, DPVFilter, FilterStep, jump_limit  # noqa: E402
+from dpv_sensor.core import dpv  # noqa: E402
+from dpv_sensor.core.filter import MOTION_REFERENCE_S, DPVFilter, FilterStep, jump_limit  # noqa: E402
 
 W, H, D = 40, 30, 32
 D_MIN, D_MAX = 0.5, 6.0

@@ -6,7 +6,7 @@ import json
 import numpy as np
 import pytest
 
-from dpv_sensor import fusion as F
+from dpv_sensor.evaluation import fusion as F
 
 
 

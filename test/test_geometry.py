@@ -1,4 +1,4 @@
-"""Tests of dpv_sensor.geometry: intrinsics, SE(3), projection and the warps (tiny analytic scenes)."""
+"""Tests of dpv_sensor.core.geometry: intrinsics, SE(3), projection and the warps (tiny analytic scenes)."""
 import math
 import os
 import sys
@@ -10,8 +10,8 @@ import torch
 sys.path.insert(0, os.path.dirname(__file__))
 from synthetic_planes import DT, intrinsics, render_plane_pair, rot_x, rot_y, rot_z, se3  # noqa: E402
 
-from dpv_sensor import geometry as G  # noqa: E402
-from dpv_sensor.dpv import depth_planes, depth_to_index  # noqa: E402
+from dpv_sensor.core import geometry as G  # noqa: E402
+from dpv_sensor.core.dpv import depth_planes, depth_to_index  # noqa: E402
 
 
 # ------------------------------------------------------------------ intrinsics, SE(3)
@@ -328,7 +328,7 @@ def test_cuda_matches_cpu():
 
 
 def test_numpy_rotation_angles_by_hand():
-    from dpv_sensor.geometry import quat_angle_deg, relative_pose_error_np, rotation_angle_np
+    from dpv_sensor.core.geometry import quat_angle_deg, relative_pose_error_np, rotation_angle_np
     Rz90 = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
     assert rotation_angle_np(Rz90) == pytest.approx(np.pi / 2)
     assert rotation_angle_np(np.eye(3)) == 0.0
@@ -346,7 +346,7 @@ def test_numpy_rotation_angles_by_hand():
 
 
 def test_inverse_depth_step_is_the_slope_of_the_plane_index():
-    from dpv_sensor.geometry import inverse_depth_index, inverse_depth_step
+    from dpv_sensor.core.geometry import inverse_depth_index, inverse_depth_step
     step = inverse_depth_step(0.5, 8.0, 16)
     assert step == pytest.approx((2.0 - 0.125) / 15)
     i1 = float(inverse_depth_index(torch.tensor(1.0), 0.5, 8.0, 16))

@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from dpv_sensor.image_quality import assess
+from dpv_sensor.core.image_quality import assess
 
 H, W = 60, 80
 
@@ -47,7 +47,7 @@ def test_bad_input_is_an_error():
 
 
 # --- frames just either side of each threshold: a threshold moved by more than the margin fails one of them -----
-# the thresholds as designed (dpv_sensor.image_quality), written out so that a changed constant fails a test
+# the thresholds as designed (dpv_sensor.core.image_quality), written out so that a changed constant fails a test
 DARK_LEVEL, DARK_FRACTION, SATURATED_LEVEL, SATURATED_FRACTION, FLAT_STD, NOISE_RATIO = 10, 0.97, 250, 0.9, 2.0, 0.92
 
 HT = 100          # rows: fractions in steps of 1 %

@@ -45,11 +45,11 @@ def test_launch_file_parses_and_is_installed():
 
 def test_launch_file_names_the_installed_executable_and_an_existing_params_file(launch_module):
     assert launch_module.PACKAGE == 'dpv_sensor'
-    assert _setup_tools()[launch_module.EXECUTABLE] == 'dpv_sensor.entry:console_main'
+    assert _setup_tools()[launch_module.EXECUTABLE] == 'dpv_sensor.ros.entry:console_main'
     params = REPO / launch_module.PARAMS_FILE
     assert params.is_file()
     assert '/**' in yaml.safe_load(params.read_text())
-    from dpv_sensor.node import NODE_NAME
+    from dpv_sensor.ros.node import NODE_NAME
     source = LAUNCH.read_text()
     assert 'name=PACKAGE' in source and NODE_NAME == launch_module.PACKAGE
 

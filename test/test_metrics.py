@@ -6,7 +6,7 @@ import math
 import numpy as np
 import pytest
 
-from dpv_sensor import metrics as M
+from dpv_sensor.evaluation import metrics as M
 
 
 def _gt(h=6, w=10, seed=0):
@@ -274,7 +274,7 @@ def test_temporal_consistency_none_visible():
 
 def test_dpv_nll_uses_the_dpv_helper():
     import torch
-    from dpv_sensor import dpv
+    from dpv_sensor.core import dpv
     depths = dpv.depth_planes(0.5, 5.0, 8, dtype=torch.float64)
     idx = torch.tensor([[[2, 5], [0, 7]]])
     sharp = dpv.one_hot_log(idx, 8, floor=-30.0).double()
@@ -306,7 +306,7 @@ def test_confident_half_pooled_ranks_frames_against_each_other():
 
 
 def test_constant_baseline_is_the_median_gt_on_the_scored_pixels():
-    from dpv_sensor.metrics import MetricAccumulator
+    from dpv_sensor.evaluation.metrics import MetricAccumulator
     gt = np.array([[1.0, 2.0, 2.2, 4.0, 0.0]])
     pred = np.array([[1.0, 2.0, 2.0, np.nan, 3.0]])          # scored: the first three pixels (GT 1, 2, 2.2)
     acc = MetricAccumulator()

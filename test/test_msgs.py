@@ -1,4 +1,4 @@
-"""dpv_sensor.msgs: ROS messages <-> numpy, exact stamps and frame ids, and the specific errors for bad input."""
+"""dpv_sensor.ros.msgs: ROS messages <-> numpy, exact stamps and frame ids, and the specific errors for bad input."""
 import math
 
 import numpy as np
@@ -7,8 +7,8 @@ from builtin_interfaces.msg import Time
 from sensor_msgs.msg import Image
 from std_msgs.msg import Header
 
-from dpv_sensor import msgs as M
-from dpv_sensor.pose_buffer import make_pose
+from dpv_sensor.ros import msgs as M
+from dpv_sensor.stream.pose_buffer import make_pose
 
 RNG = np.random.default_rng(7)
 RGB = RNG.integers(0, 256, size=(5, 7, 3), dtype=np.uint8)

@@ -15,14 +15,14 @@ import pytest
 import torch
 import torch.nn as nn
 
-from dpv_sensor import dpv
-from dpv_sensor.nets import DPVNet, get_preset
-from dpv_sensor.nets.dnet import (CostVolume, FeatureExtractor, L1Cost, SPPBranch, feature_intrinsics, feature_size,
-                                  normalize_image)
-from dpv_sensor.nets.knet import ExpandedInputConv3d, KNet, image_to_volume_grid
-from dpv_sensor.nets.model import count_macs, count_parameters
-from dpv_sensor.nets.presets import preset_from_dict
-from dpv_sensor.nets.rnet import RNet, upsample_logp
+from dpv_sensor.core import dpv
+from dpv_sensor.core.nets import DPVNet, get_preset
+from dpv_sensor.core.nets.dnet import (CostVolume, FeatureExtractor, L1Cost, SPPBranch, feature_intrinsics,
+                                       feature_size, normalize_image)
+from dpv_sensor.core.nets.knet import ExpandedInputConv3d, KNet, image_to_volume_grid
+from dpv_sensor.core.nets.model import count_macs, count_parameters
+from dpv_sensor.core.nets.presets import preset_from_dict
+from dpv_sensor.core.nets.rnet import RNet, upsample_logp
 
 sys.path.insert(0, os.path.dirname(__file__))
 from synthetic_planes import intrinsics, render_plane_pair, rot_y, se3  # noqa: E402
@@ -249,7 +249,7 @@ def test_cost_volume_neutral_fill_and_view_average():
     T = torch.stack([se3(t=(0.8, 0.0, 0.0)), se3(t=(-0.3, 0.0, 0.0))], 1)
     depths = dpv.depth_planes(0.5, 4.0, 8, dtype=torch.float64)
     cost, nvalid = cv.cost(ref, srcs, K, T, depths)
-    from dpv_sensor.geometry import plane_sweep_warp
+    from dpv_sensor.core.geometry import plane_sweep_warp
     per_view = []
     for n in range(2):
         wp, v = plane_sweep_warp(srcs[:, n], K, K, T[:, n], depths)

@@ -17,9 +17,9 @@ import numpy as np
 import pytest
 
 from ros_helpers import start_node, stop_process, wait_for
-from dpv_sensor import msgs as M
+from dpv_sensor.ros import msgs as M
 from dpv_sensor.data import rosbag_io as R
-from dpv_sensor.pose_buffer import NS
+from dpv_sensor.stream.pose_buffer import NS
 from dpv_sensor.client.ros_io import BagPlayer, OutputCollector
 
 W, H = 160, 128
@@ -198,8 +198,8 @@ def test_fault_bag_replays_without_crash_and_every_fault_is_reported(fault_bag, 
 def test_mailbox_drops_keep_the_longest_stream_gap():
     """Newest-wins drops must not hide a stalled camera: the image that replaces a dropped one inherits its gap,
     so the frame the worker pushes carries the longest interval between received images (Frame.sensor_gap_s)."""
-    from dpv_sensor.node_support import Incoming as _Incoming, Mailbox
-    from dpv_sensor.node_support import max_gap as _max_gap, merge_incoming as _merge_incoming
+    from dpv_sensor.ros.node_support import Incoming as _Incoming, Mailbox
+    from dpv_sensor.ros.node_support import max_gap as _max_gap, merge_incoming as _merge_incoming
     box = Mailbox(merge=_merge_incoming)
     assert not box.put(_Incoming('a', 0.0, 0, gap_ns=None))      # first image: gap unknown
     assert box.take(0.0).msg == 'a'

@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 
 from ros_helpers import start_node, stop_process, wait_for
-from dpv_sensor import msgs as M
-from dpv_sensor.pose_buffer import NS
+from dpv_sensor.ros import msgs as M
+from dpv_sensor.stream.pose_buffer import NS
 
 W, H = 160, 128
 BASE_NS = 1_760_000_000 * NS

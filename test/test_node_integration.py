@@ -19,10 +19,10 @@ import pytest
 import rclpy
 
 from ros_helpers import start_node, stop_process, wait_for, write_rendered_bag
-from dpv_sensor import msgs as M
+from dpv_sensor.ros import msgs as M
 from dpv_sensor import params as P
 from dpv_sensor.data import rosbag_io as R
-from dpv_sensor.pose_buffer import NS
+from dpv_sensor.stream.pose_buffer import NS
 from dpv_sensor.client.ros_io import BagPlayer, BagRecorder, OutputCollector
 
 W, H = 160, 128
@@ -59,8 +59,8 @@ def scene(tmp_path_factory):
 def run_estimator(seq, stamps_ns, frames, **overrides):
     """The Estimator in-process on `frames` (indices) with ground-truth poses: {stamp_ns: DepthOutput}."""
     import torch
-    from dpv_sensor.estimator import Estimator, EstimatorConfig
-    from dpv_sensor.frame import Frame
+    from dpv_sensor.stream.estimator import Estimator, EstimatorConfig
+    from dpv_sensor.stream.frame import Frame
     values = P.defaults()
     values.update({k: v for k, v in COMMON.items() if k in values})
     values.update(overrides)

@@ -24,9 +24,9 @@ import pytest
 
 from ros_helpers import assert_clean_exits, start_node, stop_all, stop_process, wait_for, write_rendered_bag
 from test_node_integration import COMMON, T_BASE_CAMERA, ros_args
-from dpv_sensor import msgs as M
+from dpv_sensor.ros import msgs as M
 from dpv_sensor.data import rosbag_io as R
-from dpv_sensor.rectify import RectifierCache
+from dpv_sensor.core.rectify import RectifierCache
 from dpv_sensor.client.ros_io import BagPlayer
 
 W, H = 160, 128
@@ -121,7 +121,7 @@ def _wait_rate_warning(node, b, seq, summary, spin, timeout=60.0):
     from nav_msgs.msg import Odometry
     from rclpy.qos import QoSProfile, ReliabilityPolicy
     from sensor_msgs.msg import Image
-    from dpv_sensor.pose_buffer import pose7_to_matrix
+    from dpv_sensor.stream.pose_buffer import pose7_to_matrix
 
     def warned():
         return [(lvl, m) for lvl, m in list(b.diag_history) if 'depth/image at' in m]

@@ -16,10 +16,10 @@ import pytest
 
 from ros_helpers import assert_clean_exits, start_node, stop_all, wait_for
 from test_node_integration import COMMON, FRAMES, H, START_NS, T_BASE_CAMERA, W, ros_args
-from dpv_sensor import msgs as M
+from dpv_sensor.ros import msgs as M
 from dpv_sensor.data import rosbag_io as R
-from dpv_sensor.photometric import pose_error
-from dpv_sensor.pose_buffer import make_pose
+from dpv_sensor.core.photometric import pose_error
+from dpv_sensor.stream.pose_buffer import make_pose
 from dpv_sensor.client.ros_io import BagPlayer, OutputCollector
 
 

@@ -4,7 +4,7 @@ import signal
 import pytest
 
 from ros_helpers import start_node, stop_process, wait_for
-from dpv_sensor.node import NODE_NAME
+from dpv_sensor.ros.node import NODE_NAME
 
 
 

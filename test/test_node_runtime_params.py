@@ -69,8 +69,8 @@ def test_the_yaml_states_which_parameters_can_change_at_run_time():
 
 
 def test_the_pipeline_takes_runtime_settings_on_its_running_estimator():
-    from dpv_sensor.estimator import EstimatorConfig
-    from dpv_sensor.pipeline import Pipeline
+    from dpv_sensor.stream.estimator import EstimatorConfig
+    from dpv_sensor.stream.pipeline import Pipeline
     pipe = Pipeline(EstimatorConfig.from_params({'measurement': 'classical', 'filter_mode': 'global'}))
     pipe.apply_settings({'damping': 0.3, 'min_confidence': 0.4, 'edge_filter_radius': 0})
     cfg = pipe.estimator.config

@@ -1,6 +1,6 @@
 """Start-up of the node process: a start that cannot succeed always exits 2 with its one message, and SIGINT or
 SIGTERM at any moment of the start-up (or later) gives exit 0 without a traceback, for both entry points
-(`python -m dpv_sensor.node` and the console script `ros2 run dpv_sensor node` runs)."""
+(`python -m dpv_sensor.ros.node` and the console script `ros2 run dpv_sensor node` runs)."""
 import concurrent.futures
 import os
 import re
@@ -13,9 +13,9 @@ import pytest
 
 from ros_helpers import REPO, wait_exit
 
-MODULE = [sys.executable, '-m', 'dpv_sensor.node']
+MODULE = [sys.executable, '-m', 'dpv_sensor.ros.node']
 # what the console script setuptools writes for `ros2 run dpv_sensor node` does
-CONSOLE = [sys.executable, '-c', 'import sys; from dpv_sensor.entry import console_main; sys.exit(console_main())']
+CONSOLE = [sys.executable, '-c', 'import sys; from dpv_sensor.ros.entry import console_main; sys.exit(console_main())']
 MISSING_WEIGHTS = ['--ros-args', '-p', 'measurement:=network', '-p', 'weights:=/nonexistent/x.safetensors']
 
 

@@ -7,7 +7,7 @@ import re
 
 from ros_helpers import wait_for
 from stream_driver import FAST_PARAMS, StreamDriver, params_args
-from dpv_sensor.pose_buffer import NS
+from dpv_sensor.stream.pose_buffer import NS
 
 P30 = NS // 30
 REMAPS = {'image': '/cam/image', 'camera_info': '/cam/camera_info', 'odom': '/odom'}
@@ -60,7 +60,7 @@ def test_bad_images_in_a_burst_are_counted_on_receipt_and_a_slow_stream_after_it
             t += P30
             msg = None
             if i % bad_every == 5:
-                from dpv_sensor import msgs as M
+                from dpv_sensor.ros import msgs as M
                 msg = M.rgb_to_image(drv.seq.image(i % len(drv.seq)), t, 'cam')
                 msg.data = msg.data[:len(msg.data) // 2]          # truncated
                 bad += 1

@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 import torch
 
-from dpv_sensor import dpv as dpv_ops
-from dpv_sensor.estimator import Estimator
-from dpv_sensor.filter import DPVFilter
-from dpv_sensor.parallax import disparity_span, parallax_support, pose_parallax_score, select_sources
+from dpv_sensor.core import dpv as dpv_ops
+from dpv_sensor.stream.estimator import Estimator
+from dpv_sensor.core.filter import DPVFilter
+from dpv_sensor.core.parallax import disparity_span, parallax_support, pose_parallax_score, select_sources
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
 from test_estimator import frame_at, pose, small_config, sideways  # noqa: E402
@@ -198,7 +198,7 @@ def test_degenerate_frames_on_a_fresh_estimator_publish_nothing():
 
 def test_degenerate_frames_at_the_defaults_leave_the_network_belief_unchanged():
     """Default configuration (packaged network, K-Net filter): a degenerate frame is no keyframe and no output."""
-    from dpv_sensor.estimator import EstimatorConfig
+    from dpv_sensor.stream.estimator import EstimatorConfig
     est = Estimator(EstimatorConfig(processing_width=64, processing_height=48))
     frames = [frame_at(i, pose(x=0.06 * i)) for i in range(4)]
     for f in frames[:3]:
@@ -214,13 +214,13 @@ def test_degenerate_frames_at_the_defaults_leave_the_network_belief_unchanged():
 
 
 def _kf(i, x=0.0, yaw=0.0):
-    from dpv_sensor.keyframes import Keyframe
+    from dpv_sensor.stream.keyframes import Keyframe
     return Keyframe(index=i, frame_index=i, stamp=float(i), T_world_cam_44=pose(x=x, yaw_deg=yaw), image_b3hw=None,
                     K_b33=None, input_size=(80, 60), input_K_33=np.eye(3))
 
 
 def test_window_pool_chooses_sources_by_score_and_keeps_the_reference():
-    from dpv_sensor.keyframes import KeyframeWindow
+    from dpv_sensor.stream.keyframes import KeyframeWindow
     # keyframe i sits at x = xs[i]; the score is the baseline to the reference in cm
     xs = [0.0, 0.10, 0.11, 0.12, 0.13, 0.135, 0.14, 0.145]
     score = lambda ref, kf: 100 * abs(ref.T_world_cam_44[0, 3] - kf.T_world_cam_44[0, 3])  # noqa: E731
@@ -252,7 +252,7 @@ def test_estimator_with_a_pool_still_outputs_in_both_modes():
 
 
 def test_rotation_noise_is_a_fraction_of_the_rotational_image_motion():
-    from dpv_sensor.parallax import rotation_noise_px
+    from dpv_sensor.core.parallax import rotation_noise_px
     T = torch.stack([T_src_ref(yaw_deg=10.0), T_src_ref(tx=0.1)])[None]
     noise = rotation_noise_px(T, 100.0, 0.02)
     # 2 % of 100 px * 10 deg (0.1745 rad) = 0.349 px; a pure translation adds nothing

@@ -4,8 +4,8 @@ import math
 import numpy as np
 import pytest
 
-from dpv_sensor import pose_buffer as pb
-from dpv_sensor.pose_buffer import PoseBuffer
+from dpv_sensor.stream import pose_buffer as pb
+from dpv_sensor.stream.pose_buffer import PoseBuffer
 
 S = pb.NS  # one second in ns
 
@@ -242,7 +242,7 @@ def test_a_repeated_stamp_after_time_went_backwards_is_a_new_stream():
 def test_one_teleport_rule_for_odometry_and_offline_steps():
     """continuity.teleport, the rule the pose buffer applies between odometry messages and the estimator between
     pushed frames: a step no camera can make in the time, never fast but smooth motion."""
-    from dpv_sensor.continuity import teleport
+    from dpv_sensor.stream.continuity import teleport
     assert 'odom_max_speed 10 m/s' in teleport(1 / 30, 0.5, 0.0, 10.0, 720.0)     # 15 m/s
     assert teleport(1 / 30, 0.3, 0.0, 10.0, 720.0) is None                         # 9 m/s
     assert teleport(1.5, 2.25, 0.0, 10.0, 720.0) is None                           # a 1.5 m/s walk, 1.5 s apart
@@ -259,7 +259,7 @@ def test_one_teleport_rule_for_odometry_and_offline_steps():
 
 
 def test_covariance_track_interpolates_and_reports_unfilled():
-    from dpv_sensor.pose_buffer import CovarianceTrack
+    from dpv_sensor.stream.pose_buffer import CovarianceTrack
     tr = CovarianceTrack()
     assert tr.at(5) is None
     tr.add(0, np.eye(6) * 1.0)

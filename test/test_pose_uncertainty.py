@@ -5,9 +5,9 @@ import numpy as np
 import pytest
 import torch
 
-from dpv_sensor import dpv as dpv_ops
-from dpv_sensor import parallax
-from dpv_sensor import pose_uncertainty as PU
+from dpv_sensor.core import dpv as dpv_ops
+from dpv_sensor.core import parallax
+from dpv_sensor.core import pose_uncertainty as PU
 
 
 def _K(f=100.0, cx=15.5, cy=11.5):

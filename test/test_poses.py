@@ -15,11 +15,11 @@ import torch
 
 from synthetic_planes import Rect, intrinsics, render_scene, rot_x, rot_y, se3
 
-from dpv_sensor.geometry import backproject, se3_exp, warp_image_with_depth
-from dpv_sensor.photometric import (AlignmentConfig, align_photometric, inverse_depth_std_from_confidence,
+from dpv_sensor.core.geometry import backproject, se3_exp, warp_image_with_depth
+from dpv_sensor.core.photometric import (AlignmentConfig, align_photometric, inverse_depth_std_from_confidence,
                                    pose_error, resample_map, twist_to_gtsam_order)
 from dpv_sensor.data.trajectory import corrupt_trajectory
-from dpv_sensor.poses import (PoseRefinerConfig, VisualOdometry, VisualOdometryConfig, WindowKeyframe,
+from dpv_sensor.stream.poses import (PoseRefinerConfig, VisualOdometry, VisualOdometryConfig, WindowKeyframe,
                               WindowPoseRefiner, relative_pose_errors)
 
 
@@ -209,7 +209,7 @@ def test_too_few_valid_pixels(pair):
 def test_sparse_sampling_matches_warp_image_with_depth(pair):
     """The alignment samples the source only at its selected pixels; that must be exactly the geometry module's
     dense warp at those pixels (values and validity)."""
-    from dpv_sensor.photometric import _sample_source
+    from dpv_sensor.core.photometric import _sample_source
     I_ref, I_src, d_ref, T_gt = pair
     depth = d_ref.clone()
     depth[10:20, 30:40] = 0.0                                            # some pixels without depth

@@ -5,12 +5,12 @@ import sys
 
 import pytest
 
-from dpv_sensor.process_memory import limit_malloc_arenas
+from dpv_sensor.ros.process_memory import limit_malloc_arenas
 
 _COUNT_ARENAS = r"""
 import ctypes, sys, threading
 sys.path.insert(0, {repo!r})
-from dpv_sensor.process_memory import limit_malloc_arenas
+from dpv_sensor.ros.process_memory import limit_malloc_arenas
 if {limit}:
     print(limit_malloc_arenas(2), file=sys.stderr)
 libc = ctypes.CDLL('libc.so.6')

@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
-from dpv_sensor.rectify import Calibration, Rectifier, RectifierCache, UnsupportedDistortion
+from dpv_sensor.core.rectify import Calibration, Rectifier, RectifierCache, UnsupportedDistortion
 
 W, H = 320, 240
 K = np.array([[250.0, 0.0, 161.0], [0.0, 252.0, 118.5], [0.0, 0.0, 1.0]])

@@ -5,9 +5,9 @@ import cv2
 import numpy as np
 import pytest
 
-from dpv_sensor import msgs as M
+from dpv_sensor.ros import msgs as M
 from dpv_sensor.data import rosbag_io as R
-from dpv_sensor.pose_buffer import NS, PoseBuffer, make_pose, pose7_to_matrix
+from dpv_sensor.stream.pose_buffer import NS, PoseBuffer, make_pose, pose7_to_matrix
 
 W, H, N = 32, 24, 6
 K = np.array([[30.0, 0.0, 15.5], [0.0, 30.0, 11.5], [0.0, 0.0, 1.0]])

@@ -32,7 +32,7 @@ def test_rss_halves_after_the_warmup():
 def test_resets_are_split_by_cause_and_loop_boundary():
     from dpv_sensor.tools.soak import classify_resets
     loop_starts_ns = [1_000_000_100 * 10**9, 1_000_000_110 * 10**9]
-    prefix = '[INFO] [{}] [dpv_sensor]: [dpv_sensor.estimator] estimator reset: '
+    prefix = '[INFO] [{}] [dpv_sensor]: [dpv_sensor.stream.estimator] estimator reset: '
     log = '\n'.join([
         prefix.format('1000000050.250000000') + 'odometry jumped',             # before the first loop start
         prefix.format('1000000101.500000000') + 'time gap 0.533 s in the camera stream > reset_time_gap 0.5 s',

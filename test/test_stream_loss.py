@@ -1,7 +1,7 @@
 """StreamLoss: images missing from the stamps and reported lost by the middleware, each counted once."""
 import pytest
 
-from dpv_sensor.stream_loss import Gap, StreamLoss
+from dpv_sensor.ros.stream_loss import Gap, StreamLoss
 
 MS = 1_000_000
 P = 33 * MS          # a 33 ms camera
@@ -170,7 +170,7 @@ NS = 1_000_000_000
 
 
 def test_images_lost_before_the_period_is_known_are_counted_once_it_is():
-    from dpv_sensor.stream_loss import StreamLoss
+    from dpv_sensor.ros.stream_loss import StreamLoss
     sl = StreamLoss(min_intervals=8)
     period = 33_333_333
     # images 1-3 lost right at the start, then a clean stream: 3 lost, counted once the period is known

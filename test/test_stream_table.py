@@ -119,7 +119,7 @@ def test_second_call_runs_nothing(table_run):
 
 def test_odometry_noise_is_two_percent_of_each_step_and_a_tenth_of_a_degree():
     from dpv_sensor.data.synthetic import render_sequence
-    from dpv_sensor.evaluation import relative_pose_error
+    from dpv_sensor.evaluation.offline import relative_pose_error
     seq = render_sequence(50, 6, width=32, height=24, lazy=True)
     gt = ST.odometry_poses(seq, 'gt')
     noisy = ST.odometry_poses(seq, 'noisy1')
@@ -156,7 +156,7 @@ def _rot(T):
 
 def test_consumer_odometry_on_gt_depth_is_ratio_one_and_a_constant_depth_is_worse():
     from dpv_sensor.data.synthetic import render_sequence
-    from dpv_sensor import evaluation as E
+    from dpv_sensor.evaluation import offline as E
     seq = render_sequence(51, 9, width=160, height=120, lazy=True)
     recs = []
     for i in range(0, 9, 2):

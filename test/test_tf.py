@@ -1,4 +1,4 @@
-"""TF output (dpv_sensor.tf_publisher): message building, and the node process over real DDS.
+"""TF output (dpv_sensor.ros.tf_publisher): message building, and the node process over real DDS.
 
 - TransformStamped from a 4x4 matrix (hand-computable rotation), the static frame pair rules;
 - with publish_tf the node puts base_link -> image frame (T_base_camera) on /tf_static, latched (a subscriber that
@@ -11,8 +11,8 @@ import pytest
 
 from ros_helpers import start_node, stop_process, wait_for
 from test_node_integration import COMMON, ros_args
-from dpv_sensor import tf_publisher as TF
-from dpv_sensor.pose_buffer import make_pose
+from dpv_sensor.ros import tf_publisher as TF
+from dpv_sensor.stream.pose_buffer import make_pose
 
 # tf2_msgs/msg/TFMessage of ROS 2 Jazzy (as `ros2 topic info -v /tf` reports it): the generated package must match
 TFMESSAGE_HASH = 'RIHS01_e369d0f05a23ae52508854b66f6aa0437f3449d652e8cbf22d5abe85d020f087'
@@ -59,7 +59,7 @@ def _feed_one_image_and_odometry(node, executor, proc):
     from nav_msgs.msg import Odometry
     from rclpy.qos import QoSProfile, ReliabilityPolicy
     from sensor_msgs.msg import Image
-    from dpv_sensor import msgs as M
+    from dpv_sensor.ros import msgs as M
     spin = lambda t: executor.spin_once(timeout_sec=t)  # noqa: E731
     qos = QoSProfile(depth=5, reliability=ReliabilityPolicy.RELIABLE)
     pub_img = node.create_publisher(Image, '/image', qos)

@@ -8,7 +8,7 @@ import pytest
 
 from ros_helpers import start_node, stop_process, wait_for
 from stream_driver import FAST_PARAMS, StreamDriver
-from dpv_sensor.topic_names import camera_info_of, topic_name
+from dpv_sensor.ros.topic_names import camera_info_of, topic_name
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
 
@@ -43,9 +43,9 @@ def test_followers_follow_their_remapped_image(remaps, name, expected):
 
 def _readme_node_line() -> list[str]:
     for line in (REPO / 'README.md').read_text().splitlines():
-        if line.startswith('python -m dpv_sensor.node') and ' -r image:=' in line:
+        if line.startswith('python -m dpv_sensor.ros.node') and ' -r image:=' in line:
             return shlex.split(line.split('#')[0])[3:]
-    raise AssertionError('the README has no `python -m dpv_sensor.node ... -r image:=` line')
+    raise AssertionError('the README has no `python -m dpv_sensor.ros.node ... -r image:=` line')
 
 
 def test_readme_one_liner_subscribes_the_sibling_camera_info_and_produces_depth():

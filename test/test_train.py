@@ -77,7 +77,7 @@ def test_run_played_backwards_keeps_time_moving_forward():
     """Folder runs are sometimes played backwards (another plausible trajectory). Their stamps must still
     increase, or the filter resets on "time went backwards" at every step and K-Net learns nothing there."""
     from dpv_sensor.data.synthetic import render_sequence
-    from dpv_sensor.nets.model import DPVNet
+    from dpv_sensor.core.nets.model import DPVNet
     from dpv_sensor.training.dataset import sample_from_sequence
     layout = WindowLayout(steps=3, window=5, ref_position='last')
     seq = render_sequence(TRAIN_SEED_BASE + 3, 30, width=64, height=48, lazy=True)
@@ -102,7 +102,7 @@ def test_stream_start_runs_use_growing_source_counts():
 
 
 def test_pose_noise_corrupts_relative_motion_but_not_images_or_depth():
-    from dpv_sensor.poses import relative_pose_errors
+    from dpv_sensor.stream.poses import relative_pose_errors
     clean = SceneStream(_small_stream(steps=2)).make_sample(3)
     noisy = SceneStream(_small_stream(steps=2, pose_noise_prob=1.0, pose_noise_rot_deg=1.0,
                                       pose_noise_trans_rel=0.1)).make_sample(3)
@@ -120,7 +120,7 @@ def test_pose_noise_corrupts_relative_motion_but_not_images_or_depth():
 
 
 def test_unrolled_loss_falls_and_reaches_every_net():
-    from dpv_sensor.nets.model import DPVNet
+    from dpv_sensor.core.nets.model import DPVNet
     torch.manual_seed(0)
     torch.set_num_threads(max(1, min(2, torch.get_num_threads())))
     model = DPVNet('lite')
@@ -172,7 +172,7 @@ def _tiny_config(tmp_path, steps):
 
 
 def test_trainer_checkpoint_resume_and_export(tmp_path):
-    from dpv_sensor.nets.checkpoint import load_checkpoint
+    from dpv_sensor.core.nets.checkpoint import load_checkpoint
     from safetensors.torch import load_file
     out = loop.train(_tiny_config(tmp_path, steps=3), quiet=True)
     assert out['step'] == 3
@@ -272,7 +272,7 @@ def test_streaming_validation_scores_whole_sequences_through_the_estimator(tmp_p
     """--val-stream-seeds: every validation also streams rendered held-out sequences frame by frame through the
     Estimator (GT and noisy poses), reports stream_[noisy_]net_knet, selects on it, plots it and leaves the model
     in training mode."""
-    from dpv_sensor.evaluation import EvalOptions, evaluate_sequence
+    from dpv_sensor.evaluation.offline import EvalOptions, evaluate_sequence
     from dpv_sensor.data.synthetic import render_sequence
     from dpv_sensor.tools import train as tool
     a = tool.build_parser().parse_args(['--val-stream-seeds', '20-21', '--val-stream-frames', '30',
@@ -331,7 +331,7 @@ def test_amp_resolution_per_device():
 def test_cpu_bf16_training_step_matches_float32():
     """One unrolled step under CPU bfloat16 autocast (``--amp bf16``): the loss stays float32 and agrees with
     float32 to 1 %, and the gradient points the same way."""
-    from dpv_sensor.nets.model import DPVNet
+    from dpv_sensor.core.nets.model import DPVNet
     torch.manual_seed(0)
     model = DPVNet('lite')
     depths = model.depth_planes()
@@ -436,8 +436,8 @@ def test_selection_benchmark_scores_weight_files_like_the_streaming_validation(t
     """benchmarks.selection: the figures equal the trainer's streaming validation of the same weights, are
     written as JSON and printed as a table; seeds outside the held-out range are refused."""
     from dpv_sensor.benchmarks import selection
-    from dpv_sensor.nets.checkpoint import save_checkpoint
-    from dpv_sensor.nets.model import DPVNet
+    from dpv_sensor.core.nets.checkpoint import save_checkpoint
+    from dpv_sensor.core.nets.model import DPVNet
     from dpv_sensor.training.stream_validation import StreamValidationSpec, StreamValidator
     torch.manual_seed(3)
     model = DPVNet('lite').eval()
@@ -521,7 +521,7 @@ def test_distributed_training_under_torchrun_on_cpu(tmp_path):
     only rank 0 validates and writes files, and the export says so."""
     import subprocess
     import sys
-    from dpv_sensor.nets.checkpoint import load_checkpoint
+    from dpv_sensor.core.nets.checkpoint import load_checkpoint
     cmd = [sys.executable, '-m', 'torch.distributed.run', '--standalone', '--nproc_per_node', '2',
            '-m', 'dpv_sensor.tools.train', '--preset', 'lite', '--run-dir', str(tmp_path / 'run'),
            '--export', str(tmp_path / 'w.safetensors'), '--width', '64', '--height', '48', '--batch-size', '1',

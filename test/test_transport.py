@@ -1,7 +1,7 @@
 """Transport: a camera driver with no transport settings of its own (Fast DDS defaults) sends 640x480 rgb8 at 30 Hz
 with camera_info and 100 Hz odometry for 10 s, once best effort and once reliable, into the node process at its
 default parameters. Every image sent is received by the node or counted as lost in /diagnostics (lost.transport);
-the node applies its own transport (dpv_sensor.transport) and follows the publisher's reliability
+the node applies its own transport (dpv_sensor.ros.transport) and follows the publisher's reliability
 (input_reliability auto). The node may be slower than 30 Hz: what it skips while busy is counted in dropped.*."""
 import json
 import os
@@ -91,7 +91,7 @@ def test_every_image_is_received_or_counted_as_lost(observer, reliability, trans
 
 
 def test_transport_settings_apply_unless_the_user_chose():
-    from dpv_sensor.transport import configure
+    from dpv_sensor.ros.transport import configure
     env = {}
     note = configure(env)
     assert env['FASTRTPS_DEFAULT_PROFILES_FILE'].endswith('config/fastdds.xml') and 'UDPv4' in note
@@ -110,7 +110,7 @@ def test_transport_settings_apply_unless_the_user_chose():
 
 
 def test_auto_reliability_follows_the_publishers():
-    from dpv_sensor.transport import choose_reliability
+    from dpv_sensor.ros.transport import choose_reliability
     assert choose_reliability('auto', []) == 'best_effort'
     assert choose_reliability('auto', ['reliable']) == 'reliable'
     assert choose_reliability('auto', ['reliable', 'best_effort']) == 'best_effort'

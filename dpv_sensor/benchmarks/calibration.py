@@ -7,14 +7,14 @@ whether the confidence ranks the errors.
 
 What is scored (per dataset x source x filter mode):
 
-* **NLL of the GT depth** (:func:`dpv_sensor.dpv.nll`, nats, mean over frames) of the quarter-resolution
+* **NLL of the GT depth** (:func:`dpv_sensor.core.dpv.nll`, nats, mean over frames) of the quarter-resolution
   *measurement* (before the filter), of the quarter-resolution *filtered* belief (after the filter) and,
   for the network, of R-Net's full-resolution output. All on the network's planes (D, d_min, d_max of
   the checkpoint), so network and classical NLLs are comparable.
 * abs_rel, delta1 (metric, frame means), the **confident-half ratio** (abs_rel of the most confident half
   of the pixels / abs_rel of all, frame mean; target <= 0.6; and pooled over all frames, where it also ranks
   whole frames against each other), AUSE and AURG of the sparsification curves
-  (:mod:`dpv_sensor.metrics`), and whether the mean sparsification curve lies below the random one
+  (:mod:`dpv_sensor.evaluation.metrics`), and whether the mean sparsification curve lies below the random one
   (at every removed fraction > 0).
 
 Everything is computed by :func:`dpv_sensor.training.loop.evaluate_batches` (the training loop's
@@ -25,12 +25,13 @@ knet, R-Net), on windows laid out like the training validation (``TrainConfig``:
 * **synthetic**: held-out seeds (0..99, never trained on) rendered by
   :func:`~dpv_sensor.training.loop.render_validation_batches`, keyframes ``val_gap`` frames apart;
 * **SUN3D** (``sun3d_3dmatch_frag1`` and ``frag2`` of the shared development data folder, when present;
-  never trained on): keyframes chosen by the estimator's own :class:`dpv_sensor.keyframes.KeyframeSelector` (its default
-  5 cm / 5 deg / every 5th frame thresholds), ``--sun3d-windows`` runs of consecutive keyframes spread
-  along each sequence, frames resized (stretched, like the estimator) to the evaluation size.
+  never trained on): keyframes chosen by the estimator's own
+  :class:`dpv_sensor.stream.keyframes.KeyframeSelector` (its default 5 cm / 5 deg / every 5th
+  frame thresholds), ``--sun3d-windows`` runs of consecutive keyframes spread along each sequence, frames
+  resized (stretched, like the estimator) to the evaluation size.
 
 Sources: the learned model (``--weights``), and the classical plane-sweep ZNCC model
-(:class:`dpv_sensor.classical.ClassicalMeasurement`) with its softmax **temperature tuned on training
+(:class:`dpv_sensor.core.classical.ClassicalMeasurement`) with its softmax **temperature tuned on training
 data only**: the temperature in ``--temperatures`` that minimises the mean measurement NLL on synthetic
 scenes with *training* seeds (``--tune-seeds``, >= ``TRAIN_SEED_BASE``; held-out seeds are refused and
 SUN3D is never used). The classical model at its default temperature (0.07) is reported as well
@@ -55,11 +56,11 @@ from typing import Dict, List, Optional, Sequence as Seq, Tuple
 import numpy as np
 import torch
 
-from .. import dpv as dpvops
-from ..classical import ClassicalMeasurement
-from ..training.dataset import (TRAIN_SEED_BASE, VAL_SEEDS, WindowLayout, check_heldout_seeds,
+from dpv_sensor.core import dpv as dpvops
+from dpv_sensor.core.classical import ClassicalMeasurement
+from dpv_sensor.training.dataset import (TRAIN_SEED_BASE, VAL_SEEDS, WindowLayout, check_heldout_seeds,
                                 sample_from_sequence)
-from ..training.loop import TrainConfig, _json_safe, evaluate_batches, render_validation_batches
+from dpv_sensor.training.loop import TrainConfig, _json_safe, evaluate_batches, render_validation_batches
 
 __all__ = ['run', 'main', 'sun3d_batches', 'tune_temperature', 'format_table', 'DEFAULT_TEMPERATURES',
            'SUN3D_SEQUENCES', 'CONFIDENT_HALF_TARGET']
@@ -86,8 +87,8 @@ def _layout(num_keyframes: int) -> WindowLayout:
 
 def estimator_keyframes(seq) -> List[int]:
     """Frame indices the streaming estimator would take as keyframes (its default thresholds, GT poses)."""
-    from ..estimator import EstimatorConfig
-    from ..keyframes import KeyframeSelector
+    from dpv_sensor.stream.estimator import EstimatorConfig
+    from dpv_sensor.stream.keyframes import KeyframeSelector
     cfg = EstimatorConfig()
     sel = KeyframeSelector(cfg.keyframe_translation, cfg.keyframe_rotation_deg, cfg.keyframe_max_interval)
     return [i for i in range(len(seq)) if sel.decide(np.asarray(seq.pose(i))).is_keyframe]
@@ -98,7 +99,7 @@ def sun3d_batches(folders: Seq[str], windows_per_seq: int, num_keyframes: int, w
     """Batches (B = 1) of ``num_keyframes`` consecutive estimator keyframes, ``windows_per_seq`` runs
     spread evenly along each sequence (they overlap when the sequence is short), frames resized to
     width x height. Returns (batches, [{'sequence', 'frames'}] describing each)."""
-    from ..data.sequence import Sequence
+    from dpv_sensor.data.sequence import Sequence
     lay = _layout(num_keyframes)
     batches, info = [], []
     for folder in folders:
@@ -228,7 +229,7 @@ def run(model, *, synthetic_seeds: Seq[int] = tuple(range(6)), sun3d_windows: in
     """Run the whole benchmark (see the module docstring); returns a JSON-ready dict with ``rows``,
     ``temperature`` (tuned, default, grid, tuning NLL per temperature), ``datasets`` and ``plots``.
 
-    ``model``: a :class:`dpv_sensor.nets.model.DPVNet` (its preset gives the planes). ``num_keyframes``
+    ``model``: a :class:`dpv_sensor.core.nets.model.DPVNet` (its preset gives the planes). ``num_keyframes``
     and ``gap`` default to the training validation's (``TrainConfig.val_keyframes`` / ``val_gap``).
     ``readout``: how depth and confidence are read from the DPVs (the node's ``depth_readout``);
     ``confidence``: which confidence is ranked (the node's ``confidence``, ratio band 1.25).
@@ -293,7 +294,7 @@ def run(model, *, synthetic_seeds: Seq[int] = tuple(range(6)), sun3d_windows: in
                     sel[f"{b['source'].split(' (')[0]} {b['mode']}"] = curves[f"{b['source']} {b['mode']}"]
             curves_out[name] = {k: {kk: np.asarray(vv).tolist() for kk, vv in c.items()} for k, c in sel.items()}
             if out and sel:
-                from ..plots import sparsification_plot
+                from dpv_sensor.evaluation.plots import sparsification_plot
                 path = pathlib.Path(out) / f'sparsification_{name}.png'
                 sparsification_plot(sel, path, title=f'{name}: sparsification ({len(d["batches"])} windows, '
                                                      f'{width}x{height})')
@@ -361,7 +362,7 @@ def format_table(result: Dict) -> str:
 
 
 def main(argv: Optional[List[str]] = None) -> Dict:
-    from ..training.dataset import parse_seeds
+    from dpv_sensor.training.dataset import parse_seeds
     ap = argparse.ArgumentParser(prog='python -m dpv_sensor.benchmarks.calibration',
                                  description=__doc__.split('\n\n')[0],
                                  formatter_class=argparse.ArgumentDefaultsHelpFormatter)
@@ -388,8 +389,8 @@ def main(argv: Optional[List[str]] = None) -> Dict:
     ap.add_argument('--no-progress', action='store_true')
     a = ap.parse_args(argv)
     torch.set_num_threads(a.threads)
-    from ..nets.checkpoint import default_weights_path
-    from .heldout import load_model
+    from dpv_sensor.core.nets.checkpoint import default_weights_path
+    from dpv_sensor.benchmarks.heldout import load_model
     weights = a.weights or str(default_weights_path('lite'))
     model, meta = load_model(weights)
     res = run(model, synthetic_seeds=parse_seeds(a.synthetic_seeds), sun3d_windows=a.sun3d_windows,

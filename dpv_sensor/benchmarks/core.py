@@ -28,10 +28,10 @@ from typing import Dict, Iterable, Sequence, Tuple
 
 import torch
 
-from ..classical import ClassicalMeasurement
-from ..dpv import depth_planes
-from ..filter import DPVFilter
-from ..geometry import make_se3, plane_sweep_warp, scale_intrinsics, so3_exp, warp_volume
+from dpv_sensor.core.classical import ClassicalMeasurement
+from dpv_sensor.core.dpv import depth_planes
+from dpv_sensor.core.filter import DPVFilter
+from dpv_sensor.core.geometry import make_se3, plane_sweep_warp, scale_intrinsics, so3_exp, warp_volume
 
 
 def _sync(device: torch.device) -> None:

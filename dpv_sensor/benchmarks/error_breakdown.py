@@ -35,7 +35,7 @@ from typing import Dict, List, Optional, Sequence, Tuple
 import numpy as np
 from scipy import ndimage
 
-from dpv_sensor import metrics as M
+from dpv_sensor.evaluation import metrics as M
 from dpv_sensor import params as P
 from dpv_sensor.cli import add_setting
 
@@ -47,8 +47,8 @@ GRID = 8
 def views_of_window(gt_depth_hw: np.ndarray, K_33: np.ndarray, T_world_cam_44: np.ndarray,
                     others_T_world_cam: Sequence[np.ndarray]) -> np.ndarray:
     """Per pixel, how many of the other cameras (same K and image size) have its GT 3-D point in their image
-    (in front of the camera, inside ``[0, W-1] x [0, H-1]``; :func:`dpv_sensor.metrics.reproject`). Pixels without
-    GT (0 / NaN) count 0. Occlusion is not checked."""
+    (in front of the camera, inside ``[0, W-1] x [0, H-1]``;
+    :func:`dpv_sensor.evaluation.metrics.reproject`). Pixels without GT (0 / NaN) count 0. Occlusion is not checked."""
     gt = np.asarray(gt_depth_hw, np.float64)
     valid = M.gt_valid_mask(gt)
     z = np.where(valid, gt, 0.0)
@@ -76,7 +76,7 @@ def depth_edge_mask(gt_depth_hw: np.ndarray, radius: int = 4, rel_jump: float = 
 
 def keyframe_frames(poses_in: Sequence[np.ndarray], config) -> List[int]:
     """Frame indices that become keyframes when these poses stream, unbroken, through the estimator's selector."""
-    from dpv_sensor.keyframes import KeyframeSelector
+    from dpv_sensor.stream.keyframes import KeyframeSelector
     sel = KeyframeSelector(config.keyframe_translation, config.keyframe_rotation_deg, config.keyframe_max_interval)
     return [i for i, T in enumerate(poses_in) if sel.decide(np.asarray(T, np.float64)).is_keyframe]
 
@@ -181,7 +181,7 @@ def markdown(summary: Dict) -> str:
 
 def plot(summary: Dict, path, title: Optional[str] = None) -> pathlib.Path:
     """Heat map of abs_rel over the image and one bar chart per group (abs_rel; labels carry the pixel share)."""
-    from dpv_sensor.plots import _plt, _save
+    from dpv_sensor.evaluation.plots import _plt, _save
     plt = _plt()
     groups = summary['groups']
     fig, axes = plt.subplots(1, 1 + len(groups), figsize=(3.6 * (1 + len(groups)), 3.4))
@@ -212,7 +212,7 @@ def breakdown_sequences(model, sequences: Sequence[Tuple[str, object, int]], *, 
                         device: str = 'cpu', progress=None) -> Dict:
     """Stream ``(name, sequence, seed)`` items through the estimator (node defaults plus mode / window_mode; GT
     poses, or odometry-like ones seeded by ``seed`` when ``pose_noise`` is set) and break down the error."""
-    from dpv_sensor.evaluation import EvalOptions, build_config, depth_limits, input_poses, run_sequence
+    from dpv_sensor.evaluation.offline import EvalOptions, build_config, depth_limits, input_poses, run_sequence
     noisy = pose_noise[0] > 0 or pose_noise[1] > 0
     config, _ = build_config({'filter_mode': mode, 'window_mode': window_mode, 'device': str(device)})
     acc: Optional[ErrorBreakdown] = None

@@ -31,8 +31,8 @@ __all__ = ['run', 'main']
 
 
 def _frames(width: int, height: int, count: int, seed: int = 3):
-    from ..data.synthetic import render_sequence
-    from ..frame import Frame
+    from dpv_sensor.data.synthetic import render_sequence
+    from dpv_sensor.stream.frame import Frame
     seq = render_sequence(seed=seed, num_frames=count, width=width, height=height, lazy=True)
     K = seq.K
     return [Frame(stamp=seq.stamp(i), image=seq.image(i), K_33=K, T_world_cam_44=seq.pose(i), frame_id='camera')
@@ -40,7 +40,7 @@ def _frames(width: int, height: int, count: int, seed: int = 3):
 
 
 def _estimator(model_name: str, width: int, height: int, device: str):
-    from ..estimator import Estimator, EstimatorConfig
+    from dpv_sensor.stream.estimator import Estimator, EstimatorConfig
     base = dict(processing_width=width, processing_height=height, device=device, keyframe_translation=0.0,
                 keyframe_rotation_deg=0.0, keyframe_max_interval=1, window_mode='causal')
     if model_name == 'classical':
@@ -55,7 +55,7 @@ def _estimator(model_name: str, width: int, height: int, device: str):
     if est.measurement == 'network':
         ck = est.status.get('checkpoint') or {}
         return est, f'{model_name}: weights {est.status["weights"]} (training steps: {ck.get("steps")})'
-    from ..nets.model import DPVNet
+    from dpv_sensor.core.nets.model import DPVNet
     torch.manual_seed(0)
     est = Estimator(cfg, model=DPVNet(model_name), logger=quiet)
     return est, f'{model_name}: RANDOM-INIT weights (no trained checkpoint loads); cost is the same'

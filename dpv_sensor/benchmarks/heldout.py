@@ -1,10 +1,10 @@
 """Held-out evaluation of the trained lite network vs the classical model vs a constant depth.
 
-Runs dpv_sensor.estimator.evaluate_offline (the product's streaming path: keyframe selection, causal
+Runs dpv_sensor.evaluation.offline.evaluate_offline (the product's streaming path: keyframe selection, causal
 5-keyframe windows, filter, 320x256 processing, output at the input size) with GT poses on the given
 sequences (or, with ``--pose-noise``, odometry-like poses), for filter modes none / global / knet, and
 scores keyframe outputs with
-dpv_sensor.metrics (metric, frame means). Constant depth = the median GT depth of the sequence (an
+dpv_sensor.evaluation.metrics (metric, frame means). Constant depth = the median GT depth of the sequence (an
 oracle constant, i.e. a strong constant baseline), scored on the same keyframes.
 
     .venv/bin/python -m dpv_sensor.benchmarks.heldout --weights dpv_sensor/weights/lite.safetensors \
@@ -22,9 +22,9 @@ import torch
 
 from dpv_sensor.data.sequence import Sequence
 from dpv_sensor.cli import add_setting
-from dpv_sensor.estimator import EstimatorConfig
-from dpv_sensor.pipeline import evaluate_offline
-from dpv_sensor.metrics import MetricAccumulator
+from dpv_sensor.stream.estimator import EstimatorConfig
+from dpv_sensor.evaluation.offline import evaluate_offline
+from dpv_sensor.evaluation.metrics import MetricAccumulator
 
 # the shared development data folder, a sibling of the checkout (development machines only)
 DATA = str(pathlib.Path(__file__).resolve().parents[2].parent / 'shared' / 'data')
@@ -32,9 +32,9 @@ DATA = str(pathlib.Path(__file__).resolve().parents[2].parent / 'shared' / 'data
 
 def load_model(path):
     from safetensors.torch import load_file
-    from dpv_sensor.nets.model import DPVNet
+    from dpv_sensor.core.nets.model import DPVNet
     try:
-        from dpv_sensor.nets.checkpoint import load_checkpoint
+        from dpv_sensor.core.nets.checkpoint import load_checkpoint
         model, meta = load_checkpoint(path)
         return model.eval(), meta
     except Exception as e:          # plain safetensors (run dir's best_model.safetensors)

@@ -41,8 +41,8 @@ from typing import Dict, Iterable, Optional, Sequence, Tuple
 
 import torch
 
-from ..nets.model import DPVNet, count_macs, count_parameters
-from dpv_sensor.process_memory import proc_status_kib
+from dpv_sensor.core.nets.model import DPVNet, count_macs, count_parameters
+from dpv_sensor.ros.process_memory import proc_status_kib
 
 __all__ = ['run', 'main', 'parse_size']
 

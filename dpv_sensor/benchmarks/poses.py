@@ -12,7 +12,7 @@ Parts:
   keyframe step in a random direction, ``--rot-noise`` (0.5 deg) about a random axis, optional
   ``--scale-bias``). Runs the
   estimator (``estimator.Estimator``, causal window of 5 keyframes) three times - GT poses, noisy poses, noisy
-  poses with the :class:`~dpv_sensor.poses.WindowPoseRefiner` hook - and reports the keyframe relative pose error
+  poses with the :class:`~dpv_sensor.stream.poses.WindowPoseRefiner` hook - and reports the keyframe relative pose error
   (RPE between consecutive output keyframes, of the poses the outputs were computed with) and depth abs_rel
   (metric and median-scaled), and the fraction of the noisy-to-GT abs_rel gap the refinement recovers. A
   ``refiner on GT depth`` row shows the RPE the window reaches when it aligns against the true depth (an upper
@@ -57,11 +57,11 @@ import numpy as np
 import torch
 
 from dpv_sensor.data.trajectory import corrupt_trajectory
-from dpv_sensor.estimator import Estimator, EstimatorConfig
-from dpv_sensor.frame import Frame
-from dpv_sensor.metrics import MetricAccumulator
-from dpv_sensor.photometric import pose_error
-from dpv_sensor.poses import (PoseRefinerConfig, VisualOdometry, VisualOdometryConfig, WindowKeyframe,
+from dpv_sensor.stream.estimator import Estimator, EstimatorConfig
+from dpv_sensor.stream.frame import Frame
+from dpv_sensor.evaluation.metrics import MetricAccumulator
+from dpv_sensor.core.photometric import pose_error
+from dpv_sensor.stream.poses import (PoseRefinerConfig, VisualOdometry, VisualOdometryConfig, WindowKeyframe,
                               WindowPoseRefiner)
 
 REPO = pathlib.Path(__file__).resolve().parents[2]
@@ -103,9 +103,9 @@ def make_model(measurement: str, weights: Optional[str] = None):
     if measurement == 'classical':
         return None
     if weights:
-        from dpv_sensor.nets.checkpoint import load_checkpoint
+        from dpv_sensor.core.nets.checkpoint import load_checkpoint
         return load_checkpoint(weights, preset=measurement)[0].eval()
-    from dpv_sensor.nets.model import DPVNet
+    from dpv_sensor.core.nets.model import DPVNet
     torch.manual_seed(0)
     return DPVNet(measurement).eval()
 
@@ -247,8 +247,8 @@ def refiner_gt_depth_rpe(seq, noisy, config: PoseRefinerConfig, window: int = 5)
 
 def gt_consistency(label: str, seq) -> Dict:
     """Align each keyframe's successor to it against the GT depth from the GT relative pose (see ``gtcheck``)."""
-    from dpv_sensor.geometry import warp_image_with_depth
-    from dpv_sensor.photometric import AlignmentConfig, align_photometric, to_gray
+    from dpv_sensor.core.geometry import warp_image_with_depth
+    from dpv_sensor.core.photometric import AlignmentConfig, align_photometric, to_gray
     K = np.asarray(seq.K, dtype=np.float64)
     K_t = torch.as_tensor(K, dtype=torch.float32)[None]
     cfg = AlignmentConfig(finest_level=0, num_levels=4, max_pixels=3000)

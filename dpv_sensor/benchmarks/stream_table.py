@@ -8,7 +8,7 @@ Each run is one (sequence, pose source, node parameters) replay exactly as ``mak
 odometry at 100 Hz), the node is started as its own process at its defaults plus the demo's transport settings
 (reliable input, deep queue, diagnostics every 0.1 s) plus ``--params``, the bag is played in lockstep (no image
 dropped) while the outputs are recorded, and the recorded bag is scored with ``evaluate bag``'s code
-(dpv_sensor.evaluation.records_from_bag / evaluate_records).
+(dpv_sensor.evaluation.offline.records_from_bag / evaluate_records).
 
 Pose sources: ``gt`` (the sequence's poses as odometry), ``offset<t>ms`` (``--offset-ms``, default 10: the GT pose
 t ms after each image's stamp, a camera-odometry time offset) and ``noisy<k>`` for each noise seed k (odometry-like
@@ -20,10 +20,10 @@ Columns (frame means over the recorded keyframe outputs unless said otherwise):
 
 - abs_rel, d1: metric depth; ms abs_rel: per-frame median-scaled abs_rel; coverage: scored / valid GT pixels.
 - ECE, mean conf, d1 pooled, kept@.9, d1@.9, d1@.7: calibration of the published confidence as the probability of
-  the delta1 event (dpv_sensor.metrics.calibration_summary, pixels pooled over the run); a reliability diagram per
-  run in ``OUT/plots/<run>_reliability.png``.
+  the delta1 event (dpv_sensor.evaluation.metrics.calibration_summary, pixels pooled over the run); a reliability
+  diagram per run in ``OUT/plots/<run>_reliability.png``.
 - conf½: confident-half ratio, abs_rel of the most confident half of a frame's scored pixels / abs_rel of all of
-  them (dpv_sensor.metrics.confident_half_ratio), mean over frames (the pooled figure is in the JSON).
+  them (dpv_sensor.evaluation.metrics.confident_half_ratio), mean over frames (the pooled figure is in the JSON).
 - resets: published outputs whose filter restarted, whichever layer restarted it (the estimator's stream rules,
   an odometry teleport in the pose buffer, lost visual tracking; the filter's own rules are off), the stream's
   first output not counted: the node's ``output_resets`` diagnostics counter; the reasons are in the JSON.
@@ -116,7 +116,7 @@ def odometry_poses(seq, pose_source: str) -> List[np.ndarray]:
 def time_shifted_poses(seq, poses: List[np.ndarray], offset_s: float) -> List[np.ndarray]:
     """The trajectory ``poses`` (one per frame, at ``seq.stamp(i)``) evaluated ``offset_s`` seconds after each frame's
     stamp (SLERP + linear between the two frames around it, held at the ends)."""
-    from dpv_sensor.geometry import interpolate_pose
+    from dpv_sensor.core.geometry import interpolate_pose
     stamps = np.array([float(seq.stamp(i)) for i in range(len(seq))], np.float64)
     out = []
     for t in stamps + float(offset_s):
@@ -170,7 +170,7 @@ def run_key(seq_name: str, pose_source: str, params: Dict[str, Any]) -> str:
 # --------------------------------------------------------------------------------------------------------------
 def oracle_constant(seq, min_depth=None, max_depth=None) -> float:
     """Median of every valid GT depth of the sequence (within the scored range)."""
-    from dpv_sensor.metrics import gt_valid_mask
+    from dpv_sensor.evaluation.metrics import gt_valid_mask
     vals = []
     for i in range(len(seq)):
         d = np.asarray(seq.depth(i), np.float32)
@@ -181,7 +181,7 @@ def oracle_constant(seq, min_depth=None, max_depth=None) -> float:
 
 def constant_on_same_pixels(records, constant: float, min_depth=None, max_depth=None) -> Dict[str, Any]:
     """A constant depth scored on the records' keyframes and exactly the pixels their predictions are scored on."""
-    from dpv_sensor.metrics import MetricAccumulator
+    from dpv_sensor.evaluation.metrics import MetricAccumulator
     acc = MetricAccumulator(min_depth=min_depth, max_depth=max_depth)
     for r in records:
         pred = np.where(np.isfinite(r.depth_hw), np.float32(constant), np.float32(np.nan))
@@ -259,7 +259,7 @@ def run_one(seq_name: str, seq_dir: pathlib.Path, pose_source: str, user_params:
     """Replay one sequence with one pose source through the node and score it; returns the run's JSON dict
     (``consumer_odometry`` False: without the Open3D odometry check, which is most of the scoring time on long
     sequences)."""
-    from dpv_sensor import evaluation as E
+    from dpv_sensor.evaluation import offline as E
     from dpv_sensor.data import rosbag_io as R
     from dpv_sensor.data.sequence import Sequence
     from dpv_sensor.client import replay as D
@@ -304,7 +304,7 @@ def run_one(seq_name: str, seq_dir: pathlib.Path, pose_source: str, user_params:
     timing['total_s'] = round(time.perf_counter() - t_all, 1)
 
     if summary.get('calibration'):
-        from dpv_sensor import plots
+        from dpv_sensor.evaluation import plots
         plots.reliability_plot({f'{seq_name} {pose_source}': summary['calibration']},
                                out / 'plots' / f'{key}_reliability.png', title=f'{seq_name}, poses {pose_source}')
     co = summary.get('consumer_odometry') or {}
@@ -485,7 +485,7 @@ def write_table(out: pathlib.Path, runs, sequences, noise_seeds, params, command
     (out / f'stream_table{_suffix(params)}.md').write_text(text)
     data = {'command': command, 'params': params, 'sequences': sequences, 'noise_seeds': noise_seeds,
             'rows': rows, 'runs': {r['key']: r for r in runs}, 'failures': failures}
-    from dpv_sensor.evaluation import to_jsonable
+    from dpv_sensor.evaluation.offline import to_jsonable
     with open(out / f'stream_table{_suffix(params)}.json', 'w') as fh:
         json.dump(to_jsonable(data), fh, indent=1)
     return text, data

@@ -6,7 +6,7 @@ Each configuration runs two processes on the ROS graph: a *sensor* process (``pu
 camera_info at 30 Hz, nav_msgs/Odometry at 100 Hz, with a chosen reliability; it sets no transport of its own
 unless the configuration says so, like a user's camera driver) and a *receiver* process (``receive``: plain
 subscriptions that count what arrives and how late). The receiver either keeps the Fast DDS defaults or applies the
-node's own transport settings (:func:`dpv_sensor.transport.configure`). The table printed at the end gives, per
+node's own transport settings (:func:`dpv_sensor.ros.transport.configure`). The table printed at the end gives, per
 topic, messages received / sent and the arrival delay after the header stamp (median, max in ms).
 
 The two roles are also usable alone (the transport acceptance test uses ``publish``):
@@ -265,14 +265,14 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     if args.role == 'publish':
         if args.node_transport:
-            from dpv_sensor.transport import configure
+            from dpv_sensor.ros.transport import configure
             configure()
         print(json.dumps(publish(args.reliability, args.seconds, args.depth, args.wait_subscribers,
                                  prefix=args.prefix, wait_go=args.wait_go)), flush=True)
         return 0
     if args.role == 'receive':
         if args.node_transport:
-            from dpv_sensor.transport import configure
+            from dpv_sensor.ros.transport import configure
             configure()
         print(json.dumps(receive(args.reliability, args.depth, args.prefix)), flush=True)
         return 0

@@ -7,8 +7,8 @@ from typing import Any, Dict, List
 
 
 def node_command(params: Dict[str, Any], remaps: Dict[str, str]) -> List[str]:
-    """`python -m dpv_sensor.node --ros-args -p k:=v ... -r a:=b ...` for these parameters and remaps."""
-    cmd = [sys.executable, '-m', 'dpv_sensor.node', '--ros-args']
+    """`python -m dpv_sensor.ros.node --ros-args -p k:=v ... -r a:=b ...` for these parameters and remaps."""
+    cmd = [sys.executable, '-m', 'dpv_sensor.ros.node', '--ros-args']
     for k, v in params.items():
         if isinstance(v, bool):
             v = 'true' if v else 'false'

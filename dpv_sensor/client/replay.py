@@ -14,7 +14,7 @@ import time
 from dataclasses import dataclass, field
 from typing import Any, Dict, List, Optional
 
-from dpv_sensor.process_memory import proc_status_kib
+from dpv_sensor.ros.process_memory import proc_status_kib
 from dpv_sensor.client.node_process import ClientNode, node_command
 
 REPO = pathlib.Path(__file__).resolve().parents[2]
@@ -260,7 +260,7 @@ def end_to_end_latency(output_bag, sent_wall_ns: Dict[int, int]) -> Dict[str, An
     """Per depth output: wall time from publishing its image into the graph to recording its depth image (the
     recorder's record time is its receipt time). Median / p95 / max in ms over the outputs."""
     import numpy as np
-    from dpv_sensor import msgs as M
+    from dpv_sensor.ros import msgs as M
     from dpv_sensor.data import rosbag_io as R
     lat = []
     for _t, _ty, log_ns, msg in R.read_messages(output_bag, ['/depth/image']):

@@ -69,7 +69,7 @@ class BagPlayer:
     def __init__(self, node, bag_path, *, rate: float = 1.0, topics=None, remap=None,
                  rebase_stamps: bool = False, loop: bool = False, reliability: str | None = None,
                  qos_depth: int | None = None):
-        from dpv_sensor.msgs import ros_message_class
+        from dpv_sensor.ros.msgs import ros_message_class
         if rate <= 0:
             raise ValueError(f'rate must be > 0, got {rate}')
         self.node = node
@@ -139,7 +139,7 @@ class BagPlayer:
         """Publish every message at its record time / rate; returns statistics. Blocks until done, stopped
         (stop()) or `duration` wall seconds have passed."""
         from rclpy.serialization import deserialize_message
-        from dpv_sensor.msgs import make_header, stamp_to_ns
+        from dpv_sensor.ros.msgs import make_header, stamp_to_ns
         stats = PlaybackStats(per_topic={t: 0 for t in self.topics})
         bar = None
         if progress:
@@ -238,7 +238,7 @@ class BagRecorder:
 
     def poll(self) -> list[str]:
         """Subscribe to wanted topics that have appeared in the graph; returns the ones still missing."""
-        from dpv_sensor.msgs import ros_message_class
+        from dpv_sensor.ros.msgs import ros_message_class
         graph = dict(self.node.get_topic_names_and_types())
         targets = list(graph) if self.all_topics else self.wanted
         for topic in targets:

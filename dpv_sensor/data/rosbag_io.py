@@ -12,7 +12,7 @@
 - `export_depth_bag`: a recorded depth/confidence bag -> a sequence-folder-like directory (depth PNG mm,
   confidence PNG, K.txt, stamps.txt, images and poses when the bag has them).
 
-Messages are built with the same code as the node's (dpv_sensor.msgs) in the `rosbags` flavour (`ROSBAGS`).
+Messages are built with the same code as the node's (dpv_sensor.ros.msgs) in the `rosbags` flavour (`ROSBAGS`).
 """
 from __future__ import annotations
 
@@ -24,9 +24,9 @@ from typing import Any, Iterable, Iterator
 
 import numpy as np
 
-from dpv_sensor import msgs as M
+from dpv_sensor.ros import msgs as M
 from dpv_sensor import params as P
-from dpv_sensor.pose_buffer import PoseBuffer, interpolate_pose, make_pose, pose7_to_matrix
+from dpv_sensor.stream.pose_buffer import PoseBuffer, interpolate_pose, make_pose, pose7_to_matrix
 
 NS = 1_000_000_000
 
@@ -67,7 +67,7 @@ def _rosbags_class(typename: str):
         raise BagError(f'message type {typename!r} is not in the ROS 2 Jazzy typestore') from None
 
 
-# dpv_sensor.msgs builders in the rosbags flavour
+# dpv_sensor.ros.msgs builders in the rosbags flavour
 ROSBAGS = M.MessageTypes('rosbags', _rosbags_class, lambda b: np.frombuffer(bytes(b), dtype=np.uint8),
                          lambda v: np.asarray(list(v), dtype=np.float64))
 

@@ -30,7 +30,7 @@ from typing import Any, Callable, Dict, List, NamedTuple, Optional, Sequence as 
 import cv2
 import numpy as np
 
-from ..geometry import scale_intrinsics_np  # noqa: F401  (re-exported: the resize convention)
+from dpv_sensor.core.geometry import scale_intrinsics_np  # noqa: F401  (re-exported: the resize convention)
 
 PathLike = Union[str, os.PathLike]
 

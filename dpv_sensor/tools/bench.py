@@ -17,7 +17,7 @@ node, and writes OUT/bench.md (printed too) and OUT/bench.json:
    keyframe (causal window, 4 sources: resize, features, measurement, filter with K-Net, R-Net, output) for the
    classical model and each preset, with its stage split; peak memory of that run (growth of the process's peak
    RSS via /proc/self/clear_refs + VmHWM, and ``torch.cuda.max_memory_allocated`` on CUDA).
-3. **End to end through the node**: the node is started as its own process (``python -m dpv_sensor.node``) with
+3. **End to end through the node**: the node is started as its own process (``python -m dpv_sensor.ros.node``) with
    the preset, the device and the size as its processing size; a rendered sequence at that size is played into it
    in a loop at ``--e2e-hz`` images/s (``BagPlayer``, stamps rebased to the wall clock) for ``--e2e-seconds`` (longer
    until ``--e2e-min-outputs`` depth images arrived, at most ``--e2e-max-seconds``). Reported: depth outputs per
@@ -47,7 +47,7 @@ import threading
 import time
 from typing import Any, Dict, List, Optional, Tuple
 
-from dpv_sensor.process_memory import proc_status_kib
+from dpv_sensor.ros.process_memory import proc_status_kib
 from dpv_sensor.client.node_process import ClientNode, node_command
 from dpv_sensor.cli import tool_argv
 
@@ -116,7 +116,7 @@ def bench_nets(presets, sizes, device, repeats, warmup) -> List[Dict]:
 def bench_core(presets, sizes, device, repeats) -> List[Dict]:
     """core.run once per distinct D: each preset's planes, plus the classical model's."""
     from dpv_sensor.benchmarks import core as CB
-    from dpv_sensor.nets.presets import get_preset
+    from dpv_sensor.core.nets.presets import get_preset
     planes = {p: int(get_preset(p).num_planes) for p in presets}
     out = []
     for D in sorted(set(planes.values()) | {CLASSICAL_PLANES}):
@@ -152,8 +152,8 @@ def bench_estimator(models, sizes, device, keyframes) -> List[Dict]:
 def _node_weights(preset: str, out: pathlib.Path) -> Tuple[str, str]:
     """(weights parameter, what) for a node run of `preset`: the packaged checkpoint when it loads, else a
     random-init checkpoint written under OUT/weights."""
-    from dpv_sensor.estimator import default_weights_path
-    from dpv_sensor.nets.checkpoint import load_checkpoint, read_metadata, save_checkpoint
+    from dpv_sensor.stream.estimator import default_weights_path
+    from dpv_sensor.core.nets.checkpoint import load_checkpoint, read_metadata, save_checkpoint
     path = default_weights_path(preset)
     try:
         load_checkpoint(str(path), preset=preset)
@@ -162,7 +162,7 @@ def _node_weights(preset: str, out: pathlib.Path) -> Tuple[str, str]:
     except Exception:
         pass
     import torch
-    from dpv_sensor.nets.model import DPVNet
+    from dpv_sensor.core.nets.model import DPVNet
     rnd = out / 'weights' / f'{preset}_random_init.safetensors'
     if not rnd.exists():
         torch.manual_seed(0)
@@ -463,7 +463,7 @@ def main(argv: Optional[List[str]] = None) -> int:
         print(f'bench: unknown part(s) {unknown}; parts are {", ".join(PARTS)}' if unknown else
               'bench: give at least one size and one preset', file=sys.stderr)
         return 2
-    from dpv_sensor.nets.presets import get_preset
+    from dpv_sensor.core.nets.presets import get_preset
     for preset in a.presets:
         try:
             get_preset(preset)
@@ -529,7 +529,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     report['machine']['load_after'] = [round(x, 2) for x in os.getloadavg()]
     report['wall_s'] = round(time.perf_counter() - t0, 1)
     md = markdown(report)
-    from dpv_sensor.evaluation import to_jsonable
+    from dpv_sensor.evaluation.offline import to_jsonable
     (out / 'bench.json').write_text(json.dumps(to_jsonable(report), indent=1))
     (out / 'bench.md').write_text(md)
     print()

@@ -13,7 +13,7 @@ Steps (each prints a progress line and its time):
            images as lossless PNG, depth PNG in mm, poses, K, stamps).
 2. bag     write it as a rosbag2 (MCAP): OUT/input_bag with /image, /camera_info and /odom
            (odometry at 100 Hz, interpolated between the frames; the stamps are the sequence's).
-3. node    start the node as its own process (`python -m dpv_sensor.node --ros-args -p ... -r ...`) with a private
+3. node    start the node as its own process (`python -m dpv_sensor.ros.node --ros-args -p ... -r ...`) with a private
            ROS_DOMAIN_ID (localhost only) and ROS_LOG_DIR under OUT/logs; wait until its estimator is built and its
            subscriptions match the player's publishers.
 4. replay  play the bag into the node with dpv_sensor.client.ros_io.BagPlayer and record the node's outputs
@@ -100,9 +100,9 @@ def _table_lines(text: str) -> List[str]:
 def montage_without_gt(input_bag, output_bag, image_topic: str, path: pathlib.Path, rows: int = 4) -> Dict[str, Any]:
     """image | depth | confidence for a few recorded outputs (no ground truth); returns output statistics."""
     import numpy as np
-    from dpv_sensor import msgs as M
+    from dpv_sensor.ros import msgs as M
     from dpv_sensor.data import rosbag_io as R
-    from dpv_sensor.plots import _plt, depth_range
+    from dpv_sensor.evaluation.plots import _plt, depth_range
     topics = R.bag_topics(output_bag)
     d_topic = R.find_topic(topics, R.DEPTH_TOPIC, 'depth/image', R.IMAGE)
     c_topic = R.find_topic(topics, R.CONFIDENCE_TOPIC, 'confidence/image', R.IMAGE)
@@ -174,7 +174,7 @@ def _weights_info(diag: Dict[str, str]) -> Dict[str, Any]:
         path = reason.split(marker, 1)[1].strip()
         info['weights'] = path
         try:
-            from dpv_sensor.nets.checkpoint import read_metadata
+            from dpv_sensor.core.nets.checkpoint import read_metadata
             meta = read_metadata(path)
             info['weights_steps'] = meta.get('steps')
             info['weights_preset'] = meta.get('preset')
@@ -362,7 +362,7 @@ def main(argv: Optional[List[str]] = None) -> int:
         if gt_dir is not None and a.stamp_offset == 'auto':
             # from the input bag's first image (the recorded outputs hold no camera image): GT frame 0 unless the
             # GT's own stamps are the bag's
-            from dpv_sensor.evaluation import first_image_stamp, gt_stamp_offset, load_sequence
+            from dpv_sensor.evaluation.offline import first_image_stamp, gt_stamp_offset, load_sequence
             auto = gt_stamp_offset(first_image_stamp(input_bag, topics['image']), load_sequence(gt_dir))
             offset = ['--stamp-offset', f'{auto:.9f}']
             summary['stamp_offset_s'] = auto
@@ -462,7 +462,7 @@ def main(argv: Optional[List[str]] = None) -> int:
             'node_stop_s': replay.node_stop_s, 'exit_code': replay.node_exit_code,
             'peak_rss_mib': replay.node_peak_rss_mib, 'log': str(logs / 'node.log')}
     with open(out / 'summary.json', 'w') as fh:
-        from dpv_sensor.evaluation import to_jsonable
+        from dpv_sensor.evaluation.offline import to_jsonable
         json.dump(to_jsonable(summary), fh, indent=1)
     print_summary(summary)
     return 0 if summary['ok'] else 1
@@ -491,7 +491,7 @@ def print_summary(s: Dict[str, Any]) -> None:
         else:
             model = f"classical NCC plane sweep ({nd.get('measurement_reason')})"
         where = str(nd.get('device')) + (f', {nd["precision"]}' if nd.get('precision') else '')
-        print(f'what ran   python -m dpv_sensor.node (its own process, {where}): {model}')
+        print(f'what ran   python -m dpv_sensor.ros.node (its own process, {where}): {model}')
         print(f"           filter {nd.get('filter_mode')}, {nd.get('window_mode')} window, processing "
               f"{nd['processing_size'][0]}x{nd['processing_size'][1]}; {nd.get('images_sent')} images replayed "
               f"({nd['pacing']}), {nd.get('keyframes')} keyframes, {nd.get('outputs_published')} depth outputs "

@@ -108,7 +108,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _print_table(rows) -> None:
-    from ..evaluation import markdown_table
+    from dpv_sensor.evaluation.offline import markdown_table
     print(markdown_table(rows))
 
 
@@ -116,8 +116,8 @@ def main(argv: Optional[List[str]] = None) -> int:
     argv = tool_argv(argv)
     a = build_parser().parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format='%(name)s: %(message)s')
-    from .. import evaluation as E
-    from ..data import rosbag_io as R
+    from dpv_sensor.evaluation import offline as E
+    from dpv_sensor.data import rosbag_io as R
     out = pathlib.Path(a.out)
     try:
         if a.command == 'sequence':

@@ -86,10 +86,10 @@ def _print_report(report) -> None:
 def main(argv: Optional[List[str]] = None) -> int:
     argv = tool_argv(argv)
     a = build_parser().parse_args(argv)
-    from .. import evaluation as E
-    from .. import fusion as F
-    from ..data import rosbag_io as R
-    from ..data.rosbag_io import BagError
+    from dpv_sensor.evaluation import offline as E
+    from dpv_sensor.evaluation import fusion as F
+    from dpv_sensor.data import rosbag_io as R
+    from dpv_sensor.data.rosbag_io import BagError
     out = pathlib.Path(a.out)
     try:
         if a.command == 'sequence':

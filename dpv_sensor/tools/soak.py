@@ -58,7 +58,7 @@ def vm_rss_kib(pid: int) -> int | None:
 
 
 def start_node_process(params: dict, remaps: dict, env: dict | None = None, log_path=None) -> subprocess.Popen:
-    """`python -m dpv_sensor.node --ros-args -p k:=v ... -r a:=b` with its output to `log_path` (or a pipe)."""
+    """`python -m dpv_sensor.ros.node --ros-args -p k:=v ... -r a:=b` with its output to `log_path` (or a pipe)."""
     cmd = node_command(params, remaps)
     full_env = dict(os.environ)
     full_env['PYTHONPATH'] = os.pathsep.join([str(REPO)] + [p for p in full_env.get('PYTHONPATH', '').split(os.pathsep)

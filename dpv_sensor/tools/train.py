@@ -24,8 +24,8 @@ import signal
 import sys
 from typing import List, Optional
 
-from ..training.dataset import TRAIN_SEED_BASE, parse_seeds
-from ..training.loop import MODULES, TrainConfig, latest_checkpoint
+from dpv_sensor.training.dataset import TRAIN_SEED_BASE, parse_seeds
+from dpv_sensor.training.loop import MODULES, TrainConfig, latest_checkpoint
 from dpv_sensor.cli import tool_argv
 
 
@@ -155,7 +155,7 @@ def main(argv: Optional[List[str]] = None) -> int:
         merged = {**stored, **{k: v for k, v in cfg.to_json().items() if k in keep_new}}
         cfg = TrainConfig.from_json(merged).check()
     signal.signal(signal.SIGTERM, _sigterm)
-    from ..training.loop import train
+    from dpv_sensor.training.loop import train
     out = train(cfg, resume=a.resume, quiet=a.quiet, argv=['python -m dpv_sensor.tools.train'] + argv)
     print(json.dumps({'step': out['step'], 'best': out['best']}))
     return 0

@@ -9,4 +9,6 @@
   sequences through the product's ``Estimator`` (as the node runs the weights).
 
 The console entry point is :mod:`dpv_sensor.tools.train` (``ros2 run dpv_sensor train``).
+
+May import: ``dpv_sensor.evaluation``, ``dpv_sensor.data`` and below; no ROS, neither tools nor benchmarks.
 """

@@ -39,7 +39,7 @@ import numpy as np
 import torch
 from torch.utils.data import IterableDataset, get_worker_info
 
-from ..geometry import scale_intrinsics_np
+from dpv_sensor.core.geometry import scale_intrinsics_np
 
 TRAIN_SEED_BASE = 1_000_000
 VAL_SEEDS = range(0, 100)
@@ -372,7 +372,7 @@ class SceneStream(IterableDataset):
         cfg = self.config
         if cfg.pose_noise_prob <= 0 or rng.random() >= cfg.pose_noise_prob:
             return smp
-        from ..data.trajectory import corrupt_trajectory
+        from dpv_sensor.data.trajectory import corrupt_trajectory
         poses = [T.double().numpy() for T in smp['poses']]
         noisy = corrupt_trajectory(poses, trans_noise_rel=float(rng.uniform(0.0, cfg.pose_noise_trans_rel)),
                                    rot_noise_deg=float(rng.uniform(0.0, cfg.pose_noise_rot_deg)),
@@ -382,7 +382,7 @@ class SceneStream(IterableDataset):
 
     def _open_folders(self):
         if self._folders is None:
-            from ..data.sequence import Sequence
+            from dpv_sensor.data.sequence import Sequence
             self._folders = [Sequence(f) for f in self.config.folders]
         return self._folders
 
@@ -402,7 +402,7 @@ class SceneStream(IterableDataset):
             smp = sample_from_sequence(seq, ids, self.layout_of(i), rng, cfg.augment, self.size_of(i),
                                        scale=float(rng.uniform(*cfg.folder_scale)), seed=-1 - ids[0])
         else:
-            from ..data.synthetic import render_sequence
+            from dpv_sensor.data.synthetic import render_sequence
             ids = draw_keyframes(rng, M, cfg.gap_min, cfg.gap_max, start_max=cfg.gap_max)
             w, h = self.size_of(i)
             seq = render_sequence(seed, ids[-1] + 1, width=w, height=h, lazy=True, **cfg.render_kwargs)

@@ -45,7 +45,7 @@ through the product's Estimator (:mod:`.stream_validation`; GT and odometry-like
 the node uses the weights: ``stream_abs_rel_knet_both`` and the like select exports on that.
 Plots: ``<run>/loss_curves.png``, ``<run>/val_montage_XXXXXXX.png``.
 Whenever the validation score improves, the weights are exported atomically (temp file + rename)
-to the export path with metadata via :func:`dpv_sensor.nets.checkpoint.save_checkpoint`.
+to the export path with metadata via :func:`dpv_sensor.core.nets.checkpoint.save_checkpoint`.
 
 Distributed: under ``torchrun`` (WORLD_SIZE > 1) a process group is initialised (NCCL on CUDA, Gloo
 otherwise), the unrolled model is wrapped in DistributedDataParallel, every rank streams its own
@@ -69,14 +69,15 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from .. import dpv as dpvops
-from ..common import code_version, to_jsonable
-from .. import params as _params
-from .. import geometry
-from .dataset import (TRAIN_SEED_BASE, VAL_SEEDS, Augment, SceneStream, StreamConfig, WindowLayout,
+from dpv_sensor.core import dpv as dpvops
+from dpv_sensor.common import code_version, to_jsonable
+from dpv_sensor import params as _params
+from dpv_sensor.core import geometry
+from dpv_sensor.training.dataset import (TRAIN_SEED_BASE, VAL_SEEDS, Augment, SceneStream, StreamConfig, WindowLayout,
                       check_not_heldout, sample_from_sequence)
-from .stream_validation import STREAM_PREFIX, StreamValidationSpec, StreamValidator, stream_metric_key
-from ..nets.model import cpu_bf16_fast
+from dpv_sensor.training.stream_validation import (STREAM_PREFIX, StreamValidationSpec, StreamValidator,
+                                                   stream_metric_key)
+from dpv_sensor.core.nets.model import cpu_bf16_fast
 
 __all__ = ['TrainConfig', 'UnrolledModel', 'Trainer', 'train', 'run_unrolled', 'measure_steps',
            'filter_steps', 'evaluate_batches', 'render_validation_batches', 'save_training_state',
@@ -292,7 +293,7 @@ def measure_steps(model, batch: Dict[str, torch.Tensor], steps: Optional[Seq[int
     Returns per step a dict: logp_q (B,D,h,w), K_vol, feats, image (B,3,H,W), gt (B,H,W),
     T_world_ref (B,4,4), stamp (float).
     """
-    from ..nets.dnet import ImageFeatures
+    from dpv_sensor.core.nets.dnet import ImageFeatures
     images, poses, K = batch['images'], batch['poses'], batch['K']
     ref_idx = batch['ref_idx'][0].tolist()
     src_idx = batch['src_idx'][0].tolist()
@@ -320,7 +321,7 @@ def measure_steps(model, batch: Dict[str, torch.Tensor], steps: Optional[Seq[int
 
 def make_filter(model, mode: str, damping: float = _params.default('damping')):
     """A fresh DPVFilter in ``mode`` (K-Net = the model's, so gradients reach it)."""
-    from ..filter import DPVFilter
+    from dpv_sensor.core.filter import DPVFilter
     # generous reset thresholds: training windows never need a reset (and a reset would cut the unroll)
     return DPVFilter(mode=mode, damping=damping, knet=model.knet if mode == 'knet' else None,
                      max_time_gap=1e9, max_translation=1e9, max_rotation_deg=1e9)
@@ -397,7 +398,7 @@ def render_validation_batches(seeds: Seq[int], num_keyframes: int, gap: int, wid
 
     ``split='train'`` renders the same kind of batches from *training* seeds (>= ``TRAIN_SEED_BASE``),
     e.g. to tune a baseline's parameters on training data only; each split refuses the other's seeds."""
-    from ..data.synthetic import render_sequence
+    from dpv_sensor.data.synthetic import render_sequence
     steps = num_keyframes - layout.window + 1
     if steps < 1:
         raise ValueError(f'need at least {layout.window} validation keyframes')
@@ -424,7 +425,7 @@ def corrupt_validation_batches(batches: List[Dict[str, torch.Tensor]], trans_noi
     per keyframe step a rotation of ``rot_noise_deg`` about a random axis and a translation error of
     ``trans_noise_rel`` of the step, accumulating), seeded by the batch's position so every validation sees the
     same poses. Images and depths are untouched: the score says how well the nets cope with imperfect poses."""
-    from ..data.trajectory import corrupt_trajectory
+    from dpv_sensor.data.trajectory import corrupt_trajectory
     out = []
     for j, b in enumerate(batches):
         poses = [T.double().numpy() for T in b['poses'][0]]
@@ -452,18 +453,18 @@ def evaluate_batches(model, batches: List[Dict[str, torch.Tensor]], depths_d: to
                      confidence_ratio: float = _params.default('confidence_ratio')) -> Dict:
     """Score the model (and optionally a classical measurement model) on validation batches.
 
-    Depth and confidence come from the DPVs with ``readout`` (:func:`dpv_sensor.dpv.depth_estimate`;
-    'auto' resolves per source with :func:`dpv_sensor.dpv.resolve_readout`).
+    Depth and confidence come from the DPVs with ``readout`` (:func:`dpv_sensor.core.dpv.depth_estimate`;
+    'auto' resolves per source with :func:`dpv_sensor.core.dpv.resolve_readout`).
 
     Returns ``{'<source>_<mode>': {abs_rel, delta1, confident_half_ratio, ause, aurg, nll_meas_q,
     nll_filtered_q, nll_full}, ..., 'examples': [...]}`` with ``source`` = 'net' or 'classical'. NLLs
-    are means over frames of :func:`dpv_sensor.dpv.nll`; depth metrics are frame means of
-    :class:`dpv_sensor.metrics.MetricAccumulator` (metric, not median-scaled); ``ause`` is the frame
+    are means over frames of :func:`dpv_sensor.core.dpv.nll`; depth metrics are frame means of
+    :class:`dpv_sensor.evaluation.metrics.MetricAccumulator` (metric, not median-scaled); ``ause`` is the frame
     mean, ``aurg`` (area of random minus sparsification, > 0 = better than random) that of the mean
     curve. With ``curves=True`` each entry also carries ``sparsification_curves``
     (:meth:`MetricAccumulator.mean_curves`: numpy arrays, not JSON).
     """
-    from ..metrics import MetricAccumulator
+    from dpv_sensor.evaluation.metrics import MetricAccumulator
     was_training = model.training if model is not None else False
     if model is not None:
         model.eval()
@@ -554,7 +555,7 @@ def _upsample_map(x_bhw: torch.Tensor, hw) -> torch.Tensor:
 
 
 def _classical_steps(classical, batch) -> List[Dict]:
-    """Like :func:`measure_steps` for a :class:`dpv_sensor.classical.ClassicalMeasurement`."""
+    """Like :func:`measure_steps` for a :class:`dpv_sensor.core.classical.ClassicalMeasurement`."""
     images, poses, K = batch['images'], batch['poses'], batch['K']
     ref_idx = batch['ref_idx'][0].tolist()
     src_idx = batch['src_idx'][0].tolist()
@@ -777,7 +778,7 @@ def load_training_state(ckpt_dir, model: nn.Module, optimizer: Optional[torch.op
 def export_weights(model: nn.Module, path: str, metadata: Dict) -> None:
     """Export the weights with metadata via nets/checkpoint.save_checkpoint, atomically
     (write a temp file in the same folder, then rename over the target)."""
-    from ..nets.checkpoint import save_checkpoint
+    from dpv_sensor.core.nets.checkpoint import save_checkpoint
     target = pathlib.Path(path)
     target.parent.mkdir(parents=True, exist_ok=True)
     tmp = target.with_name(f'.{target.stem}.tmp-{os.getpid()}.safetensors')
@@ -864,8 +865,8 @@ class Trainer:
     """Owns model, optimiser, data, validation and checkpoints of one run (see the module docstring)."""
 
     def __init__(self, cfg: TrainConfig, resume: bool = False, quiet: bool = False, argv: Optional[List[str]] = None):
-        from ..nets.model import DPVNet
-        from ..nets.presets import get_preset
+        from dpv_sensor.core.nets.model import DPVNet
+        from dpv_sensor.core.nets.presets import get_preset
         self.cfg = cfg.check()
         self.quiet = quiet
         self.argv = list(argv) if argv is not None else list(sys.argv)
@@ -886,7 +887,7 @@ class Trainer:
         self.preset = get_preset(cfg.preset)
         self.model = DPVNet(self.preset).to(self.device)
         if cfg.init_weights:
-            from ..nets.checkpoint import load_checkpoint
+            from dpv_sensor.core.nets.checkpoint import load_checkpoint
             src, self.init_meta = load_checkpoint(cfg.init_weights, preset=self.preset)
             self.model.load_state_dict(src.state_dict())
         else:
@@ -1000,7 +1001,7 @@ class Trainer:
             'validation_pose_noise': list(cfg.val_pose_noise),
             'validation_stream': ({'seeds': list(cfg.val_stream_seeds), 'frames': cfg.val_stream_frames,
                                    'pose_noise': list(cfg.val_stream_pose_noise),
-                                   'how': 'every frame through dpv_sensor.estimator.Estimator (node defaults)'}
+                                   'how': 'every frame through dpv_sensor.stream.estimator.Estimator (node defaults)'}
                                   if cfg.val_stream_seeds else None),
             'selection_metric': cfg.select_metric,
             'held_out_seed_range': [VAL_SEEDS.start, VAL_SEEDS.stop - 1],
@@ -1047,7 +1048,7 @@ class Trainer:
         t0 = time.time()
         batches = self.val_batches()
         if self.classical_ref is None:
-            from ..classical import ClassicalMeasurement
+            from dpv_sensor.core.classical import ClassicalMeasurement
             cm = ClassicalMeasurement(self.preset.d_min, self.preset.d_max, self.preset.num_planes)
             ref = evaluate_batches(None, batches, self.depths, self.device, modes=('none', 'global'), classical=cm)
             ex = ref.pop('examples')

@@ -2,7 +2,7 @@
 
 The trainer's window validation (:func:`dpv_sensor.training.loop.evaluate_batches`) unrolls the filter
 over a few keyframes at training size. The node instead streams every frame of a sequence through
-:class:`dpv_sensor.estimator.Estimator`: keyframe selection, causal five-frame windows at 320x256,
+:class:`dpv_sensor.stream.estimator.Estimator`: keyframe selection, causal five-frame windows at 320x256,
 15-20 keyframes of K-Net filtering, the depth readout and confidence it publishes. A K-Net trained over
 long unrolls can get better on streams while the short windows show no change (this happened: see
 README, "Training and evaluation"), so exports chosen by the window validation can be the wrong ones.
@@ -27,7 +27,7 @@ from typing import Dict, List, Optional, Sequence as Seq, Tuple
 
 import numpy as np
 
-from .dataset import check_heldout_seeds
+from dpv_sensor.training.dataset import check_heldout_seeds
 
 __all__ = ['StreamValidationSpec', 'StreamValidator', 'stream_metric_key']
 
@@ -63,7 +63,7 @@ class StreamValidationSpec:
         return max(self.pose_noise) > 0
 
     def check(self) -> 'StreamValidationSpec':
-        from ..estimator import FILTER_MODES
+        from dpv_sensor.stream.estimator import FILTER_MODES
         check_heldout_seeds(self.seeds, 'streaming validation seed')
         if self.enabled and self.frames < 10:
             raise ValueError(f'streaming validation needs at least 10 frames per sequence, got {self.frames}')
@@ -91,7 +91,7 @@ class StreamValidator:
 
     def sequences(self) -> List:
         if self._sequences is None:
-            from ..data.synthetic import render_sequence
+            from dpv_sensor.data.synthetic import render_sequence
             w, h = self.spec.size
             self._sequences = [render_sequence(s, self.spec.frames, width=w, height=h, lazy=True)
                                for s in self.spec.seeds]
@@ -106,7 +106,7 @@ class StreamValidator:
         progress: an optional callable(str) told the result of each (pose source, mode) pass over the
         sequences (the trainer logs through it). The estimator takes the depth planes from the model, so any
         preset works; the paper preset wants ``device='cuda'``."""
-        from ..evaluation import EvalOptions, evaluate_sequence
+        from dpv_sensor.evaluation.offline import EvalOptions, evaluate_sequence
         if not self.spec.enabled:
             return {}
         was_training = model.training

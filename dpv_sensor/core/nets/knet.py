@@ -1,0 +1,161 @@
+"""K-Net: adaptive damping of the DPV filter update (paper Sec. 3.2, eqs. 9-10).
+
+The filter (``DPVFilter(mode='knet', knet=...)``) works on energies ``E = -log p`` and updates
+
+    E(d_t+1 | I_1:t+1) = E_pred + g(dE, I_t+1),      dE = E_meas - E_pred        (eqs. 9, 10)
+
+``KNet.forward(residual_bdhw, image_b3hw)`` is ``g``. Its layers are the appendix table "K-Net
+structure" (channel counts of the ``paper`` preset; ``lite`` changes width and block count):
+
+    input   concat(residual, expand(I_ref))        D x h x w x 4   (1 residual + 3 RGB channels)
+    conv_0  conv3d 3x3x3 4->32, ReLU; conv3d 32->32, ReLU
+    conv_1  4 x [conv3d 32->32, ReLU, conv3d 32->32] + skip
+    conv_2  conv3d 32->32, ReLU; conv3d 32->1       -> the correction (D x h x w)
+
+Every conv3d has a bias (no BN); residual blocks are ``x + conv(relu(conv(x)))``, as in the D-Net.
+The image is ImageNet-normalised and brought to the volume's resolution inside (a 5x5 box average
+with stride 4 centred on full-resolution pixel 4j, i.e. exactly on the volume grid of
+``dnet.feature_intrinsics``, when the image is 4x the volume; an adaptive average otherwise).
+
+Initialisation: close to global damping. Besides the table's layers K-Net has one scalar, the gain
+``k`` of an identity path: ``g = k * dE + conv_2(...)``. ``conv_2``'s last layer starts at zero, so at
+step 0 ``g = k dE`` and the update is ``E = (1 - k) E_pred + k E_meas``, a Kalman-style blend.
+``k`` starts at ``1 / (1 + lambda)`` (lambda = ``preset.knet_damping_init``, 0.8 as in the paper):
+the blend then weights prediction and measurement exactly as global damping
+``lambda E_pred + E_meas`` does (eq. 8) - the two differ only by the overall factor ``1 + lambda``
+(global damping's posterior is sharper by that factor; a correction that sees only ``dE`` cannot
+reproduce a multiple of ``E_pred``). Training then learns where to deviate from it.
+
+The first conv3d (4 input channels) is computed exactly but cheaply: the three image channels are
+constant along depth, so their 3x3x3 contribution is one 2-D conv of the image with the kernel summed
+over the depth taps (minus the missing tap at the first and last plane); the residual channel's part
+is a 2-D conv over the three depth-shifted copies of the residual. PyTorch's CPU conv3d with fewer than
+about 12 input channels is ~30x slower per MAC than with 32, which made this layer alone cost more
+than the rest of K-Net. Parameters and results are those of a plain ``nn.Conv3d(4, C, 3, padding=1)``.
+"""
+from __future__ import annotations
+
+import math
+
+import torch
+import torch.nn as nn
+import torch.nn.functional as F
+
+from dpv_sensor.core.nets.dnet import FEATURE_STRIDE, normalize_image
+from dpv_sensor.core.nets.presets import Preset
+
+__all__ = ['KNet', 'ExpandedInputConv3d', 'ResBlock3d', 'image_to_volume_grid']
+
+# Residual energies beyond this magnitude (nats) are clipped at the conv branch's input only
+# (the identity path sees the true residual). Keeps -log(0)-style outliers from saturating the net.
+RESIDUAL_CLIP = 100.0
+
+
+def image_to_volume_grid(image_b3hw: torch.Tensor, hw) -> torch.Tensor:
+    """Downsample an image to the volume grid (h, w).
+
+    If the image is (about) 4x the volume (``ceil(H/4) == h``), a 5x5 box filter with stride 4 and
+    padding 2 is used: output pixel j averages full-resolution pixels 4j-2..4j+2, i.e. it is centred on
+    4j like the feature grid. Equal sizes pass through; other sizes use an adaptive average.
+    """
+    H, W = image_b3hw.shape[-2:]
+    h, w = int(hw[0]), int(hw[1])
+    if (H, W) == (h, w):
+        return image_b3hw
+    if -(-H // FEATURE_STRIDE) == h and -(-W // FEATURE_STRIDE) == w:
+        return F.avg_pool2d(image_b3hw, 5, stride=FEATURE_STRIDE, padding=2, count_include_pad=False)
+    return F.adaptive_avg_pool2d(image_b3hw, (h, w))
+
+
+class ExpandedInputConv3d(nn.Conv3d):
+    """``nn.Conv3d(1 + 3, C, 3, padding=1)`` applied to ``concat(volume, expand(image))``, computed
+    as 2-D convolutions (see the module docstring). ``forward(volume_bdhw, image_b3hw)``."""
+
+    def __init__(self, out_channels: int, image_channels: int = 3):
+        super().__init__(1 + image_channels, out_channels, 3, padding=1, bias=True)
+        self.image_channels = image_channels
+        self.mac_count = 0
+
+    def forward(self, volume_bdhw: torch.Tensor, image_bchw: torch.Tensor) -> torch.Tensor:  # type: ignore[override]
+        B, D, h, w = volume_bdhw.shape
+        C = self.out_channels
+        Wt = self.weight                                       # C, 4, 3(kd), 3, 3
+        vol, img = volume_bdhw, image_bchw.to(volume_bdhw.dtype)
+        # residual channel: 3 depth-shifted copies -> 2-D conv with the (kd, kh, kw) kernel
+        pad = F.pad(vol, (0, 0, 0, 0, 1, 1))                   # B, D+2, h, w (zeros at both ends)
+        shifted = torch.stack([pad[:, 0:D], pad[:, 1:D + 1], pad[:, 2:D + 2]], dim=2)   # B, D, 3, h, w
+        y = F.conv2d(shifted.reshape(B * D, 3, h, w), Wt[:, 0], padding=1)                        # B*D, C, h, w
+        y = y.reshape(B, D, C, h, w).permute(0, 2, 1, 3, 4)                               # B, C, D, h, w
+        # image channels: one 2-D conv per depth tap, summed; the end planes miss one tap each
+        wi = Wt[:, 1:].permute(2, 0, 1, 3, 4).reshape(3 * C, self.image_channels, 3, 3)  # (kd, C), ci, 3, 3
+        p = F.conv2d(img, wi, padding=1).reshape(B, 3, C, h, w)
+        full = p.sum(1)
+        img_term = full[:, :, None].expand(B, C, D, h, w)
+        if D >= 2:
+            first = (full - p[:, 0])[:, :, None]
+            last = (full - p[:, 2])[:, :, None]
+            mid = img_term[:, :, 1:D - 1]
+            img_term = torch.cat([first, mid, last], dim=2)
+        else:
+            img_term = p[:, 1][:, :, None]
+        out = y + img_term + self.bias.view(1, C, 1, 1, 1)
+        self.mac_count = B * D * h * w * C * 27 + B * h * w * 3 * C * self.image_channels * 9
+        return out
+
+
+class ResBlock3d(nn.Module):
+    """``x + conv_b(relu(conv_a(x)))`` with 3x3x3 convs (no BN, no ReLU after the sum)."""
+
+    def __init__(self, channels: int, blocks_in_stage: int = 1):
+        super().__init__()
+        self.conv_a = nn.Conv3d(channels, channels, 3, padding=1)
+        self.conv_b = nn.Conv3d(channels, channels, 3, padding=1)
+        nn.init.kaiming_normal_(self.conv_a.weight, nonlinearity='relu')
+        nn.init.zeros_(self.conv_a.bias)
+        nn.init.kaiming_normal_(self.conv_b.weight, nonlinearity='linear')
+        with torch.no_grad():
+            self.conv_b.weight.mul_(1.0 / math.sqrt(max(blocks_in_stage, 1)))
+        nn.init.zeros_(self.conv_b.bias)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return x + self.conv_b(F.relu(self.conv_a(x)))
+
+
+class KNet(nn.Module):
+    """g(residual_bdhw, image_b3hw) -> correction_bdhw (see the module docstring).
+
+    ``residual_bdhw`` = E_meas - E_pred on the quarter-resolution volume grid; ``image_b3hw`` = the new
+    frame, RGB in [0, 1], at full resolution (or already at the volume's size).
+    """
+
+    def __init__(self, preset: Preset):
+        super().__init__()
+        C = preset.knet_channels
+        self.conv0_a = ExpandedInputConv3d(C)
+        self.conv0_b = nn.Conv3d(C, C, 3, padding=1)
+        self.conv1 = nn.Sequential(*[ResBlock3d(C, preset.knet_blocks) for _ in range(preset.knet_blocks)])
+        self.conv2_a = nn.Conv3d(C, C, 3, padding=1)
+        self.conv2_b = nn.Conv3d(C, 1, 3, padding=1)
+        for conv in (self.conv0_a, self.conv0_b, self.conv2_a):
+            nn.init.kaiming_normal_(conv.weight, nonlinearity='relu')
+            nn.init.zeros_(conv.bias)
+        nn.init.zeros_(self.conv2_b.weight)     # step 0: g = gain * residual
+        nn.init.zeros_(self.conv2_b.bias)
+        lam = float(preset.knet_damping_init)
+        self.gain = nn.Parameter(torch.tensor(1.0 / (1.0 + lam)))
+        self.channels_last = False
+
+    def forward(self, residual_bdhw: torch.Tensor, image_b3hw: torch.Tensor) -> torch.Tensor:
+        B, D, h, w = residual_bdhw.shape
+        if image_b3hw.shape[0] != B:
+            raise ValueError(f'image batch {image_b3hw.shape[0]} != residual batch {B}')
+        img = image_to_volume_grid(normalize_image(image_b3hw.to(residual_bdhw.dtype)), (h, w))
+        r = residual_bdhw.clamp(-RESIDUAL_CLIP, RESIDUAL_CLIP)
+        x = F.relu(self.conv0_a(r, img))
+        if self.channels_last:
+            x = x.contiguous(memory_format=torch.channels_last_3d)
+        x = F.relu(self.conv0_b(x))
+        x = self.conv1(x)
+        x = self.conv2_b(F.relu(self.conv2_a(x)))[:, 0]
+        # (under autocast x is half precision; the sum promotes back to the residual's float32)
+        return self.gain * residual_bdhw + x

@@ -1,0 +1,584 @@
+"""ROS message <-> numpy conversion for the node and the bag tools (no node logic, no rclpy import).
+
+Decoders read fields only, so they accept both rclpy messages (sensor_msgs.msg.Image, ...) and the `rosbags`
+library's message classes. Builders construct messages through a `MessageTypes` flavour: `ROS` (the generated
+rclpy message classes, the default) or one made from a rosbags typestore (see data/rosbag_io.py), so the node
+and the bag writer produce byte-identical content from the same code.
+
+Conventions: stamps travel as integer nanoseconds (`stamp_to_ns`, `ns_to_stamp`); a header given to a builder is
+copied field by field (stamp sec/nanosec and frame_id exactly). Depth inside the code is float32 metres with NaN
+for "no estimate"; REP 118 encodings at the boundary: 32FC1 metres (NaN = none) or 16UC1 millimetres (0 = none).
+Quaternions are (x, y, z, w) as in ROS.
+"""
+from __future__ import annotations
+
+import array
+import importlib
+import struct
+from typing import Any, Callable
+
+import numpy as np
+
+from dpv_sensor.core.geometry import make_pose, matrix_to_quat, scale_intrinsics_np
+
+NS = 1_000_000_000
+
+COLOUR_ENCODINGS = ('rgb8', 'bgr8', 'rgba8', 'bgra8', 'mono8')
+# channels per pixel, and which source channels give R, G, B
+_COLOUR = {'rgb8': (3, (0, 1, 2)), 'bgr8': (3, (2, 1, 0)), 'rgba8': (4, (0, 1, 2)),
+           'bgra8': (4, (2, 1, 0)), 'mono8': (1, (0, 0, 0))}
+# encodings that are valid ROS images but not colour: named in the error so the user sees what went wrong
+_NOT_COLOUR = {'16uc1': 'a 16-bit depth/mono image', 'mono16': 'a 16-bit mono image', '32fc1': 'a float depth image',
+               '8uc1': 'a single-channel 8UC1 image (use mono8 for grey)', 'yuv422': 'a YUV image',
+               'uyvy': 'a YUV image', 'yuyv': 'a YUV image', 'rgb16': 'a 16-bit colour image',
+               'bgr16': 'a 16-bit colour image', 'bayer_rggb8': 'a raw Bayer image (debayer first)',
+               'bayer_bggr8': 'a raw Bayer image (debayer first)', 'bayer_gbrg8': 'a raw Bayer image (debayer first)',
+               'bayer_grbg8': 'a raw Bayer image (debayer first)'}
+DEPTH_ENCODINGS = ('32FC1', '16UC1')
+
+
+# --------------------------------------------------------------------------------------------------------------
+# errors
+# --------------------------------------------------------------------------------------------------------------
+class MessageError(ValueError):
+    """A message the node cannot use; the text says exactly why."""
+
+
+class UnsupportedEncoding(MessageError):
+    """An image encoding the node does not read (e.g. 16UC1 sent on the colour topic)."""
+
+
+class BadImage(MessageError):
+    """An image whose fields disagree (data length vs step*height, step too small, zero size)."""
+
+
+class BadCameraInfo(MessageError):
+    """CameraInfo with an unusable K (all zeros, fx/fy <= 0, non-finite)."""
+
+
+class BadOdometry(MessageError):
+    """Odometry with NaN/inf values or a non-unit quaternion."""
+
+
+# --------------------------------------------------------------------------------------------------------------
+# message flavours
+# --------------------------------------------------------------------------------------------------------------
+class MessageTypes:
+    """How to build messages of one flavour.
+
+    get_class('sensor_msgs/msg/Image') -> class; u8(bytes) -> a value for a uint8[] field; f64seq(values) ->
+    a value for an unbounded float64[] field. Builders always pass every field, so flavours whose classes have
+    no defaults (rosbags) work too.
+    """
+
+    def __init__(self, name: str, get_class: Callable[[str], type], u8: Callable[[bytes], Any],
+                 f64seq: Callable[[Any], Any]):
+        self.name = name
+        self._get_class = get_class
+        self._cache: dict[str, type] = {}
+        self.u8 = u8
+        self.f64seq = f64seq
+
+    def cls(self, typename: str) -> type:
+        c = self._cache.get(typename)
+        if c is None:
+            c = self._cache[typename] = self._get_class(typename)
+        return c
+
+    def __call__(self, typename: str, **fields):
+        return self.cls(typename)(**fields)
+
+
+def ros_message_class(typename: str) -> type:
+    """'sensor_msgs/msg/Image' (or 'sensor_msgs/Image') -> the generated rclpy message class."""
+    parts = typename.split('/')
+    if len(parts) == 2:
+        parts = [parts[0], 'msg', parts[1]]
+    if len(parts) != 3:
+        raise ValueError(f'not a ROS message type name: {typename!r}')
+    return getattr(importlib.import_module(f'{parts[0]}.{parts[1]}'), parts[2])
+
+
+def _ros_u8(buf) -> array.array:
+    out = array.array('B')
+    out.frombytes(bytes(buf) if not isinstance(buf, (bytes, bytearray)) else buf)
+    return out
+
+
+ROS = MessageTypes('rclpy', ros_message_class, _ros_u8, lambda v: [float(x) for x in v])
+
+
+def _f64(values, n=None) -> np.ndarray:
+    out = np.asarray(values, dtype=np.float64).reshape(-1)
+    if n is not None and out.size != n:
+        raise ValueError(f'expected {n} values, got {out.size}')
+    return out
+
+
+# --------------------------------------------------------------------------------------------------------------
+# stamps and headers
+# --------------------------------------------------------------------------------------------------------------
+def stamp_to_ns(stamp) -> int:
+    """builtin_interfaces/Time -> integer nanoseconds."""
+    return int(stamp.sec) * NS + int(stamp.nanosec)
+
+
+def ns_to_stamp(ns: int, types: MessageTypes = ROS):
+    """Integer nanoseconds -> builtin_interfaces/Time (sec may be negative; nanosec in [0, 1e9))."""
+    ns = int(ns)
+    sec, nanosec = divmod(ns, NS)
+    if not -2 ** 31 <= sec < 2 ** 31:
+        raise ValueError(f'stamp {ns} ns does not fit builtin_interfaces/Time')
+    return types('builtin_interfaces/msg/Time', sec=sec, nanosec=nanosec)
+
+
+def stamp_to_sec(stamp) -> float:
+    return stamp_to_ns(stamp) / NS
+
+
+def make_header(stamp_ns: int, frame_id: str, types: MessageTypes = ROS):
+    return types('std_msgs/msg/Header', stamp=ns_to_stamp(stamp_ns, types), frame_id=str(frame_id))
+
+
+def copy_header(header, types: MessageTypes = ROS):
+    """A header of `types`' flavour with exactly the stamp and frame_id of `header` (any flavour)."""
+    return types('std_msgs/msg/Header',
+                 stamp=types('builtin_interfaces/msg/Time', sec=int(header.stamp.sec),
+                             nanosec=int(header.stamp.nanosec)),
+                 frame_id=str(header.frame_id))
+
+
+def _header(header_or_stamp, frame_id, types):
+    if isinstance(header_or_stamp, (int, np.integer)):
+        return make_header(int(header_or_stamp), frame_id or '', types)
+    return copy_header(header_or_stamp, types)
+
+
+# --------------------------------------------------------------------------------------------------------------
+# images
+# --------------------------------------------------------------------------------------------------------------
+def _image_array(msg, bytes_per_pixel: int, what: str) -> np.ndarray:
+    """The pixel bytes of `msg` as an HxWx(bytes_per_pixel) uint8 view, honouring `step` padding."""
+    h, w, step = int(msg.height), int(msg.width), int(msg.step)
+    if h <= 0 or w <= 0:
+        raise BadImage(f'{what} has zero size ({w}x{h})')
+    if step < w * bytes_per_pixel:
+        raise BadImage(f'{what} step {step} is smaller than width*bytes per pixel = {w}*{bytes_per_pixel}')
+    data = np.frombuffer(msg.data, dtype=np.uint8)
+    if data.size != step * h:
+        raise BadImage(f'{what} data length {data.size} does not match step*height = {step}*{h} = {step * h}')
+    return data.reshape(h, step)[:, :w * bytes_per_pixel].reshape(h, w, bytes_per_pixel)
+
+
+def check_colour_image(msg) -> tuple[int, tuple]:
+    """(channels, channel order) of a colour sensor_msgs/Image whose encoding, size, step and data length agree,
+    without touching the pixels (cheap enough for the subscription callback). Raises UnsupportedEncoding for an
+    encoding other than rgb8, bgr8, rgba8, bgra8, mono8 and BadImage when size, step and data disagree."""
+    enc = str(msg.encoding).strip().lower()
+    if enc not in _COLOUR:
+        what = _NOT_COLOUR.get(enc)
+        hint = f' ({what})' if what else ''
+        raise UnsupportedEncoding(f"unsupported image encoding '{msg.encoding}'{hint}; the colour input must be one "
+                                  f"of {', '.join(COLOUR_ENCODINGS)}")
+    channels, order = _COLOUR[enc]
+    h, w, step, what = int(msg.height), int(msg.width), int(msg.step), f"'{msg.encoding}' image"
+    if h <= 0 or w <= 0:
+        raise BadImage(f'{what} has zero size ({w}x{h})')
+    if step < w * channels:
+        raise BadImage(f'{what} step {step} is smaller than width*bytes per pixel = {w}*{channels}')
+    if len(msg.data) != step * h:
+        raise BadImage(f'{what} data length {len(msg.data)} does not match step*height = {step}*{h} = {step * h}')
+    return channels, order
+
+
+def image_to_rgb(msg) -> np.ndarray:
+    """sensor_msgs/Image (rgb8, bgr8, rgba8, bgra8, mono8) -> HxWx3 uint8 RGB (a new, contiguous array).
+
+    Raises UnsupportedEncoding for any other encoding and BadImage when size, step and data disagree.
+    """
+    channels, order = check_colour_image(msg)
+    px = _image_array(msg, channels, f"'{msg.encoding}' image")
+    if channels == 1:
+        return np.repeat(px, 3, axis=2)
+    return np.ascontiguousarray(px[:, :, list(order)])
+
+
+def rgb_to_image(rgb_hw3, header, frame_id: str | None = None, encoding: str = 'rgb8',
+                 types: MessageTypes = ROS):
+    """HxWx3 uint8 RGB -> sensor_msgs/Image in rgb8 / bgr8 / rgba8 / bgra8 / mono8 (tightly packed).
+
+    `header` is a header to copy or an int stamp in ns (then `frame_id` names the frame).
+    """
+    rgb = np.asarray(rgb_hw3)
+    if rgb.dtype != np.uint8 or rgb.ndim != 3 or rgb.shape[2] != 3:
+        raise ValueError(f'expected HxWx3 uint8 RGB, got {rgb.dtype} {rgb.shape}')
+    enc = encoding.lower()
+    if enc == 'rgb8':
+        px = rgb
+    elif enc == 'bgr8':
+        px = rgb[:, :, ::-1]
+    elif enc in ('rgba8', 'bgra8'):
+        alpha = np.full(rgb.shape[:2] + (1,), 255, np.uint8)
+        px = np.concatenate([rgb if enc == 'rgba8' else rgb[:, :, ::-1], alpha], axis=2)
+    elif enc == 'mono8':
+        grey = (0.299 * rgb[..., 0] + 0.587 * rgb[..., 1] + 0.114 * rgb[..., 2]).round()
+        px = grey.astype(np.uint8)[:, :, None]
+    else:
+        raise UnsupportedEncoding(f"cannot write colour as '{encoding}'")
+    px = np.ascontiguousarray(px)
+    h, w, c = px.shape
+    return types('sensor_msgs/msg/Image', header=_header(header, frame_id, types), height=h, width=w,
+                 encoding=enc, is_bigendian=0, step=w * c, data=types.u8(px.tobytes()))
+
+
+def depth_to_mm(depth_hw) -> np.ndarray:
+    """float metres (NaN / inf / <= 0 = no estimate) -> uint16 millimetres, rounded, 0 = none, clipped to 65535."""
+    depth = np.asarray(depth_hw, dtype=np.float32)
+    invalid = ~np.isfinite(depth) | (depth <= 0.0)
+    mm = np.clip(np.round(np.where(invalid, 0.0, depth.astype(np.float64) * 1000.0)), 0, 65535)
+    return mm.astype('<u2')
+
+
+def depth_to_image(depth_hw, header, frame_id: str | None = None, encoding: str = '32FC1',
+                   types: MessageTypes = ROS):
+    """float depth in metres (NaN / inf / <= 0 = no estimate) -> sensor_msgs/Image.
+
+    32FC1: metres, NaN for no estimate. 16UC1: millimetres rounded, 0 for no estimate, clipped to 65535.
+    """
+    depth = np.asarray(depth_hw, dtype=np.float32)
+    if depth.ndim != 2:
+        raise ValueError(f'depth must be HxW, got shape {depth.shape}')
+    h, w = depth.shape
+    invalid = ~np.isfinite(depth) | (depth <= 0.0)
+    if encoding == '32FC1':
+        px = np.where(invalid, np.float32(np.nan), depth).astype('<f4')
+        bpp = 4
+    elif encoding == '16UC1':
+        px = depth_to_mm(depth)
+        bpp = 2
+    else:
+        raise UnsupportedEncoding(f"depth encoding must be one of {', '.join(DEPTH_ENCODINGS)}, got '{encoding}'")
+    return types('sensor_msgs/msg/Image', header=_header(header, frame_id, types), height=h, width=w,
+                 encoding=encoding, is_bigendian=0, step=w * bpp, data=types.u8(px.tobytes()))
+
+
+def confidence_to_image(confidence_hw, header, frame_id: str | None = None, types: MessageTypes = ROS):
+    """Confidence in [0, 1] -> 32FC1 image (NaN becomes 0: no estimate means no confidence)."""
+    conf = np.nan_to_num(np.asarray(confidence_hw, dtype=np.float32), nan=0.0, posinf=1.0, neginf=0.0)
+    conf = np.clip(conf, 0.0, 1.0).astype('<f4')
+    h, w = conf.shape
+    return types('sensor_msgs/msg/Image', header=_header(header, frame_id, types), height=h, width=w,
+                 encoding='32FC1', is_bigendian=0, step=w * 4, data=types.u8(conf.tobytes()))
+
+
+def image_to_float(msg) -> np.ndarray:
+    """32FC1 (as is) or 16UC1 (millimetres -> metres, 0 -> NaN) image -> HxW float32. Honours is_bigendian."""
+    enc = str(msg.encoding).strip().upper()
+    big = bool(msg.is_bigendian)
+    if enc == '32FC1':
+        px = _image_array(msg, 4, "'32FC1' image")
+        return px.copy().view('>f4' if big else '<f4')[:, :, 0].astype(np.float32)
+    if enc in ('16UC1', 'MONO16'):
+        px = _image_array(msg, 2, f"'{msg.encoding}' image")
+        mm = px.copy().view('>u2' if big else '<u2')[:, :, 0].astype(np.float32)
+        return np.where(mm == 0, np.float32(np.nan), mm / np.float32(1000.0)).astype(np.float32)
+    raise UnsupportedEncoding(f"expected a 32FC1 or 16UC1 image, got '{msg.encoding}'")
+
+
+# --------------------------------------------------------------------------------------------------------------
+# camera info
+# --------------------------------------------------------------------------------------------------------------
+def camera_info_to_K(msg) -> tuple[np.ndarray, tuple[int, int]]:
+    """sensor_msgs/CameraInfo -> (K 3x3 float64, (width, height)). Raises BadCameraInfo for an unusable K."""
+    k = np.asarray(msg.k, dtype=np.float64).reshape(-1)
+    if k.size != 9:
+        raise BadCameraInfo(f'camera_info K has {k.size} entries, expected 9')
+    if not np.all(np.isfinite(k)):
+        raise BadCameraInfo(f'camera_info K has non-finite entries: {k.tolist()}')
+    if not np.any(k):
+        raise BadCameraInfo('camera_info K is all zeros (uncalibrated camera?)')
+    K = k.reshape(3, 3)
+    if K[0, 0] <= 0.0 or K[1, 1] <= 0.0:
+        raise BadCameraInfo(f'camera_info K has fx={K[0, 0]:g}, fy={K[1, 1]:g}; both must be > 0')
+    if K[2, 2] == 0.0:
+        raise BadCameraInfo('camera_info K[2][2] is 0 (expected 1)')
+    return K / K[2, 2], (int(msg.width), int(msg.height))
+
+
+def has_distortion(msg) -> bool:
+    """True when the CameraInfo carries non-zero distortion coefficients (the node assumes rectified input)."""
+    d = np.asarray(msg.d, dtype=np.float64).reshape(-1)
+    return bool(d.size and np.any(np.abs(d) > 1e-12))
+
+
+def scale_K(K_33, from_wh: tuple[int, int], to_wh: tuple[int, int]) -> np.ndarray:
+    """Intrinsics of an image resized from `from_wh` to `to_wh` (pixel centres at integers:
+    fx' = fx*sx, cx' = (cx + 0.5)*sx - 0.5, same for y)."""
+    return scale_intrinsics_np(K_33, to_wh[0] / from_wh[0], to_wh[1] / from_wh[1])
+
+
+def K_to_camera_info(K_33, width: int, height: int, header, frame_id: str | None = None,
+                     types: MessageTypes = ROS):
+    """A rectified pinhole CameraInfo: K, P = [K | 0], R = I, plumb_bob with zero distortion."""
+    K = np.asarray(K_33, dtype=np.float64).reshape(3, 3)
+    P = np.zeros((3, 4))
+    P[:, :3] = K
+    roi = types('sensor_msgs/msg/RegionOfInterest', x_offset=0, y_offset=0, height=0, width=0, do_rectify=False)
+    return types('sensor_msgs/msg/CameraInfo', header=_header(header, frame_id, types), height=int(height),
+                 width=int(width), distortion_model='plumb_bob', d=types.f64seq([0.0] * 5), k=_f64(K, 9),
+                 r=_f64(np.eye(3), 9), p=_f64(P, 12), binning_x=0, binning_y=0, roi=roi)
+
+
+# --------------------------------------------------------------------------------------------------------------
+# poses
+# --------------------------------------------------------------------------------------------------------------
+def _pose_fields_to_matrix(pose, what: str) -> np.ndarray:
+    p, o = pose.position, pose.orientation
+    t = np.array([p.x, p.y, p.z], dtype=np.float64)
+    q = np.array([o.x, o.y, o.z, o.w], dtype=np.float64)
+    if not (np.all(np.isfinite(t)) and np.all(np.isfinite(q))):
+        raise BadOdometry(f'{what} has NaN/inf: position {t.tolist()}, orientation {q.tolist()}')
+    n = float(np.linalg.norm(q))
+    if abs(n - 1.0) > 1e-3:
+        raise BadOdometry(f'{what} orientation is not a unit quaternion (norm {n:.6g})')
+    return make_pose(t, q)
+
+
+def odometry_to_matrix(msg) -> np.ndarray:
+    """nav_msgs/Odometry -> 4x4 T_world_base (header.frame_id <- child_frame_id). Raises BadOdometry."""
+    return _pose_fields_to_matrix(msg.pose.pose, 'odometry')
+
+
+def odometry_covariance(msg) -> np.ndarray | None:
+    """The pose covariance of a nav_msgs/Odometry as 6x6 (x, y, z, rotation about x, y, z), or None when the
+    publisher did not fill it (a diagonal that is not all finite and positive: zeros, or -1 for unknown)."""
+    cov = np.asarray(msg.pose.covariance, dtype=np.float64)
+    if cov.size != 36:
+        return None
+    cov = cov.reshape(6, 6)
+    d = np.diag(cov)
+    return cov if bool(np.all(np.isfinite(d)) and np.all(d > 0)) else None
+
+
+def pose_msg_to_matrix(pose) -> np.ndarray:
+    """geometry_msgs/Pose (or PoseStamped) -> 4x4. Raises BadOdometry for NaN / non-unit quaternions."""
+    return _pose_fields_to_matrix(getattr(pose, 'pose', pose), 'pose')
+
+
+def _pose_msg(T_44, types):
+    T = np.asarray(T_44, dtype=np.float64)
+    q = matrix_to_quat(T[:3, :3])
+    return types('geometry_msgs/msg/Pose',
+                 position=types('geometry_msgs/msg/Point', x=float(T[0, 3]), y=float(T[1, 3]), z=float(T[2, 3])),
+                 orientation=types('geometry_msgs/msg/Quaternion', x=float(q[0]), y=float(q[1]), z=float(q[2]),
+                                   w=float(q[3])))
+
+
+def matrix_to_pose_stamped(T_44, header, frame_id: str | None = None, types: MessageTypes = ROS):
+    return types('geometry_msgs/msg/PoseStamped', header=_header(header, frame_id, types), pose=_pose_msg(T_44, types))
+
+
+def matrix_to_odometry(T_world_base_44, header, child_frame_id: str, frame_id: str | None = None,
+                       types: MessageTypes = ROS, position_sigma: float = 0.0, rotation_sigma: float = 0.0):
+    """4x4 T_world_base -> nav_msgs/Odometry (zero twist; diagonal pose covariance from the sigmas)."""
+    cov = np.zeros((6, 6))
+    cov[[0, 1, 2], [0, 1, 2]] = position_sigma ** 2
+    cov[[3, 4, 5], [3, 4, 5]] = rotation_sigma ** 2
+    vec = lambda: types('geometry_msgs/msg/Vector3', x=0.0, y=0.0, z=0.0)  # noqa: E731
+    return types('nav_msgs/msg/Odometry', header=_header(header, frame_id, types), child_frame_id=str(child_frame_id),
+                 pose=types('geometry_msgs/msg/PoseWithCovariance', pose=_pose_msg(T_world_base_44, types),
+                            covariance=_f64(cov, 36)),
+                 twist=types('geometry_msgs/msg/TwistWithCovariance',
+                             twist=types('geometry_msgs/msg/Twist', linear=vec(), angular=vec()),
+                             covariance=_f64(np.zeros(36), 36)))
+
+
+# --------------------------------------------------------------------------------------------------------------
+# point clouds
+# --------------------------------------------------------------------------------------------------------------
+_FLOAT32 = 7  # sensor_msgs/PointField.FLOAT32
+
+
+def pack_rgb(rgb_n3) -> np.ndarray:
+    """uint8 RGB -> float32 whose bits are 0x00RRGGBB (the PCL / RViz 'rgb' field)."""
+    rgb = np.asarray(rgb_n3, dtype=np.uint32)
+    packed = (rgb[..., 0] << 16) | (rgb[..., 1] << 8) | rgb[..., 2]
+    return packed.astype('<u4').view('<f4')
+
+
+def unpack_rgb(rgb_f32) -> np.ndarray:
+    """Inverse of pack_rgb: float32 packed colours -> uint8 RGB."""
+    u = np.asarray(rgb_f32, dtype='<f4').view('<u4')
+    return np.stack([(u >> 16) & 255, (u >> 8) & 255, u & 255], axis=-1).astype(np.uint8)
+
+
+def depth_to_pointcloud(depth_hw, rgb_hw3, K_33, header, frame_id: str | None = None, skip_invalid: bool = False,
+                        types: MessageTypes = ROS):
+    """PointCloud2 XYZRGB (float32 x, y, z, packed rgb; point_step 16) in the camera (optical) frame.
+
+    skip_invalid False (default): organised HxW cloud, pixels without depth are NaN points, is_dense False
+    (what depth_image_proc publishes). True: only valid points, height 1, is_dense True.
+    `rgb_hw3` must have the depth's size.
+    """
+    depth = np.asarray(depth_hw, dtype=np.float32)
+    rgb = np.asarray(rgb_hw3, dtype=np.uint8)
+    h, w = depth.shape
+    if rgb.shape[:2] != (h, w):
+        raise ValueError(f'colour {rgb.shape[:2]} and depth {(h, w)} sizes differ')
+    K = np.asarray(K_33, dtype=np.float64)
+    u = np.arange(w, dtype=np.float32)[None, :]
+    v = np.arange(h, dtype=np.float32)[:, None]
+    valid = np.isfinite(depth) & (depth > 0.0)
+    z = np.where(valid, depth, np.float32(np.nan))
+    x = (u - np.float32(K[0, 2])) / np.float32(K[0, 0]) * z
+    y = (v - np.float32(K[1, 2])) / np.float32(K[1, 1]) * z
+    pts = np.empty((h, w, 4), dtype='<f4')
+    pts[..., 0], pts[..., 1], pts[..., 2] = x, y, z
+    pts[..., 3] = pack_rgb(rgb)
+    if skip_invalid:
+        pts = pts[valid][None]
+    ph, pw = pts.shape[:2]
+    fields = [types('sensor_msgs/msg/PointField', name=n, offset=4 * i, datatype=_FLOAT32, count=1)
+              for i, n in enumerate(('x', 'y', 'z', 'rgb'))]
+    return types('sensor_msgs/msg/PointCloud2', header=_header(header, frame_id, types), height=ph, width=pw,
+                 fields=fields, is_bigendian=False, point_step=16, row_step=16 * pw,
+                 data=types.u8(np.ascontiguousarray(pts).tobytes()), is_dense=bool(skip_invalid))
+
+
+def pointcloud_to_xyzrgb(msg) -> tuple[np.ndarray, np.ndarray]:
+    """PointCloud2 with float32 x, y, z and packed rgb -> (N x 3 float32 xyz, N x 3 uint8 rgb), NaNs kept."""
+    offsets = {f.name: int(f.offset) for f in msg.fields}
+    for name in ('x', 'y', 'z', 'rgb'):
+        if name not in offsets:
+            raise MessageError(f"point cloud has no '{name}' field (fields: {sorted(offsets)})")
+    n = int(msg.width) * int(msg.height)
+    raw = np.frombuffer(msg.data, dtype=np.uint8)
+    step = int(msg.point_step)
+    if raw.size < n * step:
+        raise MessageError(f'point cloud data length {raw.size} < width*height*point_step = {n * step}')
+    rows = raw[:n * step].reshape(n, step)
+    end = '>' if msg.is_bigendian else '<'
+    col = lambda name: rows[:, offsets[name]:offsets[name] + 4].copy().view(end + 'f4')[:, 0]  # noqa: E731
+    xyz = np.stack([col('x'), col('y'), col('z')], axis=1).astype(np.float32)
+    return xyz, unpack_rgb(col('rgb').astype('<f4'))
+
+
+
+def decimate_for_cloud(depth_hw, rgb_hw3, K_33, decimation: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Every ``decimation``-th pixel in each direction, starting at (0, 0), and the intrinsics of that grid.
+
+    Pixel (i, j) of the result is pixel (i * n, j * n) of the input, so with K' = K with its first two rows divided
+    by n it back-projects to exactly the same 3D point (u' = u / n: (u' - cx / n) / (fx / n) = (u - cx) / fx).
+    """
+    n = int(decimation)
+    if n < 1:
+        raise ValueError(f'decimation must be a positive integer, got {decimation!r}')
+    K = np.array(K_33, dtype=np.float64).reshape(3, 3)
+    K[:2] /= n
+    return np.asarray(depth_hw)[::n, ::n], np.asarray(rgb_hw3)[::n, ::n], K
+
+
+def depth_to_pointcloud_decimated(depth_hw, rgb_hw3, K_33, header, decimation: int = 1, frame_id: str | None = None,
+                                  types: MessageTypes = ROS):
+    """Organised XYZRGB PointCloud2 of every ``decimation``-th pixel (ceil(H/n) x ceil(W/n) points, NaN where no
+    depth): ``depth_to_pointcloud`` on ``decimate_for_cloud``'s grid. decimation 1 is the full organised cloud;
+    n shrinks the message n^2 times (640x480 at n = 4: 4.9 MB -> 0.31 MB)."""
+    depth, rgb, K = decimate_for_cloud(depth_hw, rgb_hw3, K_33, decimation)
+    return depth_to_pointcloud(depth, rgb, K, header, frame_id, skip_invalid=False, types=types)
+
+
+# --------------------------------------------------------------------------------------------------------------
+# compressedDepth (image_transport's compressed_depth_image_transport, PNG)
+# --------------------------------------------------------------------------------------------------------------
+#: The 12-byte header in front of the PNG: int32 compression format (0 = INV_DEPTH, written for every image),
+#: float32 depthParam[2] (the inverse-depth quantisation a, b; zero for 16UC1). Little-endian, as the plugin's
+#: memcpy of its struct on the platforms ROS 2 supports.
+COMPRESSED_DEPTH_HEADER = struct.Struct('<iff')
+COMPRESSED_DEPTH_INV_DEPTH = 0
+#: The plugin's parameter defaults (png_level, depth_max m, depth_quantization).
+COMPRESSED_DEPTH_DEFAULTS = {'png_level': 9, 'depth_max': 10.0, 'depth_quantization': 100.0}
+
+
+def compressed_depth_quantisation(depth_max: float, depth_quantization: float) -> tuple[np.float32, np.float32]:
+    """(a, b) of the 32FC1 inverse-depth code q = a / d + b, in float32 as the plugin computes them:
+    a = z0 * (z0 + 1), b = 1 - a / depth_max (z0 = depth_quantization). Defaults: a = 10100, b = -1009."""
+    z0 = np.float32(depth_quantization)
+    a = np.float32(z0 * (z0 + np.float32(1.0)))
+    b = np.float32(np.float32(1.0) - a / np.float32(depth_max))
+    return a, b
+
+
+def _png_u16(px_hw: np.ndarray, png_level: int) -> bytes:
+    import cv2
+    ok, buf = cv2.imencode('.png', np.ascontiguousarray(px_hw, dtype=np.uint16),
+                           [cv2.IMWRITE_PNG_COMPRESSION, int(png_level)])
+    if not ok:
+        raise BadImage('PNG encoding of the depth image failed')
+    return buf.tobytes()
+
+
+def depth_to_compressed_depth(depth_hw, header, frame_id: str | None = None, encoding: str = '16UC1',
+                              depth_max: float = 10.0, depth_quantization: float = 100.0, png_level: int = 9,
+                              types: MessageTypes = ROS):
+    """float depth in metres (NaN / inf / <= 0 = no estimate) -> sensor_msgs/CompressedImage as image_transport's
+    compressedDepth plugin publishes it (topic ``<image topic>/compressedDepth``), PNG flavour.
+
+    format ``'<encoding>; compressedDepth png'``; data = 12-byte ``COMPRESSED_DEPTH_HEADER`` + a 16-bit PNG:
+    - 16UC1: the image's millimetres (``depth_to_mm``), those above int(depth_max * 1000) set to 0; header
+      (INV_DEPTH, 0, 0).
+    - 32FC1: q = trunc(a / d + b) as uint16 (``compressed_depth_quantisation``), 0 for no estimate and for
+      d >= depth_max; header (INV_DEPTH, a, b). Depth resolution falls with distance (defaults: 0.1 mm at 1 m,
+      1 cm at 10 m). Depths closer than a / (65535 - b) (0.152 m by default) overflow the 16 bits in the plugin
+      (undefined in C++); here they saturate to code 65535, i.e. decode to that closest depth.
+    """
+    depth = np.asarray(depth_hw, dtype=np.float32)
+    if depth.ndim != 2:
+        raise ValueError(f'depth must be HxW, got shape {depth.shape}')
+    if not depth_max > 0 or not depth_quantization > 0:
+        raise ValueError('depth_max and depth_quantization must be positive')
+    if encoding == '16UC1':
+        px = depth_to_mm(depth)
+        px[px > int(depth_max * 1000.0)] = 0
+        head = COMPRESSED_DEPTH_HEADER.pack(COMPRESSED_DEPTH_INV_DEPTH, 0.0, 0.0)
+    elif encoding == '32FC1':
+        a, b = compressed_depth_quantisation(depth_max, depth_quantization)
+        keep = np.isfinite(depth) & (depth > 0.0) & (depth < np.float32(depth_max))
+        with np.errstate(divide='ignore', invalid='ignore'):
+            q = np.where(keep, a / depth + b, np.float32(0.0)).astype(np.float32)
+        px = np.trunc(np.clip(q, 0.0, 65535.0)).astype(np.uint16)
+        head = COMPRESSED_DEPTH_HEADER.pack(COMPRESSED_DEPTH_INV_DEPTH, float(a), float(b))
+    else:
+        raise UnsupportedEncoding(f"compressedDepth encodes {', '.join(DEPTH_ENCODINGS)}, got '{encoding}'")
+    return types('sensor_msgs/msg/CompressedImage', header=_header(header, frame_id, types),
+                 format=f'{encoding}; compressedDepth png', data=types.u8(head + _png_u16(px, png_level)))
+
+
+def compressed_depth_to_float(msg) -> np.ndarray:
+    """A compressedDepth (PNG) sensor_msgs/CompressedImage -> HxW float32 metres, NaN = no estimate.
+
+    Reads what ``depth_to_compressed_depth`` and image_transport's plugin write: 16UC1 millimetres (0 = none) or
+    32FC1 inverse-depth codes (d = a / (q - b) with a, b from the header; q = 0 = none). A format without
+    ``';'`` is the plugin's older PNG-only form; 'compressedDepth rvl' is not supported.
+    """
+    import cv2
+    fmt = str(msg.format)
+    encoding, _, rest = fmt.partition(';')
+    encoding = encoding.strip()
+    rest = rest.strip()
+    if rest and rest not in ('compressedDepth', 'compressedDepth png'):
+        raise UnsupportedEncoding(f"only PNG compressedDepth is supported, got format '{fmt}'")
+    if encoding.upper() not in DEPTH_ENCODINGS:
+        raise UnsupportedEncoding(f"compressedDepth image of encoding '{encoding}' (expected 32FC1 or 16UC1)")
+    data = bytes(msg.data)
+    n = COMPRESSED_DEPTH_HEADER.size
+    if len(data) <= n:
+        raise BadImage(f'compressedDepth data of {len(data)} bytes holds no image after its {n}-byte header')
+    _fmt_id, a, b = COMPRESSED_DEPTH_HEADER.unpack_from(data)
+    px = cv2.imdecode(np.frombuffer(data[n:], np.uint8), cv2.IMREAD_UNCHANGED)
+    if px is None or px.dtype != np.uint16 or px.ndim != 2:
+        raise BadImage('compressedDepth payload is not a single-channel 16-bit PNG')
+    if encoding.upper() == '16UC1':
+        return np.where(px == 0, np.float32(np.nan), px / np.float32(1000.0)).astype(np.float32)
+    q = px.astype(np.float32)
+    with np.errstate(divide='ignore'):
+        return np.where(px == 0, np.float32(np.nan), np.float32(a) / (q - np.float32(b))).astype(np.float32)

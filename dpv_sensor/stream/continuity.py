@@ -1,0 +1,105 @@
+"""The stream-continuity rules, each written once (no ROS, no torch).
+
+Rules between two consecutive frames of one camera stream:
+
+* time order (:func:`time_order`): a stamp equal to the previous one is a *duplicate* (the frame is dropped);
+  a smaller one means time went *backwards* (a bag restarting, a simulator reset: everything restarts);
+* size (:func:`size_change`): another image size restarts the stream;
+* intrinsics, time gap and teleport (:func:`stream_break`, which applies all rules for a posed frame):
+  the time gap is the camera stream's own (``sensor_gap_s`` when the caller gives it, else the time since the
+  previous frame; frames a busy caller left out do not make a gap), and a *teleport* (:func:`teleport`) is a pose
+  step no camera can make in the elapsed time: faster than ``odom_max_speed`` m/s and over
+  :data:`TELEPORT_FLOOR_M`, or turning faster than ``odom_max_rate_deg`` deg/s and over
+  :data:`TELEPORT_FLOOR_DEG`. A threshold of 0 disables a rule.
+
+Fast but smooth motion is no discontinuity: a 90 deg/s pan or a 1.5 m/s walk, with frames pushed a second apart,
+never resets (the filter's predict step warps the belief across any motion); a 0.5 m step between two frames
+1/30 s apart (15 m/s) does.
+
+One teleport rule for both places that see poses: the pose buffer (``pose_buffer``) applies :func:`teleport` to
+consecutive odometry messages, the estimator to consecutive pushed frames (offline, where poses come without a
+buffer). The estimator applies :func:`stream_break` to every pushed frame (its resets); the node applies
+:func:`time_order` and :func:`size_change` to each received image before it looks up the image's pose (a stream
+that went backwards also restarts the odometry buffer).
+"""
+from __future__ import annotations
+
+from typing import Optional, Tuple
+
+import numpy as np
+
+from dpv_sensor.core.geometry import pose_delta_np
+
+__all__ = ['teleport', 'time_order', 'size_change', 'stream_break', 'BACKWARDS', 'DUPLICATE', 'TELEPORT_FLOOR_M',
+           'TELEPORT_FLOOR_DEG']
+
+# A pose step is only a teleport when it is also larger than these (jitter of fast odometry is not one).
+TELEPORT_FLOOR_M = 0.1
+TELEPORT_FLOOR_DEG = 10.0
+
+BACKWARDS = 'backwards'
+DUPLICATE = 'duplicate'
+
+
+def time_order(previous: Optional[float], stamp: float) -> Optional[str]:
+    """None when ``stamp`` follows ``previous`` (or there is none), else :data:`DUPLICATE` or :data:`BACKWARDS`."""
+    if previous is None:
+        return None
+    if stamp == previous:
+        return DUPLICATE
+    if stamp < previous:
+        return BACKWARDS
+    return None
+
+
+def backwards_reason(previous: float, stamp: float, digits: int = 6) -> str:
+    return f'time went backwards ({stamp:.{digits}f} s after {previous:.{digits}f} s)'
+
+
+def size_change(previous: Optional[Tuple[int, int]], size: Tuple[int, int]) -> Optional[str]:
+    """The reason when the image size (w, h) changed, else None."""
+    if previous is None or tuple(previous) == tuple(size):
+        return None
+    return f'image size changed from {previous[0]}x{previous[1]} to {size[0]}x{size[1]}'
+
+
+def teleport(elapsed_s: float, distance_m: float, angle_deg: float, max_speed: float,
+             max_rate_deg: float) -> Optional[str]:
+    """Why a pose step of ``distance_m`` metres and ``angle_deg`` degrees in ``elapsed_s`` seconds is a teleport
+    (faster than ``max_speed`` m/s and over :data:`TELEPORT_FLOOR_M`, or faster than ``max_rate_deg`` deg/s and
+    over :data:`TELEPORT_FLOOR_DEG`), or None. A limit of 0 disables that half of the rule."""
+    dt = max(float(elapsed_s), 0.0)
+    if max_speed > 0 and distance_m > max(max_speed * dt, TELEPORT_FLOOR_M):
+        return (f'{distance_m:.3f} m in {dt:.3f} s ({distance_m / max(dt, 1e-9):.1f} m/s > '
+                f'odom_max_speed {max_speed:g} m/s)')
+    if max_rate_deg > 0 and angle_deg > max(max_rate_deg * dt, TELEPORT_FLOOR_DEG):
+        return (f'{angle_deg:.1f} deg in {dt:.3f} s ({angle_deg / max(dt, 1e-9):.0f} deg/s > '
+                f'odom_max_rate_deg {max_rate_deg:g} deg/s)')
+    return None
+
+
+def stream_break(last, stamp: float, T: np.ndarray, size, K_in, sensor_gap_s: Optional[float], *,
+                 reset_time_gap: float, max_speed: float, max_rate_deg: float) -> Optional[str]:
+    """Why the stream must restart at this frame, or None. ``last``: (stamp, T_world_cam, size, K) of the previous
+    accepted frame, or None. Duplicates are the caller's (:func:`time_order`) and never reach here."""
+    if last is None:
+        return None
+    last_stamp, last_T, last_size, last_K = last
+    if time_order(last_stamp, stamp) == BACKWARDS:
+        return backwards_reason(last_stamp, stamp)
+    changed = size_change(last_size, size)
+    if changed is not None:
+        return changed
+    if not np.allclose(K_in, last_K, rtol=1e-6, atol=1e-6):
+        return 'camera intrinsics changed'
+    elapsed = stamp - last_stamp
+    if sensor_gap_s is not None:
+        gap, where = float(sensor_gap_s), 'in the camera stream'
+    else:
+        gap, where = elapsed, 'since the previous frame'
+    if reset_time_gap > 0 and gap > reset_time_gap:
+        return f'time gap {gap:.3f} s {where} > reset_time_gap {reset_time_gap:g} s'
+    dt, dr = pose_delta_np(last_T, T)
+    jump = teleport(elapsed, dt, dr, max_speed, max_rate_deg)
+    return None if jump is None else f'pose teleported: {jump}'
+
