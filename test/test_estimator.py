@@ -1,4 +1,4 @@
-"""The streaming estimator (dpv_sensor/estimator.py) and keyframe selection (dpv_sensor/keyframes.py).
+"""The streaming estimator (dpv_sensor/stream/estimator.py) and keyframe selection (dpv_sensor/stream/keyframes.py).
 
 Scenes: a textured fronto-parallel plane rendered exactly by ray casting (numpy, below) for the
 behavioural tests, and the procedural renderer ``data.synthetic.render_sequence`` for accuracy.

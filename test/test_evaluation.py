@@ -1,4 +1,4 @@
-"""The evaluation runner (dpv_sensor/evaluation.py) and the `evaluate` tool, on tiny in-memory sequences."""
+"""The evaluation runner (dpv_sensor/evaluation/offline.py) and the `evaluate` tool, on tiny in-memory sequences."""
 from __future__ import annotations
 
 import csv

@@ -1,4 +1,4 @@
-"""TSDF fusion and mesh scoring (dpv_sensor/fusion.py) on a ray-cast box scene with exact depth."""
+"""TSDF fusion and mesh scoring (dpv_sensor/evaluation/fusion.py) on a ray-cast box scene with exact depth."""
 from __future__ import annotations
 
 import json

@@ -1,4 +1,4 @@
-"""Depth metrics on hand-computed cases (dpv_sensor/metrics.py)."""
+"""Depth metrics on hand-computed cases (dpv_sensor/evaluation/metrics.py)."""
 from __future__ import annotations
 
 import math

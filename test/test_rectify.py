@@ -1,4 +1,4 @@
-"""Rectification of distorted images (dpv_sensor/rectify.py): a synthetic image distorted with known
+"""Rectification of distorted images (dpv_sensor/core/rectify.py): a synthetic image distorted with known
 coefficients through OpenCV's own model comes back to the pinhole image."""
 from __future__ import annotations
 
