@@ -75,7 +75,6 @@ def write_report(out_dir, acc: M.MetricAccumulator, records: SequenceT[KeyframeR
     return files
 
 
-
 _TABLE_COLUMNS = [
     ('abs_rel', ('metric', 'frame_mean', 'abs_rel'), '{:.4f}'),
     ('sq_rel', ('metric', 'frame_mean', 'sq_rel'), '{:.4f}'),
