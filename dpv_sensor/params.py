@@ -311,6 +311,21 @@ def defaults(specs: Iterable[ParamSpec] = SPECS) -> dict[str, Any]:
     return {s.name: s.fresh_default() for s in specs}
 
 
+def expected_type(like: Any, length: int | None = None) -> str:
+    """How the one error message names the type a setting takes (``like``: a value of that type)."""
+    if isinstance(like, bool):
+        return 'bool (true or false)'
+    if isinstance(like, (list, tuple)):
+        return f'a list of {length} numbers' if length else 'a list of numbers'
+    return type(like).__name__
+
+
+def type_error(name: str, expected: str, value: Any) -> ParameterError:
+    """The one message for a value of the wrong type, shown by the node, the estimator and the tools alike:
+    ``parameter 'NAME' must be TYPE, got VALUE``."""
+    return ParameterError(f"parameter '{name}' must be {expected}, got {value!r}")
+
+
 def check_value(s: ParamSpec, value: Any) -> Any:
     """``value`` checked against its spec (type, choices, range); ints promoted where a float is expected.
     Raises ParameterError with the one message every front end shows."""
@@ -319,12 +334,15 @@ def check_value(s: ParamSpec, value: Any) -> Any:
         value = float(value)
     if kind is list:
         if not isinstance(value, (list, tuple)) or (s.length and len(value) != s.length):
-            raise ParameterError(f"parameter '{s.name}' must be a list of {s.length} numbers, got {value!r}")
-        value = [float(v) for v in value]
+            raise type_error(s.name, expected_type(s.default, s.length), value)
+        try:
+            value = [float(v) for v in value]
+        except (TypeError, ValueError):
+            raise type_error(s.name, expected_type(s.default, s.length), value) from None
         if not all(math.isfinite(v) for v in value):
             raise ParameterError(f"parameter '{s.name}' has a non-finite entry: {value!r}")
     elif not isinstance(value, kind) or (kind is int and isinstance(value, bool)):
-        raise ParameterError(f"parameter '{s.name}' must be {kind.__name__}, got {value!r}")
+        raise type_error(s.name, expected_type(s.default), value)
     if s.choices is not None and value not in s.choices:
         raise ParameterError(f"parameter '{s.name}' = {value!r} is not one of {list(s.choices)}")
     if kind in (int, float):
@@ -404,22 +422,26 @@ NodeConfig.__module__ = __name__
 # key=value parsing (the tools' --config / --param)
 # ------------------------------------------------------------------------------------------------------
 
-def parse_value(text: str, like: Any) -> Any:
-    """Parse ``text`` as the type of ``like`` (bool: true/false/1/0/yes/no/on/off; list: comma-separated floats,
-    brackets optional)."""
-    if isinstance(like, bool):
-        low = text.strip().lower()
-        if low in ('true', '1', 'yes', 'on'):
-            return True
-        if low in ('false', '0', 'no', 'off'):
-            return False
-        raise ValueError(f'{text!r} is not a boolean')
-    if isinstance(like, int):
-        return int(text)
-    if isinstance(like, float):
-        return float(text)
-    if isinstance(like, (list, tuple)):
-        return [float(x) for x in text.strip().strip('[]').split(',') if x.strip()]
+def parse_value(text: str, like: Any, name: str = 'value') -> Any:
+    """Parse ``text`` as the type of ``like`` (bool: true/false/1/0/yes/no/on/off; list: comma-separated numbers,
+    brackets optional). Text that is not of that type raises :func:`type_error` naming the setting ``name``."""
+    try:
+        if isinstance(like, bool):
+            low = text.strip().lower()
+            if low in ('true', '1', 'yes', 'on'):
+                return True
+            if low in ('false', '0', 'no', 'off'):
+                return False
+            raise ValueError(text)
+        if isinstance(like, int):
+            return int(text)
+        if isinstance(like, float):
+            return float(text)
+        if isinstance(like, (list, tuple)):
+            return [float(x) for x in text.strip().strip('[]').split(',') if x.strip()]
+    except ValueError:
+        length = SPEC_BY_NAME[name].length if name in SPEC_BY_NAME else None
+        raise type_error(name, expected_type(like, length), text) from None
     return text
 
 
@@ -441,7 +463,7 @@ def parse_assignments(items: Iterable[str], known: dict[str, Any] | None = None)
         key, value = split_assignment(item)
         if key not in known:
             raise ValueError(f'unknown configuration key {key!r}; known: {", ".join(sorted(known))}')
-        out[key] = parse_value(value, known[key])
+        out[key] = parse_value(value, known[key], key)
     return out
 
 

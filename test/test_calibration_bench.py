@@ -7,6 +7,7 @@ import pytest
 import torch
 
 from dpv_sensor.benchmarks import calibration as cal
+from dpv_sensor.common import to_jsonable
 from dpv_sensor.training.dataset import TRAIN_SEED_BASE
 
 from conftest import SHARED_DATA
@@ -71,7 +72,7 @@ def test_synthetic_tiny(model, tmp_path, capsys):
     tuned = [r for r in res['rows'] if '(tuned)' in r['source']]
     assert tuned and all(r['temperature'] == t['tuned'] for r in tuned)
     assert (tmp_path / 'sparsification_synthetic.png').stat().st_size > 0
-    json.dumps(cal._json_safe(res))                                   # JSON-ready
+    json.dumps(to_jsonable(res), allow_nan=False)                     # JSON-ready
     out = capsys.readouterr().out
     assert 'NLL meas 1/4' in out and 'synthetic' in out and f"tuned {t['tuned']:g}" in out
 

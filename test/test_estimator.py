@@ -14,7 +14,8 @@ import torch
 
 from dpv_sensor import params as P
 from dpv_sensor.stream.estimator import Estimator, EstimatorConfig, PoseRefinementRequest
-from dpv_sensor.evaluation.offline import evaluate_offline
+from dpv_sensor.evaluation.runner import EvalOptions, run_sequence
+from dpv_sensor.evaluation.scoring import score_records
 from dpv_sensor.stream.frame import DepthOutput, Frame
 from dpv_sensor.stream.keyframes import KeyframeSelector, KeyframeWindow, pose_delta
 
@@ -271,18 +272,19 @@ def test_classical_estimator_beats_constant_depth_on_rendered_sequence(seed, mod
     cfg = EstimatorConfig(measurement='classical', processing_width=160, processing_height=120, num_planes=32,
                           keyframe_translation=0.1, keyframe_rotation_deg=0.0, keyframe_max_interval=100,
                           window_mode=mode)
-    result = evaluate_offline(seq, cfg)
-    rows = result['rows']
-    assert len(rows) >= 3
+    records, status = run_sequence(seq, cfg, EvalOptions(progress=False), keep_images=False)
+    acc = score_records(records, min_depth=status['d_min'], max_depth=status['d_max'])
+    assert len(acc.rows) >= 3
     baseline = []
-    for row in rows:
+    for row in acc.rows:
         gt = seq.depth(row['index'])
         m = (gt >= 0.3) & (gt <= 8.0)
         baseline.append(np.mean(np.abs(np.median(gt[m]) - gt[m]) / gt[m]))
-    abs_rel = result['summary']['metric']['frame_mean']['abs_rel']
+    summary = acc.summary()
+    abs_rel = summary['metric']['frame_mean']['abs_rel']
     assert abs_rel < 0.7 * float(np.mean(baseline)), (abs_rel, np.mean(baseline))
-    assert result['summary']['coverage']['frame_mean'] > 0.8
-    assert result['status']['measurement'] == 'classical'
+    assert summary['coverage']['frame_mean'] > 0.8
+    assert status['measurement'] == 'classical'
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -772,27 +774,27 @@ def test_pose_refinement_requested_without_refiner_is_noted():
     assert any('no pose refiner' in n for n in est.status['notes'])
 
 
-def test_evaluate_offline_rows_and_outputs():
+def test_run_sequence_records_and_scores():
     from dpv_sensor.data.sequence import Sequence
     frames = sideways(5, step=0.05, w=160, h=120)
     depths = [render(f.T_world_cam_44, f.K_33, 160, 120)[1] for f in frames]
     seq = Sequence.from_arrays([f.image for f in frames], depths, np.stack([f.T_world_cam_44 for f in frames]),
                                frames[0].K_33, stamps=[f.stamp for f in frames])
     cfg = small_config(num_planes=32, processing_width=128, processing_height=96)
-    result = evaluate_offline(seq, cfg, keep_outputs=True)
-    assert [r['index'] for r in result['rows']] == [1, 2, 3, 4]
-    assert [o.stamp for o in result['outputs']] == [f.stamp for f in frames[1:]]
-    assert result['rows'][-1]['abs_rel'] < 0.05 and result['rows'][-1]['coverage'] > 0.8
-    assert result['summary']['num_frames'] == 4
-    assert result['status']['keyframes'] == 5
-    # input_poses: the estimator sees these instead of the GT (the depth is still scored against the GT)
+    records, status = run_sequence(seq, cfg, EvalOptions(progress=False))
+    rows = score_records(records, min_depth=status['d_min'], max_depth=status['d_max']).rows
+    assert [r['index'] for r in rows] == [1, 2, 3, 4]
+    assert [r.stamp for r in records] == [f.stamp for f in frames[1:]]
+    assert rows[-1]['abs_rel'] < 0.05 and rows[-1]['coverage'] > 0.8
+    assert status['keyframes'] == 5
+    # pose_source 'noisy': the estimator sees odometry-like poses (the depth is still scored against the GT)
     from dpv_sensor.data.trajectory import corrupt_trajectory
     noisy = corrupt_trajectory([seq.pose(i) for i in range(len(seq))], trans_noise_rel=0.5, rot_noise_deg=2.0, seed=1)
-    bad = evaluate_offline(seq, cfg, keep_outputs=True, input_poses=noisy)
-    np.testing.assert_allclose(bad['outputs'][-1].T_world_cam_44, noisy[-1])
-    assert bad['rows'][-1]['abs_rel'] > 2 * result['rows'][-1]['abs_rel']
-    with pytest.raises(ValueError, match='input_poses'):
-        evaluate_offline(seq, cfg, input_poses=noisy[:3])
+    options = EvalOptions(progress=False, pose_source='noisy', pose_noise=(0.5, 2.0), seed=1)
+    bad_records, _ = run_sequence(seq, cfg, options)
+    np.testing.assert_allclose(bad_records[-1].T_world_cam_44, noisy[-1])
+    bad = score_records(bad_records, min_depth=status['d_min'], max_depth=status['d_max']).rows
+    assert bad[-1]['abs_rel'] > 2 * rows[-1]['abs_rel']
 
 
 # ----------------------------------------------------------------------------------------------------

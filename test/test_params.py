@@ -58,3 +58,59 @@ def test_pose_refiner_sigmas_come_from_the_parameters():
     sig = odometry_between_sigmas(step, cfg)
     np.testing.assert_allclose(sig[:3], np.radians(2.0))
     np.testing.assert_allclose(sig[3:], 0.01 + 0.1 * 0.5)
+
+
+# ------------------------------------------------------------------------------------------------------
+# a value of the wrong type: one message naming the setting, its type and the value, wherever it comes in
+# ------------------------------------------------------------------------------------------------------
+
+WRONG_TYPES = [   # (setting, a Python value of the wrong type, command-line text of the wrong type, expected type)
+    ('keyframe_max_interval', 0.5, '0.5', 'int'),
+    ('damping', 'high', 'high', 'float'),
+    ('publish_between_keyframes', 1, 'maybe', 'bool (true or false)'),
+    ('T_base_camera', 'x', '0,0,0,0,0,x,1', 'a list of 7 numbers'),
+]
+
+
+@pytest.mark.parametrize('name,value,text,expected', WRONG_TYPES)
+def test_wrong_type_names_setting_type_and_value(name, value, text, expected):
+    message = f"parameter '{name}' must be {expected}, got {value!r}"
+    values = dict(P.defaults(P.SPECS + P.LIBRARY_SPECS), **{name: value})
+    with pytest.raises(P.ParameterError) as exc:
+        P.validate(values, P.SPECS + P.LIBRARY_SPECS)        # the node's parameters and evaluate's configuration
+    assert str(exc.value) == message
+    with pytest.raises(P.ParameterError) as exc:
+        P.check_value(P.spec(name), value)                  # the node's start-up and runtime checks
+    assert str(exc.value) == message
+    with pytest.raises(P.ParameterError) as exc:
+        P.parse_assignments([f'{name}={text}'])             # key=value on a command line
+    assert str(exc.value) == f"parameter '{name}' must be {expected}, got {text!r}"
+
+
+def test_wrong_type_of_a_choice_and_in_the_estimator_config():
+    from dpv_sensor.stream.estimator import EstimatorConfig
+    with pytest.raises(P.ParameterError, match=r"^parameter 'filter_mode' must be str, got 3$"):
+        P.check_value(P.spec('filter_mode'), 3)
+    with pytest.raises(P.ParameterError, match=r"^parameter 'filter_mode' = 'kalman' is not one of \['none'"):
+        P.check_value(P.spec('filter_mode'), 'kalman')
+    with pytest.raises(P.ParameterError, match=r"^parameter 'keyframe_max_interval' must be int, got 0\.5$"):
+        EstimatorConfig(keyframe_max_interval=0.5).validate()
+    with pytest.raises(P.ParameterError, match=r"^parameter 'T_base_camera' must be a list of 7 numbers, got \[1"):
+        P.check_value(P.spec('T_base_camera'), [1.0, 'a', 0.0, 0.0, 0.0, 0.0, 1.0])
+
+
+@pytest.mark.parametrize('assignment,message', [
+    ('keyframe_max_interval=0.5', "parameter 'keyframe_max_interval' must be int, got '0.5'"),
+    ('damping=high', "parameter 'damping' must be float, got 'high'"),
+    ('publish_between_keyframes=maybe', "parameter 'publish_between_keyframes' must be bool (true or false), "
+                                        "got 'maybe'"),
+    ('filter_mode=kalman', "parameter 'filter_mode' = 'kalman' is not one of ['none', 'bayes', 'global', 'knet']"),
+    ('T_base_camera=0,0,0,0,0,x,1', "parameter 'T_base_camera' must be a list of 7 numbers, got '0,0,0,0,0,x,1'"),
+    ('T_base_camera=0,0,0,1', "parameter 'T_base_camera' must be a list of 7 numbers, got [0.0, 0.0, 0.0, 1.0]"),
+])
+def test_evaluate_refuses_a_wrong_type_naming_the_setting(assignment, message, tmp_path, capsys):
+    from dpv_sensor.tools.evaluate import main
+    rc = main(['sequence', 'synthetic:0:3', '--out', str(tmp_path / 'out'), '--quiet', '--config', assignment])
+    assert rc == 2
+    assert capsys.readouterr().err.strip() == f'evaluate: {message}'
+    assert not (tmp_path / 'out').exists()

@@ -60,7 +60,10 @@ from dpv_sensor.core import dpv as dpvops
 from dpv_sensor.core.classical import ClassicalMeasurement
 from dpv_sensor.training.dataset import (TRAIN_SEED_BASE, VAL_SEEDS, WindowLayout, check_heldout_seeds,
                                 sample_from_sequence)
-from dpv_sensor.training.loop import TrainConfig, _json_safe, evaluate_batches, render_validation_batches
+from dpv_sensor.training.loop import TrainConfig, evaluate_batches, render_validation_batches
+from dpv_sensor import params as P
+from dpv_sensor.cli import add_setting
+from dpv_sensor.common import to_jsonable
 
 __all__ = ['run', 'main', 'sun3d_batches', 'tune_temperature', 'format_table', 'DEFAULT_TEMPERATURES',
            'SUN3D_SEQUENCES', 'CONFIDENT_HALF_TARGET']
@@ -220,8 +223,9 @@ def _best(rows: List[Dict], source: str) -> Optional[Dict]:
     return min(cand, key=lambda r: r['abs_rel']) if cand else None
 
 
-def run(model, *, synthetic_seeds: Seq[int] = tuple(range(6)), sun3d_windows: int = 2, width: int = 320,
-        height: int = 256, tune_seeds: Seq[int] = DEFAULT_TUNE_SEEDS,
+def run(model, *, synthetic_seeds: Seq[int] = tuple(range(6)), sun3d_windows: int = 2,
+        width: int = P.default('processing_width'), height: int = P.default('processing_height'),
+        tune_seeds: Seq[int] = DEFAULT_TUNE_SEEDS,
         temperatures: Seq[float] = DEFAULT_TEMPERATURES, num_keyframes: Optional[int] = None,
         gap: Optional[int] = None, skip_sun3d: bool = False, data_dir=DATA, out: Optional[str] = None,
         progress: bool = True, quiet: bool = False, readout: str = dpvops.DEFAULT_READOUT,
@@ -371,8 +375,8 @@ def main(argv: Optional[List[str]] = None) -> Dict:
     ap.add_argument('--sun3d-windows', type=int, default=2, help='windows per SUN3D fragment')
     ap.add_argument('--skip-sun3d', action='store_true')
     ap.add_argument('--data', default=str(DATA), help='folder holding the SUN3D sequences')
-    ap.add_argument('--width', type=int, default=320)
-    ap.add_argument('--height', type=int, default=256)
+    add_setting(ap, 'processing_width', '--width', dest='width')
+    add_setting(ap, 'processing_height', '--height', dest='height')
     ap.add_argument('--keyframes', type=int, default=None,
                     help='keyframes per window (default: TrainConfig.val_keyframes)')
     ap.add_argument('--tune-seeds', default=f'{DEFAULT_TUNE_SEEDS[0]}-{DEFAULT_TUNE_SEEDS[-1]}',
@@ -382,10 +386,8 @@ def main(argv: Optional[List[str]] = None) -> Dict:
     ap.add_argument('--json', default=None, help='write all results here')
     ap.add_argument('--out', default='out/calibration', help='folder for the sparsification PNGs')
     ap.add_argument('--threads', type=int, default=1)
-    ap.add_argument('--readout', default=dpvops.DEFAULT_READOUT, choices=dpvops.READOUT_CHOICES,
-                    help='depth readout (the node parameter depth_readout)')
-    ap.add_argument('--confidence', default=dpvops.DEFAULT_CONFIDENCE, choices=dpvops.CONFIDENCES,
-                    help='confidence definition (the node parameter confidence)')
+    add_setting(ap, 'depth_readout', '--readout', dest='readout')
+    add_setting(ap, 'confidence')
     ap.add_argument('--no-progress', action='store_true')
     a = ap.parse_args(argv)
     torch.set_num_threads(a.threads)
@@ -405,7 +407,7 @@ def main(argv: Optional[List[str]] = None) -> Dict:
     if a.json:
         pathlib.Path(a.json).parent.mkdir(parents=True, exist_ok=True)
         with open(a.json, 'w') as f:
-            json.dump(_json_safe(res), f, indent=1)
+            json.dump(to_jsonable(res), f, indent=1)
     return res
 
 

@@ -32,6 +32,8 @@ from dpv_sensor.core.classical import ClassicalMeasurement
 from dpv_sensor.core.dpv import depth_planes
 from dpv_sensor.core.filter import DPVFilter
 from dpv_sensor.core.geometry import make_se3, plane_sweep_warp, scale_intrinsics, so3_exp, warp_volume
+from dpv_sensor import params as P
+from dpv_sensor.cli import add_setting
 
 
 def _sync(device: torch.device) -> None:
@@ -58,9 +60,10 @@ def _pose(i: int, dtype, device) -> torch.Tensor:
     return make_se3(so3_exp(w), t)
 
 
-def run(sizes: Sequence[Tuple[int, int]] = ((320, 240), (640, 480)), num_planes: int = 64, views: int = 4,
-        downscale: int = 4, device: str = 'cpu', repeats: int = 5, threads: int | None = None,
-        d_min: float = 0.3, d_max: float = 8.0) -> Dict:
+def run(sizes: Sequence[Tuple[int, int]] = ((320, 240), (640, 480)), num_planes: int = P.default('num_planes'),
+        views: int = 4,
+        downscale: int = 4, device: str = P.default('device'), repeats: int = 5, threads: int | None = None,
+        d_min: float = P.default('d_min'), d_max: float = P.default('d_max')) -> Dict:
     """Time the core steps; returns {'config': ..., 'results': [{size, volume, step timings (s)}]}."""
     if threads is not None:
         torch.set_num_threads(int(threads))
@@ -115,10 +118,10 @@ def _parse_size(s: str) -> Tuple[int, int]:
 def main(argv: Iterable[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split('\n')[0])
     ap.add_argument('--sizes', nargs='+', default=['320x240', '640x480'])
-    ap.add_argument('--planes', type=int, default=64)
+    ap.add_argument('--planes', type=int, default=P.default('num_planes'))
     ap.add_argument('--views', type=int, default=4)
     ap.add_argument('--downscale', type=int, default=4)
-    ap.add_argument('--device', default='cpu')
+    add_setting(ap, 'device')
     ap.add_argument('--repeats', type=int, default=5)
     ap.add_argument('--threads', type=int, default=None)
     ap.add_argument('--json', action='store_true', help='print the result dict as JSON')

@@ -209,7 +209,7 @@ def plot(summary: Dict, path, title: Optional[str] = None) -> pathlib.Path:
 
 def breakdown_sequences(model, sequences: Sequence[Tuple[str, object, int]], *, mode: str = 'knet',
                         window_mode: str = P.default('window_mode'), pose_noise: Tuple[float, float] = (0.0, 0.0),
-                        device: str = 'cpu', progress=None) -> Dict:
+                        device: str = P.default('device'), progress=None) -> Dict:
     """Stream ``(name, sequence, seed)`` items through the estimator (node defaults plus mode / window_mode; GT
     poses, or odometry-like ones seeded by ``seed`` when ``pose_noise`` is set) and break down the error."""
     from dpv_sensor.evaluation.offline import EvalOptions, build_config, depth_limits, input_poses, run_sequence

@@ -26,6 +26,8 @@ import time
 from typing import Dict, List, Optional
 
 import torch
+from dpv_sensor import params as P
+from dpv_sensor.cli import add_setting
 
 __all__ = ['run', 'main']
 
@@ -61,8 +63,9 @@ def _estimator(model_name: str, width: int, height: int, device: str):
     return est, f'{model_name}: RANDOM-INIT weights (no trained checkpoint loads); cost is the same'
 
 
-def run(models=('classical', 'lite', 'paper'), width: int = 320, height: int = 256, keyframes: int = 6,
-        device: str = 'cpu', threads: Optional[int] = None) -> Dict:
+def run(models=('classical', 'lite', 'paper'), width: int = P.default('processing_width'),
+        height: int = P.default('processing_height'), keyframes: int = 6, device: str = P.default('device'),
+        threads: Optional[int] = None) -> Dict:
     """Time ``keyframes`` steady-state keyframe pushes per model; returns a dict of results."""
     if threads:
         torch.set_num_threads(int(threads))
@@ -115,10 +118,10 @@ def _print(results: Dict) -> None:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog='python -m dpv_sensor.benchmarks.estimator', description=__doc__.split('\n')[0])
     ap.add_argument('--models', default='classical,lite,paper', help='comma list of classical, lite, paper')
-    ap.add_argument('--width', type=int, default=320)
-    ap.add_argument('--height', type=int, default=256)
+    add_setting(ap, 'processing_width', '--width', dest='width')
+    add_setting(ap, 'processing_height', '--height', dest='height')
     ap.add_argument('--keyframes', type=int, default=6, help='timed keyframes per model (after 5 warm-up)')
-    ap.add_argument('--device', default='cpu')
+    add_setting(ap, 'device')
     ap.add_argument('--threads', type=int, default=None, help='torch.set_num_threads (default: torch default)')
     ap.add_argument('--json', default=None, help='also write the results here')
     args = ap.parse_args(argv)

@@ -1,6 +1,6 @@
 """Held-out evaluation of the trained lite network vs the classical model vs a constant depth.
 
-Runs dpv_sensor.evaluation.offline.evaluate_offline (the product's streaming path: keyframe selection, causal
+Runs dpv_sensor.evaluation.runner.run_sequence (the product's streaming path: keyframe selection, causal
 5-keyframe windows, filter, 320x256 processing, output at the input size) with GT poses on the given
 sequences (or, with ``--pose-noise``, odometry-like poses), for filter modes none / global / knet, and
 scores keyframe outputs with
@@ -23,8 +23,10 @@ import torch
 from dpv_sensor.data.sequence import Sequence
 from dpv_sensor.cli import add_setting
 from dpv_sensor.stream.estimator import EstimatorConfig
-from dpv_sensor.evaluation.offline import evaluate_offline
 from dpv_sensor.evaluation.metrics import MetricAccumulator
+from dpv_sensor.evaluation.runner import EvalOptions, depth_limits, run_sequence
+from dpv_sensor.evaluation.scoring import score_records
+from dpv_sensor import params as P
 
 # the shared development data folder, a sibling of the checkout (development machines only)
 DATA = str(pathlib.Path(__file__).resolve().parents[2].parent / 'shared' / 'data')
@@ -42,6 +44,14 @@ def load_model(path):
         m = DPVNet('lite')
         m.load_state_dict(load_file(path))
         return m.eval(), {}
+
+
+def evaluate(seq, cfg, options: EvalOptions, model=None):
+    """Keyframe rows and the summary of the sequence through the offline runner, scored in the estimator's range."""
+    records, status = run_sequence(seq, cfg, options, model=model, keep_images=False)
+    lo, hi = depth_limits(options, status)
+    acc = score_records(records, min_depth=lo, max_depth=hi, occlusion_tol=options.occlusion_tol)
+    return {'rows': acc.rows, 'summary': acc.summary()}
 
 
 def summarize(res):
@@ -81,7 +91,8 @@ def main():
     ap.add_argument('--seqs', nargs='*', default=['sun3d_3dmatch_frag1', 'sun3d_3dmatch_frag2'])
     ap.add_argument('--synthetic-seeds', default='', help="e.g. '0-9' (held-out synthetic seeds)")
     ap.add_argument('--synthetic-frames', type=int, default=60)
-    ap.add_argument('--modes', nargs='*', default=['none', 'global', 'knet'])
+    ap.add_argument('--modes', nargs='*', default=[m for m in P.choices('filter_mode') if m != 'bayes'],
+                    choices=P.choices('filter_mode'))
     add_setting(ap, 'window_mode')
     add_setting(ap, 'depth_readout', '--readout', dest='readout')
     add_setting(ap, 'confidence')
@@ -111,17 +122,17 @@ def main():
     for k, (name, seq) in enumerate(seqs):
         r = {}
         kf_idx = None
-        poses = None
+        # odometry-like poses (data.trajectory.corrupt_trajectory, seeded per sequence) or GT
+        options = EvalOptions(progress=False, consumer_odometry=False)
         if a.pose_noise is not None:
-            from dpv_sensor.data.trajectory import corrupt_trajectory
-            poses = corrupt_trajectory([seq.pose(i) for i in range(len(seq))], trans_noise_rel=a.pose_noise[0],
-                                       rot_noise_deg=a.pose_noise[1], seed=k)
+            options = EvalOptions(progress=False, consumer_odometry=False, pose_source='noisy',
+                                  pose_noise=tuple(a.pose_noise), seed=k)
         for mode in a.modes:
             t0 = time.time()
             cfg = EstimatorConfig(preset=model.preset.name, measurement='network', filter_mode=mode,
                                   num_planes=D, window_mode=a.window_mode, depth_readout=a.readout,
                                   confidence=a.confidence)
-            res = evaluate_offline(seq, cfg, model=model, input_poses=poses)
+            res = evaluate(seq, cfg, options, model=model)
             r[f'net_{mode}'] = summarize(res)
             kf_idx = [row['index'] for row in res['rows']]
             print(name, 'net', mode, json.dumps(r[f'net_{mode}']), f'{time.time() - t0:.0f}s', flush=True)
@@ -129,7 +140,7 @@ def main():
             for mode in [m for m in a.modes if m != 'knet']:
                 cfg = EstimatorConfig(measurement='classical', filter_mode=mode, window_mode=a.window_mode,
                                       depth_readout=a.readout, confidence=a.confidence)
-                res = evaluate_offline(seq, cfg, input_poses=poses)
+                res = evaluate(seq, cfg, options)
                 r[f'classical_{mode}'] = summarize(res)
                 print(name, 'classical', mode, json.dumps(r[f'classical_{mode}']), flush=True)
         r['constant_median'] = constant_baseline(seq, kf_idx, 0.3, 8.0)

@@ -43,6 +43,8 @@ import torch
 
 from dpv_sensor.core.nets.model import DPVNet, count_macs, count_parameters
 from dpv_sensor.ros.process_memory import proc_status_kib
+from dpv_sensor import params as P
+from dpv_sensor.cli import add_setting
 
 __all__ = ['run', 'main', 'parse_size']
 
@@ -139,7 +141,7 @@ def _window(width: int, height: int, num_sources: int, device):
 
 
 @torch.no_grad()
-def run_one(preset: str, size: Tuple[int, int], device='cpu', num_sources: int = 4, repeats: int = 5,
+def run_one(preset: str, size: Tuple[int, int], device=P.default('device'), num_sources: int = 4, repeats: int = 5,
             warmup: int = 1, amp: Optional[str] = None, channels_last: Optional[bool] = None,
             channels_last_3d: Optional[bool] = None) -> Dict:
     """Benchmark one preset at one size; see the module docstring for the fields."""
@@ -201,7 +203,7 @@ def run_one(preset: str, size: Tuple[int, int], device='cpu', num_sources: int =
 
 
 def run(presets: Sequence[str] = ('lite', 'paper'), sizes: Iterable[Tuple[int, int]] = DEFAULT_SIZES,
-        device: str = 'cpu', num_sources: int = 4, repeats: int = 5, warmup: int = 1,
+        device: str = P.default('device'), num_sources: int = 4, repeats: int = 5, warmup: int = 1,
         amp: Optional[str] = None, threads: Optional[int] = None, channels_last: Optional[bool] = None,
         channels_last_3d: Optional[bool] = None, verbose: bool = False) -> Dict:
     """Benchmark every preset x size; returns ``{'results': [run_one(...) dicts], 'torch': ..., ...}``."""
@@ -243,7 +245,7 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
     ap.add_argument('--presets', nargs='+', default=['lite', 'paper'])
     ap.add_argument('--sizes', nargs='+', type=parse_size, default=list(DEFAULT_SIZES), help='WxH ...')
-    ap.add_argument('--device', default='cpu', help='cpu or cuda[:i]')
+    add_setting(ap, 'device')
     ap.add_argument('--amp', choices=['bf16', 'fp16'], default=None, help='autocast dtype (bf16 also on the CPU)')
     ap.add_argument('--sources', type=int, default=4, help='source views per keyframe')
     ap.add_argument('--repeats', type=int, default=5)

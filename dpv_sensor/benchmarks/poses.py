@@ -56,6 +56,8 @@ from typing import Dict, List, Optional, Sequence as Seq
 import numpy as np
 import torch
 
+from dpv_sensor import params as P
+from dpv_sensor.common import to_jsonable
 from dpv_sensor.data.trajectory import corrupt_trajectory
 from dpv_sensor.stream.estimator import Estimator, EstimatorConfig
 from dpv_sensor.stream.frame import Frame
@@ -63,6 +65,9 @@ from dpv_sensor.evaluation.metrics import MetricAccumulator
 from dpv_sensor.core.photometric import pose_error
 from dpv_sensor.stream.poses import (PoseRefinerConfig, VisualOdometry, VisualOdometryConfig, WindowKeyframe,
                               WindowPoseRefiner)
+
+# the filter of these runs: the classical model's default measurement cannot drive knet (it needs a network)
+FILTER_MODE = 'global'
 
 REPO = pathlib.Path(__file__).resolve().parents[2]
 SHARED_DATA = REPO.parent / 'shared' / 'data'
@@ -87,7 +92,7 @@ def folder_keyframes(path: pathlib.Path, every: int, width: int, height: int):
 # ------------------------------------------------------------------------------------------------------------------
 # pipeline runs
 
-def estimator_config(seq, measurement: str, filter_mode: str = 'global') -> EstimatorConfig:
+def estimator_config(seq, measurement: str, filter_mode: str = FILTER_MODE) -> EstimatorConfig:
     """Every pushed frame is a keyframe (the sequences are already subsampled), output at processing size."""
     W, H = seq.size
     return EstimatorConfig(measurement='classical' if measurement == 'classical' else 'network',
@@ -128,7 +133,7 @@ class RunResult:
 def run_pipeline(name: str, seq, poses: Optional[Seq[np.ndarray]], measurement: str, *,
                  refiner: Optional[WindowPoseRefiner] = None, vo: Optional[VisualOdometry] = None,
                  model=None, max_depth: Optional[float] = None, garbage_frames: Seq[int] = (),
-                 filter_mode: str = 'global') -> RunResult:
+                 filter_mode: str = FILTER_MODE) -> RunResult:
     """Push the keyframes through an Estimator (with the refiner hook / VO when given) and score the outputs.
 
     ``garbage_frames``: indices whose image is replaced by uniform noise (bad input: tracking must be lost and no
@@ -479,7 +484,7 @@ def main(argv=None) -> int:
                    help='measurement model for the accuracy parts (network presets use random weights)')
     p.add_argument('--weights', default=None,
                    help='checkpoint for --measurement lite/paper (default: random weights, enough for timing)')
-    p.add_argument('--filter-mode', default='global', choices=['none', 'global', 'knet'],
+    p.add_argument('--filter-mode', default=FILTER_MODE, choices=P.choices('filter_mode'),
                    help='filter of the estimator runs (knet needs a network)')
     p.add_argument('--timing-measurement', default='lite', choices=['classical', 'lite', 'paper'])
     p.add_argument('--timing-repeats', type=int, default=3)
@@ -552,7 +557,7 @@ def main(argv=None) -> int:
     if args.json:
         pathlib.Path(args.json).parent.mkdir(parents=True, exist_ok=True)
         with open(args.json, 'w') as f:
-            json.dump(report, f, indent=1, default=lambda o: o.tolist() if hasattr(o, 'tolist') else str(o))
+            json.dump(to_jsonable(report), f, indent=1, default=str)
     return 0
 
 

@@ -27,9 +27,12 @@ import torch
 
 from dpv_sensor.training.dataset import parse_seeds
 from dpv_sensor.training.stream_validation import StreamValidationSpec, StreamValidator, stream_metric_key
+from dpv_sensor import params as P
+from dpv_sensor.cli import add_setting
 
 
-def score_weights(paths: List[str], spec: StreamValidationSpec, progress=None, device: str = 'cpu') -> Dict[str, Dict]:
+def score_weights(paths: List[str], spec: StreamValidationSpec, progress=None,
+                  device: str = P.default('device')) -> Dict[str, Dict]:
     """{path: {stream_[noisy_]net_<mode>: metrics, 'steps': steps in the metadata}} (sequences rendered once)."""
     from dpv_sensor.benchmarks.heldout import load_model
     validator = StreamValidator(spec)
@@ -113,10 +116,11 @@ def main(argv: Optional[List[str]] = None) -> int:
     ap.add_argument('--frames', type=int, default=60, help='frames per sequence (320x240, 30 Hz)')
     ap.add_argument('--pose-noise', type=float, nargs=2, default=[0.03, 0.5], metavar=('REL_T', 'ROT_DEG'),
                     help='odometry-like pose errors per frame of the noisy pass (0 0: GT poses only)')
-    ap.add_argument('--modes', nargs='+', default=['knet'], help='filter modes')
+    ap.add_argument('--modes', nargs='+', default=[P.default('filter_mode')], choices=P.choices('filter_mode'),
+                    help='filter modes')
     ap.add_argument('--threads', type=int, default=2)
-    ap.add_argument('--device', default='cpu', help='torch device of the estimator: cpu, cuda, cuda:N (the paper '
-                                                     'preset wants a GPU: 2.5 s a keyframe in float32 on a 2-core CPU)')
+    add_setting(ap, 'device', help='torch device of the estimator: cpu, cuda, cuda:N (the paper preset wants a GPU: '
+                                   '2.5 s a keyframe in float32 on a 2-core CPU)')
     ap.add_argument('--out', default=None, help='write the results as JSON here')
     a = ap.parse_args(argv)
     torch.set_num_threads(a.threads)

@@ -298,7 +298,8 @@ def confidence(logp_bdhw: torch.Tensor, depths_d: torch.Tensor, readout: str = '
 
 
 def ratio_confidence(logp_bdhw: torch.Tensor, depths_d: torch.Tensor, depth_bhw: torch.Tensor,
-                     ratio: float = 1.25, sigma_planes_bhw: Optional[torch.Tensor] = None) -> torch.Tensor:
+                     ratio: float = _params.default('confidence_ratio'),
+                     sigma_planes_bhw: Optional[torch.Tensor] = None) -> torch.Tensor:
     """Probability under the DPV that the true depth d lies within a factor ``ratio`` of the estimate:
     ``P(max(d / d_hat, d_hat / d) < ratio)``, i.e. that the pixel counts as correct by the delta < ratio
     accuracy measure (delta < 1.25 by default). Same bin model as :func:`confidence` (plane k's mass spread
@@ -327,7 +328,7 @@ DEFAULT_CONFIDENCE = _params.default('confidence')
 
 
 def published_confidence(logp_bdhw: torch.Tensor, depths_d: torch.Tensor, depth_bhw: torch.Tensor,
-                         mode: str = DEFAULT_CONFIDENCE, ratio: float = 1.25,
+                         mode: str = DEFAULT_CONFIDENCE, ratio: float = _params.default('confidence_ratio'),
                          sigma_planes_bhw: Optional[torch.Tensor] = None) -> torch.Tensor:
     """The confidence image the sensor publishes for the depth ``depth_bhw`` read out of a DPV (the node
     parameters ``confidence`` / ``confidence_ratio``): 'plane' = :func:`confidence` (mass within one plane

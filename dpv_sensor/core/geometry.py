@@ -27,11 +27,10 @@ Z_EPS = 1e-6
 BOUNDS_TOL = 1e-3
 
 __all__ = [
-    'scale_intrinsics', 'invert_se3', 'compose_se3', 'relative_se3', 'make_se3',
-    'rotation_matrix_to_quaternion', 'quaternion_to_rotation_matrix', 'slerp_quaternion',
-    'interpolate_se3', 'interpolate_se3_at_time', 'interpolate_se3_series', 'so3_exp', 'so3_log', 'se3_exp',
+    'scale_intrinsics', 'scale_intrinsics_np', 'invert_se3', 'make_se3', 'so3_exp', 'se3_exp',
     'rotation_angle', 'rotation_angle_np', 'relative_pose_error_np', 'quat_angle_deg', 'pixel_grid', 'backproject',
-    'project', 'transform_points',
+    'project', 'transform_points', 'quat_to_matrix', 'matrix_to_quat', 'slerp', 'make_pose', 'interpolate_pose',
+    'camera_grid_affine', 'camera_resample_grid', 'resample_to_camera',
     'plane_sweep_warp', 'warp_volume', 'warp_image_with_depth', 'inverse_depth_index', 'inverse_depth_step',
 ]
 
@@ -103,128 +102,9 @@ def invert_se3(T_b44: torch.Tensor) -> torch.Tensor:
     return make_se3(Rt, -(Rt @ t)[..., 0])
 
 
-def compose_se3(T_a_b: torch.Tensor, T_b_c: torch.Tensor) -> torch.Tensor:
-    """``T_a_c = T_a_b @ T_b_c`` (broadcasting batch dims)."""
-    return T_a_b @ T_b_c
-
-
-def relative_se3(T_world_a: torch.Tensor, T_world_b: torch.Tensor) -> torch.Tensor:
-    """``T_b_a = T_world_b^-1 T_world_a``: maps points of camera a into camera b."""
-    return invert_se3(T_world_b) @ T_world_a
-
-
 def transform_points(T_b44: torch.Tensor, points_b3n: torch.Tensor) -> torch.Tensor:
     """Apply ``T`` (Bx4x4) to points (Bx3xN): ``R X + t``."""
     return T_b44[..., :3, :3] @ points_b3n + T_b44[..., :3, 3:]
-
-
-def rotation_matrix_to_quaternion(R_b33: torch.Tensor) -> torch.Tensor:
-    """Unit quaternions ``(w, x, y, z)`` (w >= 0) of rotation matrices ``...x3x3``.
-
-    Numerically robust (picks the best-conditioned of the four standard formulas per element).
-    """
-    m = R_b33
-    m00, m01, m02 = m[..., 0, 0], m[..., 0, 1], m[..., 0, 2]
-    m10, m11, m12 = m[..., 1, 0], m[..., 1, 1], m[..., 1, 2]
-    m20, m21, m22 = m[..., 2, 0], m[..., 2, 1], m[..., 2, 2]
-    # 4*q_i^2 for each component, clamped at zero.
-    q_abs = torch.sqrt(torch.clamp(torch.stack([
-        1.0 + m00 + m11 + m22,
-        1.0 + m00 - m11 - m22,
-        1.0 - m00 + m11 - m22,
-        1.0 - m00 - m11 + m22,
-    ], dim=-1), min=1e-12))
-    # Candidate quaternions, each accurate when its own component is large.
-    cands = torch.stack([
-        torch.stack([q_abs[..., 0] ** 2, m21 - m12, m02 - m20, m10 - m01], dim=-1),
-        torch.stack([m21 - m12, q_abs[..., 1] ** 2, m10 + m01, m02 + m20], dim=-1),
-        torch.stack([m02 - m20, m10 + m01, q_abs[..., 2] ** 2, m12 + m21], dim=-1),
-        torch.stack([m10 - m01, m20 + m02, m21 + m12, q_abs[..., 3] ** 2], dim=-1),
-    ], dim=-2) / (2.0 * q_abs[..., :, None])
-    best = q_abs.argmax(dim=-1)
-    q = torch.gather(cands, -2, best[..., None, None].expand(*best.shape, 1, 4))[..., 0, :]
-    q = q / q.norm(dim=-1, keepdim=True)
-    return torch.where(q[..., :1] < 0, -q, q)
-
-
-def quaternion_to_rotation_matrix(q_b4: torch.Tensor) -> torch.Tensor:
-    """Rotation matrices of quaternions ``(w, x, y, z)`` (normalised first)."""
-    q = q_b4 / q_b4.norm(dim=-1, keepdim=True)
-    w, x, y, z = q.unbind(-1)
-    return torch.stack([
-        torch.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
-        torch.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
-        torch.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
-    ], -2)
-
-
-def slerp_quaternion(q0_b4: torch.Tensor, q1_b4: torch.Tensor, alpha_b: torch.Tensor) -> torch.Tensor:
-    """Spherical linear interpolation along the shortest arc; alpha=0 -> q0, alpha=1 -> q1."""
-    q0 = q0_b4 / q0_b4.norm(dim=-1, keepdim=True)
-    q1 = q1_b4 / q1_b4.norm(dim=-1, keepdim=True)
-    dot = (q0 * q1).sum(-1, keepdim=True)
-    q1 = torch.where(dot < 0, -q1, q1)
-    dot = dot.abs().clamp(max=1.0)
-    a = alpha_b[..., None]
-    theta = torch.acos(dot)
-    sin_theta = torch.sin(theta)
-    near = sin_theta < 1e-6
-    safe_sin = torch.where(near, torch.ones_like(sin_theta), sin_theta)
-    w0 = torch.where(near, 1.0 - a, torch.sin((1.0 - a) * theta) / safe_sin)
-    w1 = torch.where(near, a, torch.sin(a * theta) / safe_sin)
-    q = w0 * q0 + w1 * q1
-    return q / q.norm(dim=-1, keepdim=True)
-
-
-def interpolate_se3(T0_b44: torch.Tensor, T1_b44: torch.Tensor, alpha_b) -> torch.Tensor:
-    """Pose between T0 (alpha=0) and T1 (alpha=1): SLERP of the rotation, linear translation.
-
-    ``alpha_b`` is a tensor of shape (B,) (or a float); values outside [0, 1] extrapolate.
-    Works for any pose convention as long as both poses share it (e.g. ``T_world_cam``).
-    """
-    alpha = torch.as_tensor(alpha_b, dtype=T0_b44.dtype, device=T0_b44.device)
-    alpha = alpha.expand(T0_b44.shape[:-2]) if alpha.dim() == 0 else alpha
-    q0 = rotation_matrix_to_quaternion(T0_b44[..., :3, :3])
-    q1 = rotation_matrix_to_quaternion(T1_b44[..., :3, :3])
-    R = quaternion_to_rotation_matrix(slerp_quaternion(q0, q1, alpha))
-    t0, t1 = T0_b44[..., :3, 3], T1_b44[..., :3, 3]
-    t = t0 + alpha[..., None] * (t1 - t0)
-    return make_se3(R, t)
-
-
-def interpolate_se3_at_time(stamp0: float, T0_b44: torch.Tensor, stamp1: float, T1_b44: torch.Tensor,
-                            stamp: float) -> torch.Tensor:
-    """Pose at time ``stamp`` from poses at ``stamp0`` and ``stamp1`` (SLERP + linear).
-
-    A stamp outside [stamp0, stamp1] extrapolates; equal stamps return T0.
-    """
-    dt = float(stamp1) - float(stamp0)
-    alpha = 0.0 if dt == 0.0 else (float(stamp) - float(stamp0)) / dt
-    return interpolate_se3(T0_b44, T1_b44, alpha)
-
-
-def interpolate_se3_series(stamps_n, T_n44: torch.Tensor, stamp: float,
-                           max_extrapolation: float = 0.0) -> Optional[torch.Tensor]:
-    """Pose (4x4) at ``stamp`` from a time-sorted series of poses (e.g. buffered odometry).
-
-    Interpolates (SLERP + linear) between the two poses that bracket ``stamp``. Outside the
-    series, extrapolates from the nearest two poses if the stamp is at most ``max_extrapolation``
-    seconds beyond the end, else returns None. A single pose is returned only for its exact stamp
-    (or within ``max_extrapolation``).
-    """
-    stamps = torch.as_tensor(stamps_n, dtype=torch.float64).reshape(-1)
-    n = stamps.numel()
-    if n == 0 or T_n44.shape[0] != n:
-        return None
-    t = float(stamp)
-    first, last = float(stamps[0]), float(stamps[-1])
-    if t < first - max_extrapolation or t > last + max_extrapolation:
-        return None
-    if n == 1:
-        return T_n44[0]
-    i = int(torch.searchsorted(stamps, torch.tensor(t, dtype=torch.float64), right=True)) - 1
-    i = min(max(i, 0), n - 2)
-    return interpolate_se3_at_time(float(stamps[i]), T_n44[i][None], float(stamps[i + 1]), T_n44[i + 1][None], t)[0]
 
 
 def _hat(w_b3: torch.Tensor) -> torch.Tensor:
@@ -255,15 +135,6 @@ def rotation_angle(R_b33: torch.Tensor) -> torch.Tensor:
                      R_b33[..., 1, 0] - R_b33[..., 0, 1]], -1)
     return torch.atan2(0.5 * v.norm(dim=-1), 0.5 * (tr - 1.0))
 
-
-def so3_log(R_b33: torch.Tensor) -> torch.Tensor:
-    """Axis-angle vector of a rotation matrix (inverse of :func:`so3_exp`), via quaternions."""
-    q = rotation_matrix_to_quaternion(R_b33)
-    w, v = q[..., :1], q[..., 1:]
-    n = v.norm(dim=-1, keepdim=True)
-    angle = 2.0 * torch.atan2(n, w)
-    scale = torch.where(n < 1e-8, 2.0 / w.clamp_min(1e-12), angle / n.clamp_min(1e-30))
-    return v * scale
 
 
 def se3_exp(xi_b6: torch.Tensor) -> torch.Tensor:
@@ -543,6 +414,34 @@ def quat_angle_deg(q0_4: np.ndarray, q1_4: np.ndarray) -> float:
     return math.degrees(2.0 * math.acos(min(1.0, abs(float(np.dot(q0_4, q1_4))))))
 
 
+def camera_grid_affine(K_src_33, K_dst_33) -> Tuple[float, float, float, float]:
+    """(ax, ay, bx, by): destination pixel (u, v) of camera grid ``K_dst`` lies at source coordinate
+    ``(ax u + bx, ay v + by)`` of grid ``K_src``, both grids of the same pinhole camera (scale and offset only):
+    ``u_src = fx_src / fx_dst * (u - cx_dst) + cx_src``."""
+    Ks = torch.as_tensor(K_src_33, dtype=torch.float64).reshape(3, 3)
+    Kd = torch.as_tensor(K_dst_33, dtype=torch.float64).reshape(3, 3)
+    ax = float(Ks[0, 0] / Kd[0, 0])
+    ay = float(Ks[1, 1] / Kd[1, 1])
+    bx = float(Ks[0, 2]) - ax * float(Kd[0, 2])
+    by = float(Ks[1, 2]) - ay * float(Kd[1, 2])
+    return ax, ay, bx, by
+
+
+def camera_resample_grid(affine: Tuple[float, float, float, float], src_hw: Tuple[int, int],
+                         dst_hw: Tuple[int, int], dtype: torch.dtype) -> torch.Tensor:
+    """The ``grid_sample(align_corners=True)`` grid, (1, H_dst, W_dst, 2), that reads a map of size ``src_hw`` at
+    the source coordinates of :func:`camera_grid_affine` (pixel centres at integer coordinates)."""
+    ax, ay, bx, by = affine
+    Hs, Ws = int(src_hw[0]), int(src_hw[1])
+    Hd, Wd = int(dst_hw[0]), int(dst_hw[1])
+    u = torch.arange(Wd, dtype=torch.float64) * ax + bx
+    v = torch.arange(Hd, dtype=torch.float64) * ay + by
+    gx = (2.0 * u / max(Ws - 1, 1) - 1.0).to(dtype)
+    gy = (2.0 * v / max(Hs - 1, 1) - 1.0).to(dtype)
+    gyy, gxx = torch.meshgrid(gy, gx, indexing='ij')
+    return torch.stack([gxx, gyy], -1)[None]
+
+
 def resample_to_camera(x_bchw: torch.Tensor, K_src_33, K_dst_33, dst_hw: Tuple[int, int],
                        mode: str = 'bilinear') -> torch.Tensor:
     """Resample a map defined on camera grid ``K_src`` (its own size) onto grid ``K_dst`` of size dst_hw.
@@ -553,21 +452,10 @@ def resample_to_camera(x_bchw: torch.Tensor, K_src_33, K_dst_33, dst_hw: Tuple[i
     ``grid_sample(align_corners=True)`` on pixel-centre coordinates, borders clamped. ``mode``:
     'bilinear' or 'nearest'.
     """
-    Ks = torch.as_tensor(K_src_33, dtype=torch.float64).reshape(3, 3)
-    Kd = torch.as_tensor(K_dst_33, dtype=torch.float64).reshape(3, 3)
     B, C, Hs, Ws = x_bchw.shape
-    Hd, Wd = int(dst_hw[0]), int(dst_hw[1])
-    ax = float(Ks[0, 0] / Kd[0, 0])
-    ay = float(Ks[1, 1] / Kd[1, 1])
-    bx = float(Ks[0, 2]) - ax * float(Kd[0, 2])
-    by = float(Ks[1, 2]) - ay * float(Kd[1, 2])
     dt, dev = (x_bchw.dtype if x_bchw.is_floating_point() else torch.float32), x_bchw.device
-    u = torch.arange(Wd, dtype=torch.float64) * ax + bx
-    v = torch.arange(Hd, dtype=torch.float64) * ay + by
-    gx = (2.0 * u / max(Ws - 1, 1) - 1.0).to(dt)
-    gy = (2.0 * v / max(Hs - 1, 1) - 1.0).to(dt)
-    gyy, gxx = torch.meshgrid(gy, gx, indexing='ij')
-    grid = torch.stack([gxx, gyy], -1)[None].expand(B, Hd, Wd, 2).to(dev)
+    grid = camera_resample_grid(camera_grid_affine(K_src_33, K_dst_33), (Hs, Ws), dst_hw, dt)
+    grid = grid.expand(B, int(dst_hw[0]), int(dst_hw[1]), 2).to(dev)
     src = x_bchw if x_bchw.is_floating_point() else x_bchw.to(dt)
     return F.grid_sample(src, grid, mode=mode, padding_mode='border', align_corners=True)
 

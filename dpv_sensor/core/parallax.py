@@ -25,7 +25,7 @@ from typing import List, Sequence
 import numpy as np
 import torch
 
-from dpv_sensor.core.geometry import Z_EPS, backproject, project, rotation_angle, transform_points
+from dpv_sensor.core.geometry import Z_EPS, backproject, project, rotation_angle, scale_intrinsics_np, transform_points
 
 __all__ = ['disparity_span', 'parallax_support', 'pose_parallax_score', 'select_sources', 'BAND_RATIO',
            'rotation_noise_px']
@@ -106,11 +106,7 @@ def pose_parallax_score(T_world_ref_44: np.ndarray, T_world_src_44: np.ndarray, 
     K = np.asarray(K_33, dtype=np.float64)
     # a coarse grid with the intrinsics of every step-th pixel
     hs, ws = max(1, h // step), max(1, w // step)
-    Kc = K.copy()
-    Kc[0, 0] *= ws / w
-    Kc[1, 1] *= hs / h
-    Kc[0, 2] = (K[0, 2] + 0.5) * ws / w - 0.5
-    Kc[1, 2] = (K[1, 2] + 0.5) * hs / h - 0.5
+    Kc = scale_intrinsics_np(K, ws / w, hs / h)
     T_src_ref = np.linalg.inv(np.asarray(T_world_src_44, dtype=np.float64)) @ np.asarray(T_world_ref_44,
                                                                                            dtype=np.float64)
     Kt = torch.as_tensor(Kc, dtype=torch.float32)[None]

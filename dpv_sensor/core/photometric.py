@@ -40,8 +40,8 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from dpv_sensor.core.geometry import (BOUNDS_TOL, Z_EPS, backproject, project, relative_pose_error_np, scale_intrinsics,
-                                 transform_points)
+from dpv_sensor.core.geometry import (BOUNDS_TOL, Z_EPS, backproject, camera_grid_affine, camera_resample_grid, project,
+                                      relative_pose_error_np, scale_intrinsics, transform_points)
 
 __all__ = ['AlignmentConfig', 'AlignmentResult', 'Aligner', 'ImagePyramid', 'align_photometric', 'to_gray',
            'resample_map', 'pose_error', 'twist_to_gtsam_order', 'inverse_depth_std_from_confidence']
@@ -192,21 +192,13 @@ def resample_map(maps_chw: torch.Tensor, valid_hw: torch.Tensor, K_src_33, K_dst
     coordinates. ``maps_chw``: (C, h, w); returns ((C, H, W) with 0 where invalid, (H, W) validity: at least half
     of the interpolation weight came from valid pixels).
     """
-    Ks = _as_tensor(K_src_33, torch.float64)
-    Kd = _as_tensor(K_dst_33, torch.float64)
     C, hs, ws = maps_chw.shape
     H, W = int(size[0]), int(size[1])
     dt = maps_chw.dtype
-    ax, ay = float(Ks[0, 0] / Kd[0, 0]), float(Ks[1, 1] / Kd[1, 1])
-    bx, by = float(Ks[0, 2]) - ax * float(Kd[0, 2]), float(Ks[1, 2]) - ay * float(Kd[1, 2])
+    ax, ay, bx, by = affine = camera_grid_affine(K_src_33, K_dst_33)
     if (H, W) == (hs, ws) and abs(ax - 1) < 1e-9 and abs(ay - 1) < 1e-9 and abs(bx) < 1e-9 and abs(by) < 1e-9:
         return torch.where(valid_hw[None], maps_chw, torch.zeros_like(maps_chw)), valid_hw
-    u = torch.arange(W, dtype=torch.float64) * ax + bx
-    v = torch.arange(H, dtype=torch.float64) * ay + by
-    gx = (2.0 * u / max(ws - 1, 1) - 1.0).to(dt)
-    gy = (2.0 * v / max(hs - 1, 1) - 1.0).to(dt)
-    gyy, gxx = torch.meshgrid(gy, gx, indexing='ij')
-    grid = torch.stack([gxx, gyy], -1)[None].to(maps_chw.device)
+    grid = camera_resample_grid(affine, (hs, ws), (H, W), dt).to(maps_chw.device)
     vf = valid_hw.to(dt)
     src = torch.cat([torch.where(valid_hw[None], maps_chw, torch.zeros_like(maps_chw)) * vf[None], vf[None]], 0)
     out = F.grid_sample(src[None], grid, mode='bilinear', padding_mode='zeros', align_corners=True)[0]

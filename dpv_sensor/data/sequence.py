@@ -31,6 +31,7 @@ import cv2
 import numpy as np
 
 from dpv_sensor.core.geometry import scale_intrinsics_np  # noqa: F401  (re-exported: the resize convention)
+from dpv_sensor.common import to_jsonable
 
 PathLike = Union[str, os.PathLike]
 
@@ -541,15 +542,7 @@ def write_sequence(folder: PathLike, seq, lossless: bool = False, jpeg_quality: 
     meta = getattr(seq, 'meta', None)
     if meta:
         with open(folder / 'meta.json', 'w') as f:
-            json.dump(meta, f, indent=1, sort_keys=True, default=_json_default)
+            json.dump(to_jsonable(meta), f, indent=1, sort_keys=True)
     return folder
 
 
-def _json_default(obj):
-    if isinstance(obj, np.generic):
-        return obj.item()
-    if isinstance(obj, np.ndarray):
-        return obj.tolist()
-    if isinstance(obj, pathlib.PurePath):
-        return str(obj)
-    raise TypeError(f'{type(obj).__name__} is not JSON serialisable')

@@ -2,7 +2,7 @@
 
 No ROS here. ``Pipeline(config).push(frame) -> PushResult`` is what the node calls per image (after converting the
 message and looking the odometry pose up) and what
-``evaluation.offline.run_sequence`` / ``evaluation.offline.evaluate_offline`` call per frame of a
+``evaluation.runner.run_sequence`` (the one offline runner) calls per frame of a
 sequence, so odometry-free mode, pose refinement and their tracking-loss rules behave the same online and offline.
 
 The pose source (:class:`PoseSource`), built from the :class:`~dpv_sensor.stream.estimator.EstimatorConfig`:

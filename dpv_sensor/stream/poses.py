@@ -64,7 +64,7 @@ import gtsam
 import numpy as np
 
 from dpv_sensor import params as _params
-
+from dpv_sensor.core.geometry import rotation_angle_np
 from dpv_sensor.core.photometric import (AlignmentConfig, AlignmentResult, Aligner, ImagePyramid,
                                    inverse_depth_std_from_confidence, pose_error)
 
@@ -477,7 +477,7 @@ class WindowPoseRefiner:
         nearest = min(sources, key=lambda s: _key_distance(s.key, ref.key))
         rel = _rel(init[nearest.key], init[ref.key])
         parallax = float(np.linalg.norm(rel[:3, 3])) / float(np.median(d))
-        angle = math.acos(float(np.clip((np.trace(rel[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)))
+        angle = rotation_angle_np(rel[:3, :3])
         if angle > limit * parallax:
             return (f'turning in place: {math.degrees(angle):.1f} deg to the nearest keyframe against a baseline of '
                     f'{parallax:.4f} x the median depth (ratio {angle / max(parallax, 1e-12):.1f} > {limit:g})')

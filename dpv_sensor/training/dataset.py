@@ -40,6 +40,7 @@ import torch
 from torch.utils.data import IterableDataset, get_worker_info
 
 from dpv_sensor.core.geometry import scale_intrinsics_np
+from dpv_sensor import params as P
 
 TRAIN_SEED_BASE = 1_000_000
 VAL_SEEDS = range(0, 100)
@@ -86,7 +87,7 @@ class WindowLayout:
     needed and step j's window is keyframes ``j .. j + window - 1``.
     """
     steps: int = 3
-    window: int = 5
+    window: int = P.default('window_size')
     ref_position: str = 'center'
 
     def __post_init__(self):

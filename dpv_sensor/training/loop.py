@@ -96,7 +96,7 @@ MODULES = ('features', 'cost_volume', 'knet', 'rnet')
 @dataclasses.dataclass
 class TrainConfig:
     """Everything a training run depends on (stored in every checkpoint's state.json)."""
-    preset: str = 'lite'
+    preset: str = _params.default('preset')
     run_dir: str = 'train_runs/lite'
     export_path: Optional[str] = None     # default: dpv_sensor/weights/<preset>.safetensors
     width: int = 128                      # training image size (multiple of 4)
@@ -105,7 +105,7 @@ class TrainConfig:
     steps: int = 4000                     # total optimiser steps (cosine schedule length)
     batch_size: int = 2
     unroll: int = 2                       # K filter steps per sample
-    window: int = 5
+    window: int = _params.default('window_size')
     ref_position: str = 'last'            # validation window (and training when ref_mix is off)
     ref_mix: bool = True                  # train on centered and causal windows (drawn per batch)
     gap_min: int = 2

@@ -28,6 +28,7 @@ from typing import Dict, List, Optional, Sequence as Seq, Tuple
 import numpy as np
 
 from dpv_sensor.training.dataset import check_heldout_seeds
+from dpv_sensor import params as P
 
 __all__ = ['StreamValidationSpec', 'StreamValidator', 'stream_metric_key']
 
@@ -100,7 +101,7 @@ class StreamValidator:
     def pose_sources(self) -> Tuple[str, ...]:
         return ('gt', 'noisy') if self.spec.noisy else ('gt',)
 
-    def __call__(self, model, device='cpu', progress=None) -> Dict[str, Dict]:
+    def __call__(self, model, device=P.default('device'), progress=None) -> Dict[str, Dict]:
         """``{stream_[noisy_]net_<mode>: metrics}`` for ``model`` on ``device`` (see module docstring).
 
         progress: an optional callable(str) told the result of each (pose source, mode) pass over the
