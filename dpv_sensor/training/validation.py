@@ -9,7 +9,8 @@ same windows for comparison. The streaming validation through the product's Esti
 """
 from __future__ import annotations
 
-from typing import Dict, List, Sequence as Seq
+import dataclasses
+from typing import Any, Dict, List, Sequence as Seq, Tuple
 
 import numpy as np
 import torch
@@ -94,7 +95,6 @@ def evaluate_batches(model, batches: List[Dict[str, torch.Tensor]], depths_d: to
     curve. With ``curves=True`` each entry also carries ``sparsification_curves``
     (:meth:`MetricAccumulator.mean_curves`: numpy arrays, not JSON).
     """
-    from dpv_sensor.evaluation.metrics import MetricAccumulator
     was_training = model.training if model is not None else False
     if model is not None:
         model.eval()
@@ -103,68 +103,106 @@ def evaluate_batches(model, batches: List[Dict[str, torch.Tensor]], depths_d: to
         sources.append(('net', model))
     if classical is not None:
         sources.append(('classical', classical))
+    opts = _ScoreOptions(depths_d, device, readout, confidence, confidence_ratio, keep_last)
     results: Dict = {}
-    examples = []
+    examples: List[Dict] = []
     for name, src in sources:
-        ro = dpvops.resolve_readout(readout, learned=name == 'net')
-        accs = {m: MetricAccumulator() for m in modes}
-        nlls = {m: {'nll_meas_q': [], 'nll_filtered_q': [], 'nll_full': []} for m in modes}
-        for bi, batch in enumerate(batches):
-            batch = batch_to_device(batch, device)
-            if name == 'net':
-                meas = measure_steps(src, batch)
-            else:
-                meas = _classical_steps(src, batch)
-            for mode in modes:
-                if name == 'classical' and mode == 'knet':
-                    continue
-                if name == 'net':
-                    res = filter_steps(src, meas, depths_d, mode)
-                else:
-                    res = filter_steps(_NoKnet(), meas, depths_d, mode, refine=False)
-                for j, (m, r) in enumerate(zip(meas, res)):
-                    gt = m['gt']
-                    gq = quarter_gt(gt, m['logp_q'].shape[-2:])
-                    nlls[mode]['nll_meas_q'].append(float(dpvops.nll(m['logp_q'].float(), depths_d, gq)))
-                    nlls[mode]['nll_filtered_q'].append(float(dpvops.nll(r['filtered_q'].float(), depths_d, gq)))
-                    if 'logp_full' in r:
-                        lp = r['logp_full'].float()
-                        nlls[mode]['nll_full'].append(float(dpvops.nll(lp, depths_d, gt)))
-                        depth = dpvops.depth_estimate(lp, depths_d, ro)
-                        conf = dpvops.published_confidence(lp, depths_d, depth, confidence, confidence_ratio)
-                    else:                                   # classical: upsample the quarter-res maps
-                        lq = r['filtered_q'].float()
-                        H, W = gt.shape[-2:]
-                        dq = dpvops.depth_estimate(lq, depths_d, ro)
-                        depth = _upsample_map(dq, (H, W))
-                        conf = _upsample_map(dpvops.published_confidence(lq, depths_d, dq, confidence,
-                                                                         confidence_ratio), (H, W))
-                    for b in range(gt.shape[0]):
-                        accs[mode].add(_np(depth[b]), _np(gt[b]), confidence=_np(conf[b]))
-                    if keep_last and bi == 0 and j == len(meas) - 1:
-                        examples.append(dict(source=name, mode=mode, image=_np(m['image'][0]).transpose(1, 2, 0),
-                                             gt=_np(gt[0]), depth=_np(depth[0]), conf=_np(conf[0])))
-        for mode in modes:
-            if name == 'classical' and mode == 'knet':
-                continue
-            s = accs[mode].summary()
-            fm = s['metric']['frame_mean']
-            conf = s.get('confidence', {})
-            entry = {'abs_rel': fm['abs_rel'], 'delta1': fm['delta1'], 'rmse': fm['rmse'],
-                     'confident_half_ratio': conf.get('confident_half_ratio_frame_mean', float('nan')),
-                     'confident_half_ratio_pooled': conf.get('confident_half_ratio_pooled', float('nan')),
-                     'ause': conf.get('ause_frame_mean', float('nan')),
-                     'aurg': conf.get('aurg_of_mean_curve', float('nan')),
-                     'frames': s['num_frames']}
-            if curves:
-                entry['sparsification_curves'] = accs[mode].mean_curves()
-            for k, v in nlls[mode].items():
-                entry[k] = float(np.mean(v)) if v else float('nan')
-            results[f'{name}_{mode}'] = entry
+        scores = _score_source(name, src, batches, _source_modes(name, modes), opts, examples)
+        for mode, mode_scores in scores.items():
+            results[f'{name}_{mode}'] = mode_scores.entry(curves)
     if model is not None and was_training:
         model.train()
     results['examples'] = examples
     return results
+
+
+@dataclasses.dataclass
+class _ScoreOptions:
+    """How :func:`evaluate_batches` turns DPVs into scored depth and confidence."""
+    depths_d: torch.Tensor
+    device: Any
+    readout: str
+    confidence: str
+    confidence_ratio: float
+    keep_last: bool
+
+
+@dataclasses.dataclass
+class _ModeScores:
+    """What one (source, filter mode) collects over the validation frames."""
+    acc: Any                                # MetricAccumulator
+    nll_meas_q: List[float] = dataclasses.field(default_factory=list)
+    nll_filtered_q: List[float] = dataclasses.field(default_factory=list)
+    nll_full: List[float] = dataclasses.field(default_factory=list)
+
+    def add_step(self, m: Dict, r: Dict, readout: str, opts: _ScoreOptions) -> Tuple[torch.Tensor, torch.Tensor]:
+        """Score one unrolled step (measurement ``m``, filter result ``r``); returns its depth and confidence."""
+        depths_d = opts.depths_d
+        gt = m['gt']
+        gq = quarter_gt(gt, m['logp_q'].shape[-2:])
+        self.nll_meas_q.append(float(dpvops.nll(m['logp_q'].float(), depths_d, gq)))
+        self.nll_filtered_q.append(float(dpvops.nll(r['filtered_q'].float(), depths_d, gq)))
+        if 'logp_full' in r:
+            lp = r['logp_full'].float()
+            self.nll_full.append(float(dpvops.nll(lp, depths_d, gt)))
+            depth = dpvops.depth_estimate(lp, depths_d, readout)
+            conf = dpvops.published_confidence(lp, depths_d, depth, opts.confidence, opts.confidence_ratio)
+        else:                                   # classical: upsample the quarter-res maps
+            lq = r['filtered_q'].float()
+            H, W = gt.shape[-2:]
+            dq = dpvops.depth_estimate(lq, depths_d, readout)
+            depth = _upsample_map(dq, (H, W))
+            conf = _upsample_map(dpvops.published_confidence(lq, depths_d, dq, opts.confidence,
+                                                             opts.confidence_ratio), (H, W))
+        for b in range(gt.shape[0]):
+            self.acc.add(_np(depth[b]), _np(gt[b]), confidence=_np(conf[b]))
+        return depth, conf
+
+    def entry(self, curves: bool) -> Dict:
+        """The validation entry of this (source, mode): depth and confidence metrics, then the mean NLLs."""
+        s = self.acc.summary()
+        fm = s['metric']['frame_mean']
+        conf = s.get('confidence', {})
+        entry = {'abs_rel': fm['abs_rel'], 'delta1': fm['delta1'], 'rmse': fm['rmse'],
+                 'confident_half_ratio': conf.get('confident_half_ratio_frame_mean', float('nan')),
+                 'confident_half_ratio_pooled': conf.get('confident_half_ratio_pooled', float('nan')),
+                 'ause': conf.get('ause_frame_mean', float('nan')),
+                 'aurg': conf.get('aurg_of_mean_curve', float('nan')),
+                 'frames': s['num_frames']}
+        if curves:
+            entry['sparsification_curves'] = self.acc.mean_curves()
+        for k, v in (('nll_meas_q', self.nll_meas_q), ('nll_filtered_q', self.nll_filtered_q),
+                     ('nll_full', self.nll_full)):
+            entry[k] = float(np.mean(v)) if v else float('nan')
+        return entry
+
+
+def _source_modes(name: str, modes: Seq[str]) -> List[str]:
+    """The filter modes a source is scored in (the classical model has no K-Net)."""
+    return [m for m in modes if not (name == 'classical' and m == 'knet')]
+
+
+def _score_source(name: str, src, batches: List[Dict[str, torch.Tensor]], modes: Seq[str], opts: _ScoreOptions,
+                  examples: List[Dict]) -> Dict[str, _ModeScores]:
+    """Run one source ('net' or 'classical') over the batches in every mode; appends the last step of the first
+    batch per mode to ``examples`` (with ``keep_last``)."""
+    from dpv_sensor.evaluation.metrics import MetricAccumulator
+    readout = dpvops.resolve_readout(opts.readout, learned=name == 'net')
+    scores = {mode: _ModeScores(MetricAccumulator()) for mode in modes}
+    for bi, batch in enumerate(batches):
+        batch = batch_to_device(batch, opts.device)
+        meas = measure_steps(src, batch) if name == 'net' else _classical_steps(src, batch)
+        for mode in modes:
+            if name == 'net':
+                res = filter_steps(src, meas, opts.depths_d, mode)
+            else:
+                res = filter_steps(_NoKnet(), meas, opts.depths_d, mode, refine=False)
+            for j, (m, r) in enumerate(zip(meas, res)):
+                depth, conf = scores[mode].add_step(m, r, readout, opts)
+                if opts.keep_last and bi == 0 and j == len(meas) - 1:
+                    examples.append(dict(source=name, mode=mode, image=_np(m['image'][0]).transpose(1, 2, 0),
+                                         gt=_np(m['gt'][0]), depth=_np(depth[0]), conf=_np(conf[0])))
+    return scores
 
 
 class _NoKnet:
