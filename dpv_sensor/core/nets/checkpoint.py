@@ -4,7 +4,7 @@ File layout (standard safetensors): 8-byte little-endian header length N, N byte
 (tensor names, dtypes, shapes, data offsets, and a ``__metadata__`` dict of strings), then the raw
 tensor data. dpv_sensor stores its metadata as one JSON document under ``__metadata__['dpv_sensor']``:
 
-    format          'dpv_sensor.core.nets/1'
+    format          'dpv_sensor.nets/1' (a file-format name, not a module path: it stays when modules move)
     preset          preset name;  preset_config: the full Preset (so a customised one round-trips)
     num_planes (and D), d_min, d_max, input_size [w, h]
     training_data, steps, validation_metrics     (from the caller; None when not given)
@@ -36,7 +36,7 @@ from dpv_sensor.core.nets.presets import Preset, get_preset, preset_from_dict
 __all__ = ['CheckpointError', 'save_checkpoint', 'load_checkpoint', 'read_metadata', 'default_weights_path',
            'code_version', 'FORMAT', 'METADATA_KEY']
 
-FORMAT = 'dpv_sensor.core.nets/1'
+FORMAT = 'dpv_sensor.nets/1'         # the file format's name; every shipped and trained file carries it
 METADATA_KEY = 'dpv_sensor'
 _MAX_HEADER = 100 * 2 ** 20          # safetensors' own limit on the JSON header
 # Preset fields that neither shape the weights nor change what they compute (memory chunking, the
