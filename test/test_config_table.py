@@ -18,7 +18,8 @@ SETTINGS = {s.name for s in P.SPECS + P.LIBRARY_SPECS}
 # frame or message (the node's frame_id setting is only the fallback for images without one), and benchmark
 # experiments that pass their own values on purpose.
 OTHER_MEANING = {('fusion.py', 'min_confidence'), ('tools/fuse.py', 'min_confidence'), ('training/config.py', 'preset'),
-                 ('training/config.py', 'device'), ('frame.py', 'frame_id'), ('keyframes.py', 'frame_id'),
+                 ('training/config.py', 'device'),
+                 ('training/checkpoints.py', 'device'), ('frame.py', 'frame_id'), ('keyframes.py', 'frame_id'),
                  ('client/ros_io.py', 'frame_id'),
                  # the odometry child frame a written bag carries, not the node's TF parent
                  ('data/rosbag_io.py', 'base_frame'), ('tools/bag.py', 'base_frame')}
