@@ -91,7 +91,7 @@ def test_refuses_training_seeds_as_heldout(model):
 
 
 def test_render_batches_split_guard():
-    from dpv_sensor.training.loop import render_validation_batches
+    from dpv_sensor.training.validation import render_validation_batches
     lay = cal._layout(5)
     with pytest.raises(ValueError):
         render_validation_batches([3], 5, 2, W, H, lay, split='train')

@@ -17,7 +17,7 @@ import torch
 
 from dpv_sensor.training.dataset import (TRAIN_SEED_BASE, VAL_SEEDS, SceneStream, StreamConfig, WindowLayout,
                                          check_not_heldout)
-from dpv_sensor.training import loop
+from dpv_sensor.training import checkpoints, config, loop, unrolled, validation
 
 from conftest import cpu_native_bf16
 
@@ -54,7 +54,7 @@ def test_seed_sharding_is_disjoint_and_never_validation():
             check_not_heldout(f'/x/data/{name}')
     check_not_heldout('/x/data/tartanair_hospital')
     with pytest.raises(ValueError):
-        loop.TrainConfig(val_seeds=(150,)).check()
+        config.TrainConfig(val_seeds=(150,)).check()
 
 
 def test_sample_layout_geometry_and_determinism():
@@ -88,7 +88,7 @@ def test_run_played_backwards_keeps_time_moving_forward():
     assert np.allclose(np.diff(st), 3 / 30, atol=1e-4)           # the spacing of the frames, mirrored
     model = DPVNet('lite')
     with torch.no_grad():
-        _, stats = loop.run_unrolled(model, {k: v[None] for k, v in smp.items()}, model.depth_planes())
+        _, stats = unrolled.run_unrolled(model, {k: v[None] for k, v in smp.items()}, model.depth_planes())
     assert stats['resets'] == 0
 
 
@@ -132,7 +132,7 @@ def test_unrolled_loss_falls_and_reaches_every_net():
     opt = torch.optim.AdamW(model.parameters(), lr=2e-3)
     losses = []
     for it in range(10):
-        loss, stats = loop.run_unrolled(model, batch, depths, aux_weight=0.5)
+        loss, stats = unrolled.run_unrolled(model, batch, depths, aux_weight=0.5)
         assert math.isfinite(stats['loss']) and stats['resets'] == 0
         opt.zero_grad()
         loss.backward()
@@ -152,10 +152,10 @@ def test_optimizer_state_roundtrip_without_pickle():
         opt.zero_grad()
         m(torch.randn(5, 3)).sum().backward()
         opt.step()
-    tensors, meta = loop._optimizer_to_flat(opt)
+    tensors, meta = checkpoints._optimizer_to_flat(opt)
     meta = json.loads(json.dumps(meta))
     opt2 = torch.optim.AdamW(m.parameters(), lr=5.0)
-    opt2.load_state_dict(loop._optimizer_from_flat(tensors, meta))
+    opt2.load_state_dict(checkpoints._optimizer_from_flat(tensors, meta))
     s1, s2 = opt.state_dict(), opt2.state_dict()
     assert s2['param_groups'][0]['lr'] == pytest.approx(1e-2)
     for pid in s1['state']:
@@ -164,7 +164,7 @@ def test_optimizer_state_roundtrip_without_pickle():
 
 
 def _tiny_config(tmp_path, steps):
-    return loop.TrainConfig(preset='lite', run_dir=str(tmp_path / 'run'),
+    return config.TrainConfig(preset='lite', run_dir=str(tmp_path / 'run'),
                             export_path=str(tmp_path / 'w' / 'lite.safetensors'),
                             width=48, height=32, steps=steps, batch_size=1, unroll=2, gap_min=2, gap_max=3,
                             warmup=1, num_workers=0, threads=1, ckpt_every=2, log_every=1, val_every=3,
@@ -177,7 +177,7 @@ def test_trainer_checkpoint_resume_and_export(tmp_path):
     out = loop.train(_tiny_config(tmp_path, steps=3), quiet=True)
     assert out['step'] == 3
     run = tmp_path / 'run'
-    ck = loop.latest_checkpoint(str(run))
+    ck = checkpoints.latest_checkpoint(str(run))
     assert ck is not None and ck.name == 'step_0000003'
     state = json.loads((ck / 'state.json').read_text())
     assert state['step'] == 3 and state['samples_seen'] == 3
@@ -204,7 +204,7 @@ def test_trainer_checkpoint_resume_and_export(tmp_path):
     assert t.loader().dataset.start_index == 3          # the data stream continues, no scene repeats
     out = t.train()
     assert out['step'] == 5
-    assert loop.latest_checkpoint(str(run)).name == 'step_0000005'
+    assert checkpoints.latest_checkpoint(str(run)).name == 'step_0000005'
     rows = [json.loads(line) for line in (run / 'train.jsonl').read_text().splitlines()]
     assert [r['step'] for r in rows] == [1, 2, 3, 4, 5]
 
@@ -228,44 +228,44 @@ def test_train_modules_knet_updates_only_knet(tmp_path):
     assert meta['trained_modules'] == ['knet'] and 'D-Net' not in meta['loss']
     with pytest.raises(ValueError, match='train_modules'):
         dataclasses.replace(cfg, train_modules=('dnet',)).check()
-    assert loop.TrainConfig.from_json(cfg.to_json()).train_modules == ('knet',)
+    assert config.TrainConfig.from_json(cfg.to_json()).train_modules == ('knet',)
 
 
 def test_selection_metric_names():
-    assert loop.parse_select_metric('abs_rel_knet') == ('abs_rel', 'knet', 'clean', False)
-    assert loop.parse_select_metric('confident_half_ratio_global_noisy') == \
+    assert config.parse_select_metric('abs_rel_knet') == ('abs_rel', 'knet', 'clean', False)
+    assert config.parse_select_metric('confident_half_ratio_global_noisy') == \
         ('confident_half_ratio', 'global', 'noisy', False)
-    assert loop.parse_select_metric('nll_full_knet_both') == ('nll_full', 'knet', 'both', False)
-    assert loop.parse_select_metric('stream_abs_rel_knet_both') == ('abs_rel', 'knet', 'both', True)
-    assert loop.parse_select_metric('stream_delta1_global') == ('delta1', 'global', 'clean', True)
+    assert config.parse_select_metric('nll_full_knet_both') == ('nll_full', 'knet', 'both', False)
+    assert config.parse_select_metric('stream_abs_rel_knet_both') == ('abs_rel', 'knet', 'both', True)
+    assert config.parse_select_metric('stream_delta1_global') == ('delta1', 'global', 'clean', True)
     for bad in ('abs_rel', 'abs_rel_kalman', 'abs_rel_knet_noisier', '_knet', 'stream_knet', 'stream_'):
         with pytest.raises(ValueError):
-            loop.parse_select_metric(bad)
+            config.parse_select_metric(bad)
     with pytest.raises(ValueError, match='val_pose_noise'):
-        loop.parse_select_metric('abs_rel_knet_both', noisy_validation=False)
+        config.parse_select_metric('abs_rel_knet_both', noisy_validation=False)
     with pytest.raises(ValueError, match='val_stream_seeds'):
-        loop.parse_select_metric('stream_abs_rel_knet', stream_validation=False)
+        config.parse_select_metric('stream_abs_rel_knet', stream_validation=False)
     with pytest.raises(ValueError, match='val_stream_pose_noise'):
-        loop.parse_select_metric('stream_abs_rel_knet_noisy', stream_noisy_validation=False)
+        config.parse_select_metric('stream_abs_rel_knet_noisy', stream_noisy_validation=False)
     # the window validation's noisy poses are not needed for a streaming score, and the other way round
-    assert loop.parse_select_metric('stream_abs_rel_knet_both', noisy_validation=False).stream
+    assert config.parse_select_metric('stream_abs_rel_knet_both', noisy_validation=False).stream
     m = {'net_knet': {'abs_rel': 0.1}, 'noisy_net_knet': {'abs_rel': 0.3},
          'stream_net_knet': {'abs_rel': 0.2}, 'stream_noisy_net_knet': {'abs_rel': 0.6}}
-    assert loop.select_score(m, 'abs_rel_knet') == 0.1
-    assert loop.select_score(m, 'abs_rel_knet_noisy') == 0.3
-    assert loop.select_score(m, 'abs_rel_knet_both') == pytest.approx(0.2)
-    assert loop.select_score(m, 'abs_rel_global') is None
-    assert loop.select_score(m, 'stream_abs_rel_knet') == 0.2
-    assert loop.select_score(m, 'stream_abs_rel_knet_both') == pytest.approx(0.4)
-    assert loop.select_score(m, 'stream_abs_rel_global_both') is None
+    assert config.select_score(m, 'abs_rel_knet') == 0.1
+    assert config.select_score(m, 'abs_rel_knet_noisy') == 0.3
+    assert config.select_score(m, 'abs_rel_knet_both') == pytest.approx(0.2)
+    assert config.select_score(m, 'abs_rel_global') is None
+    assert config.select_score(m, 'stream_abs_rel_knet') == 0.2
+    assert config.select_score(m, 'stream_abs_rel_knet_both') == pytest.approx(0.4)
+    assert config.select_score(m, 'stream_abs_rel_global_both') is None
     # a run asks for the validations its selection metric needs
     with pytest.raises(ValueError, match='val_stream_seeds'):
-        loop.TrainConfig(select_metric='stream_abs_rel_knet').check()
+        config.TrainConfig(select_metric='stream_abs_rel_knet').check()
     with pytest.raises(ValueError, match='not held out'):
-        loop.TrainConfig(val_stream_seeds=(100,)).check()
-    cfg = loop.TrainConfig(val_stream_seeds=(20, 21), select_metric='stream_abs_rel_global_both').check()
+        config.TrainConfig(val_stream_seeds=(100,)).check()
+    cfg = config.TrainConfig(val_stream_seeds=(20, 21), select_metric='stream_abs_rel_global_both').check()
     assert cfg.stream_spec().modes == ('knet', 'global') and cfg.stream_spec().noisy
-    assert loop.TrainConfig.from_json(json.loads(json.dumps(cfg.to_json()))) == cfg
+    assert config.TrainConfig.from_json(json.loads(json.dumps(cfg.to_json()))) == cfg
 
 
 def test_streaming_validation_scores_whole_sequences_through_the_estimator(tmp_path):
@@ -341,7 +341,7 @@ def test_cpu_bf16_training_step_matches_float32():
     for name, enabled in (('fp32', False), ('bf16', True)):
         model.zero_grad(set_to_none=True)
         with torch.autocast('cpu', dtype=torch.bfloat16, enabled=enabled):
-            loss, _ = loop.run_unrolled(model, batch, depths, aux_weight=0.5)
+            loss, _ = unrolled.run_unrolled(model, batch, depths, aux_weight=0.5)
         assert loss.dtype == torch.float32
         loss.backward()
         losses[name] = float(loss.detach())
@@ -363,7 +363,7 @@ def test_noisy_pose_validation_corrupts_relative_poses_and_is_reported(tmp_path)
     t = loop.Trainer(cfg, quiet=True)
     clean, noisy = t.val_batches(), t.noisy_val_batches()
     assert t.noisy_val_batches() is noisy
-    again = loop.corrupt_validation_batches(clean, 0.05, 1.0)
+    again = validation.corrupt_validation_batches(clean, 0.05, 1.0)
     for b, n, n2 in zip(clean, noisy, again):
         assert torch.equal(b['images'], n['images']) and torch.equal(b['depths'], n['depths'])
         torch.testing.assert_close(n['poses'], n2['poses'])
@@ -372,7 +372,7 @@ def test_noisy_pose_validation_corrupts_relative_poses_and_is_reported(tmp_path)
                     for i in range(n['poses'].shape[1] - 1))
         assert moved > 1e-3
     metrics = t.validate()
-    for mode in loop.FILTER_MODES:
+    for mode in config.FILTER_MODES:
         assert f'noisy_net_{mode}' in metrics and f'net_{mode}' in metrics
     assert metrics['noisy_net_knet']['abs_rel'] != metrics['net_knet']['abs_rel']
     row = json.loads((tmp_path / 'run' / 'val.jsonl').read_text().splitlines()[-1])
@@ -532,7 +532,7 @@ def test_distributed_training_under_torchrun_on_cpu(tmp_path):
     finals = [json.loads(line) for line in res.stdout.splitlines() if line.startswith('{"step"')]
     assert sorted(f['step'] for f in finals) == [3, 3]
     assert sum(f['best'] is not None for f in finals) == 1          # only rank 0 validates
-    state = json.loads((loop.latest_checkpoint(str(tmp_path / 'run')) / 'state.json').read_text())
+    state = json.loads((checkpoints.latest_checkpoint(str(tmp_path / 'run')) / 'state.json').read_text())
     assert state['world_size'] == 2 and state['samples_seen'] == 3
     assert [v['step'] for v in state['history']['val']] == [0, 3]
     _, meta = load_checkpoint(str(tmp_path / 'w.safetensors'))

@@ -17,13 +17,13 @@ What is scored (per dataset x source x filter mode):
   (:mod:`dpv_sensor.evaluation.metrics`), and whether the mean sparsification curve lies below the random one
   (at every removed fraction > 0).
 
-Everything is computed by :func:`dpv_sensor.training.loop.evaluate_batches` (the training loop's
+Everything is computed by :func:`dpv_sensor.training.validation.evaluate_batches` (the training loop's
 validation: D-Net / classical measurement of every unrolled step, ``DPVFilter`` in mode none / global /
 knet, R-Net), on windows laid out like the training validation (``TrainConfig``: 8 keyframes, causal
 5-keyframe windows, i.e. 4 filter steps per window):
 
 * **synthetic**: held-out seeds (0..99, never trained on) rendered by
-  :func:`~dpv_sensor.training.loop.render_validation_batches`, keyframes ``val_gap`` frames apart;
+  :func:`~dpv_sensor.training.validation.render_validation_batches`, keyframes ``val_gap`` frames apart;
 * **SUN3D** (``sun3d_3dmatch_frag1`` and ``frag2`` of the shared development data folder, when present;
   never trained on): keyframes chosen by the estimator's own
   :class:`dpv_sensor.stream.keyframes.KeyframeSelector` (its default 5 cm / 5 deg / every 5th
@@ -60,7 +60,8 @@ from dpv_sensor.core import dpv as dpvops
 from dpv_sensor.core.classical import ClassicalMeasurement
 from dpv_sensor.training.dataset import (TRAIN_SEED_BASE, VAL_SEEDS, WindowLayout, check_heldout_seeds,
                                 sample_from_sequence)
-from dpv_sensor.training.loop import TrainConfig, evaluate_batches, render_validation_batches
+from dpv_sensor.training.config import TrainConfig
+from dpv_sensor.training.validation import evaluate_batches, render_validation_batches
 from dpv_sensor import params as P
 from dpv_sensor.cli import add_setting
 from dpv_sensor.common import to_jsonable

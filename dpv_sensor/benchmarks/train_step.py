@@ -28,14 +28,16 @@ def run(preset: str = 'lite', width: int = 256, height: int = 192, batch_size: i
         amps: Sequence[str] = ('off', 'bf16'), rounds: int = 2, steps: int = 3, threads: int = 1,
         init_weights: Optional[str] = None, seed_base: int = 9_900_000) -> List[Dict]:
     """Rows ``{amp, dtype, round, s_per_step, losses}`` in the order they were measured."""
-    from dpv_sensor.training.loop import TrainConfig, Trainer, _to_device, resolve_amp
+    from dpv_sensor.training.config import TrainConfig
+    from dpv_sensor.training.loop import Trainer, resolve_amp
+    from dpv_sensor.training.unrolled import batch_to_device
     torch.set_num_threads(threads)
     cfg = TrainConfig(preset=preset, run_dir=tempfile.mkdtemp(prefix='train_step_'), width=width, height=height,
                       batch_size=batch_size, unroll=unroll, num_workers=0, threads=threads,
                       init_weights=init_weights, seed_base=seed_base)
     trainer = Trainer(cfg, quiet=True)
     it = iter(trainer.loader())
-    batches = [_to_device(next(it), trainer.device) for _ in range(steps + 1)]
+    batches = [batch_to_device(next(it), trainer.device) for _ in range(steps + 1)]
 
     def one(batch, dtype) -> float:
         with torch.autocast(trainer.device.type, dtype=dtype or torch.float32, enabled=dtype is not None):

@@ -277,202 +277,276 @@ def run_node_replay(steps: Steps, input_bag: pathlib.Path, output_bag: pathlib.P
                     params: Dict[str, Any], log_dir: pathlib.Path, lockstep: bool, rate: float,
                     start_timeout: float, frame_timeout: float, max_images: int, progress: bool) -> ReplayResult:
     """Steps 3-5: start the node, replay `input_bag` through it while recording its outputs, stop it."""
-    import subprocess
-    from dpv_sensor.data import rosbag_io as R
-    from dpv_sensor.client.ros_io import BagPlayer, BagRecorder
-
-    res = ReplayResult(lockstep=lockstep, rate=rate)
-    bag_topics = R.bag_topics(input_bag)
-    play_topics = [t for t in (topics.get('image'), topics.get('camera_info'), topics.get('odom')) if t]
-    res.images_in_bag = bag_topics[topics['image']][1]
-    remaps = {name: t for name, t in topics.items() if t}
-    cmd = node_command(params, remaps)
-    res.node_command = cmd
-    env = dict(os.environ)
-    env['PYTHONPATH'] = os.pathsep.join([str(REPO)] + [p for p in env.get('PYTHONPATH', '').split(os.pathsep) if p])
-    env.setdefault('PYTHONUNBUFFERED', '1')
-    log_path = log_dir / 'node.log'
-    log_file = open(log_path, 'w')
-    proc = None
-    client = node = executor = recorder = monitor = player = None
-    t_start = time.perf_counter()
-    peak_rss = 0
+    opts = ReplayOptions(topics=topics, lockstep=lockstep, rate=rate, start_timeout=start_timeout,
+                         frame_timeout=frame_timeout, max_images=max_images, progress=progress)
+    replay = _NodeReplay(steps, input_bag, output_bag, params, log_dir, opts)
     try:
-        # ---------------------------------------------------------------- 3. start the node
         with steps.step('node', 'start the node process and wait for its subscriptions') as rec:
-            proc = subprocess.Popen(cmd, cwd=REPO, env=env, stdout=log_file, stderr=subprocess.STDOUT, text=True)
-            # Ctrl-C stays a KeyboardInterrupt here and reaches the node process as a SIGINT: it stops by itself
-            client = ClientNode('dpv_demo')
-            node, executor = client.node, client.executor
-            from rclpy.logging import LoggingSeverity
-            node.get_logger().set_level(LoggingSeverity.WARN)   # the recorder's "recording ..." lines
-            monitor = NodeMonitor(node)
-            recorder = BagRecorder(node, output_bag, OUTPUT_TOPICS, overwrite=True)
-            player = BagPlayer(node, input_bag, rate=rate, topics=play_topics)
-
-            def spin_until(cond, timeout: float) -> bool:
-                deadline = time.monotonic() + timeout
-                while time.monotonic() < deadline:
-                    if cond():
-                        return True
-                    if proc.poll() is not None:
-                        return cond()
-                    executor.spin_once(timeout_sec=0.05)
-                return cond()
-
-            def node_died() -> str:
-                log_file.flush()
-                tail = log_path.read_text(errors='replace').strip().splitlines()[-15:]
-                return (f'the node exited with code {proc.returncode} (log: {_rel(log_path)}):\n    ' +
-                        '\n    '.join(tail))
-
-            ready = spin_until(lambda: monitor.count > 0 and monitor.values.get('measurement_model') not in
-                               (None, 'starting'), start_timeout)
-            if proc.poll() is not None:
-                raise ReplayError(node_died())
-            if not ready:
-                raise ReplayError(f'the node did not report a built estimator within {start_timeout:g} s '
-                                f'(log: {_rel(log_path)})')
-            missing = player.wait_for_subscribers(play_topics, timeout=max(10.0, start_timeout),
-                                                  spin=lambda t: executor.spin_once(timeout_sec=t))
-            if missing:
-                raise ReplayError(f'the node did not subscribe to {missing} within {max(10.0, start_timeout):g} s '
-                                f'(log: {_rel(log_path)})')
-            # ... and the node's readers have matched the player's writers (DDS matching is not symmetric: what the
-            # player sends before the node's reader matched it is lost, e.g. the first camera_info messages)
-            roles = [r for r in ('image', 'camera_info', 'odom') if topics.get(r)]
-            wait_s = max(10.0, start_timeout)
-            if not spin_until(lambda: all(monitor.get_int(f'publishers.{r}') >= 1 for r in roles), wait_s):
-                unmatched = [r for r in roles if monitor.get_int(f'publishers.{r}') < 1]
-                raise ReplayError(f"the node's subscriptions did not match the player's {unmatched} publishers "
-                                  f'within {wait_s:g} s (log: {_rel(log_path)})')
-            spin_until(lambda: not recorder.poll(), 10.0)
-            still = recorder.poll()
-            if still:
-                raise ReplayError(f'the node does not publish {still} (log: {_rel(log_path)})')
-            spin_until(lambda: False, 0.5)   # let discovery settle between the recorder and the node's publishers
-            res.node_start_s = round(time.perf_counter() - t_start, 2)
-            d = monitor.snapshot()
-            rec['note'] = (f"pid {proc.pid}, measurement {d.get('measurement_model')}, device {d.get('device')}, "
-                           f"filter {d.get('filter_mode')}")
-
-        # ---------------------------------------------------------------- 4. replay and record
-        total = res.images_in_bag if not max_images else min(max_images, res.images_in_bag)
+            rec['note'] = replay.start_node()
+        total = replay.res.images_in_bag if not max_images else min(max_images, replay.res.images_in_bag)
         mode = 'lockstep (each image waits for the previous one)' if lockstep else f'{rate:g}x real time'
         with steps.step('replay', f'replay {total} images through the node, {mode}, recording its outputs') as rec:
-            bar = None
-            if progress:
-                from tqdm import tqdm
-                bar = tqdm(total=total, unit='img', desc='replay', leave=False, dynamic_ncols=True)
-
-            def on_image(n):
-                if bar is not None:
-                    bar.update(1)
-                    bar.set_postfix(outputs=recorder.counts.get('/depth/image', 0),
-                                    keyframes=monitor.values.get('estimator_keyframes', '?'), refresh=False)
-
-            gate = GatedPublisher(player.publishers[topics['image']], monitor, player, lockstep=lockstep,
-                                  timeout=frame_timeout, max_images=max_images, on_image=on_image)
-            player.publishers[topics['image']] = gate
-            box: Dict[str, Any] = {}
-
-            def play():
-                try:
-                    box['stats'] = player.play(progress=False)
-                except BaseException as exc:   # reported by the main thread
-                    box['error'] = exc
-            thread = threading.Thread(target=play, name='demo_player', daemon=True)
-            t0 = time.perf_counter()
-            thread.start()
-            while thread.is_alive():
-                executor.spin_once(timeout_sec=0.05)
-                rss = proc_status_kib(proc.pid, 'VmRSS')
-                peak_rss = max(peak_rss, rss or 0)
-                if proc.poll() is not None:
-                    monitor.abort.set()
-                    player.stop()
-                    thread.join(5.0)
-                    raise ReplayError(node_died())
-            thread.join()
-            if 'error' in box:
-                raise ReplayError(f'playing the bag failed: {type(box["error"]).__name__}: {box["error"]}')
-            stats = box['stats']
-            res.images_sent = gate.sent
-            res.messages_published = stats.published
-            res.wait_s = round(gate.wait_s, 2)
-            res.timeouts = gate.timeouts
-            # the last images: wait until the node has finished them and every output is recorded
-            spin_until(lambda: monitor.accounted() >= gate.sent, frame_timeout)
-
-            def all_recorded():
-                n = monitor.get_int('outputs_published', -1)
-                c = recorder.counts
-                return n >= 0 and all(c.get(t, 0) >= n for t in OUTPUT_TOPICS[:3])
-            spin_until(all_recorded, 30.0)
-            spin_until(lambda: False, 0.3)   # one more diagnostics message for the final figures
-            res.wall_s = round(time.perf_counter() - t0, 2)
-            if bar is not None:
-                bar.close()
-            res.diagnostics = monitor.snapshot()
-            hwm = proc_status_kib(proc.pid, 'VmHWM')
-            res.node_peak_rss_mib = round(max(peak_rss, hwm or 0) / 1024.0, 1)
-            recorder.close()
-            res.recorded = dict(recorder.counts)
-            res.e2e_ms = end_to_end_latency(output_bag, gate.sent_wall_ns)
-            d = res.diagnostics
-            rec['note'] = (f"{gate.sent} images, {d.get('estimator_keyframes', '?')} keyframes, "
-                           f"{res.recorded.get('/depth/image', 0)} depth outputs recorded, "
-                           f"{d.get('dropped_total', '?')} dropped")
-            if monitor.accounted() < gate.sent:
-                res.warnings.append(f'the node finished only {monitor.accounted()} of {gate.sent} images')
-            n_out = monitor.get_int('outputs_published', -1)
-            if res.recorded.get('/depth/image', 0) < n_out:
-                res.warnings.append(f"recorded {res.recorded.get('/depth/image', 0)} depth images but the node "
-                                    f'published {n_out}')
-            dropped = monitor.get_int('dropped_total', 0)
-            if dropped:
-                reasons = ', '.join(f'{k[8:]}: {v}' for k, v in d.items() if k.startswith('dropped.'))
-                res.warnings.append(f'the node dropped {dropped} images ({reasons})')
-            if gate.timeouts:
-                res.warnings.append(f'{gate.timeouts} images were sent before the node finished the previous one '
-                                    f'(--frame-timeout {frame_timeout:g} s)')
-
-        # ---------------------------------------------------------------- 5. stop
+            rec['note'] = replay.replay(total)
         with steps.step('stop', 'stop the node with SIGINT') as rec:
-            import signal
-            t0 = time.perf_counter()
-            proc.send_signal(signal.SIGINT)
-            try:
-                res.node_exit_code = proc.wait(timeout=30.0)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait()
-                res.node_exit_code = None
-            res.node_stop_s = round(time.perf_counter() - t0, 2)
-            log_file.flush()
-            res.node_log = log_path.read_text(errors='replace')
-            rec['note'] = f'exit code {res.node_exit_code}'
-            if res.node_exit_code != 0:
-                raise ReplayError(f'the node did not stop cleanly on SIGINT (exit code {res.node_exit_code}; log: '
-                                f'{_rel(log_path)})')
-            if 'Traceback' in res.node_log:
-                res.warnings.append(f'the node log has a Python traceback: {_rel(log_path)}')
+            replay.stop_node(rec)
     finally:
-        if monitor is not None:
-            monitor.abort.set()          # releases a player thread waiting in the gate
-        if player is not None:
-            player.stop()
-        if recorder is not None and not recorder.closed:
-            recorder.close()
-        if proc is not None and proc.poll() is None:
-            import signal
-            proc.send_signal(signal.SIGINT)
+        replay.close()
+    return replay.res
+
+
+@dataclass
+class ReplayOptions:
+    """How :func:`run_node_replay` drives the node: the topic of each role (image, camera_info, odom, ...),
+    lockstep or ``rate`` x real time, the timeouts (s), an image limit (0: all) and a progress bar."""
+    topics: Dict[str, str]
+    lockstep: bool
+    rate: float
+    start_timeout: float
+    frame_timeout: float
+    max_images: int
+    progress: bool
+
+    @property
+    def play_topics(self) -> List[str]:
+        return [t for t in (self.topics.get('image'), self.topics.get('camera_info'), self.topics.get('odom')) if t]
+
+
+class _NodeReplay:
+    """One replay session: the node process, the client node (monitor, recorder, player) and the result."""
+
+    def __init__(self, steps: Steps, input_bag: pathlib.Path, output_bag: pathlib.Path, params: Dict[str, Any],
+                 log_dir: pathlib.Path, opts: ReplayOptions):
+        from dpv_sensor.data import rosbag_io as R
+        self.steps, self.input_bag, self.output_bag, self.opts = steps, input_bag, output_bag, opts
+        self.res = ReplayResult(lockstep=opts.lockstep, rate=opts.rate)
+        self.res.images_in_bag = R.bag_topics(input_bag)[opts.topics['image']][1]
+        remaps = {name: t for name, t in opts.topics.items() if t}
+        self.cmd = node_command(params, remaps)
+        self.res.node_command = self.cmd
+        self.log_path = log_dir / 'node.log'
+        self.log_file = open(self.log_path, 'w')
+        self.proc = None
+        self.client = self.node = self.executor = self.recorder = self.monitor = self.player = None
+        self.t_start = time.perf_counter()
+        self.peak_rss = 0
+
+    # -- helpers ------------------------------------------------------------------------------------------------
+    def spin_until(self, cond, timeout: float) -> bool:
+        """Spin the client until ``cond()`` holds, the node exits or ``timeout`` s pass; returns ``cond()``."""
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if cond():
+                return True
+            if self.proc.poll() is not None:
+                return cond()
+            self.executor.spin_once(timeout_sec=0.05)
+        return cond()
+
+    def node_died(self) -> str:
+        """The error message of a node that exited: its exit code and the tail of its log."""
+        self.log_file.flush()
+        tail = self.log_path.read_text(errors='replace').strip().splitlines()[-15:]
+        return (f'the node exited with code {self.proc.returncode} (log: {_rel(self.log_path)}):\n    ' +
+                '\n    '.join(tail))
+
+    # -- 3. start the node --------------------------------------------------------------------------------------
+    def start_node(self) -> str:
+        """Start the node process and the client, wait until the node is ready, subscribed and publishing."""
+        import subprocess
+        from dpv_sensor.client.ros_io import BagPlayer, BagRecorder
+        env = dict(os.environ)
+        env['PYTHONPATH'] = os.pathsep.join([str(REPO)] + [p for p in env.get('PYTHONPATH', '').split(os.pathsep)
+                                                          if p])
+        env.setdefault('PYTHONUNBUFFERED', '1')
+        self.proc = subprocess.Popen(self.cmd, cwd=REPO, env=env, stdout=self.log_file, stderr=subprocess.STDOUT,
+                                     text=True)
+        # Ctrl-C stays a KeyboardInterrupt here and reaches the node process as a SIGINT: it stops by itself
+        self.client = ClientNode('dpv_demo')
+        self.node, self.executor = self.client.node, self.client.executor
+        from rclpy.logging import LoggingSeverity
+        self.node.get_logger().set_level(LoggingSeverity.WARN)   # the recorder's "recording ..." lines
+        self.monitor = NodeMonitor(self.node)
+        self.recorder = BagRecorder(self.node, self.output_bag, OUTPUT_TOPICS, overwrite=True)
+        self.player = BagPlayer(self.node, self.input_bag, rate=self.opts.rate, topics=self.opts.play_topics)
+        self._wait_estimator()
+        self._wait_subscribed()
+        self._wait_publishing()
+        self.spin_until(lambda: False, 0.5)   # let discovery settle between the recorder and the node's publishers
+        self.res.node_start_s = round(time.perf_counter() - self.t_start, 2)
+        d = self.monitor.snapshot()
+        return (f"pid {self.proc.pid}, measurement {d.get('measurement_model')}, device {d.get('device')}, "
+                f"filter {d.get('filter_mode')}")
+
+    def _wait_estimator(self) -> None:
+        monitor, start_timeout = self.monitor, self.opts.start_timeout
+        ready = self.spin_until(lambda: monitor.count > 0 and monitor.values.get('measurement_model') not in
+                                (None, 'starting'), start_timeout)
+        if self.proc.poll() is not None:
+            raise ReplayError(self.node_died())
+        if not ready:
+            raise ReplayError(f'the node did not report a built estimator within {start_timeout:g} s '
+                              f'(log: {_rel(self.log_path)})')
+
+    def _wait_subscribed(self) -> None:
+        """The node subscribed to the played topics, and its readers matched the player's writers (DDS matching
+        is not symmetric: what the player sends before the node's reader matched it is lost, e.g. the first
+        camera_info messages)."""
+        opts, monitor = self.opts, self.monitor
+        wait_s = max(10.0, opts.start_timeout)
+        missing = self.player.wait_for_subscribers(opts.play_topics, timeout=wait_s,
+                                                   spin=lambda t: self.executor.spin_once(timeout_sec=t))
+        if missing:
+            raise ReplayError(f'the node did not subscribe to {missing} within {wait_s:g} s '
+                              f'(log: {_rel(self.log_path)})')
+        roles = [r for r in ('image', 'camera_info', 'odom') if opts.topics.get(r)]
+        if not self.spin_until(lambda: all(monitor.get_int(f'publishers.{r}') >= 1 for r in roles), wait_s):
+            unmatched = [r for r in roles if monitor.get_int(f'publishers.{r}') < 1]
+            raise ReplayError(f"the node's subscriptions did not match the player's {unmatched} publishers "
+                              f'within {wait_s:g} s (log: {_rel(self.log_path)})')
+
+    def _wait_publishing(self) -> None:
+        self.spin_until(lambda: not self.recorder.poll(), 10.0)
+        still = self.recorder.poll()
+        if still:
+            raise ReplayError(f'the node does not publish {still} (log: {_rel(self.log_path)})')
+
+    # -- 4. replay and record -----------------------------------------------------------------------------------
+    def replay(self, total: int) -> str:
+        """Play the bag through the node (gated in lockstep), wait for the last outputs, collect the figures."""
+        opts, monitor, recorder, res = self.opts, self.monitor, self.recorder, self.res
+        bar = None
+        if opts.progress:
+            from tqdm import tqdm
+            bar = tqdm(total=total, unit='img', desc='replay', leave=False, dynamic_ncols=True)
+
+        def on_image(n):
+            if bar is not None:
+                bar.update(1)
+                bar.set_postfix(outputs=recorder.counts.get('/depth/image', 0),
+                                keyframes=monitor.values.get('estimator_keyframes', '?'), refresh=False)
+
+        gate = GatedPublisher(self.player.publishers[opts.topics['image']], monitor, self.player,
+                              lockstep=opts.lockstep, timeout=opts.frame_timeout, max_images=opts.max_images,
+                              on_image=on_image)
+        self.player.publishers[opts.topics['image']] = gate
+        t0 = time.perf_counter()
+        stats = self._play_while_watching()
+        res.images_sent = gate.sent
+        res.messages_published = stats.published
+        res.wait_s = round(gate.wait_s, 2)
+        res.timeouts = gate.timeouts
+        self._wait_last_outputs(gate)
+        res.wall_s = round(time.perf_counter() - t0, 2)
+        if bar is not None:
+            bar.close()
+        res.diagnostics = monitor.snapshot()
+        hwm = proc_status_kib(self.proc.pid, 'VmHWM')
+        res.node_peak_rss_mib = round(max(self.peak_rss, hwm or 0) / 1024.0, 1)
+        recorder.close()
+        res.recorded = dict(recorder.counts)
+        res.e2e_ms = end_to_end_latency(self.output_bag, gate.sent_wall_ns)
+        d = res.diagnostics
+        self._warn_about_replay(gate)
+        return (f"{gate.sent} images, {d.get('estimator_keyframes', '?')} keyframes, "
+                f"{res.recorded.get('/depth/image', 0)} depth outputs recorded, "
+                f"{d.get('dropped_total', '?')} dropped")
+
+    def _play_while_watching(self):
+        """Play the bag in a thread while this one spins the client and watches the node (memory, exit)."""
+        box: Dict[str, Any] = {}
+        player = self.player
+
+        def play():
             try:
-                proc.wait(timeout=20.0)
+                box['stats'] = player.play(progress=False)
+            except BaseException as exc:   # reported by the main thread
+                box['error'] = exc
+        thread = threading.Thread(target=play, name='demo_player', daemon=True)
+        thread.start()
+        while thread.is_alive():
+            self.executor.spin_once(timeout_sec=0.05)
+            rss = proc_status_kib(self.proc.pid, 'VmRSS')
+            self.peak_rss = max(self.peak_rss, rss or 0)
+            if self.proc.poll() is not None:
+                self.monitor.abort.set()
+                player.stop()
+                thread.join(5.0)
+                raise ReplayError(self.node_died())
+        thread.join()
+        if 'error' in box:
+            raise ReplayError(f'playing the bag failed: {type(box["error"]).__name__}: {box["error"]}')
+        return box['stats']
+
+    def _wait_last_outputs(self, gate: 'GatedPublisher') -> None:
+        """The last images: wait until the node has finished them and every output is recorded."""
+        monitor, recorder = self.monitor, self.recorder
+        self.spin_until(lambda: monitor.accounted() >= gate.sent, self.opts.frame_timeout)
+
+        def all_recorded():
+            n = monitor.get_int('outputs_published', -1)
+            c = recorder.counts
+            return n >= 0 and all(c.get(t, 0) >= n for t in OUTPUT_TOPICS[:3])
+        self.spin_until(all_recorded, 30.0)
+        self.spin_until(lambda: False, 0.3)   # one more diagnostics message for the final figures
+
+    def _warn_about_replay(self, gate: 'GatedPublisher') -> None:
+        monitor, res = self.monitor, self.res
+        d = res.diagnostics
+        if monitor.accounted() < gate.sent:
+            res.warnings.append(f'the node finished only {monitor.accounted()} of {gate.sent} images')
+        n_out = monitor.get_int('outputs_published', -1)
+        if res.recorded.get('/depth/image', 0) < n_out:
+            res.warnings.append(f"recorded {res.recorded.get('/depth/image', 0)} depth images but the node "
+                                f'published {n_out}')
+        dropped = monitor.get_int('dropped_total', 0)
+        if dropped:
+            reasons = ', '.join(f'{k[8:]}: {v}' for k, v in d.items() if k.startswith('dropped.'))
+            res.warnings.append(f'the node dropped {dropped} images ({reasons})')
+        if gate.timeouts:
+            res.warnings.append(f'{gate.timeouts} images were sent before the node finished the previous one '
+                                f'(--frame-timeout {self.opts.frame_timeout:g} s)')
+
+    # -- 5. stop ------------------------------------------------------------------------------------------------
+    def stop_node(self, rec: Dict[str, Any]) -> None:
+        """Stop the node with SIGINT (killed after 30 s) and read its log; the exit code goes to the step's note."""
+        import signal
+        import subprocess
+        res, proc = self.res, self.proc
+        t0 = time.perf_counter()
+        proc.send_signal(signal.SIGINT)
+        try:
+            res.node_exit_code = proc.wait(timeout=30.0)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+            res.node_exit_code = None
+        res.node_stop_s = round(time.perf_counter() - t0, 2)
+        self.log_file.flush()
+        res.node_log = self.log_path.read_text(errors='replace')
+        rec['note'] = f'exit code {res.node_exit_code}'
+        if res.node_exit_code != 0:
+            raise ReplayError(f'the node did not stop cleanly on SIGINT (exit code {res.node_exit_code}; log: '
+                              f'{_rel(self.log_path)})')
+        if 'Traceback' in res.node_log:
+            res.warnings.append(f'the node log has a Python traceback: {_rel(self.log_path)}')
+
+    def close(self) -> None:
+        """Release everything, whatever step failed: the player, the recorder, the node process, the client."""
+        if self.monitor is not None:
+            self.monitor.abort.set()          # releases a player thread waiting in the gate
+        if self.player is not None:
+            self.player.stop()
+        if self.recorder is not None and not self.recorder.closed:
+            self.recorder.close()
+        if self.proc is not None and self.proc.poll() is None:
+            import signal
+            import subprocess
+            self.proc.send_signal(signal.SIGINT)
+            try:
+                self.proc.wait(timeout=20.0)
             except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait()
-        if client is not None:
-            client.close()
-        log_file.close()
-    return res
+                self.proc.kill()
+                self.proc.wait()
+        if self.client is not None:
+            self.client.close()
+        self.log_file.close()

@@ -135,7 +135,7 @@ class BagPlayer:
     def stop(self) -> None:
         self.stop_event.set()
 
-    def play(self, progress: bool = False, duration: float | None = None) -> PlaybackStats:
+    def play(self, progress: bool = False, duration: float | None = None) -> PlaybackStats:  # noqa: C901 (to be split into named steps)
         """Publish every message at its record time / rate; returns statistics. Blocks until done, stopped
         (stop()) or `duration` wall seconds have passed."""
         from rclpy.serialization import deserialize_message

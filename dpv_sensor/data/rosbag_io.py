@@ -522,7 +522,7 @@ def find_topic(topics: dict, wanted: str, suffix: str, msgtype: str) -> str | No
     return cands[0] if len(cands) == 1 else None
 
 
-def export_depth_bag(path, out_dir, *, depth_topic: str = DEPTH_TOPIC, confidence_topic: str = CONFIDENCE_TOPIC,
+def export_depth_bag(path, out_dir, *, depth_topic: str = DEPTH_TOPIC, confidence_topic: str = CONFIDENCE_TOPIC,  # noqa: C901 (to be split into named steps)
                      info_topic: str = DEPTH_INFO_TOPIC, image_topic: str | None = 'auto',
                      odom_topic: str | None = 'auto', pose_topic: str | None = None, T_base_camera=None,
                      max_odom_gap: float = P.default('max_odom_gap'), progress: bool = True) -> dict:

@@ -206,7 +206,7 @@ class Sequence:
     - ``seq.keyframe_indices(every)``, ``seq.windows(every, size=5, mode='centered'|'causal')``
     """
 
-    def __init__(self, folder: PathLike):
+    def __init__(self, folder: PathLike):  # noqa: C901 (to be split into named steps)
         folder = pathlib.Path(folder)
         if not folder.is_dir():
             raise SequenceFormatError(f'{folder}: not a directory')

@@ -641,6 +641,274 @@ class _Light:
     shadow_atlas: Optional[np.ndarray] = None   # (6*S*S,) euclidean distance to the first surface
 
 
+@dataclass
+class _RayHits:
+    """The rays of the rows being shaded, flattened (n = rows x width): the camera centre ``o`` and rotation ``R`` in
+    the world, the render time, the hit distance along the unnormalised ray ``tf`` and the hit id ``idf``, the world
+    ray directions ``dwf`` (one array per axis), the camera-plane directions ``dxf`` / ``dyf``, 1/|ray| and 1/fx."""
+    o: List[float]
+    R: np.ndarray
+    time: float
+    tf: np.ndarray
+    idf: np.ndarray
+    dwf: List[np.ndarray]
+    dxf: np.ndarray
+    dyf: np.ndarray
+    inv_dnorm: np.ndarray
+    inv_fx: float
+
+    @property
+    def n(self) -> int:
+        return self.tf.size
+
+
+@dataclass
+class _Surfaces:
+    """Per hit: world normal (3, n), linear albedo (3, n), specular weight, shininess and material kind."""
+    normal: np.ndarray
+    albedo: np.ndarray
+    ks: np.ndarray
+    shin: np.ndarray
+    kind: np.ndarray
+
+
+def _box_normal_uv(pl, nl, half):
+    """Box hits at local points ``pl``: writes the local normal into ``nl``; returns the surface coordinates
+    (horizontal faces (x, y); vertical faces (horizontal, z))."""
+    hx, hy, hz = half
+    rx, ry, rz = np.abs(pl[0]) * (1 / hx), np.abs(pl[1]) * (1 / hy), np.abs(pl[2]) * (1 / hz)
+    is_y = ry > rx
+    is_z = rz > np.maximum(rx, ry)
+    is_x = ~(is_y | is_z)
+    is_y &= ~is_z
+    nl[0] = is_x * np.sign(pl[0])
+    nl[1] = is_y * np.sign(pl[1])
+    nl[2] = is_z * np.sign(pl[2])
+    uu = np.where(is_x, pl[1], pl[0]) + 1.7 * is_y + 3.4 * is_z + 0.9 * (nl[0] + nl[1] + nl[2])
+    vv = np.where(is_z, pl[1], pl[2])
+    return uu, vv
+
+
+def _cylinder_normal_uv(pl, nl, half):
+    """Cylinder hits (side and caps) at local points ``pl``: the local normal into ``nl``; returns (u, v)."""
+    r, _, hz = half
+    cap = np.abs(pl[2]) >= hz * (1 - 1e-4) - 1e-6
+    side_ = ~cap
+    inv_rho = 1.0 / np.maximum(np.sqrt(pl[0] ** 2 + pl[1] ** 2), 1e-9)
+    nl[0] = pl[0] * inv_rho * side_
+    nl[1] = pl[1] * inv_rho * side_
+    nl[2] = np.sign(pl[2]) * cap
+    if cap.any():
+        return np.where(cap, pl[0], np.arctan2(pl[1], pl[0]) * r), np.where(cap, pl[1] + 3.1, pl[2])
+    return np.arctan2(pl[1], pl[0]) * r, pl[2]
+
+
+def _sphere_normal_uv(pl, nl, half):
+    """Sphere hits at local points ``pl``: the local normal into ``nl``; returns (u, v) (longitude, latitude)."""
+    r = half[0]
+    nl[0], nl[1], nl[2] = pl[0] * (1 / r), pl[1] * (1 / r), pl[2] * (1 / r)
+    return np.arctan2(pl[1], pl[0]) * r, np.arcsin(np.clip(pl[2] * (1 / r), -1, 1)) * r
+
+
+class _FurnitureMaker:
+    """The furniture pieces of a scene: each method draws one piece at a random spot of the room and returns its
+    primitives (the scene places them with :meth:`SyntheticScene._try_place`). The draws from the scene's random
+    generator come in a fixed order, so a seed gives the same room."""
+
+    def __init__(self, scene: 'SyntheticScene', rng):
+        self.scene = scene
+        self.rng = rng
+
+    def count(self, r) -> int:
+        """A count drawn from an inclusive ``(lo, hi)`` range."""
+        return int(self.rng.integers(r[0], r[1] + 1))
+
+    def uvo(self):
+        """A random texture offset."""
+        return (float(self.rng.uniform(0, 10)), float(self.rng.uniform(0, 10)))
+
+    def box(self, center, half, yaw, mat, label, **kw):
+        return Primitive('box', center, half, yaw, mat, self.uvo(), label=label, **kw)
+
+    def cabinet(self):
+        scene, rng, mf = self.scene, self.rng, self.scene.mat_furniture
+        w, d, h = rng.uniform(0.4, 1.6), rng.uniform(0.3, 0.7), rng.uniform(0.4, 2.1)
+        c, yaw = scene._floor_spot(rng, w, d, 0.7)
+        return [self.box([c[0], c[1], h / 2], [w / 2, d / 2, h / 2], yaw, int(rng.choice(mf)), 'cabinet')]
+
+    def sofa(self):
+        scene, rng, mf = self.scene, self.rng, self.scene.mat_furniture
+        w, d = rng.uniform(1.3, 2.2), rng.uniform(0.75, 1.0)
+        c, yaw = scene._floor_spot(rng, w, d, 0.6)
+        R = _rotz(yaw)
+        mat = int(rng.choice(mf))
+        seat_h = rng.uniform(0.35, 0.5)
+        back_d = rng.uniform(0.15, 0.25)
+        back_h = rng.uniform(0.75, 0.95)
+        # local +y points to the back (towards the wall for wall-standing pieces)
+        seat_c = np.r_[c, seat_h / 2] + R @ np.array([0, -back_d / 2, 0])
+        back_c = np.r_[c, back_h / 2] + R @ np.array([0, (d - back_d) / 2, 0])
+        return [self.box(seat_c, [w / 2, (d - back_d) / 2, seat_h / 2], yaw, mat, 'sofa seat'),
+                self.box(back_c, [w / 2, back_d / 2, back_h / 2], yaw, mat, 'sofa back')]
+
+    def table(self):
+        scene, rng, mf = self.scene, self.rng, self.scene.mat_furniture
+        w, d = rng.uniform(0.6, 1.8), rng.uniform(0.5, 1.0)
+        h, th = rng.uniform(0.68, 0.8), rng.uniform(0.025, 0.05)
+        c, yaw = scene._floor_spot(rng, w, d, 0.3)
+        R = _rotz(yaw)
+        top_mat = int(rng.choice(mf))
+        leg_r = rng.uniform(0.015, 0.035)
+        leg_mat = scene.mat_metal if rng.random() < 0.5 else top_mat
+        parts = [self.box([c[0], c[1], h - th / 2], [w / 2, d / 2, th / 2], yaw, top_mat, 'table top')]
+        inset = rng.uniform(0.04, 0.1)
+        for sx in (-1, 1):
+            for sy in (-1, 1):
+                p = np.r_[c, 0] + R @ np.array([sx * (w / 2 - inset), sy * (d / 2 - inset), 0])
+                parts.append(Primitive('cyl', [p[0], p[1], (h - th) / 2], [leg_r, leg_r, (h - th) / 2], 0.0,
+                                       leg_mat, self.uvo(), label='table leg'))
+        for _ in range(int(rng.integers(0, 4))):   # things on the table
+            sw, sd, sh = rng.uniform(0.06, 0.3), rng.uniform(0.06, 0.3), rng.uniform(0.03, 0.3)
+            local = np.array([rng.uniform(-(w - sw) / 2, (w - sw) / 2),
+                              rng.uniform(-(d - sd) / 2, (d - sd) / 2), 0])
+            p = np.r_[c, 0] + R @ local
+            kind = rng.choice(['box', 'cyl', 'sph'])
+            mat = int(rng.choice(mf + scene.mat_pictures))
+            if kind == 'box':
+                parts.append(self.box([p[0], p[1], h + sh / 2], [sw / 2, sd / 2, sh / 2],
+                                      yaw + rng.uniform(-0.5, 0.5), mat, 'table object'))
+            elif kind == 'cyl':
+                r = min(sw, sd) / 2
+                parts.append(Primitive('cyl', [p[0], p[1], h + sh / 2], [r, r, sh / 2], 0.0, mat, self.uvo(),
+                                       label='table object'))
+            else:
+                r = min(sw, sd) / 2
+                parts.append(Primitive('sph', [p[0], p[1], h + r], [r, r, r], 0.0, mat, self.uvo(),
+                                       label='table object'))
+        return parts
+
+    def shelf(self):
+        scene, rng, L, mf = self.scene, self.rng, self.scene.room, self.scene.mat_furniture
+        w, d, h = rng.uniform(0.6, 1.4), rng.uniform(0.25, 0.4), rng.uniform(1.0, min(2.2, L[2] - 0.1))
+        c, yaw = scene._floor_spot(rng, w, d, 1.0)
+        R = _rotz(yaw)
+        mat = int(rng.choice(mf))
+        th = rng.uniform(0.015, 0.03)
+        parts = []
+        for sx in (-1, 1):
+            p = np.r_[c, h / 2] + R @ np.array([sx * (w / 2 - th / 2), 0, 0])
+            parts.append(self.box(p, [th / 2, d / 2, h / 2], yaw, mat, 'shelf side'))
+        nb = int(rng.integers(3, 6))
+        zs = np.linspace(th / 2 + 0.05, h - th / 2, nb)
+        for z in zs:
+            parts.append(self.box([c[0], c[1], z], [w / 2 - th, d / 2, th / 2], yaw, mat, 'shelf board'))
+        for z0, z1 in zip(zs[:-1], zs[1:]):     # books
+            x = -w / 2 + th + 0.01
+            while x < w / 2 - th - 0.05 and rng.random() < 0.93:
+                bw = rng.uniform(0.02, 0.06)
+                bh = min(rng.uniform(0.15, 0.3), z1 - z0 - th - 0.01)
+                bd = rng.uniform(0.6, 0.95) * d
+                if bh > 0.05 and x + bw < w / 2 - th:
+                    p = np.r_[c, 0] + R @ np.array([x + bw / 2, (d - bd) / 2, 0])
+                    parts.append(self.box([p[0], p[1], z0 + th / 2 + bh / 2], [bw / 2, bd / 2, bh / 2], yaw,
+                                          int(rng.choice(mf + scene.mat_pictures)), 'book'))
+                x += bw + rng.uniform(0.0, 0.08)
+        return parts
+
+    def crate(self):
+        scene, rng, mf = self.scene, self.rng, self.scene.mat_furniture
+        w, d, h = rng.uniform(0.2, 0.7), rng.uniform(0.2, 0.6), rng.uniform(0.15, 0.7)
+        c, yaw = scene._floor_spot(rng, w, d, 0.3)
+        parts = [self.box([c[0], c[1], h / 2], [w / 2, d / 2, h / 2], yaw, int(rng.choice(mf)), 'crate')]
+        if rng.random() < 0.4:   # a second one stacked on top
+            w2, d2, h2 = w * rng.uniform(0.5, 0.9), d * rng.uniform(0.5, 0.9), rng.uniform(0.1, 0.4)
+            parts.append(self.box([c[0], c[1], h + h2 / 2], [w2 / 2, d2 / 2, h2 / 2], yaw + rng.uniform(-0.6, 0.6),
+                                  int(rng.choice(mf)), 'crate'))
+        return parts
+
+    def rug(self):
+        scene, rng, L = self.scene, self.rng, self.scene.room
+        w, d, h = rng.uniform(0.8, 2.5), rng.uniform(0.6, 1.8), rng.uniform(0.004, 0.012)
+        c = np.array([rng.uniform(w / 2, L[0] - w / 2), rng.uniform(d / 2, L[1] - d / 2)])
+        return [self.box([c[0], c[1], h / 2], [w / 2, d / 2, h / 2], float(rng.choice([0.0, math.pi / 2])) +
+                         rng.normal(0, 0.1), scene.mat_rug, 'rug', casts_shadow=False)]
+
+    def pillar(self):
+        scene, rng, L, mf = self.scene, self.rng, self.scene.room, self.scene.mat_furniture
+        r = rng.uniform(0.1, 0.35)
+        c = scene._free_spot(rng, r)
+        return [Primitive('cyl', [c[0], c[1], L[2] / 2], [r, r, L[2] / 2],
+                          0.0, int(rng.choice(mf + [scene.mat_wall])), self.uvo(), label='pillar')]
+
+    def bin_(self):
+        scene, rng, mf = self.scene, self.rng, self.scene.mat_furniture
+        r, hh = rng.uniform(0.12, 0.3), rng.uniform(0.3, 0.8)
+        c = scene._free_spot(rng, r)
+        return [Primitive('cyl', [c[0], c[1], hh / 2], [r, r, hh / 2],
+                          0.0, int(rng.choice(mf)), self.uvo(), label='bin')]
+
+    def ball(self):
+        scene, rng, mf = self.scene, self.rng, self.scene.mat_furniture
+        r = rng.uniform(0.1, 0.35)
+        c = scene._free_spot(rng, r)
+        return [Primitive('sph', [c[0], c[1], r], [r, r, r], 0.0,
+                          int(rng.choice(mf + scene.mat_pictures + [scene.mat_metal])), self.uvo(), label='ball')]
+
+    def pole(self):
+        scene, rng, L = self.scene, self.rng, self.scene.room
+        r, hh = rng.uniform(0.01, 0.025), rng.uniform(1.2, min(2.0, L[2] - 0.2))
+        c = scene._free_spot(rng, 0.1)
+        return [Primitive('cyl', [c[0], c[1], hh / 2],
+                          [r, r, hh / 2], 0.0, scene.mat_metal, self.uvo(), label='pole')]
+
+    def floor_lamp(self):
+        scene, rng, L = self.scene, self.rng, self.scene.room
+        r, hh = rng.uniform(0.012, 0.02), rng.uniform(1.2, min(1.8, L[2] - 0.5))
+        gr = rng.uniform(0.1, 0.18)
+        x, y = scene._free_spot(rng, 0.3)
+        return [Primitive('cyl', [x, y, hh / 2], [r, r, hh / 2], 0.0, scene.mat_metal, self.uvo(), label='lamp pole'),
+                Primitive('sph', [x, y, hh + gr], [gr, gr, gr], 0.0, scene.mat_lamp, self.uvo(), casts_shadow=False,
+                          label='lamp globe')]
+
+    def wall_patch(self, mat, label, size_w, size_h, z_range, thick):
+        """A thin box on a random wall (pictures, mirrors, windows)."""
+        rng, L = self.rng, self.scene.room
+        w, hh = rng.uniform(*size_w), rng.uniform(*size_h)
+        wall = int(rng.integers(0, 4))
+        z = rng.uniform(max(z_range[0], hh / 2 + 0.05), max(min(z_range[1], L[2] - hh / 2 - 0.05), z_range[0]))
+        t = thick / 2
+        if wall == 0:
+            c, yaw = [t, rng.uniform(w / 2, L[1] - w / 2), z], math.pi / 2
+        elif wall == 1:
+            c, yaw = [L[0] - t, rng.uniform(w / 2, L[1] - w / 2), z], -math.pi / 2
+        elif wall == 2:
+            c, yaw = [rng.uniform(w / 2, L[0] - w / 2), t, z], math.pi
+        else:
+            c, yaw = [rng.uniform(w / 2, L[0] - w / 2), L[1] - t, z], 0.0
+        return [self.box(c, [w / 2, t, hh / 2], yaw, mat, label, casts_shadow=False)]
+
+    def moving_ball(self):
+        scene, rng, mf = self.scene, self.rng, self.scene.mat_furniture
+        r = rng.uniform(0.1, 0.25)
+        amp = np.array([rng.uniform(0.2, 0.6), rng.uniform(0.2, 0.6), 0.0])
+        xy = scene._free_spot(rng, r + float(np.linalg.norm(amp)))
+        c = [xy[0], xy[1], r]
+        return [Primitive('sph', c, [r, r, r], 0.0, int(rng.choice(mf + scene.mat_pictures)), self.uvo(),
+                          casts_shadow=False, label='moving ball',
+                          motion=(amp, rng.uniform(0.5, 1.5), rng.uniform(0, 2 * math.pi, 3)))]
+
+    def picture(self):
+        rng = self.rng
+        return self.wall_patch(int(rng.choice(self.scene.mat_pictures)), 'picture', (0.3, 1.2), (0.3, 0.9),
+                               (1.0, 2.0), rng.uniform(0.01, 0.04))
+
+    def mirror(self):
+        return self.wall_patch(self.scene.mat_mirror, 'mirror', (0.5, 1.2), (0.6, 1.5), (1.0, 1.6), 0.01)
+
+    def window(self):
+        return self.wall_patch(self.scene.mat_glass, 'window', (0.6, 1.6), (0.6, 1.4), (1.2, 1.8), 0.01)
+
+
 class SyntheticScene:
     """A random furnished room, lights, materials, camera intrinsics and trajectory for one seed.
 
@@ -852,215 +1120,35 @@ class SyntheticScene:
     def _build_furniture(self, rng):
         cfg = self.config
         self.prims: List[Primitive] = []
-        L = self.room
-        mf = self.mat_furniture
-
-        def n(r):
-            return int(rng.integers(r[0], r[1] + 1))
-
-        def uvo():
-            return (float(rng.uniform(0, 10)), float(rng.uniform(0, 10)))
-
-        def box(center, half, yaw, mat, label, **kw):
-            return Primitive('box', center, half, yaw, mat, uvo(), label=label, **kw)
-
-        def cabinet():
-            w, d, h = rng.uniform(0.4, 1.6), rng.uniform(0.3, 0.7), rng.uniform(0.4, 2.1)
-            c, yaw = self._floor_spot(rng, w, d, 0.7)
-            return [box([c[0], c[1], h / 2], [w / 2, d / 2, h / 2], yaw, int(rng.choice(mf)), 'cabinet')]
-
-        def sofa():
-            w, d = rng.uniform(1.3, 2.2), rng.uniform(0.75, 1.0)
-            c, yaw = self._floor_spot(rng, w, d, 0.6)
-            R = _rotz(yaw)
-            mat = int(rng.choice(mf))
-            seat_h = rng.uniform(0.35, 0.5)
-            back_d = rng.uniform(0.15, 0.25)
-            back_h = rng.uniform(0.75, 0.95)
-            # local +y points to the back (towards the wall for wall-standing pieces)
-            seat_c = np.r_[c, seat_h / 2] + R @ np.array([0, -back_d / 2, 0])
-            back_c = np.r_[c, back_h / 2] + R @ np.array([0, (d - back_d) / 2, 0])
-            return [box(seat_c, [w / 2, (d - back_d) / 2, seat_h / 2], yaw, mat, 'sofa seat'),
-                    box(back_c, [w / 2, back_d / 2, back_h / 2], yaw, mat, 'sofa back')]
-
-        def table():
-            w, d = rng.uniform(0.6, 1.8), rng.uniform(0.5, 1.0)
-            h, th = rng.uniform(0.68, 0.8), rng.uniform(0.025, 0.05)
-            c, yaw = self._floor_spot(rng, w, d, 0.3)
-            R = _rotz(yaw)
-            top_mat = int(rng.choice(mf))
-            leg_r = rng.uniform(0.015, 0.035)
-            leg_mat = self.mat_metal if rng.random() < 0.5 else top_mat
-            parts = [box([c[0], c[1], h - th / 2], [w / 2, d / 2, th / 2], yaw, top_mat, 'table top')]
-            inset = rng.uniform(0.04, 0.1)
-            for sx in (-1, 1):
-                for sy in (-1, 1):
-                    p = np.r_[c, 0] + R @ np.array([sx * (w / 2 - inset), sy * (d / 2 - inset), 0])
-                    parts.append(Primitive('cyl', [p[0], p[1], (h - th) / 2], [leg_r, leg_r, (h - th) / 2], 0.0,
-                                           leg_mat, uvo(), label='table leg'))
-            for _ in range(int(rng.integers(0, 4))):   # things on the table
-                sw, sd, sh = rng.uniform(0.06, 0.3), rng.uniform(0.06, 0.3), rng.uniform(0.03, 0.3)
-                local = np.array([rng.uniform(-(w - sw) / 2, (w - sw) / 2),
-                                  rng.uniform(-(d - sd) / 2, (d - sd) / 2), 0])
-                p = np.r_[c, 0] + R @ local
-                kind = rng.choice(['box', 'cyl', 'sph'])
-                mat = int(rng.choice(mf + self.mat_pictures))
-                if kind == 'box':
-                    parts.append(box([p[0], p[1], h + sh / 2], [sw / 2, sd / 2, sh / 2], yaw + rng.uniform(-0.5, 0.5),
-                                     mat, 'table object'))
-                elif kind == 'cyl':
-                    r = min(sw, sd) / 2
-                    parts.append(Primitive('cyl', [p[0], p[1], h + sh / 2], [r, r, sh / 2], 0.0, mat, uvo(),
-                                           label='table object'))
-                else:
-                    r = min(sw, sd) / 2
-                    parts.append(Primitive('sph', [p[0], p[1], h + r], [r, r, r], 0.0, mat, uvo(),
-                                           label='table object'))
-            return parts
-
-        def shelf():
-            w, d, h = rng.uniform(0.6, 1.4), rng.uniform(0.25, 0.4), rng.uniform(1.0, min(2.2, L[2] - 0.1))
-            c, yaw = self._floor_spot(rng, w, d, 1.0)
-            R = _rotz(yaw)
-            mat = int(rng.choice(mf))
-            th = rng.uniform(0.015, 0.03)
-            parts = []
-            for sx in (-1, 1):
-                p = np.r_[c, h / 2] + R @ np.array([sx * (w / 2 - th / 2), 0, 0])
-                parts.append(box(p, [th / 2, d / 2, h / 2], yaw, mat, 'shelf side'))
-            nb = int(rng.integers(3, 6))
-            zs = np.linspace(th / 2 + 0.05, h - th / 2, nb)
-            for z in zs:
-                parts.append(box([c[0], c[1], z], [w / 2 - th, d / 2, th / 2], yaw, mat, 'shelf board'))
-            for z0, z1 in zip(zs[:-1], zs[1:]):     # books
-                x = -w / 2 + th + 0.01
-                while x < w / 2 - th - 0.05 and rng.random() < 0.93:
-                    bw = rng.uniform(0.02, 0.06)
-                    bh = min(rng.uniform(0.15, 0.3), z1 - z0 - th - 0.01)
-                    bd = rng.uniform(0.6, 0.95) * d
-                    if bh > 0.05 and x + bw < w / 2 - th:
-                        p = np.r_[c, 0] + R @ np.array([x + bw / 2, (d - bd) / 2, 0])
-                        parts.append(box([p[0], p[1], z0 + th / 2 + bh / 2], [bw / 2, bd / 2, bh / 2], yaw,
-                                         int(rng.choice(mf + self.mat_pictures)), 'book'))
-                    x += bw + rng.uniform(0.0, 0.08)
-            return parts
-
-        def crate():
-            w, d, h = rng.uniform(0.2, 0.7), rng.uniform(0.2, 0.6), rng.uniform(0.15, 0.7)
-            c, yaw = self._floor_spot(rng, w, d, 0.3)
-            parts = [box([c[0], c[1], h / 2], [w / 2, d / 2, h / 2], yaw, int(rng.choice(mf)), 'crate')]
-            if rng.random() < 0.4:   # a second one stacked on top
-                w2, d2, h2 = w * rng.uniform(0.5, 0.9), d * rng.uniform(0.5, 0.9), rng.uniform(0.1, 0.4)
-                parts.append(box([c[0], c[1], h + h2 / 2], [w2 / 2, d2 / 2, h2 / 2], yaw + rng.uniform(-0.6, 0.6),
-                                 int(rng.choice(mf)), 'crate'))
-            return parts
-
-        def rug():
-            w, d, h = rng.uniform(0.8, 2.5), rng.uniform(0.6, 1.8), rng.uniform(0.004, 0.012)
-            c = np.array([rng.uniform(w / 2, L[0] - w / 2), rng.uniform(d / 2, L[1] - d / 2)])
-            return [box([c[0], c[1], h / 2], [w / 2, d / 2, h / 2], float(rng.choice([0.0, math.pi / 2])) +
-                        rng.normal(0, 0.1), self.mat_rug, 'rug', casts_shadow=False)]
-
-        def pillar():
-            r = rng.uniform(0.1, 0.35)
-            c = self._free_spot(rng, r)
-            return [Primitive('cyl', [c[0], c[1], L[2] / 2], [r, r, L[2] / 2],
-                              0.0, int(rng.choice(mf + [self.mat_wall])), uvo(), label='pillar')]
-
-        def bin_():
-            r, hh = rng.uniform(0.12, 0.3), rng.uniform(0.3, 0.8)
-            c = self._free_spot(rng, r)
-            return [Primitive('cyl', [c[0], c[1], hh / 2], [r, r, hh / 2],
-                              0.0, int(rng.choice(mf)), uvo(), label='bin')]
-
-        def ball():
-            r = rng.uniform(0.1, 0.35)
-            c = self._free_spot(rng, r)
-            return [Primitive('sph', [c[0], c[1], r], [r, r, r], 0.0,
-                              int(rng.choice(mf + self.mat_pictures + [self.mat_metal])), uvo(), label='ball')]
-
-        def pole():
-            r, hh = rng.uniform(0.01, 0.025), rng.uniform(1.2, min(2.0, L[2] - 0.2))
-            c = self._free_spot(rng, 0.1)
-            return [Primitive('cyl', [c[0], c[1], hh / 2],
-                              [r, r, hh / 2], 0.0, self.mat_metal, uvo(), label='pole')]
-
-        def floor_lamp():
-            r, hh = rng.uniform(0.012, 0.02), rng.uniform(1.2, min(1.8, L[2] - 0.5))
-            gr = rng.uniform(0.1, 0.18)
-            x, y = self._free_spot(rng, 0.3)
-            return [Primitive('cyl', [x, y, hh / 2], [r, r, hh / 2], 0.0, self.mat_metal, uvo(), label='lamp pole'),
-                    Primitive('sph', [x, y, hh + gr], [gr, gr, gr], 0.0, self.mat_lamp, uvo(), casts_shadow=False,
-                              label='lamp globe')]
-
-        def wall_patch(mat, label, size_w, size_h, z_range, thick):
-            w, hh = rng.uniform(*size_w), rng.uniform(*size_h)
-            wall = int(rng.integers(0, 4))
-            z = rng.uniform(max(z_range[0], hh / 2 + 0.05), max(min(z_range[1], L[2] - hh / 2 - 0.05), z_range[0]))
-            t = thick / 2
-            if wall == 0:
-                c, yaw = [t, rng.uniform(w / 2, L[1] - w / 2), z], math.pi / 2
-            elif wall == 1:
-                c, yaw = [L[0] - t, rng.uniform(w / 2, L[1] - w / 2), z], -math.pi / 2
-            elif wall == 2:
-                c, yaw = [rng.uniform(w / 2, L[0] - w / 2), t, z], math.pi
-            else:
-                c, yaw = [rng.uniform(w / 2, L[0] - w / 2), L[1] - t, z], 0.0
-            return [box(c, [w / 2, t, hh / 2], yaw, mat, label, casts_shadow=False)]
-
+        make = _FurnitureMaker(self, rng)
         # large things first, small things later
-        for _ in range(n(cfg.num_shelves)):
-            self._try_place(rng, shelf)
-        for _ in range(n(cfg.num_sofas)):
-            self._try_place(rng, sofa)
-        for _ in range(n(cfg.num_cabinets)):
-            self._try_place(rng, cabinet)
-        for _ in range(n(cfg.num_tables)):
-            self._try_place(rng, table)
-        for _ in range(n(cfg.num_pillars)):
-            self._try_place(rng, pillar)
-        for _ in range(n(cfg.num_crates)):
-            self._try_place(rng, crate)
-        for _ in range(n(cfg.num_rugs)):
-            self._try_place(rng, rug)
-        for _ in range(n(cfg.num_bins)):
-            self._try_place(rng, bin_)
-        for _ in range(n(cfg.num_balls)):
-            self._try_place(rng, ball)
-        for _ in range(n(cfg.num_poles)):
-            self._try_place(rng, pole)
-        for _ in range(n(cfg.num_floor_lamps)):
-            self._try_place(rng, floor_lamp)
-        for _ in range(n(cfg.num_pictures)):
-            self._try_place(rng, lambda: wall_patch(int(rng.choice(self.mat_pictures)), 'picture', (0.3, 1.2),
-                                                    (0.3, 0.9), (1.0, 2.0), rng.uniform(0.01, 0.04)))
-        for _ in range(n(cfg.num_mirrors)):
-            self._try_place(rng, lambda: wall_patch(self.mat_mirror, 'mirror', (0.5, 1.2), (0.6, 1.5), (1.0, 1.6),
-                                                    0.01))
-        for _ in range(n(cfg.num_windows)):
-            self._try_place(rng, lambda: wall_patch(self.mat_glass, 'window', (0.6, 1.6), (0.6, 1.4), (1.2, 1.8), 0.01))
+        for count, piece in ((cfg.num_shelves, make.shelf), (cfg.num_sofas, make.sofa),
+                             (cfg.num_cabinets, make.cabinet), (cfg.num_tables, make.table),
+                             (cfg.num_pillars, make.pillar), (cfg.num_crates, make.crate), (cfg.num_rugs, make.rug),
+                             (cfg.num_bins, make.bin_), (cfg.num_balls, make.ball), (cfg.num_poles, make.pole),
+                             (cfg.num_floor_lamps, make.floor_lamp), (cfg.num_pictures, make.picture),
+                             (cfg.num_mirrors, make.mirror), (cfg.num_windows, make.window)):
+            for _ in range(make.count(count)):
+                self._try_place(rng, piece)
         if rng.random() < cfg.skirting_prob:
-            hh, th = rng.uniform(0.05, 0.12), rng.uniform(0.008, 0.02)
-            mat = self.mat_skirting
-            for c, half in (([th / 2, L[1] / 2, hh / 2], [th / 2, L[1] / 2 - th, hh / 2]),
-                            ([L[0] - th / 2, L[1] / 2, hh / 2], [th / 2, L[1] / 2 - th, hh / 2]),
-                            ([L[0] / 2, th / 2, hh / 2], [L[0] / 2, th / 2, hh / 2]),
-                            ([L[0] / 2, L[1] - th / 2, hh / 2], [L[0] / 2, th / 2, hh / 2])):
-                part = box(c, half, 0.0, mat, 'skirting', casts_shadow=False)
-                if self._fits([part], allow_overlap_with=tuple(self.prims)):
-                    self.prims.append(part)
+            self._add_skirting(make)
         if not cfg.static:
-            for _ in range(n(cfg.num_moving)):
-                def moving_ball():
-                    r = rng.uniform(0.1, 0.25)
-                    amp = np.array([rng.uniform(0.2, 0.6), rng.uniform(0.2, 0.6), 0.0])
-                    xy = self._free_spot(rng, r + float(np.linalg.norm(amp)))
-                    c = [xy[0], xy[1], r]
-                    return [Primitive('sph', c, [r, r, r], 0.0, int(rng.choice(mf + self.mat_pictures)), uvo(),
-                                      casts_shadow=False, label='moving ball',
-                                      motion=(amp, rng.uniform(0.5, 1.5), rng.uniform(0, 2 * math.pi, 3)))]
-                self._try_place(rng, moving_ball, tries=60)
+            for _ in range(make.count(cfg.num_moving)):
+                self._try_place(rng, make.moving_ball, tries=60)
         self.dynamic_ids = [i for i, p in enumerate(self.prims) if p.motion is not None]
+
+    def _add_skirting(self, make: _FurnitureMaker) -> None:
+        """Skirting boards along the four walls (each kept where it fits)."""
+        rng, L = make.rng, self.room
+        hh, th = rng.uniform(0.05, 0.12), rng.uniform(0.008, 0.02)
+        mat = self.mat_skirting
+        for c, half in (([th / 2, L[1] / 2, hh / 2], [th / 2, L[1] / 2 - th, hh / 2]),
+                        ([L[0] - th / 2, L[1] / 2, hh / 2], [th / 2, L[1] / 2 - th, hh / 2]),
+                        ([L[0] / 2, th / 2, hh / 2], [L[0] / 2, th / 2, hh / 2]),
+                        ([L[0] / 2, L[1] - th / 2, hh / 2], [L[0] / 2, th / 2, hh / 2])):
+            part = make.box(c, half, 0.0, mat, 'skirting', casts_shadow=False)
+            if self._fits([part], allow_overlap_with=tuple(self.prims)):
+                self.prims.append(part)
 
     def _build_lights(self, rng):
         """Ceiling lights (each with a visible fixture when it fits: a glowing panel on the ceiling or a
@@ -1229,104 +1317,94 @@ class SyntheticScene:
         r1 = rays.height if r1 is None else r1
         t, ids, dw = self._cast(rays, T_world_cam, time, r0, r1)
         h, W = t.shape
-        n = h * W
-        o = [float(x) for x in T_world_cam[:3, 3]]
-        R = np.asarray(T_world_cam[:3, :3], np.float64)
-        tf = t.reshape(-1)
-        idf = ids.reshape(-1)
-        dwf = [d.reshape(-1) for d in dw]
-        dxf, dyf = rays.dx[r0:r1].reshape(-1), rays.dy[r0:r1].reshape(-1)
-        inv_dnorm = rays.inv_norm[r0:r1].reshape(-1)
-        inv_fx = 1.0 / float(rays.K[0, 0])
+        hits = _RayHits(o=[float(x) for x in T_world_cam[:3, 3]], R=np.asarray(T_world_cam[:3, :3], np.float64),
+                        time=time, tf=t.reshape(-1), idf=ids.reshape(-1), dwf=[d.reshape(-1) for d in dw],
+                        dxf=rays.dx[r0:r1].reshape(-1), dyf=rays.dy[r0:r1].reshape(-1),
+                        inv_dnorm=rays.inv_norm[r0:r1].reshape(-1), inv_fx=1.0 / float(rays.K[0, 0]))
+        surf = self._surfaces(hits)
+        color, view_dep = self._light(hits, surf)
+        self._reflect_environment(hits, surf, color, view_dep)
+        return (color.T.reshape(h, W, 3), view_dep.T.reshape(h, W, 3), t, ids)
 
-        normal = np.empty((3, n), np.float32)
-        albedo = np.empty((3, n), np.float32)
-        ks = np.zeros(n, np.float32)
-        shin = np.ones(n, np.float32)
-        kind = np.zeros(n, np.int8)
-        order = np.argsort(idf, kind='stable')
-        counts = np.bincount(idf, minlength=_N_ROOM_FACES + len(self.prims))
+    def _surfaces(self, hits: '_RayHits') -> '_Surfaces':
+        """Normal, albedo and material of every hit, one surface (room face or primitive) at a time."""
+        n = hits.n
+        surf = _Surfaces(normal=np.empty((3, n), np.float32), albedo=np.empty((3, n), np.float32),
+                         ks=np.zeros(n, np.float32), shin=np.ones(n, np.float32), kind=np.zeros(n, np.int8))
+        dwf = hits.dwf
+        order = np.argsort(hits.idf, kind='stable')
+        counts = np.bincount(hits.idf, minlength=_N_ROOM_FACES + len(self.prims))
         starts = np.concatenate([[0], np.cumsum(counts)])
-        room_mats = [self.mat_wall, self.mat_wall, self.mat_wall2, self.mat_wall, self.mat_floor, self.mat_ceiling]
         for gid in np.flatnonzero(counts):
             idx = order[starts[gid]:starts[gid + 1]]
-            tt = tf[idx]
-            m = idx.size
+            tt = hits.tf[idx]
             if gid < _N_ROOM_FACES:
-                axis, side = gid // 2, gid % 2
-                nw = np.zeros((3, m), np.float32)
-                nw[axis] = -1.0 if side else 1.0
-                P = [o[i] + tt * dwf[i][idx] for i in range(3)]
-                if axis == 0:
-                    uu, vv = P[1] + 0.37 * side, P[2]
-                elif axis == 1:
-                    uu, vv = P[0] + 0.61 * side, P[2]
-                else:
-                    uu, vv = P[0], P[1]
-                mat = self.materials[room_mats[gid]]
+                mat, nw, uu, vv = self._room_face_surface(gid, idx, tt, hits)
                 uvo = (0.0, 0.0)
             else:
                 p = self.prims[gid - _N_ROOM_FACES]
                 mat = self.materials[p.material]
-                M = (p.R.T @ R).astype(np.float32)
-                ol = [float(x) for x in p.R.T @ (np.asarray(o) - p.center_at(time))]
-                sx, sy = dxf[idx], dyf[idx]
-                pl = [ol[i] + tt * (M[i, 0] * sx + M[i, 1] * sy + M[i, 2]) for i in range(3)]
-                nl = np.zeros((3, m), np.float32)
-                hx, hy, hz = p.half_f
-                if p.kind == 'box':
-                    rx, ry, rz = np.abs(pl[0]) * (1 / hx), np.abs(pl[1]) * (1 / hy), np.abs(pl[2]) * (1 / hz)
-                    is_y = ry > rx
-                    is_z = rz > np.maximum(rx, ry)
-                    is_x = ~(is_y | is_z)
-                    is_y &= ~is_z
-                    nl[0] = is_x * np.sign(pl[0])
-                    nl[1] = is_y * np.sign(pl[1])
-                    nl[2] = is_z * np.sign(pl[2])
-                    # surface coordinates: horizontal faces (x, y); vertical faces (horizontal, z)
-                    uu = np.where(is_x, pl[1], pl[0]) + 1.7 * is_y + 3.4 * is_z + 0.9 * (nl[0] + nl[1] + nl[2])
-                    vv = np.where(is_z, pl[1], pl[2])
-                elif p.kind == 'cyl':
-                    r = hx
-                    cap = np.abs(pl[2]) >= hz * (1 - 1e-4) - 1e-6
-                    side_ = ~cap
-                    inv_rho = 1.0 / np.maximum(np.sqrt(pl[0] ** 2 + pl[1] ** 2), 1e-9)
-                    nl[0] = pl[0] * inv_rho * side_
-                    nl[1] = pl[1] * inv_rho * side_
-                    nl[2] = np.sign(pl[2]) * cap
-                    if cap.any():
-                        uu = np.where(cap, pl[0], np.arctan2(pl[1], pl[0]) * r)
-                        vv = np.where(cap, pl[1] + 3.1, pl[2])
-                    else:
-                        uu, vv = np.arctan2(pl[1], pl[0]) * r, pl[2]
-                else:
-                    r = hx
-                    nl[0], nl[1], nl[2] = pl[0] * (1 / r), pl[1] * (1 / r), pl[2] * (1 / r)
-                    uu = np.arctan2(pl[1], pl[0]) * r
-                    vv = np.arcsin(np.clip(pl[2] * (1 / r), -1, 1)) * r
-                if p.yaw == 0.0:
-                    nw = nl
-                else:
-                    Rp = p.R.astype(np.float32)
-                    nw = np.stack([Rp[0, 0] * nl[0] + Rp[0, 1] * nl[1], Rp[1, 0] * nl[0] + Rp[1, 1] * nl[1], nl[2]])
+                nw, uu, vv = self._primitive_surface(p, idx, tt, hits)
                 uvo = p.uv_offset
-            normal[:, idx] = nw
-            kind[idx] = mat.kind
-            ks[idx] = mat.ks
-            shin[idx] = mat.shininess
+            surf.normal[:, idx] = nw
+            surf.kind[idx] = mat.kind
+            surf.ks[idx] = mat.ks
+            surf.shin[idx] = mat.shininess
             if mat.kind == KIND_EMISSIVE:
-                albedo[:, idx] = np.asarray(mat.emission, np.float32)[:, None]
+                surf.albedo[:, idx] = np.asarray(mat.emission, np.float32)[:, None]
                 continue
-            cosv = np.abs(nw[0] * dwf[0][idx] + nw[1] * dwf[1][idx] + nw[2] * dwf[2][idx]) * inv_dnorm[idx]
-            foot = tt * inv_fx / np.maximum(cosv, 0.25)
-            albedo[:, idx] = _sample_material(mat, uu + uvo[0], vv + uvo[1], foot).T
+            cosv = np.abs(nw[0] * dwf[0][idx] + nw[1] * dwf[1][idx] + nw[2] * dwf[2][idx]) * hits.inv_dnorm[idx]
+            foot = tt * hits.inv_fx / np.maximum(cosv, 0.25)
+            surf.albedo[:, idx] = _sample_material(mat, uu + uvo[0], vv + uvo[1], foot).T
+        return surf
 
-        # lighting: ambient + point lights (Lambert + Blinn-Phong), soft shadows from cube maps
+    def _room_face_surface(self, gid: int, idx: np.ndarray, tt: np.ndarray, hits: '_RayHits'):
+        """(material, world normal (3, m), surface coordinates u, v) of the hits ``idx`` on room face ``gid``."""
+        room_mats = [self.mat_wall, self.mat_wall, self.mat_wall2, self.mat_wall, self.mat_floor, self.mat_ceiling]
+        o, dwf = hits.o, hits.dwf
+        axis, side = gid // 2, gid % 2
+        nw = np.zeros((3, idx.size), np.float32)
+        nw[axis] = -1.0 if side else 1.0
+        P = [o[i] + tt * dwf[i][idx] for i in range(3)]
+        if axis == 0:
+            uu, vv = P[1] + 0.37 * side, P[2]
+        elif axis == 1:
+            uu, vv = P[0] + 0.61 * side, P[2]
+        else:
+            uu, vv = P[0], P[1]
+        return self.materials[room_mats[gid]], nw, uu, vv
+
+    @staticmethod
+    def _primitive_surface(p: Primitive, idx: np.ndarray, tt: np.ndarray, hits: '_RayHits'):
+        """(world normal (3, m), surface coordinates u, v) of the hits ``idx`` on primitive ``p``."""
+        M = (p.R.T @ hits.R).astype(np.float32)
+        ol = [float(x) for x in p.R.T @ (np.asarray(hits.o) - p.center_at(hits.time))]
+        sx, sy = hits.dxf[idx], hits.dyf[idx]
+        pl = [ol[i] + tt * (M[i, 0] * sx + M[i, 1] * sy + M[i, 2]) for i in range(3)]
+        nl = np.zeros((3, idx.size), np.float32)
+        if p.kind == 'box':
+            uu, vv = _box_normal_uv(pl, nl, p.half_f)
+        elif p.kind == 'cyl':
+            uu, vv = _cylinder_normal_uv(pl, nl, p.half_f)
+        else:
+            uu, vv = _sphere_normal_uv(pl, nl, p.half_f)
+        if p.yaw == 0.0:
+            nw = nl
+        else:
+            Rp = p.R.astype(np.float32)
+            nw = np.stack([Rp[0, 0] * nl[0] + Rp[0, 1] * nl[1], Rp[1, 0] * nl[0] + Rp[1, 1] * nl[1], nl[2]])
+        return nw, uu, vv
+
+    def _light(self, hits: '_RayHits', surf: '_Surfaces') -> Tuple[np.ndarray, np.ndarray]:
+        """Lighting: ambient + point lights (Lambert + Blinn-Phong), soft shadows from cube maps; returns the
+        colour (3, n) and its view-dependent part (3, n)."""
+        o, tf, dwf, inv_dnorm = hits.o, hits.tf, hits.dwf, hits.inv_dnorm
+        n, ks, shin = hits.n, surf.ks, surf.shin
         Px = o[0] + tf * dwf[0]
         Py = o[1] + tf * dwf[1]
         Pz = o[2] + tf * dwf[2]
         vx, vy, vz = -dwf[0] * inv_dnorm, -dwf[1] * inv_dnorm, -dwf[2] * inv_dnorm
-        Nx, Ny, Nz = normal
+        Nx, Ny, Nz = surf.normal
         amb_w = np.float32(0.8) + np.float32(0.2) * Nz
         light_acc = [amb_w * np.float32(self.ambient[c]) for c in range(3)]
         spec = None
@@ -1358,28 +1436,35 @@ class SyntheticScene:
                 sp = np.exp(np.log(ndh) * shin) * spec_norm * w
                 for c in range(3):
                     spec[c] += sp * col[c]
-        color = np.stack([albedo[c] * light_acc[c] for c in range(3)])
+        color = np.stack([surf.albedo[c] * light_acc[c] for c in range(3)])
         view_dep = np.zeros((3, n), np.float32) if spec is None else np.stack(spec)
         color += view_dep
-        emissive = kind == KIND_EMISSIVE
+        emissive = surf.kind == KIND_EMISSIVE
         if emissive.any():
-            color[:, emissive] = albedo[:, emissive]
+            color[:, emissive] = surf.albedo[:, emissive]
+        return color, view_dep
+
+    def _reflect_environment(self, hits: '_RayHits', surf: '_Surfaces', color: np.ndarray,
+                             view_dep: np.ndarray) -> None:
+        """Mirrors and glass: mix the environment seen in the reflected (or through the refracted) direction into
+        ``color`` and ``view_dep`` (in place)."""
+        kind = surf.kind
         special = (kind == KIND_MIRROR) | (kind == KIND_GLASS)
-        if special.any():
-            sel = np.flatnonzero(special)
-            d = np.stack([dwf[i][sel] * inv_dnorm[sel] for i in range(3)])
-            nn = normal[:, sel]
-            refl = d - 2 * np.sum(d * nn, axis=0) * nn
-            glass = kind[sel] == KIND_GLASS
-            look = np.where(glass[None, :], d - 0.15 * nn, refl)
-            look /= np.linalg.norm(look, axis=0, keepdims=True)
-            env = self._environment(look).T
-            mix = np.array([self.materials[self.mat_mirror].env_mix, self.materials[self.mat_glass].env_mix],
-                           np.float32)[glass.astype(int)][None, :]
-            env_part = mix * env * np.float32(self.ambient.mean() * 2 + 0.6)
-            view_dep[:, sel] += env_part
-            color[:, sel] = (1 - mix) * color[:, sel] + env_part
-        return (color.T.reshape(h, W, 3), view_dep.T.reshape(h, W, 3), t, ids)
+        if not special.any():
+            return
+        sel = np.flatnonzero(special)
+        d = np.stack([hits.dwf[i][sel] * hits.inv_dnorm[sel] for i in range(3)])
+        nn = surf.normal[:, sel]
+        refl = d - 2 * np.sum(d * nn, axis=0) * nn
+        glass = kind[sel] == KIND_GLASS
+        look = np.where(glass[None, :], d - 0.15 * nn, refl)
+        look /= np.linalg.norm(look, axis=0, keepdims=True)
+        env = self._environment(look).T
+        mix = np.array([self.materials[self.mat_mirror].env_mix, self.materials[self.mat_glass].env_mix],
+                       np.float32)[glass.astype(int)][None, :]
+        env_part = mix * env * np.float32(self.ambient.mean() * 2 + 0.6)
+        view_dep[:, sel] += env_part
+        color[:, sel] = (1 - mix) * color[:, sel] + env_part
 
     def _environment(self, d: np.ndarray) -> np.ndarray:
         H, W = self.env_map.shape[:2]

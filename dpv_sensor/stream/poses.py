@@ -238,6 +238,27 @@ def _rel(T_world_a: np.ndarray, T_world_b: np.ndarray) -> np.ndarray:
 # Sliding-window refiner
 # ------------------------------------------------------------------------------------------------------------------
 
+@dataclass
+class _DepthReference:
+    """What a window is aligned against: the reference's depth and its weights (the arguments of
+    :meth:`WindowPoseRefiner.refine`)."""
+    depth_hw: object
+    conf_hw: object = None
+    K_depth_33: Optional[np.ndarray] = None
+    inv_depth_std_hw: object = None
+
+
+@dataclass
+class _WindowAlignments:
+    """The photometric alignments of one window: per source the result (None: not tried), the sources tried
+    (nearest first), why some are unusable, and the between factors of the usable ones."""
+    alignments: List[Optional[AlignmentResult]]
+    order: List[int] = field(default_factory=list)
+    nearest: Optional[int] = None
+    failed: Dict[int, str] = field(default_factory=dict)
+    new_factors: list = field(default_factory=list)
+
+
 class WindowPoseRefiner:
     """Sliding-window pose refinement: photometric alignments + odometry in a gtsam factor graph.
 
@@ -347,123 +368,143 @@ class WindowPoseRefiner:
             inv_depth_std_ref: optional per-pixel std of the inverse depth (1/m) on the depth grid: uncertain depth
                 then weighs less in the alignment and widens its covariance.
         """
-        cfg = self.config
         t0 = time.perf_counter()
         c0 = time.process_time()
         self.calls += 1
-        frames = [ref] + list(sources)
-        keys = [f.key for f in frames]
-        if len(set(keys)) != len(keys):
-            raise ValueError(f'duplicate keys in the window: {keys}')
-        for f in frames:
-            if f.key not in self._odom:
-                self._odom[f.key] = np.asarray(f.T_world_cam_odom_44, dtype=np.float64).copy()
-        window = sorted(keys)
-        # Forget keyframes that left the window (and their factors).
-        for k in list(self._est):
-            if k not in keys:
-                del self._est[k]
-        for k in list(self._odom):
-            if k not in keys:
-                del self._odom[k]
-        for k in list(self._pyramids):
-            if k not in keys:
-                del self._pyramids[k]
-        self._factors = [f for f in self._factors if f[0] in keys and f[1] in keys] if cfg.keep_old_factors else []
-
+        keys = [ref.key] + [f.key for f in sources]
+        window = self._admit_window([ref] + list(sources))
         init = self._initial_values(window)
-        alignments: List[Optional[AlignmentResult]] = [None] * len(sources)
         t_align = time.perf_counter()
-        new_factors = []
-        failed: Dict[int, str] = {}          # source index -> why its alignment is not used
-        if depth_ref is not None:
-            if not set(keys) & set(self._est):
-                self._depth_refs = 0                         # a new stream: the window shares nothing with ours
-            self._depth_refs += 1
-        warm = self._depth_refs > cfg.warmup_keyframes
+        warm = self._count_depth_ref(keys, depth_ref)
         skipped = None
         if depth_ref is not None and sources and warm:
             skipped = self._turning_in_place(ref, sources, init, depth_ref)
-        if skipped is not None:
-            order, nearest = [], None
-        elif depth_ref is not None and sources and warm:
-            order = sorted(range(len(sources)), key=lambda i: _key_distance(sources[i].key, ref.key))
-            if cfg.max_sources is not None:
-                order = order[:cfg.max_sources]
-            aligner = Aligner(self._pyramid(ref), depth_ref, ref.K_33, conf_ref=conf_ref, K_depth_33=K_depth_33,
-                              inv_depth_std_ref=inv_depth_std_ref, config=cfg.alignment)
-            offset_sigma = cfg.inv_depth_offset_sigma
-            if offset_sigma is None:
-                base = float(np.linalg.norm(_rel(init[sources[order[0]].key], init[ref.key])[:3, 3]))
-                offset_sigma = math.radians(cfg.odom_sigma_rot_deg) / max(base, 1e-3)
-            for i in order:
-                s = sources[i]
-                T_src_ref0 = _rel(init[s.key], init[ref.key])
-                res = aligner.align(self._pyramid(s), T_src_ref0)
-                alignments[i] = res
-                if not res.converged:
-                    failed[i] = res.reason
-                    continue
-                # A converged alignment that lands far from the odometry prediction is a pose jump.
-                dt, dr = pose_error(T_src_ref0, res.T_src_ref_44)
-                if dt > cfg.max_jump_translation_m or dr > cfg.max_jump_rotation_deg:
-                    failed[i] = (f'pose jump: the alignment moved {dt:.3f} m / {dr:.2f} deg away from the odometry '
-                                 f'(limits {cfg.max_jump_translation_m} m / {cfg.max_jump_rotation_deg} deg)')
-                    continue
-                new_factors.append((ref.key, s.key, res.T_ref_src_44,
-                                    res.between_covariance_gtsam(cfg.depth_scale_sigma, cfg.translation_sigma_rel,
-                                                                 offset_sigma)))
-            nearest = order[0] if order else None
+        if skipped is None and depth_ref is not None and sources and warm:
+            depth = _DepthReference(depth_ref, conf_ref, K_depth_33, inv_depth_std_ref)
+            aligned = self._align_sources(ref, sources, init, depth)
         else:
-            order, nearest = [], None
+            aligned = _WindowAlignments(alignments=[None] * len(sources))
         t_opt = time.perf_counter()
-
-        n_ok = len(order) - len(failed)
-        reason = None
-        if order:
-            if cfg.require_nearest and nearest in failed:
-                reason = f'alignment to the nearest keyframe failed: {failed[nearest]}'
-            elif n_ok < cfg.min_converged_fraction * len(order):
-                fails = '; '.join(sorted(set(failed.values())))
-                reason = f'only {n_ok}/{len(order)} alignments usable ({fails})'
-
+        reason = self._alignment_failure(aligned)
         if skipped is not None:
             # a fallback, not a loss: the odometry-chained poses, and no photometric history across the turn
             self._factors = []
-        factors = self._factors + new_factors
-        refined = False
-        poses = init
-        if reason is None and factors:
-            try:
-                poses = self._optimize(window, init, factors)
-                refined = True
-            except RuntimeError as e:      # gtsam raises on indeterminate systems
-                reason = f'window optimisation failed: {e}'
-            if reason is None:
-                reason = self._jump_check(window, poses)
+        factors = self._factors + aligned.new_factors
+        poses, refined, reason = self._solve(window, init, factors, reason)
         tracking_ok = reason is None
         if not tracking_ok:
             self.losses += 1
-        if tracking_ok:
-            self._est = {k: poses[k] for k in window}
-            self._factors = factors
-        else:
-            # Discard the diverged solution: keep the odometry-chained poses and no photometric history.
-            poses = init
-            refined = False
-            self._est = {k: init[k] for k in window}
-            self._factors = []
-            self._depth_refs = 0
+            poses, refined = init, False
+        self._keep_solution(window, poses, factors, tracking_ok)
         t1 = time.perf_counter()
         T_world_ref = poses[ref.key]
         self.last_result = RefinementResult(
             T_world_cam={k: poses[k].copy() for k in window},
             T_world_ref_44=T_world_ref.copy(),
             T_src_ref=[_rel(poses[s.key], T_world_ref) for s in sources],
-            tracking_ok=tracking_ok, reason=reason, refined=refined, alignments=alignments,
+            tracking_ok=tracking_ok, reason=reason, refined=refined, alignments=aligned.alignments,
             timings_ms={'align': 1e3 * (t_opt - t_align), 'optimize': 1e3 * (t1 - t_opt),
                         'total': 1e3 * (t1 - t0), 'cpu': 1e3 * (time.process_time() - c0)}, skipped=skipped)
         return self.last_result
+
+    def _admit_window(self, frames: List[WindowKeyframe]) -> List[Hashable]:
+        """Take the window's keyframes in (their odometry poses) and forget the keyframes that left it, with their
+        factors; returns the window's keys in order."""
+        keys = [f.key for f in frames]
+        if len(set(keys)) != len(keys):
+            raise ValueError(f'duplicate keys in the window: {keys}')
+        for f in frames:
+            if f.key not in self._odom:
+                self._odom[f.key] = np.asarray(f.T_world_cam_odom_44, dtype=np.float64).copy()
+        for store in (self._est, self._odom, self._pyramids):
+            for k in list(store):
+                if k not in keys:
+                    del store[k]
+        if self.config.keep_old_factors:
+            self._factors = [f for f in self._factors if f[0] in keys and f[1] in keys]
+        else:
+            self._factors = []
+        return sorted(keys)
+
+    def _count_depth_ref(self, keys: List[Hashable], depth_ref) -> bool:
+        """Count a window with a depth to align against; whether enough came in a row to align (the warm-up)."""
+        if depth_ref is not None:
+            if not set(keys) & set(self._est):
+                self._depth_refs = 0                         # a new stream: the window shares nothing with ours
+            self._depth_refs += 1
+        return self._depth_refs > self.config.warmup_keyframes
+
+    def _align_sources(self, ref: WindowKeyframe, sources: Sequence[WindowKeyframe],
+                       init: Dict[Hashable, np.ndarray], depth: '_DepthReference') -> '_WindowAlignments':
+        """Align the nearest sources to the reference's depth; each usable alignment becomes a between factor."""
+        cfg = self.config
+        out = _WindowAlignments(alignments=[None] * len(sources))
+        order = sorted(range(len(sources)), key=lambda i: _key_distance(sources[i].key, ref.key))
+        if cfg.max_sources is not None:
+            order = order[:cfg.max_sources]
+        out.order = order
+        aligner = Aligner(self._pyramid(ref), depth.depth_hw, ref.K_33, conf_ref=depth.conf_hw,
+                          K_depth_33=depth.K_depth_33, inv_depth_std_ref=depth.inv_depth_std_hw,
+                          config=cfg.alignment)
+        offset_sigma = cfg.inv_depth_offset_sigma
+        if offset_sigma is None:
+            base = float(np.linalg.norm(_rel(init[sources[order[0]].key], init[ref.key])[:3, 3]))
+            offset_sigma = math.radians(cfg.odom_sigma_rot_deg) / max(base, 1e-3)
+        for i in order:
+            s = sources[i]
+            T_src_ref0 = _rel(init[s.key], init[ref.key])
+            res = aligner.align(self._pyramid(s), T_src_ref0)
+            out.alignments[i] = res
+            if not res.converged:
+                out.failed[i] = res.reason
+                continue
+            # A converged alignment that lands far from the odometry prediction is a pose jump.
+            dt, dr = pose_error(T_src_ref0, res.T_src_ref_44)
+            if dt > cfg.max_jump_translation_m or dr > cfg.max_jump_rotation_deg:
+                out.failed[i] = (f'pose jump: the alignment moved {dt:.3f} m / {dr:.2f} deg away from the odometry '
+                                 f'(limits {cfg.max_jump_translation_m} m / {cfg.max_jump_rotation_deg} deg)')
+                continue
+            out.new_factors.append((ref.key, s.key, res.T_ref_src_44,
+                                    res.between_covariance_gtsam(cfg.depth_scale_sigma, cfg.translation_sigma_rel,
+                                                                 offset_sigma)))
+        out.nearest = order[0] if order else None
+        return out
+
+    def _alignment_failure(self, aligned: '_WindowAlignments') -> Optional[str]:
+        """Why the window's alignments are not enough to refine it (None: they are, or none was tried)."""
+        cfg = self.config
+        order, failed = aligned.order, aligned.failed
+        if not order:
+            return None
+        n_ok = len(order) - len(failed)
+        if cfg.require_nearest and aligned.nearest in failed:
+            return f'alignment to the nearest keyframe failed: {failed[aligned.nearest]}'
+        if n_ok < cfg.min_converged_fraction * len(order):
+            fails = '; '.join(sorted(set(failed.values())))
+            return f'only {n_ok}/{len(order)} alignments usable ({fails})'
+        return None
+
+    def _solve(self, window: List[Hashable], init: Dict[Hashable, np.ndarray], factors: list,
+               reason: Optional[str]) -> Tuple[Dict[Hashable, np.ndarray], bool, Optional[str]]:
+        """Optimise the window over its factors unless a reason says not to; returns (poses, refined, reason)."""
+        if reason is not None or not factors:
+            return init, False, reason
+        try:
+            poses = self._optimize(window, init, factors)
+        except RuntimeError as e:      # gtsam raises on indeterminate systems
+            return init, False, f'window optimisation failed: {e}'
+        return poses, True, self._jump_check(window, poses)
+
+    def _keep_solution(self, window: List[Hashable], poses: Dict[Hashable, np.ndarray], factors: list,
+                       tracking_ok: bool) -> None:
+        """Keep a tracked window's poses and factors; after a loss keep the odometry-chained poses (``poses``
+        then are those) and no photometric history."""
+        self._est = {k: poses[k] for k in window}
+        if tracking_ok:
+            self._factors = factors
+        else:
+            self._factors = []
+            self._depth_refs = 0
 
     def _turning_in_place(self, ref, sources, init, depth_ref) -> Optional[str]:
         """Why the window is not refined (``PoseRefinerConfig.max_rotation_parallax``), or None."""

@@ -455,7 +455,7 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-def main(argv: Optional[List[str]] = None) -> int:
+def main(argv: Optional[List[str]] = None) -> int:  # noqa: C901 (to be split into named steps)
     argv = tool_argv(argv)
     a = build_parser().parse_args(argv)
     unknown = [x for x in a.parts if x not in PARTS]

@@ -262,24 +262,165 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def _stamp_offset_argv(a, gt_dir, input_bag: pathlib.Path, image_topic: str, summary: Dict[str, Any]) -> List[str]:
+    """The ``--stamp-offset`` arguments of evaluate and fuse. ``auto``: from the input bag's first image (the
+    recorded outputs hold no camera image): GT frame 0 unless the GT's own stamps are the bag's."""
+    if a.stamp_offset != 'auto':
+        return ['--stamp-offset', str(a.stamp_offset)]
+    if gt_dir is None:
+        return []
+    from dpv_sensor.evaluation.offline import first_image_stamp, gt_stamp_offset, load_sequence
+    auto = gt_stamp_offset(first_image_stamp(input_bag, image_topic), load_sequence(gt_dir))
+    summary['stamp_offset_s'] = auto
+    return ['--stamp-offset', f'{auto:.9f}']
+
+
+def _evaluate_step(steps: Steps, output_bag: pathlib.Path, gt_dir: pathlib.Path, out: pathlib.Path,
+                   offset: List[str], summary: Dict[str, Any]) -> None:
+    """Step 6: score the recorded outputs against the ground truth with ``evaluate``."""
+    from dpv_sensor.tools import evaluate as EV
+    eval_dir, logs = out / 'eval', out / 'logs'
+    eval_argv = ['bag', str(output_bag), '--gt', str(gt_dir), '--out', str(eval_dir)] + offset
+    summary['evaluate_command'] = ('python -m dpv_sensor.tools.evaluate bag ' + _rel(output_bag) +
+                                   ' --gt ' + _rel(gt_dir) + ' --out ' + _rel(out / 'eval_by_hand') +
+                                   ''.join(' ' + x for x in offset))
+    with steps.step('eval', f'evaluate the recorded outputs against {_rel(gt_dir)} -> {_rel(eval_dir)}') as rec:
+        code, text = _run_tool(EV.main, eval_argv + ['--quiet'], logs / 'evaluate.txt')
+        if code != 0:
+            raise DemoError(f'evaluate failed (exit code {code}); see {_rel(logs / "evaluate.txt")}')
+        with open(eval_dir / 'summary.json') as fh:
+            ev = json.load(fh)
+        summary['evaluation'] = {'table': _table_lines(text), 'summary_json': str(eval_dir / 'summary.json'),
+                                 'num_keyframes': ev.get('num_keyframes'),
+                                 'metric': (ev.get('metric') or {}).get('frame_mean'),
+                                 'median_scaled': (ev.get('median_scaled') or {}).get('frame_mean'),
+                                 'coverage': (ev.get('coverage') or {}).get('frame_mean'),
+                                 'temporal': (ev.get('temporal_consistency') or {}).get('pair_mean'),
+                                 'ause': (ev.get('confidence') or {}).get('ause_frame_mean'),
+                                 'input': (ev.get('configuration') or {}).get('input'),
+                                 'files': {k: v for k, v in (ev.get('files') or {}).items()}}
+        rec['note'] = f"{ev.get('num_keyframes')} keyframes scored"
+        unmatched = ((ev.get('configuration') or {}).get('input') or {}).get('unmatched')
+        if unmatched:
+            summary['warnings'].append(f'{unmatched} recorded depth images matched no ground-truth frame '
+                                       '(stamps; see --stamp-offset)')
+
+
+def _fuse_step(steps: Steps, a, output_bag: pathlib.Path, gt_dir: pathlib.Path, out: pathlib.Path,
+               offset: List[str], summary: Dict[str, Any]) -> None:
+    """Step 7: TSDF-fuse the recorded depth with ``fuse`` and score the mesh."""
+    from dpv_sensor.tools import fuse as FU
+    fusion_dir, logs = out / 'fusion', out / 'logs'
+    fuse_argv = ['bag', str(output_bag), '--gt', str(gt_dir), '--out', str(fusion_dir), '--voxel',
+                 f'{a.voxel:g}', '--min-confidence', f'{a.fuse_min_confidence:g}']
+    fuse_argv += offset
+    summary['fuse_command'] = ('python -m dpv_sensor.tools.fuse bag ' + _rel(output_bag) + ' --gt ' +
+                               _rel(gt_dir) + ' --out ' + _rel(out / 'fusion_by_hand') +
+                               f' --voxel {a.voxel:g} --min-confidence {a.fuse_min_confidence:g}' +
+                               ''.join(' ' + x for x in offset))
+    with steps.step('fuse', f'TSDF-fuse the recorded depth (voxel {a.voxel:g} m) and score the mesh -> '
+                    f'{_rel(fusion_dir)}') as rec:
+        code, text = _run_tool(FU.main, fuse_argv + ['--quiet'], logs / 'fuse.txt')
+        if code != 0:
+            raise DemoError(f'fuse failed (exit code {code}); see {_rel(logs / "fuse.txt")}')
+        with open(fusion_dir / 'fusion.json') as fh:
+            fu = json.load(fh)
+        summary['fusion'] = {'unmasked': fu.get('unmasked'), 'masked': fu.get('masked'),
+                             'num_frames': fu.get('num_frames'), 'config': fu.get('config'),
+                             'files': fu.get('files'), 'table': _table_lines(text)}
+        un = fu.get('unmasked') or {}
+        rec['note'] = f"F-score {_fmt(un.get('fscore'), '{:.3f}')} (all pixels)"
+
+
+def _node_summary(replay, values: Dict[str, Any], logs: pathlib.Path) -> Dict[str, Any]:
+    """What ran in the node and what it reported (its final diagnostics), for the summary."""
+    d = replay.diagnostics
+    return {
+        'command': ' '.join(shlex.quote(x) for x in replay.node_command),
+        **_weights_info(d),
+        'preset': values['preset'], 'filter_mode': d.get('filter_mode'), 'filter_mode_requested':
+        values['filter_mode'], 'window_mode': values['window_mode'], 'device': d.get('device'),
+        'precision': d.get('precision'),
+        'processing_size': [values['processing_width'], values['processing_height']],
+        'images_in_bag': replay.images_in_bag, 'images_sent': replay.images_sent,
+        'frames_received': d.get('frames_received'), 'frames_processed': d.get('frames_processed'),
+        'keyframes': d.get('estimator_keyframes'), 'outputs_published': d.get('outputs_published'),
+        'recorded': replay.recorded, 'dropped_total': d.get('dropped_total'),
+        'dropped': {k[8:]: v for k, v in d.items() if k.startswith('dropped.')},
+        'faults': {k[7:]: v for k, v in d.items() if k.startswith('faults.')},
+        'filter_resets': d.get('filter_resets'), 'output_resets': d.get('output_resets'),
+        'pose_uncertainty': d.get('pose_uncertainty'),
+        'processing_ms_median_all_images': d.get('processing_ms_median'),
+        'receipt_to_publish_ms_median': d.get('latency_ms_median'),
+        'sent_to_recorded_ms': replay.e2e_ms,
+        'pacing': 'lockstep' if replay.lockstep else f'{replay.rate:g}x real time',
+        'replay_wall_s': replay.wall_s, 'lockstep_wait_s': replay.wait_s, 'node_start_s': replay.node_start_s,
+        'node_stop_s': replay.node_stop_s, 'exit_code': replay.node_exit_code,
+        'peak_rss_mib': replay.node_peak_rss_mib, 'log': str(logs / 'node.log')}
+
+
+def _node_params(items: List[str]):
+    """The node's parameters: the demo's, overridden by ``--params`` (a weights path made absolute), and all
+    settings validated; raises ValueError or ParameterError naming a bad one."""
+    from dpv_sensor import params as P
+    user_params = parse_params(items)
+    params = dict(DEMO_NODE_PARAMS)
+    params.update(user_params)
+    if 'weights' in params and params['weights'] and pathlib.Path(params['weights']).exists():
+        params['weights'] = str(pathlib.Path(params['weights']).resolve())
+    return params, P.validate({**P.defaults(), **params})
+
+
+def _clear_out(out: pathlib.Path) -> pathlib.Path:
+    """The output folder without the previous run's results, with an empty ``logs/``."""
+    out.mkdir(parents=True, exist_ok=True)
+    for item in OUT_ITEMS:
+        p = out / item
+        if p.is_dir():
+            shutil.rmtree(p)
+        elif p.exists():
+            p.unlink()
+    (out / 'logs').mkdir(parents=True, exist_ok=True)
+    return out
+
+
+def _input_steps(steps: Steps, a, seq_dir: pathlib.Path, input_bag: pathlib.Path, bag_inputs, gt_dir,
+                 progress: bool, summary: Dict[str, Any]) -> Dict[str, str]:
+    """Steps 1 and 2: render the synthetic scene and write its bag, or (``bag_inputs``: the user's bag's topics,
+    as :func:`_bag_inputs` chose them) take the user's bag; returns the topics."""
+    from dpv_sensor.data import rosbag_io as R
+    if bag_inputs is None:
+        frames = a.frames or DEFAULT_FRAMES
+        topics = {'image': R.IMAGE_TOPIC, 'camera_info': R.CAMERA_INFO_TOPIC, 'odom': R.ODOM_TOPIC}
+        with steps.step('render', f'render synthetic scene seed {a.seed}: {frames} frames at {a.width}x{a.height}'
+                        f' -> {_rel(seq_dir)}') as rec:
+            seq = render_scene(seq_dir, a.seed, frames, a.width, a.height, progress)
+            rec['note'] = f'{len(seq)} frames, {seq.stamp(len(seq) - 1) - seq.stamp(0):.2f} s of camera motion'
+        with steps.step('bag', f'write the rosbag2 {_rel(input_bag)} (odometry {ODOM_RATE_HZ:g} Hz)') as rec:
+            bs = R.write_sequence_bag(input_bag, seq, odom_rate=ODOM_RATE_HZ, progress=progress)
+            rec['note'] = f'{bs.frames} images, {bs.odometry} odometry messages, {bs.duration_s:.2f} s'
+        summary['input'] = {'kind': 'synthetic', 'seed': a.seed, 'frames': frames, 'size': [a.width, a.height],
+                            'odom_rate_hz': ODOM_RATE_HZ, 'sequence': str(seq_dir), 'bag': str(input_bag)}
+        del seq
+    else:
+        topics, how, bt = bag_inputs
+        print(f'demo: input topics: {R.describe_choice(topics, how)}', flush=True)
+        steps.skip('render', f'using your bag {_rel(input_bag)}')
+        steps.skip('bag', f"{bt[topics['image']][1]} images on {topics['image']}")
+        summary['input'] = {'kind': 'bag', 'bag': str(input_bag), 'topics': topics, 'topics_chosen_by': how,
+                            'gt': str(gt_dir) if gt_dir else None}
+    return topics
+
+
 def main(argv: Optional[List[str]] = None) -> int:
     argv = tool_argv(argv)
     a = build_parser().parse_args(argv)
     t_total = time.perf_counter()
     progress = not a.quiet
-    try:
-        user_params = parse_params(a.params)
-    except ValueError as exc:
-        print(f'demo: {exc}', file=sys.stderr)
-        return 2
     from dpv_sensor import params as P
-    params = dict(DEMO_NODE_PARAMS)
-    params.update(user_params)
-    if 'weights' in params and params['weights'] and pathlib.Path(params['weights']).exists():
-        params['weights'] = str(pathlib.Path(params['weights']).resolve())
     try:
-        values = P.validate({**P.defaults(), **params})
-    except P.ParameterError as exc:
+        params, values = _node_params(a.params)
+    except (ValueError, P.ParameterError) as exc:
         print(f'demo: {exc}', file=sys.stderr)
         return 2
     if a.start_timeout < 10:
@@ -298,16 +439,8 @@ def main(argv: Optional[List[str]] = None) -> int:
         print(f'demo: {exc}', flush=True)
         return 1
 
-    out = pathlib.Path(a.out).resolve()
-    out.mkdir(parents=True, exist_ok=True)
-    for item in OUT_ITEMS:
-        p = out / item
-        if p.is_dir():
-            shutil.rmtree(p)
-        elif p.exists():
-            p.unlink()
+    out = _clear_out(pathlib.Path(a.out).resolve())
     logs = out / 'logs'
-    logs.mkdir(parents=True, exist_ok=True)
     domain_id = a.domain_id
     if domain_id is None and os.environ.get('ROS_DOMAIN_ID', '').isdigit():
         domain_id = int(os.environ['ROS_DOMAIN_ID'])
@@ -323,28 +456,8 @@ def main(argv: Optional[List[str]] = None) -> int:
     failure = None
     replay = None
     try:
-        from dpv_sensor.data import rosbag_io as R
         # ---------------------------------------------------------------- 1 + 2: input
-        if not user_bag:
-            frames = a.frames or DEFAULT_FRAMES
-            topics = {'image': R.IMAGE_TOPIC, 'camera_info': R.CAMERA_INFO_TOPIC, 'odom': R.ODOM_TOPIC}
-            with steps.step('render', f'render synthetic scene seed {a.seed}: {frames} frames at {a.width}x{a.height}'
-                            f' -> {_rel(seq_dir)}') as rec:
-                seq = render_scene(seq_dir, a.seed, frames, a.width, a.height, progress)
-                rec['note'] = f'{len(seq)} frames, {seq.stamp(len(seq) - 1) - seq.stamp(0):.2f} s of camera motion'
-            with steps.step('bag', f'write the rosbag2 {_rel(input_bag)} (odometry {ODOM_RATE_HZ:g} Hz)') as rec:
-                bs = R.write_sequence_bag(input_bag, seq, odom_rate=ODOM_RATE_HZ, progress=progress)
-                rec['note'] = f'{bs.frames} images, {bs.odometry} odometry messages, {bs.duration_s:.2f} s'
-            summary['input'] = {'kind': 'synthetic', 'seed': a.seed, 'frames': frames, 'size': [a.width, a.height],
-                                'odom_rate_hz': ODOM_RATE_HZ, 'sequence': str(seq_dir), 'bag': str(input_bag)}
-            del seq
-        else:
-            topics, how, bt = bag_inputs
-            print(f'demo: input topics: {R.describe_choice(topics, how)}', flush=True)
-            steps.skip('render', f'using your bag {_rel(input_bag)}')
-            steps.skip('bag', f"{bt[topics['image']][1]} images on {topics['image']}")
-            summary['input'] = {'kind': 'bag', 'bag': str(input_bag), 'topics': topics, 'topics_chosen_by': how,
-                                'gt': str(gt_dir) if gt_dir else None}
+        topics = _input_steps(steps, a, seq_dir, input_bag, bag_inputs, gt_dir, progress, summary)
 
         # ---------------------------------------------------------------- 3-5: node
         replay = run_node_replay(steps, input_bag, output_bag, topics=topics, params=params, log_dir=logs,
@@ -357,41 +470,9 @@ def main(argv: Optional[List[str]] = None) -> int:
                             'too few keyframes (the camera must move), or every image was dropped')
 
         # ---------------------------------------------------------------- 6: evaluate
-        eval_dir = out / 'eval'
-        offset = [] if a.stamp_offset == 'auto' else ['--stamp-offset', str(a.stamp_offset)]
-        if gt_dir is not None and a.stamp_offset == 'auto':
-            # from the input bag's first image (the recorded outputs hold no camera image): GT frame 0 unless the
-            # GT's own stamps are the bag's
-            from dpv_sensor.evaluation.offline import first_image_stamp, gt_stamp_offset, load_sequence
-            auto = gt_stamp_offset(first_image_stamp(input_bag, topics['image']), load_sequence(gt_dir))
-            offset = ['--stamp-offset', f'{auto:.9f}']
-            summary['stamp_offset_s'] = auto
+        offset = _stamp_offset_argv(a, gt_dir, input_bag, topics['image'], summary)
         if gt_dir is not None:
-            from dpv_sensor.tools import evaluate as EV
-            eval_argv = ['bag', str(output_bag), '--gt', str(gt_dir), '--out', str(eval_dir)] + offset
-            summary['evaluate_command'] = ('python -m dpv_sensor.tools.evaluate bag ' + _rel(output_bag) +
-                                           ' --gt ' + _rel(gt_dir) + ' --out ' + _rel(out / 'eval_by_hand') +
-                                           ''.join(' ' + x for x in offset))
-            with steps.step('eval', f'evaluate the recorded outputs against {_rel(gt_dir)} -> {_rel(eval_dir)}') as rec:
-                code, text = _run_tool(EV.main, eval_argv + ['--quiet'], logs / 'evaluate.txt')
-                if code != 0:
-                    raise DemoError(f'evaluate failed (exit code {code}); see {_rel(logs / "evaluate.txt")}')
-                with open(eval_dir / 'summary.json') as fh:
-                    ev = json.load(fh)
-                summary['evaluation'] = {'table': _table_lines(text), 'summary_json': str(eval_dir / 'summary.json'),
-                                         'num_keyframes': ev.get('num_keyframes'),
-                                         'metric': (ev.get('metric') or {}).get('frame_mean'),
-                                         'median_scaled': (ev.get('median_scaled') or {}).get('frame_mean'),
-                                         'coverage': (ev.get('coverage') or {}).get('frame_mean'),
-                                         'temporal': (ev.get('temporal_consistency') or {}).get('pair_mean'),
-                                         'ause': (ev.get('confidence') or {}).get('ause_frame_mean'),
-                                         'input': (ev.get('configuration') or {}).get('input'),
-                                         'files': {k: v for k, v in (ev.get('files') or {}).items()}}
-                rec['note'] = f"{ev.get('num_keyframes')} keyframes scored"
-                unmatched = ((ev.get('configuration') or {}).get('input') or {}).get('unmatched')
-                if unmatched:
-                    summary['warnings'].append(f'{unmatched} recorded depth images matched no ground-truth frame '
-                                               '(stamps; see --stamp-offset)')
+            _evaluate_step(steps, output_bag, gt_dir, out, offset, summary)
         else:   # no ground truth: step 6 is a picture of the outputs instead of a score
             with steps.step('montage', 'no ground truth (--gt): montage of image | depth | confidence -> '
                             f'{_rel(out / "montage.png")}') as rec:
@@ -399,32 +480,12 @@ def main(argv: Optional[List[str]] = None) -> int:
                 rec['note'] = f"{summary['outputs'].get('outputs')} outputs"
 
         # ---------------------------------------------------------------- 7: fuse
-        fusion_dir = out / 'fusion'
         if gt_dir is None:
             steps.skip('fuse', 'no ground-truth poses (--gt) to fuse with')
         elif a.no_fusion:
             steps.skip('fuse', '--no-fusion')
         else:
-            from dpv_sensor.tools import fuse as FU
-            fuse_argv = ['bag', str(output_bag), '--gt', str(gt_dir), '--out', str(fusion_dir), '--voxel',
-                         f'{a.voxel:g}', '--min-confidence', f'{a.fuse_min_confidence:g}']
-            fuse_argv += offset
-            summary['fuse_command'] = ('python -m dpv_sensor.tools.fuse bag ' + _rel(output_bag) + ' --gt ' +
-                                       _rel(gt_dir) + ' --out ' + _rel(out / 'fusion_by_hand') +
-                                       f' --voxel {a.voxel:g} --min-confidence {a.fuse_min_confidence:g}' +
-                                       ''.join(' ' + x for x in offset))
-            with steps.step('fuse', f'TSDF-fuse the recorded depth (voxel {a.voxel:g} m) and score the mesh -> '
-                            f'{_rel(fusion_dir)}') as rec:
-                code, text = _run_tool(FU.main, fuse_argv + ['--quiet'], logs / 'fuse.txt')
-                if code != 0:
-                    raise DemoError(f'fuse failed (exit code {code}); see {_rel(logs / "fuse.txt")}')
-                with open(fusion_dir / 'fusion.json') as fh:
-                    fu = json.load(fh)
-                summary['fusion'] = {'unmasked': fu.get('unmasked'), 'masked': fu.get('masked'),
-                                     'num_frames': fu.get('num_frames'), 'config': fu.get('config'),
-                                     'files': fu.get('files'), 'table': _table_lines(text)}
-                un = fu.get('unmasked') or {}
-                rec['note'] = f"F-score {_fmt(un.get('fscore'), '{:.3f}')} (all pixels)"
+            _fuse_step(steps, a, output_bag, gt_dir, out, offset, summary)
         summary['ok'] = True
     except DemoError as exc:
         failure = str(exc)
@@ -438,29 +499,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     summary['steps'] = steps.records
     summary['total_seconds'] = round(time.perf_counter() - t_total, 1)
     if replay is not None:
-        d = replay.diagnostics
-        summary['node'] = {
-            'command': ' '.join(shlex.quote(x) for x in replay.node_command),
-            **_weights_info(d),
-            'preset': values['preset'], 'filter_mode': d.get('filter_mode'), 'filter_mode_requested':
-            values['filter_mode'], 'window_mode': values['window_mode'], 'device': d.get('device'),
-            'precision': d.get('precision'),
-            'processing_size': [values['processing_width'], values['processing_height']],
-            'images_in_bag': replay.images_in_bag, 'images_sent': replay.images_sent,
-            'frames_received': d.get('frames_received'), 'frames_processed': d.get('frames_processed'),
-            'keyframes': d.get('estimator_keyframes'), 'outputs_published': d.get('outputs_published'),
-            'recorded': replay.recorded, 'dropped_total': d.get('dropped_total'),
-            'dropped': {k[8:]: v for k, v in d.items() if k.startswith('dropped.')},
-            'faults': {k[7:]: v for k, v in d.items() if k.startswith('faults.')},
-            'filter_resets': d.get('filter_resets'), 'output_resets': d.get('output_resets'),
-            'pose_uncertainty': d.get('pose_uncertainty'),
-            'processing_ms_median_all_images': d.get('processing_ms_median'),
-            'receipt_to_publish_ms_median': d.get('latency_ms_median'),
-            'sent_to_recorded_ms': replay.e2e_ms,
-            'pacing': 'lockstep' if replay.lockstep else f'{replay.rate:g}x real time',
-            'replay_wall_s': replay.wall_s, 'lockstep_wait_s': replay.wait_s, 'node_start_s': replay.node_start_s,
-            'node_stop_s': replay.node_stop_s, 'exit_code': replay.node_exit_code,
-            'peak_rss_mib': replay.node_peak_rss_mib, 'log': str(logs / 'node.log')}
+        summary['node'] = _node_summary(replay, values, logs)
     with open(out / 'summary.json', 'w') as fh:
         from dpv_sensor.evaluation.offline import to_jsonable
         json.dump(to_jsonable(summary), fh, indent=1)
@@ -484,23 +523,7 @@ def print_summary(s: Dict[str, Any]) -> None:
         print(f"input      {inp['bag']} (topics {', '.join(t for t in inp['topics'].values() if t)})")
     nd = s.get('node')
     if nd:
-        if nd.get('measurement_model') == 'network':
-            steps = nd.get('weights_steps')
-            model = (f"network, preset {nd.get('weights_preset') or nd['preset']}, weights {_rel(nd['weights'])}"
-                     + (f' ({steps} training steps)' if steps is not None else ''))
-        else:
-            model = f"classical NCC plane sweep ({nd.get('measurement_reason')})"
-        where = str(nd.get('device')) + (f', {nd["precision"]}' if nd.get('precision') else '')
-        print(f'what ran   python -m dpv_sensor.ros.node (its own process, {where}): {model}')
-        print(f"           filter {nd.get('filter_mode')}, {nd.get('window_mode')} window, processing "
-              f"{nd['processing_size'][0]}x{nd['processing_size'][1]}; {nd.get('images_sent')} images replayed "
-              f"({nd['pacing']}), {nd.get('keyframes')} keyframes, {nd.get('outputs_published')} depth outputs "
-              f"({nd['recorded'].get('/depth/image', 0)} recorded), {nd.get('dropped_total')} images dropped")
-        e2e = nd.get('sent_to_recorded_ms') or {}
-        print(f"node       per depth output: image sent -> depth recorded {_fmt(e2e.get('median'), '{:.0f}')} ms "
-              f"median (p95 {_fmt(e2e.get('p95'), '{:.0f}')}), node receipt -> publish "
-              f"{nd.get('receipt_to_publish_ms_median')} ms; peak RSS {nd.get('peak_rss_mib')} MiB; "
-              f"SIGINT -> exit code {nd.get('exit_code')}")
+        _print_node(nd)
     ev = s.get('evaluation')
     if ev:
         m, ms = ev.get('metric') or {}, ev.get('median_scaled') or {}
@@ -519,18 +542,7 @@ def print_summary(s: Dict[str, Any]) -> None:
               f"{outs.get('depth_m_p5_p50_p95') and ' / '.join(f'{x:.2f}' for x in outs['depth_m_p5_p50_p95'])} m")
     fu = s.get('fusion')
     if fu:
-        def line(r):
-            return (f"accuracy {_fmt(r.get('accuracy_mean'), '{:.3f}')} m (median "
-                    f"{_fmt(r.get('accuracy_median'), '{:.3f}')}), completeness "
-                    f"{_fmt(r.get('completeness_mean'), '{:.3f}')} m (median "
-                    f"{_fmt(r.get('completeness_median'), '{:.3f}')}), "
-                    f"F-score@{fu['config']['threshold'] * 100:g}cm {_fmt(r.get('fscore'), '{:.3f}')}")
-        print(f"fusion     {fu.get('num_frames')} depth maps, voxel {fu['config']['voxel_size']:g} m, vs the GT-depth "
-              f"mesh: all pixels {line(fu['unmasked'] or {})}")
-        if fu.get('masked'):
-            mk = fu['masked']
-            kept = _fmt(mk.get('kept_pixel_fraction'), '{:.0%}')
-            print(f"           confidence >= {fu['config']['min_confidence']:g} ({kept} of pixels): {line(mk)}")
+        _print_fusion(fu)
     pics = []
     if ev:
         pics += [ev['files'].get('montage'), ev['files'].get('sparsification')]
@@ -548,6 +560,44 @@ def print_summary(s: Dict[str, Any]) -> None:
     print(f'steps      {st}')
     for w in s.get('warnings') or []:
         print(f'warning    {w}')
+
+
+
+def _print_node(nd: Dict[str, Any]) -> None:
+    """The summary's lines on what ran in the node and how it did."""
+    if nd.get('measurement_model') == 'network':
+        steps = nd.get('weights_steps')
+        model = (f"network, preset {nd.get('weights_preset') or nd['preset']}, weights {_rel(nd['weights'])}"
+                 + (f' ({steps} training steps)' if steps is not None else ''))
+    else:
+        model = f"classical NCC plane sweep ({nd.get('measurement_reason')})"
+    where = str(nd.get('device')) + (f', {nd["precision"]}' if nd.get('precision') else '')
+    print(f'what ran   python -m dpv_sensor.ros.node (its own process, {where}): {model}')
+    print(f"           filter {nd.get('filter_mode')}, {nd.get('window_mode')} window, processing "
+          f"{nd['processing_size'][0]}x{nd['processing_size'][1]}; {nd.get('images_sent')} images replayed "
+          f"({nd['pacing']}), {nd.get('keyframes')} keyframes, {nd.get('outputs_published')} depth outputs "
+          f"({nd['recorded'].get('/depth/image', 0)} recorded), {nd.get('dropped_total')} images dropped")
+    e2e = nd.get('sent_to_recorded_ms') or {}
+    print(f"node       per depth output: image sent -> depth recorded {_fmt(e2e.get('median'), '{:.0f}')} ms "
+          f"median (p95 {_fmt(e2e.get('p95'), '{:.0f}')}), node receipt -> publish "
+          f"{nd.get('receipt_to_publish_ms_median')} ms; peak RSS {nd.get('peak_rss_mib')} MiB; "
+          f"SIGINT -> exit code {nd.get('exit_code')}")
+
+
+def _print_fusion(fu: Dict[str, Any]) -> None:
+    """The summary's lines on the fused mesh (all pixels, and confident pixels only)."""
+    def line(r):
+        return (f"accuracy {_fmt(r.get('accuracy_mean'), '{:.3f}')} m (median "
+                f"{_fmt(r.get('accuracy_median'), '{:.3f}')}), completeness "
+                f"{_fmt(r.get('completeness_mean'), '{:.3f}')} m (median "
+                f"{_fmt(r.get('completeness_median'), '{:.3f}')}), "
+                f"F-score@{fu['config']['threshold'] * 100:g}cm {_fmt(r.get('fscore'), '{:.3f}')}")
+    print(f"fusion     {fu.get('num_frames')} depth maps, voxel {fu['config']['voxel_size']:g} m, vs the GT-depth "
+          f"mesh: all pixels {line(fu['unmasked'] or {})}")
+    if fu.get('masked'):
+        mk = fu['masked']
+        kept = _fmt(mk.get('kept_pixel_fraction'), '{:.0%}')
+        print(f"           confidence >= {fu['config']['min_confidence']:g} ({kept} of pixels): {line(mk)}")
 
 
 if __name__ == '__main__':

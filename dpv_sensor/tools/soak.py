@@ -168,7 +168,7 @@ def _percentile(values, q):
     return float(np.percentile(values, q)) if len(values) else float('nan')
 
 
-def run_soak(args) -> dict:
+def run_soak(args) -> dict:  # noqa: C901 (to be split into named steps)
     from dpv_sensor.data import rosbag_io as R
     from dpv_sensor.client.ros_io import BagPlayer
 

@@ -14,7 +14,7 @@ Examples::
 Outputs in --run-dir: train.jsonl / val.jsonl (metrics), loss_curves.png, val_montage_*.png,
 checkpoints/step_*/ (model + optimizer as safetensors, state.json) and latest.json. The best weights
 (by --select-metric on the held-out validation seeds) are exported atomically to --export
-(default dpv_sensor/weights/<preset>.safetensors). See dpv_sensor/training/loop.py for the details.
+(default dpv_sensor/weights/<preset>.safetensors). See dpv_sensor/training/ for the details.
 """
 from __future__ import annotations
 
@@ -25,7 +25,8 @@ import sys
 from typing import List, Optional
 
 from dpv_sensor.training.dataset import TRAIN_SEED_BASE, parse_seeds
-from dpv_sensor.training.loop import MODULES, TrainConfig, latest_checkpoint
+from dpv_sensor.training.checkpoints import latest_checkpoint
+from dpv_sensor.training.config import MODULES, TrainConfig
 from dpv_sensor.cli import tool_argv
 
 

@@ -1,6 +1,6 @@
 """Streaming validation: held-out rendered sequences pushed through the product's ``Estimator``.
 
-The trainer's window validation (:func:`dpv_sensor.training.loop.evaluate_batches`) unrolls the filter
+The trainer's window validation (:func:`dpv_sensor.training.validation.evaluate_batches`) unrolls the filter
 over a few keyframes at training size. The node instead streams every frame of a sequence through
 :class:`dpv_sensor.stream.estimator.Estimator`: keyframe selection, causal five-frame windows at 320x256,
 15-20 keyframes of K-Net filtering, the depth readout and confidence it publishes. A K-Net trained over

@@ -4,7 +4,7 @@ File layout (standard safetensors): 8-byte little-endian header length N, N byte
 (tensor names, dtypes, shapes, data offsets, and a ``__metadata__`` dict of strings), then the raw
 tensor data. dpv_sensor stores its metadata as one JSON document under ``__metadata__['dpv_sensor']``:
 
-    format          'dpv_sensor.nets/1'
+    format          'dpv_sensor.nets/1' (a file-format name, not a module path: it stays when modules move)
     preset          preset name;  preset_config: the full Preset (so a customised one round-trips)
     num_planes (and D), d_min, d_max, input_size [w, h]
     training_data, steps, validation_metrics     (from the caller; None when not given)
@@ -36,7 +36,7 @@ from dpv_sensor.core.nets.presets import Preset, get_preset, preset_from_dict
 __all__ = ['CheckpointError', 'save_checkpoint', 'load_checkpoint', 'read_metadata', 'default_weights_path',
            'code_version', 'FORMAT', 'METADATA_KEY']
 
-FORMAT = 'dpv_sensor.nets/1'             # the checkpoint file format's name (not a module path: kept across moves)
+FORMAT = 'dpv_sensor.nets/1'         # the file format's name; every shipped and trained file carries it
 METADATA_KEY = 'dpv_sensor'
 _MAX_HEADER = 100 * 2 ** 20          # safetensors' own limit on the JSON header
 # Preset fields that neither shape the weights nor change what they compute (memory chunking, the
@@ -226,46 +226,15 @@ def load_checkpoint(path, preset: Union[None, str, Preset] = None, device='cpu',
 
     path = Path(path)
     data, header, meta = _read(path)
-    stored_name = meta.get('preset')
     try:
         stored = preset_from_dict(meta['preset_config'])
     except (KeyError, TypeError, ValueError) as e:
         raise CheckpointError(f'{path}: corrupted metadata (bad preset_config: {e})') from None
     if preset is None and model is not None:
         preset = model.preset
-    if preset is not None:
-        want = get_preset(preset) if isinstance(preset, Preset) else _get_named(preset, path)
-        if want.name != stored_name:
-            raise CheckpointError(f'{path}: wrong preset: the checkpoint is for preset {stored_name!r} '
-                                  f'but preset {want.name!r} was requested')
-        for field, label in (('num_planes', 'D'), ('d_min', 'd_min'), ('d_max', 'd_max')):
-            if getattr(want, field) != meta.get(field) or getattr(want, field) != getattr(stored, field):
-                raise CheckpointError(f'{path}: wrong preset: preset {want.name!r} has {label}='
-                                      f'{getattr(want, field)} but the checkpoint has {label}={meta.get(field)}')
-        wd, sd = want.to_dict(), stored.to_dict()
-        diff = sorted(k for k, v in wd.items() if k not in _RUNTIME_FIELDS and sd.get(k) != v)
-        if diff:
-            raise CheckpointError(f"{path}: wrong preset: preset {want.name!r} differs from the checkpoint's "
-                                  f'in {", ".join(diff)}')
-        use = want
-    else:
-        use = stored
+    use = _check_preset(path, preset, stored, meta) if preset is not None else stored
     net = model if model is not None else DPVNet(use)
-    expected = {k: tuple(v.shape) for k, v in net.state_dict().items()}
-    stored_shapes = {k: tuple(v['shape']) for k, v in header.items() if k != '__metadata__'}
-    missing = sorted(set(expected) - set(stored_shapes))
-    unexpected = sorted(set(stored_shapes) - set(expected))
-    if missing or unexpected:
-        parts = []
-        if missing:
-            parts.append(f'missing tensors {_names(missing)}')
-        if unexpected:
-            parts.append(f'unexpected tensors {_names(unexpected)}')
-        raise CheckpointError(f'{path}: ' + '; '.join(parts))
-    bad = [f'{k}: checkpoint {stored_shapes[k]} vs model {expected[k]}' for k in sorted(expected)
-           if stored_shapes[k] != expected[k]]
-    if bad:
-        raise CheckpointError(f'{path}: shape mismatch: ' + '; '.join(bad[:5]) + (' ...' if len(bad) > 5 else ''))
+    _check_tensor_shapes(path, net, header)
     try:
         tensors = st_load(data)
     except Exception as e:  # safetensors raises its own error types
@@ -281,6 +250,44 @@ def load_checkpoint(path, preset: Union[None, str, Preset] = None, device='cpu',
     net.load_state_dict(tensors, strict=True)
     net.set_channels_last(net._channels_last, net.knet.channels_last)   # restore memory layout
     return net.to(device).eval(), meta
+
+
+def _check_preset(path: Path, preset: Union[str, Preset], stored: Preset, meta: dict) -> Preset:
+    """The requested preset, after checking that the checkpoint's (``stored``) is the same one."""
+    stored_name = meta.get('preset')
+    want = get_preset(preset) if isinstance(preset, Preset) else _get_named(preset, path)
+    if want.name != stored_name:
+        raise CheckpointError(f'{path}: wrong preset: the checkpoint is for preset {stored_name!r} '
+                              f'but preset {want.name!r} was requested')
+    for field, label in (('num_planes', 'D'), ('d_min', 'd_min'), ('d_max', 'd_max')):
+        if getattr(want, field) != meta.get(field) or getattr(want, field) != getattr(stored, field):
+            raise CheckpointError(f'{path}: wrong preset: preset {want.name!r} has {label}='
+                                  f'{getattr(want, field)} but the checkpoint has {label}={meta.get(field)}')
+    wd, sd = want.to_dict(), stored.to_dict()
+    diff = sorted(k for k, v in wd.items() if k not in _RUNTIME_FIELDS and sd.get(k) != v)
+    if diff:
+        raise CheckpointError(f"{path}: wrong preset: preset {want.name!r} differs from the checkpoint's "
+                              f'in {", ".join(diff)}')
+    return want
+
+
+def _check_tensor_shapes(path: Path, net, header: dict) -> None:
+    """The checkpoint holds exactly the model's tensors, each with the model's shape."""
+    expected = {k: tuple(v.shape) for k, v in net.state_dict().items()}
+    stored_shapes = {k: tuple(v['shape']) for k, v in header.items() if k != '__metadata__'}
+    missing = sorted(set(expected) - set(stored_shapes))
+    unexpected = sorted(set(stored_shapes) - set(expected))
+    if missing or unexpected:
+        parts = []
+        if missing:
+            parts.append(f'missing tensors {_names(missing)}')
+        if unexpected:
+            parts.append(f'unexpected tensors {_names(unexpected)}')
+        raise CheckpointError(f'{path}: ' + '; '.join(parts))
+    bad = [f'{k}: checkpoint {stored_shapes[k]} vs model {expected[k]}' for k in sorted(expected)
+           if stored_shapes[k] != expected[k]]
+    if bad:
+        raise CheckpointError(f'{path}: shape mismatch: ' + '; '.join(bad[:5]) + (' ...' if len(bad) > 5 else ''))
 
 
 def _get_named(name, path) -> Preset:
