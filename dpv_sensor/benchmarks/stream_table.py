@@ -59,6 +59,7 @@ import shutil
 import sys
 import time
 import traceback
+from dataclasses import dataclass
 from typing import Any, Dict, List, Optional, Tuple
 
 import numpy as np
@@ -528,14 +529,60 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-def main(argv: Optional[List[str]] = None) -> int:  # noqa: C901 (to be split into named steps)
-    from dpv_sensor.cli import tool_argv
+@dataclass
+class _Options:
+    """The command line's values that need parsing: node parameters, rendered and noise seeds, render size."""
+    params: Dict[str, Any]
+    seeds: List[int]
+    noise_seeds: List[int]
+    render_size: Tuple[int, int]
+
+
+@dataclass
+class _Table:
+    """What one invocation covers: the sequences (name -> folder; None: a rendered seed, rendered when its first run
+    starts), the pose sources, the node parameters, and where the runs are cached and the table is written."""
+    out: pathlib.Path
+    params: Dict[str, Any]
+    folders: Dict[str, Optional[pathlib.Path]]
+    noise_seeds: List[int]
+    single_sources: Tuple[str, ...]      # pose sources with one run per sequence (gt, offset<t>ms)
+    command: str
+
+    @property
+    def sequences(self) -> List[str]:
+        return list(self.folders)
+
+    @property
+    def sources(self) -> List[str]:
+        return list(self.single_sources) + [f'noisy{k}' for k in self.noise_seeds]
+
+    def run_file(self, seq_name: str, pose_source: str) -> pathlib.Path:
+        return self.out / 'runs' / f'{run_key(seq_name, pose_source, self.params)}.json'
+
+    def cached_runs(self) -> List[Dict[str, Any]]:
+        """The cached runs of this table (of the current RUN_VERSION), sequence by sequence."""
+        runs = []
+        for s in self.sequences:
+            for src in self.sources:
+                f = self.run_file(s, src)
+                if f.is_file():
+                    r = json.loads(f.read_text())
+                    if r.get('version') == RUN_VERSION:
+                        runs.append(r)
+        return runs
+
+    def write(self, failures: Dict[str, str]) -> str:
+        """Write the table of the cached runs; its text."""
+        text, _ = write_table(self.out, self.cached_runs(), self.sequences, self.noise_seeds, self.params,
+                              self.command, failures, self.single_sources)
+        return text
+
+
+def _parse_options(ap: argparse.ArgumentParser, a) -> _Options:
+    """Parse --params, --seeds, --noise-seeds and --render-size (a usage error names a bad one)."""
     from dpv_sensor.client.replay import parse_params
-    from dpv_sensor.client.ros_io import private_ros_env
     from dpv_sensor.training.dataset import check_heldout_seeds, parse_seeds
-    argv = tool_argv(argv)
-    ap = build_parser()
-    a = ap.parse_args(argv)
     try:
         params = parse_params(a.params)
         seeds = check_heldout_seeds(parse_seeds(a.seeds))
@@ -546,10 +593,11 @@ def main(argv: Optional[List[str]] = None) -> int:  # noqa: C901 (to be split in
         render_size = (int(m.group(1)), int(m.group(2)))
     except ValueError as exc:
         ap.error(str(exc))
-    out = pathlib.Path(a.out).resolve()
-    (out / 'runs').mkdir(parents=True, exist_ok=True)
-    progress = not a.quiet
+    return _Options(params=params, seeds=seeds, noise_seeds=noise_seeds, render_size=render_size)
 
+
+def _sequences(ap: argparse.ArgumentParser, a, seeds: List[int]) -> Dict[str, Optional[pathlib.Path]]:
+    """The folders of --data (only --sequences when given), then the rendered seeds (None: not rendered yet)."""
     folders: Dict[str, Optional[pathlib.Path]] = {}
     if a.data:
         data = pathlib.Path(a.data)
@@ -562,69 +610,88 @@ def main(argv: Optional[List[str]] = None) -> int:  # noqa: C901 (to be split in
             ap.error(f'no sequence folder {missing} in {data} (found: {sorted(found)})')
         folders.update({n: found[n] for n in names})
     for s in seeds:
-        folders[f'synthetic_seed{s}'] = None   # rendered when its first run starts
+        folders[f'synthetic_seed{s}'] = None
     if not folders:
         ap.error('nothing to run: give --data and/or --seeds')
+    return folders
+
+
+def _prepare_to_run(out: pathlib.Path, domain_id: Optional[int]) -> None:
+    """SIGINT and SIGTERM stop the current run cleanly (its node process included), also when the benchmark was
+    started in the background, where the shell leaves SIGINT ignored; finished runs stay cached. The runs get a
+    private ROS environment under `out` (``domain_id``, else $ROS_DOMAIN_ID, else a random domain)."""
+    import signal
+    from dpv_sensor.client.ros_io import private_ros_env
+
+    def _stop(signum, frame):
+        raise KeyboardInterrupt
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+    signal.signal(signal.SIGTERM, _stop)
+    if domain_id is None and os.environ.get('ROS_DOMAIN_ID', '').isdigit():
+        domain_id = int(os.environ['ROS_DOMAIN_ID'])
+    private_ros_env(out, domain_id)
+
+
+def _run_missing(table: _Table, a, render_size: Tuple[int, int], failures: Dict[str, str]) -> bool:
+    """Run what is not cached yet (every sequence with GT poses first), caching each run and rewriting the table
+    after it; a failed run is noted in `failures`. False when interrupted."""
+    progress = not a.quiet
+    todo = [(s, src) for src in table.sources for s in table.sequences if not table.run_file(s, src).is_file()]
+    print(f'stream table: {len(table.sequences) * len(table.sources) - len(todo)} runs cached, {len(todo)} to run '
+          f'(parameters: {params_tag(table.params)}) -> {table.out}', flush=True)
+    for n, (s, src) in enumerate(todo, 1):
+        key = run_key(s, src, table.params)
+        print(f'\n=== run {n}/{len(todo)}: {s}, poses {src}, {params_tag(table.params)} '
+              f'({time.strftime("%H:%M:%S")}) ===', flush=True)
+        try:
+            if table.folders[s] is None:
+                table.folders[s] = rendered_sequence(table.out, int(s[len('synthetic_seed'):]), a.frames, progress,
+                                                     render_size)
+            res = run_one(s, table.folders[s], src, table.params, table.out, min_depth=a.min_depth,
+                          max_depth=a.max_depth, keep_bags=a.keep_bags, progress=progress,
+                          consumer_odometry=not a.no_consumer_odometry)
+        except KeyboardInterrupt:
+            print('\ninterrupted; finished runs are cached, run the same command again to go on', flush=True)
+            return False
+        except Exception as exc:
+            failures[key] = f'{type(exc).__name__}: {exc}'
+            (table.out / 'runs' / f'{key}.error.txt').write_text(traceback.format_exc())
+            print(f'run {key} FAILED: {failures[key]}', flush=True)
+            continue
+        _cache_run(table.run_file(s, src), res)
+        print(f"run {key}: abs_rel {res['abs_rel']:.4f}, d1 {res['delta1']:.3f}, {res['keyframes_scored']} "
+              f"keyframes, resets {res['output_resets']}, kf {res['keyframe_ms_median'] or float('nan'):.0f} ms, "
+              f"{res['timing']['total_s']:.0f} s", flush=True)
+        table.write(failures)
+    return True
+
+
+def _cache_run(path: pathlib.Path, res: Dict[str, Any]) -> None:
+    """Write a run's result to the cache (through a temporary file: an interrupted write leaves no run)."""
+    tmp = path.with_name(path.name + '.tmp')
+    tmp.write_text(json.dumps(res, indent=1))
+    tmp.replace(path)
+
+
+def main(argv: Optional[List[str]] = None) -> int:
+    from dpv_sensor.cli import tool_argv
+    argv = tool_argv(argv)
+    ap = build_parser()
+    a = ap.parse_args(argv)
+    opts = _parse_options(ap, a)
+    out = pathlib.Path(a.out).resolve()
+    (out / 'runs').mkdir(parents=True, exist_ok=True)
+    folders = _sequences(ap, a, opts.seeds)
     single = tuple(([] if a.no_gt else ['gt']) + ([f'offset{a.offset_ms:g}ms'] if a.offset_ms > 0 else []))
-    sources = list(single) + [f'noisy{k}' for k in noise_seeds]
-    sequences = list(folders)
-    command = 'python -m dpv_sensor.benchmarks.stream_table ' + ' '.join(x for x in argv if x != '--table-only')
-
-    def cached_runs():
-        runs = []
-        for s in sequences:
-            for src in sources:
-                f = out / 'runs' / f'{run_key(s, src, params)}.json'
-                if f.is_file():
-                    r = json.loads(f.read_text())
-                    if r.get('version') == RUN_VERSION:
-                        runs.append(r)
-        return runs
-
+    table = _Table(out=out, params=opts.params, folders=folders, noise_seeds=opts.noise_seeds, single_sources=single,
+                   command='python -m dpv_sensor.benchmarks.stream_table ' +
+                   ' '.join(x for x in argv if x != '--table-only'))
     failures: Dict[str, str] = {}
     if not a.table_only:
-        # SIGINT and SIGTERM stop the current run cleanly (its node process included), also when the benchmark was
-        # started in the background, where the shell leaves SIGINT ignored; finished runs stay cached
-        import signal
-
-        def _stop(signum, frame):
-            raise KeyboardInterrupt
-        signal.signal(signal.SIGINT, signal.default_int_handler)
-        signal.signal(signal.SIGTERM, _stop)
-        if a.domain_id is None and os.environ.get('ROS_DOMAIN_ID', '').isdigit():
-            a.domain_id = int(os.environ['ROS_DOMAIN_ID'])
-        private_ros_env(out, a.domain_id)
-        todo = [(s, src) for src in sources for s in sequences     # every sequence with GT poses first
-                if not (out / 'runs' / f'{run_key(s, src, params)}.json').is_file()]
-        print(f'stream table: {len(sequences) * len(sources) - len(todo)} runs cached, {len(todo)} to run '
-              f'(parameters: {params_tag(params)}) -> {out}', flush=True)
-        for n, (s, src) in enumerate(todo, 1):
-            key = run_key(s, src, params)
-            print(f'\n=== run {n}/{len(todo)}: {s}, poses {src}, {params_tag(params)} '
-                  f'({time.strftime("%H:%M:%S")}) ===', flush=True)
-            try:
-                if folders[s] is None:
-                    folders[s] = rendered_sequence(out, int(s[len('synthetic_seed'):]), a.frames, progress,
-                                                   render_size)
-                res = run_one(s, folders[s], src, params, out, min_depth=a.min_depth, max_depth=a.max_depth,
-                              keep_bags=a.keep_bags, progress=progress,
-                              consumer_odometry=not a.no_consumer_odometry)
-            except KeyboardInterrupt:
-                print('\ninterrupted; finished runs are cached, run the same command again to go on', flush=True)
-                return 1
-            except Exception as exc:
-                failures[key] = f'{type(exc).__name__}: {exc}'
-                (out / 'runs' / f'{key}.error.txt').write_text(traceback.format_exc())
-                print(f'run {key} FAILED: {failures[key]}', flush=True)
-                continue
-            tmp = out / 'runs' / f'{key}.json.tmp'
-            tmp.write_text(json.dumps(res, indent=1))
-            tmp.replace(out / 'runs' / f'{key}.json')
-            print(f"run {key}: abs_rel {res['abs_rel']:.4f}, d1 {res['delta1']:.3f}, {res['keyframes_scored']} "
-                  f"keyframes, resets {res['output_resets']}, kf {res['keyframe_ms_median'] or float('nan'):.0f} ms, "
-                  f"{res['timing']['total_s']:.0f} s", flush=True)
-            text, _ = write_table(out, cached_runs(), sequences, noise_seeds, params, command, failures, single)
-    text, _ = write_table(out, cached_runs(), sequences, noise_seeds, params, command, failures, single)
+        _prepare_to_run(out, a.domain_id)
+        if not _run_missing(table, a, opts.render_size, failures):
+            return 1
+    text = table.write(failures)
     print('\n' + text)
     return 1 if failures else 0
 

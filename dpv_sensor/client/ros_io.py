@@ -135,11 +135,9 @@ class BagPlayer:
     def stop(self) -> None:
         self.stop_event.set()
 
-    def play(self, progress: bool = False, duration: float | None = None) -> PlaybackStats:  # noqa: C901 (to be split into named steps)
+    def play(self, progress: bool = False, duration: float | None = None) -> PlaybackStats:
         """Publish every message at its record time / rate; returns statistics. Blocks until done, stopped
         (stop()) or `duration` wall seconds have passed."""
-        from rclpy.serialization import deserialize_message
-        from dpv_sensor.ros.msgs import make_header, stamp_to_ns
         stats = PlaybackStats(per_topic={t: 0 for t in self.topics})
         bar = None
         if progress:
@@ -149,50 +147,9 @@ class BagPlayer:
         wall_deadline = None if duration is None else t_start + duration
         try:
             while True:
-                loop_start_mono = time.monotonic()
-                loop_start_wall = time.time_ns()
-                first_log = None
-                first_stamp = None
-                for topic, _type, log_ns, raw in R.read_messages(self.path, self.topics, raw=True):
-                    if first_log is None:
-                        first_log = log_ns
-                    due = loop_start_mono + (log_ns - first_log) / NS / self.rate
-                    while True:
-                        now = time.monotonic()
-                        if self.stop_event.is_set() or (wall_deadline is not None and now >= wall_deadline) \
-                                or not self.node.context.ok():          # Ctrl-C shut the context down
-                            stats.stopped = True
-                            return stats
-                        if now >= due:
-                            break
-                        time.sleep(min(due - now, 0.05))
-                    stats.late_ms_max = max(stats.late_ms_max, (time.monotonic() - due) * 1000.0)
-                    pub = self.publishers[topic]
-                    try:
-                        if self.rebase_stamps:
-                            msg = deserialize_message(raw, self.classes[topic])
-                            if hasattr(msg, 'header'):
-                                old = stamp_to_ns(msg.header.stamp)
-                                if first_stamp is None:
-                                    first_stamp = old
-                                new = loop_start_wall + int((old - first_stamp) / self.rate)
-                                msg.header = make_header(new, msg.header.frame_id)
-                                if self.on_publish is not None:
-                                    self.on_publish(topic, msg, old, new)
-                            pub.publish(msg)
-                        else:
-                            pub.publish(raw)
-                            if self.on_publish is not None:
-                                self.on_publish(topic, None, log_ns, log_ns)
-                    except Exception:
-                        if not self.node.context.ok():   # shut down while publishing (Ctrl-C)
-                            stats.stopped = True
-                            return stats
-                        raise
-                    stats.published += 1
-                    stats.per_topic[topic] += 1
-                    if bar is not None:
-                        bar.update(1)
+                if not self._play_pass(stats, bar, wall_deadline):
+                    stats.stopped = True
+                    return stats
                 stats.loops += 1
                 if not self.loop:
                     return stats
@@ -200,6 +157,81 @@ class BagPlayer:
             stats.wall_s = time.monotonic() - t_start
             if bar is not None:
                 bar.close()
+
+    def _play_pass(self, stats: PlaybackStats, bar, wall_deadline: float | None) -> bool:
+        """One pass through the bag, each message published when due; False when stopped before the end."""
+        clock = _PassClock(start_mono=time.monotonic(), start_wall_ns=time.time_ns())
+        for topic, _type, log_ns, raw in R.read_messages(self.path, self.topics, raw=True):
+            if clock.first_log_ns is None:
+                clock.first_log_ns = log_ns
+            due = clock.start_mono + (log_ns - clock.first_log_ns) / NS / self.rate
+            if not self._wait_until(due, wall_deadline):
+                return False
+            stats.late_ms_max = max(stats.late_ms_max, (time.monotonic() - due) * 1000.0)
+            if not self._publish(topic, log_ns, raw, clock):
+                return False
+            stats.published += 1
+            stats.per_topic[topic] += 1
+            if bar is not None:
+                bar.update(1)
+        return True
+
+    def _stop_requested(self, now: float, wall_deadline: float | None) -> bool:
+        """stop() was called, the duration is over, or Ctrl-C shut the context down."""
+        return self.stop_event.is_set() or (wall_deadline is not None and now >= wall_deadline) \
+            or not self.node.context.ok()
+
+    def _wait_until(self, due: float, wall_deadline: float | None) -> bool:
+        """Sleep until the monotonic time `due`; False when stopped first."""
+        while True:
+            now = time.monotonic()
+            if self._stop_requested(now, wall_deadline):
+                return False
+            if now >= due:
+                return True
+            time.sleep(min(due - now, 0.05))
+
+    def _publish(self, topic: str, log_ns: int, raw: bytes, clock: _PassClock) -> bool:
+        """Publish one bag message (with rebase_stamps: deserialized, its header stamp rebased); False when the
+        context was shut down while publishing (Ctrl-C)."""
+        pub = self.publishers[topic]
+        try:
+            if self.rebase_stamps:
+                pub.publish(self._rebased(topic, raw, clock))
+            else:
+                pub.publish(raw)
+                if self.on_publish is not None:
+                    self.on_publish(topic, None, log_ns, log_ns)
+        except Exception:
+            if not self.node.context.ok():
+                return False
+            raise
+        return True
+
+    def _rebased(self, topic: str, raw: bytes, clock: _PassClock):
+        """The message with its header stamp moved to the pass's wall-clock start plus its offset / rate."""
+        from rclpy.serialization import deserialize_message
+        from dpv_sensor.ros.msgs import make_header, stamp_to_ns
+        msg = deserialize_message(raw, self.classes[topic])
+        if hasattr(msg, 'header'):
+            old = stamp_to_ns(msg.header.stamp)
+            if clock.first_stamp_ns is None:
+                clock.first_stamp_ns = old
+            new = clock.start_wall_ns + int((old - clock.first_stamp_ns) / self.rate)
+            msg.header = make_header(new, msg.header.frame_id)
+            if self.on_publish is not None:
+                self.on_publish(topic, msg, old, new)
+        return msg
+
+
+@dataclass
+class _PassClock:
+    """Time references of one pass through the bag: when it started (monotonic, wall ns), the first message's
+    record time and the first header stamp (for rebasing)."""
+    start_mono: float
+    start_wall_ns: int
+    first_log_ns: int | None = None
+    first_stamp_ns: int | None = None
 
 
 # --------------------------------------------------------------------------------------------------------------

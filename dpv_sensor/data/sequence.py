@@ -25,6 +25,7 @@ from __future__ import annotations
 import json
 import os
 import pathlib
+from dataclasses import dataclass
 from typing import Any, Callable, Dict, List, NamedTuple, Optional, Sequence as SequenceT, Tuple, Union
 
 import cv2
@@ -190,6 +191,131 @@ def keyframe_windows(keyframes: SequenceT[int], size: int = 5, mode: str = 'cent
 
 
 # --------------------------------------------------------------------------------------------------
+# reading a sequence folder
+# --------------------------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class _FolderFiles:
+    """A sequence folder checked against the format: its per-frame files (in frame order), poses, K, stamps and
+    metadata."""
+    images: List[pathlib.Path]
+    poses: np.ndarray
+    K_33: np.ndarray
+    depths: Optional[List[pathlib.Path]]
+    stamps: np.ndarray
+    meta: Dict[str, Any]
+    extras: Dict[str, List[pathlib.Path]]
+
+    @classmethod
+    def find(cls, folder: pathlib.Path) -> '_FolderFiles':
+        """Check the folder's layout and read its text files; SequenceFormatError names what is wrong."""
+        image_files = _image_files(folder)
+        poses = read_poses(folder / 'poses.txt')
+        if len(image_files) != len(poses):
+            raise SequenceFormatError(
+                f'{folder}: {len(image_files)} images but {len(poses)} poses in poses.txt')
+        K_33 = read_intrinsics(folder / 'K.txt')
+        depths = _depth_files(folder, image_files)
+        stamps = _read_stamps(folder, len(poses))
+        meta = _read_meta(folder)
+        return cls(images=image_files, poses=poses, K_33=K_33, depths=depths, stamps=stamps, meta=meta,
+                   extras=_extras_files(folder, image_files))
+
+
+def _image_files(folder: pathlib.Path) -> List[pathlib.Path]:
+    """The colour images of a folder in frame order, after checking that poses.txt, K.txt and images/ exist."""
+    if not folder.is_dir():
+        raise SequenceFormatError(f'{folder}: not a directory')
+    for name in ('poses.txt', 'K.txt'):
+        if not (folder / name).is_file():
+            raise SequenceFormatError(f'{folder}: {name} is missing')
+    image_dir = folder / 'images'
+    if not image_dir.is_dir():
+        raise SequenceFormatError(f'{folder}: images/ is missing')
+    return sorted(p for p in image_dir.iterdir() if p.suffix.lower() in IMAGE_EXTENSIONS)
+
+
+def _depth_files(folder: pathlib.Path, image_files: List[pathlib.Path]) -> Optional[List[pathlib.Path]]:
+    """depth/<image stem>.png for every image (None without depth/; one missing is an error)."""
+    depth_dir = folder / 'depth'
+    if not depth_dir.is_dir():
+        return None
+    depth_files = []
+    for p in image_files:
+        d = depth_dir / (p.stem + '.png')
+        if not d.is_file():
+            raise SequenceFormatError(f'{folder}: depth/{d.name} is missing (image {p.name})')
+        depth_files.append(d)
+    return depth_files
+
+
+def _read_stamps(folder: pathlib.Path, num_frames: int) -> np.ndarray:
+    """stamps.txt (one per frame), or index / DEFAULT_FPS without it."""
+    if not (folder / 'stamps.txt').is_file():
+        return np.arange(num_frames, dtype=np.float64) / DEFAULT_FPS
+    stamps = _read_matrix_lines(folder / 'stamps.txt', 1).reshape(-1)
+    if len(stamps) != num_frames:
+        raise SequenceFormatError(f'{folder}: {len(stamps)} stamps but {num_frames} poses')
+    return stamps
+
+
+def _read_meta(folder: pathlib.Path) -> Dict[str, Any]:
+    """meta.json, or {} without it."""
+    if not (folder / 'meta.json').is_file():
+        return {}
+    with open(folder / 'meta.json', 'r') as f:
+        return json.load(f)
+
+
+def _extras_files(folder: pathlib.Path, image_files: List[pathlib.Path]) -> Dict[str, List[pathlib.Path]]:
+    """extras/<name>/<image stem>.png by name, for the extras that have a file for every image."""
+    extras_files: Dict[str, List[pathlib.Path]] = {}
+    if (folder / 'extras').is_dir():
+        for sub in sorted((folder / 'extras').iterdir()):
+            if sub.is_dir():
+                files = [sub / (p.stem + '.png') for p in image_files]
+                if all(f.is_file() for f in files):
+                    extras_files[sub.name] = files
+    return extras_files
+
+
+def _image_size(image_files: List[pathlib.Path]) -> Optional[Tuple[int, int]]:
+    """(width, height) of the first image (None for no images)."""
+    if not image_files:
+        return None
+    first = cv2.imread(str(image_files[0]), cv2.IMREAD_COLOR)
+    if first is None:
+        raise SequenceFormatError(f'{image_files[0]}: cannot decode image')
+    return (int(first.shape[1]), int(first.shape[0]))
+
+
+def _read_rgb(path: pathlib.Path) -> np.ndarray:
+    """An image file as uint8 HxWx3 RGB."""
+    bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if bgr is None:
+        raise SequenceFormatError(f'{path}: cannot decode image')
+    return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+
+
+def _read_depth_mm(path: pathlib.Path) -> np.ndarray:
+    """A uint16 millimetre depth PNG as float32 metres (0 = invalid)."""
+    raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if raw is None or raw.ndim != 2:
+        raise SequenceFormatError(f'{path}: not a single-channel PNG')
+    if raw.dtype != np.uint16:
+        raise SequenceFormatError(f'{path}: depth PNG must be uint16 millimetres')
+    return depth_from_png_mm(raw)
+
+
+def _read_extra(path: pathlib.Path) -> np.ndarray:
+    """An extra's file: 8-bit masks as bool (> 127), other bit depths as stored."""
+    raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if raw is None:
+        raise SequenceFormatError(f'{path}: cannot decode')
+    return raw > 127 if raw.dtype == np.uint8 else raw
+
+
+# --------------------------------------------------------------------------------------------------
 # Sequence
 # --------------------------------------------------------------------------------------------------
 
@@ -206,84 +332,14 @@ class Sequence:
     - ``seq.keyframe_indices(every)``, ``seq.windows(every, size=5, mode='centered'|'causal')``
     """
 
-    def __init__(self, folder: PathLike):  # noqa: C901 (to be split into named steps)
+    def __init__(self, folder: PathLike):
         folder = pathlib.Path(folder)
-        if not folder.is_dir():
-            raise SequenceFormatError(f'{folder}: not a directory')
-        for name in ('poses.txt', 'K.txt'):
-            if not (folder / name).is_file():
-                raise SequenceFormatError(f'{folder}: {name} is missing')
-        image_dir = folder / 'images'
-        if not image_dir.is_dir():
-            raise SequenceFormatError(f'{folder}: images/ is missing')
-        image_files = sorted(p for p in image_dir.iterdir() if p.suffix.lower() in IMAGE_EXTENSIONS)
-        poses = read_poses(folder / 'poses.txt')
-        if len(image_files) != len(poses):
-            raise SequenceFormatError(
-                f'{folder}: {len(image_files)} images but {len(poses)} poses in poses.txt')
-        K = read_intrinsics(folder / 'K.txt')
-
-        depth_dir = folder / 'depth'
-        depth_files: Optional[List[pathlib.Path]] = None
-        if depth_dir.is_dir():
-            depth_files = []
-            for p in image_files:
-                d = depth_dir / (p.stem + '.png')
-                if not d.is_file():
-                    raise SequenceFormatError(f'{folder}: depth/{d.name} is missing (image {p.name})')
-                depth_files.append(d)
-
-        if (folder / 'stamps.txt').is_file():
-            stamps = _read_matrix_lines(folder / 'stamps.txt', 1).reshape(-1)
-            if len(stamps) != len(poses):
-                raise SequenceFormatError(f'{folder}: {len(stamps)} stamps but {len(poses)} poses')
-        else:
-            stamps = np.arange(len(poses), dtype=np.float64) / DEFAULT_FPS
-
-        meta: Dict[str, Any] = {}
-        if (folder / 'meta.json').is_file():
-            with open(folder / 'meta.json', 'r') as f:
-                meta = json.load(f)
-
-        extras_files: Dict[str, List[pathlib.Path]] = {}
-        if (folder / 'extras').is_dir():
-            for sub in sorted((folder / 'extras').iterdir()):
-                if sub.is_dir():
-                    files = [sub / (p.stem + '.png') for p in image_files]
-                    if all(f.is_file() for f in files):
-                        extras_files[sub.name] = files
-
-        size = None
-        if image_files:
-            first = cv2.imread(str(image_files[0]), cv2.IMREAD_COLOR)
-            if first is None:
-                raise SequenceFormatError(f'{image_files[0]}: cannot decode image')
-            size = (int(first.shape[1]), int(first.shape[0]))
-
-        def load_image(i: int) -> np.ndarray:
-            bgr = cv2.imread(str(image_files[i]), cv2.IMREAD_COLOR)
-            if bgr is None:
-                raise SequenceFormatError(f'{image_files[i]}: cannot decode image')
-            return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
-
-        load_depth = None
-        if depth_files is not None:
-            def load_depth(i: int) -> np.ndarray:
-                raw = cv2.imread(str(depth_files[i]), cv2.IMREAD_UNCHANGED)
-                if raw is None or raw.ndim != 2:
-                    raise SequenceFormatError(f'{depth_files[i]}: not a single-channel PNG')
-                if raw.dtype != np.uint16:
-                    raise SequenceFormatError(f'{depth_files[i]}: depth PNG must be uint16 millimetres')
-                return depth_from_png_mm(raw)
-
-        def load_extra(name: str, i: int) -> np.ndarray:
-            raw = cv2.imread(str(extras_files[name][i]), cv2.IMREAD_UNCHANGED)
-            if raw is None:
-                raise SequenceFormatError(f'{extras_files[name][i]}: cannot decode')
-            return raw > 127 if raw.dtype == np.uint8 else raw
-
-        self._setup(K=K, size=size, poses=poses, stamps=stamps, load_image=load_image, load_depth=load_depth,
-                    meta=meta, extras={n: (lambda i, n=n: load_extra(n, i)) for n in extras_files},
+        files = _FolderFiles.find(folder)
+        self._setup(K=files.K_33, size=_image_size(files.images), poses=files.poses, stamps=files.stamps,
+                    load_image=lambda i: _read_rgb(files.images[i]),
+                    load_depth=None if files.depths is None else (lambda i: _read_depth_mm(files.depths[i])),
+                    meta=files.meta,
+                    extras={n: (lambda i, paths=paths: _read_extra(paths[i])) for n, paths in files.extras.items()},
                     name=folder.name, folder=folder)
 
     # ---------------------------------------------------------------------------------------------

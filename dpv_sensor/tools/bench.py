@@ -455,38 +455,39 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-def main(argv: Optional[List[str]] = None) -> int:  # noqa: C901 (to be split into named steps)
-    argv = tool_argv(argv)
-    a = build_parser().parse_args(argv)
+def _argument_error(a) -> Optional[str]:
+    """Why the parts, sizes or presets asked for cannot run (None: they can)."""
     unknown = [x for x in a.parts if x not in PARTS]
-    if unknown or not a.sizes or not a.presets:
-        print(f'bench: unknown part(s) {unknown}; parts are {", ".join(PARTS)}' if unknown else
-              'bench: give at least one size and one preset', file=sys.stderr)
-        return 2
+    if unknown:
+        return f'unknown part(s) {unknown}; parts are {", ".join(PARTS)}'
+    if not a.sizes or not a.presets:
+        return 'give at least one size and one preset'
     from dpv_sensor.core.nets.presets import get_preset
     for preset in a.presets:
         try:
             get_preset(preset)
         except Exception as exc:
-            print(f'bench: preset {preset!r}: {exc}', file=sys.stderr)
-            return 2
-    out = pathlib.Path(a.out).resolve()
-    out.mkdir(parents=True, exist_ok=True)
-    if 'node' in a.parts:   # a private DDS domain for the node runs, logs under OUT
-        from dpv_sensor.client.ros_io import private_ros_env
-        private_ros_env(out, a.domain_id)
+            return f'preset {preset!r}: {exc}'
+    return None
+
+
+def _available_devices(requested: List[str]) -> Tuple[List[str], List[str]]:
+    """The devices asked for that torch has, and a note for each one skipped."""
     import torch
-    if a.threads:
-        torch.set_num_threads(a.threads)
     devices, notes = [], []
-    for d in a.devices:
+    for d in requested:
         if d.startswith('cuda') and not torch.cuda.is_available():
             notes.append(f'{d} skipped: torch.cuda.is_available() is False')
             continue
         devices.append(d)
-    t0 = time.perf_counter()
+    return devices, notes
+
+
+def _new_report(a, devices: List[str], notes: List[str]) -> Dict[str, Any]:
+    """The report before any measurement: the machine (load before), the configuration, empty result lists."""
+    import torch
     load_before = [round(x, 2) for x in os.getloadavg()]
-    report: Dict[str, Any] = {
+    return {
         'machine': {'cpu': platform.processor() or platform.machine(), 'cpu_count': os.cpu_count(),
                     'torch': torch.__version__, 'torch_threads': torch.get_num_threads(),
                     'python': platform.python_version(),
@@ -498,8 +499,10 @@ def main(argv: Optional[List[str]] = None) -> int:  # noqa: C901 (to be split in
                    'warmup': a.warmup, 'keyframes': a.keyframes, 'e2e_hz': a.e2e_hz, 'e2e_seconds': a.e2e_seconds,
                    'e2e_min_outputs': a.e2e_min_outputs, 'threads': a.threads},
         'nets': [], 'core': [], 'estimator': [], 'node': [], 'warnings': list(notes)}
-    print(f'bench: presets {",".join(a.presets)}, sizes {",".join(report["config"]["sizes"])}, devices '
-          f'{",".join(devices)}, parts {",".join(a.parts)} -> {out}', flush=True)
+
+
+def _run_parts(a, devices: List[str], out: pathlib.Path, report: Dict[str, Any]) -> None:
+    """Every part asked for on every device, the results appended to the report's lists."""
     for device in devices:
         if 'nets' in a.parts:
             report['nets'] += bench_nets(a.presets, a.sizes, device, a.repeats, a.warmup)
@@ -512,22 +515,29 @@ def main(argv: Optional[List[str]] = None) -> int:  # noqa: C901 (to be split in
                                          min_outputs=a.e2e_min_outputs, max_seconds=a.e2e_max_seconds,
                                          start_timeout=a.start_timeout, frames=a.e2e_frames, seed=a.seed,
                                          threads=a.threads)
+
+
+def _result_warnings(report: Dict[str, Any], e2e_max_seconds: float) -> List[str]:
+    """Warnings about the results: random-init estimator weights, node runs that failed or gave no output."""
+    warnings = []
     for r in report['estimator']:
         if 'RANDOM' in r.get('what', ''):
-            report['warnings'].append(f"estimator {r['model']}: random-init weights (no trained checkpoint loads); "
-                                      'the cost is the same, the depth is meaningless')
+            warnings.append(f"estimator {r['model']}: random-init weights (no trained checkpoint loads); "
+                            'the cost is the same, the depth is meaningless')
             break
     for r in report['node']:
+        run = f"node {r['preset']} {r['width']}x{r['height']} {r['device']}"
         if r.get('error'):
-            report['warnings'].append(f"node {r['preset']} {r['width']}x{r['height']} {r['device']}: {r['error']}")
+            warnings.append(f"{run}: {r['error']}")
         elif r.get('exit_code') not in (0, None):
-            report['warnings'].append(f"node {r['preset']} {r['width']}x{r['height']} {r['device']}: exit code "
-                                      f"{r['exit_code']} after SIGINT")
+            warnings.append(f"{run}: exit code {r['exit_code']} after SIGINT")
         if not r.get('error') and not r.get('outputs'):
-            report['warnings'].append(f"node {r['preset']} {r['width']}x{r['height']} {r['device']}: no depth output "
-                                      f"within {a.e2e_max_seconds:g} s")
-    report['machine']['load_after'] = [round(x, 2) for x in os.getloadavg()]
-    report['wall_s'] = round(time.perf_counter() - t0, 1)
+            warnings.append(f'{run}: no depth output within {e2e_max_seconds:g} s')
+    return warnings
+
+
+def _write_report(out: pathlib.Path, report: Dict[str, Any]) -> None:
+    """bench.json and bench.md in `out`; the markdown is printed too."""
     md = markdown(report)
     from dpv_sensor.evaluation.offline import to_jsonable
     (out / 'bench.json').write_text(json.dumps(to_jsonable(report), indent=1))
@@ -535,6 +545,33 @@ def main(argv: Optional[List[str]] = None) -> int:  # noqa: C901 (to be split in
     print()
     print(md)
     print(f'written: {out / "bench.md"}, {out / "bench.json"}')
+
+
+def main(argv: Optional[List[str]] = None) -> int:
+    argv = tool_argv(argv)
+    a = build_parser().parse_args(argv)
+    error = _argument_error(a)
+    if error:
+        print(f'bench: {error}', file=sys.stderr)
+        return 2
+    out = pathlib.Path(a.out).resolve()
+    out.mkdir(parents=True, exist_ok=True)
+    if 'node' in a.parts:   # a private DDS domain for the node runs, logs under OUT
+        from dpv_sensor.client.ros_io import private_ros_env
+        private_ros_env(out, a.domain_id)
+    import torch
+    if a.threads:
+        torch.set_num_threads(a.threads)
+    devices, notes = _available_devices(a.devices)
+    t0 = time.perf_counter()
+    report = _new_report(a, devices, notes)
+    print(f'bench: presets {",".join(a.presets)}, sizes {",".join(report["config"]["sizes"])}, devices '
+          f'{",".join(devices)}, parts {",".join(a.parts)} -> {out}', flush=True)
+    _run_parts(a, devices, out, report)
+    report['warnings'] += _result_warnings(report, a.e2e_max_seconds)
+    report['machine']['load_after'] = [round(x, 2) for x in os.getloadavg()]
+    report['wall_s'] = round(time.perf_counter() - t0, 1)
+    _write_report(out, report)
     return 0
 
 

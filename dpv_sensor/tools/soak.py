@@ -30,6 +30,7 @@ import sys
 import tempfile
 import threading
 import time
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -168,12 +169,10 @@ def _percentile(values, q):
     return float(np.percentile(values, q)) if len(values) else float('nan')
 
 
-def run_soak(args) -> dict:  # noqa: C901 (to be split into named steps)
+def _soak_bag(args, work: pathlib.Path) -> tuple[pathlib.Path, int]:
+    """The bag to loop (--bag, or a synthetic sequence rendered into `work` unless it is there already) and its
+    number of images."""
     from dpv_sensor.data import rosbag_io as R
-    from dpv_sensor.client.ros_io import BagPlayer
-
-    work = pathlib.Path(args.work_dir or tempfile.mkdtemp(prefix='dpv_soak_'))
-    work.mkdir(parents=True, exist_ok=True)
     name = f'soak_seed{args.seed}_{args.frames}f_{args.width}x{args.height}'
     bag = pathlib.Path(args.bag) if args.bag else work / name
     if not bag.exists():
@@ -181,131 +180,208 @@ def run_soak(args) -> dict:  # noqa: C901 (to be split into named steps)
         print(f'rendering {args.frames} frames ({args.width}x{args.height}, seed {args.seed}) -> {bag}', flush=True)
         seq = render_sequence(args.seed, args.frames, width=args.width, height=args.height, progress=True)
         R.write_sequence_bag(bag, seq, odom_rate=args.odom_rate, progress=True)
-    topics = R.bag_topics(bag)
-    n_images = topics[R.IMAGE_TOPIC][1]
+    n_images = R.bag_topics(bag)[R.IMAGE_TOPIC][1]
     print(f'bag: {bag} ({n_images} images)', flush=True)
+    return bag, n_images
 
+
+def _soak_params(args) -> dict:
+    """The node's parameters: the soak's settings, then --param."""
     params = {'measurement': args.measurement, 'device': 'cpu', 'processing_width': args.processing_width,
               'processing_height': args.processing_height, 'diagnostics_period': 1.0}
     for item in args.param or []:
         k, v = P.split_assignment(item)
         params[k] = v
-    remaps = {'image': R.IMAGE_TOPIC, 'camera_info': R.CAMERA_INFO_TOPIC, 'odom': R.ODOM_TOPIC}
-    env = {'OMP_NUM_THREADS': str(args.threads)} if args.threads else {}
-    log_path = work / 'node.log'
-    proc = start_node_process(params, remaps, env=env, log_path=log_path)
-    print(f'node pid {proc.pid}, log {log_path}', flush=True)
+    return params
 
-    client = ClientNode('dpv_soak')
-    node, executor = client.node, client.executor
-    collector = OutputCollector(node, keep_messages=False)
-    player = BagPlayer(node, bag, rate=args.rate, rebase_stamps=True, loop=True)
-    loop_starts_ns: list[int] = []        # the rebased stamp of each loop's first image
-    last_image = [None]
 
-    def on_publish(topic, _msg, bag_stamp_ns, stamp_ns):
+@dataclass
+class _LoopStarts:
+    """The rebased stamp of each loop's first image (the bag's stamps jump back there), from the player's
+    on_publish callback."""
+    stamps_ns: list = field(default_factory=list)
+    last_bag_stamp_ns: int | None = None
+
+    def on_publish(self, topic, _msg, bag_stamp_ns, stamp_ns) -> None:
+        from dpv_sensor.data import rosbag_io as R
         if topic == R.IMAGE_TOPIC:
-            if last_image[0] is None or bag_stamp_ns < last_image[0]:
-                loop_starts_ns.append(stamp_ns)
-            last_image[0] = bag_stamp_ns
-    player.on_publish = on_publish
-    result: dict = {'bag': str(bag), 'images_in_bag': n_images, 'minutes': args.minutes, 'rate': args.rate,
-                    'params': params, 'threads': args.threads}
-    try:
-        missing = player.wait_for_subscribers([R.IMAGE_TOPIC, R.CAMERA_INFO_TOPIC, R.ODOM_TOPIC], timeout=120.0,
-                                              spin=lambda t: executor.spin_once(timeout_sec=t))
-        if missing or proc.poll() is not None:
-            raise RuntimeError(f'node did not subscribe to {missing} (exit code {proc.poll()}); see {log_path}')
+            if self.last_bag_stamp_ns is None or bag_stamp_ns < self.last_bag_stamp_ns:
+                self.stamps_ns.append(stamp_ns)
+            self.last_bag_stamp_ns = bag_stamp_ns
+
+
+@dataclass
+class _RssRecord:
+    """The node's resident memory every 5 s: (seconds since the start of play, kB), and the first sample after
+    `warmup_outputs` outputs."""
+    t0: float
+    next_sample: float
+    samples: list = field(default_factory=list)
+    start: tuple | None = None
+    warmup_outputs: int = 5
+
+    def sample(self, now: float, pid: int, collector: OutputCollector) -> None:
+        """Take a sample when one is due; print a progress line every minute."""
+        if now < self.next_sample:
+            return
+        rss = vm_rss_kib(pid)
+        if rss is not None:
+            self.samples.append((round(now - self.t0, 1), rss))
+            if self.start is None and collector.depth_count >= self.warmup_outputs:
+                self.start = (round(now - self.t0, 1), rss)
+        self.next_sample = now + 5.0
+        if len(self.samples) % 12 == 1:
+            print(f'  t={now - self.t0:6.0f} s outputs={collector.depth_count} rss={rss} kB '
+                  f"dropped={collector.diagnostics.get('dropped_total', '?')}", flush=True)
+
+
+class _Soak:
+    """One soak run: the node as its own process, a client node that plays the bag in a loop and collects the
+    outputs; start, play while sampling memory, let the node finish, report, close."""
+
+    def __init__(self, args, bag: pathlib.Path, params: dict, log_path: pathlib.Path):
+        from dpv_sensor.client.ros_io import BagPlayer
+        from dpv_sensor.data import rosbag_io as R
+        self.args = args
+        self.log_path = log_path
+        remaps = {'image': R.IMAGE_TOPIC, 'camera_info': R.CAMERA_INFO_TOPIC, 'odom': R.ODOM_TOPIC}
+        env = {'OMP_NUM_THREADS': str(args.threads)} if args.threads else {}
+        self.proc = start_node_process(params, remaps, env=env, log_path=log_path)
+        print(f'node pid {self.proc.pid}, log {log_path}', flush=True)
+        self.client = ClientNode('dpv_soak')
+        self.executor = self.client.executor
+        self.collector = OutputCollector(self.client.node, keep_messages=False)
+        self.player = BagPlayer(self.client.node, bag, rate=args.rate, rebase_stamps=True, loop=True)
+        self.loop_starts = _LoopStarts()
+        self.player.on_publish = self.loop_starts.on_publish
+
+    def spin_for(self, seconds: float) -> None:
+        end = time.monotonic() + seconds
+        while time.monotonic() < end:
+            self.executor.spin_once(timeout_sec=0.05)
+
+    def wait_for_node(self) -> None:
+        """Until the node subscribed to the inputs (an error when it did not, or exited), then until its first
+        output or diagnostics (at most 60 s)."""
+        from dpv_sensor.data import rosbag_io as R
+        missing = self.player.wait_for_subscribers([R.IMAGE_TOPIC, R.CAMERA_INFO_TOPIC, R.ODOM_TOPIC], timeout=120.0,
+                                                   spin=lambda t: self.executor.spin_once(timeout_sec=t))
+        if missing or self.proc.poll() is not None:
+            raise RuntimeError(f'node did not subscribe to {missing} (exit code {self.proc.poll()}); '
+                               f'see {self.log_path}')
         deadline = time.monotonic() + 60.0
-        while time.monotonic() < deadline and collector.depth_count == 0 and collector.diagnostics_count == 0:
-            executor.spin_once(timeout_sec=0.1)
+        while time.monotonic() < deadline and self.collector.depth_count == 0 \
+                and self.collector.diagnostics_count == 0:
+            self.executor.spin_once(timeout_sec=0.1)
+
+    def play(self) -> tuple[object, _RssRecord]:
+        """Play for --minutes in a thread while spinning and sampling the node's memory; the player's statistics
+        (None if it failed) and the memory samples. An error when the node exits meanwhile."""
         stats_box = {}
 
         def play():
-            stats_box['stats'] = player.play(duration=args.minutes * 60.0)
+            stats_box['stats'] = self.player.play(duration=self.args.minutes * 60.0)
         thread = threading.Thread(target=play, daemon=True)
         t0 = time.monotonic()
         thread.start()
-        rss_samples = []
-        rss_start = None
-        next_sample = t0
-        warmup_outputs = 5
+        rss = _RssRecord(t0=t0, next_sample=t0)
         while thread.is_alive():
-            executor.spin_once(timeout_sec=0.05)
-            now = time.monotonic()
-            if now >= next_sample:
-                rss = vm_rss_kib(proc.pid)
-                if rss is not None:
-                    rss_samples.append((round(now - t0, 1), rss))
-                    if rss_start is None and collector.depth_count >= warmup_outputs:
-                        rss_start = (round(now - t0, 1), rss)
-                next_sample = now + 5.0
-                if len(rss_samples) % 12 == 1:
-                    print(f'  t={now - t0:6.0f} s outputs={collector.depth_count} rss={rss} kB '
-                          f"dropped={collector.diagnostics.get('dropped_total', '?')}", flush=True)
-            if proc.poll() is not None:
-                player.stop()
-                raise RuntimeError(f'node exited during the soak (code {proc.returncode}); see {log_path}')
+            self.executor.spin_once(timeout_sec=0.05)
+            rss.sample(time.monotonic(), self.proc.pid, self.collector)
+            if self.proc.poll() is not None:
+                self.player.stop()
+                raise RuntimeError(f'node exited during the soak (code {self.proc.returncode}); see {self.log_path}')
         thread.join()
-        # let the last outputs and a fresh diagnostics message arrive
-        end = time.monotonic() + 5.0
-        while time.monotonic() < end:
-            executor.spin_once(timeout_sec=0.05)
-        rss_end = vm_rss_kib(proc.pid)
-        stats = stats_box.get('stats')
-        wall = stats.wall_s if stats else float('nan')
-        images_offered = stats.per_topic.get(R.IMAGE_TOPIC, 0) if stats else 0
-        lat = collector.latency_ms
-        # the node has finished what it holds when a diagnostics message shows nothing more received
+        return stats_box.get('stats'), rss
+
+    def settle(self, images_offered: int) -> None:
+        """Until a diagnostics message shows the node finished what it received (at most 60 s)."""
         settle = time.monotonic() + 60.0
         while time.monotonic() < settle:
-            acc = accounting(collector.diagnostics, images_offered)
+            acc = accounting(self.collector.diagnostics, images_offered)
             if acc['received_not_done'] <= 0:
                 break
-            executor.spin_once(timeout_sec=0.1)
-        d = collector.diagnostics
-        result.update({
-            'wall_s': round(wall, 1),
-            'images_offered': images_offered,
-            'input_fps': round(images_offered / wall, 2) if wall else None,
-            'outputs_received': collector.depth_count,
-            'output_fps': round(collector.depth_count / wall, 3) if wall else None,
-            'latency_ms_median': round(_percentile(lat, 50), 1),
-            'latency_ms_p95': round(_percentile(lat, 95), 1),
-            'latency_ms_max': round(float(max(lat)), 1) if lat else None,
-            'node_latency_ms_median': d.get('latency_ms_median'),
-            'node_processing_ms_median': d.get('processing_ms_median'),
-            'node_keyframe_ms_median': d.get('keyframe_ms_median'),
-            'node_frames_received': d.get('frames_received'),
-            'node_frames_processed': d.get('frames_processed'),
-            'node_outputs_published': d.get('outputs_published'),
-            'dropped': {k: v for k, v in d.items() if k.startswith('dropped')},
-            'lost': {k: v for k, v in d.items() if k.startswith('lost.') or k == 'input_period_ms'},
-            'accounting': accounting(d, images_offered),
-            'faults': {k: v for k, v in d.items() if k.startswith('faults.')},
-            'measurement_model': d.get('measurement_model'),
-            'filter_resets': d.get('filter_resets'),
-            'output_resets': d.get('output_resets'),
-            'loop_starts': len(loop_starts_ns),
-            'loop_starts_ns': loop_starts_ns,
-            'rss_kib_start': rss_start,
-            'rss_kib_end': rss_end,
-            'rss_kib_max': max((r for _t, r in rss_samples), default=None),
-            # baseline (median) resident memory in the first and the last minute: flat memory means these agree
-            'rss_kib_median_first_min': _median_rss(rss_samples, 0.0, 60.0),
-            'rss_kib_median_last_min': _median_rss(rss_samples, wall - 60.0, wall + 1.0),
-            'rss_kib_median_by_window': rss_trend(rss_samples, wall),
-            'rss_halves_after_warmup': rss_halves(rss_samples, wall),
-            'rss_samples': rss_samples,
-            'player_worst_lateness_ms': round(stats.late_ms_max, 1) if stats else None,
-            'loops': stats.loops if stats else None,
-        })
-    finally:
-        code = stop_node_process(proc)
-        result['node_exit_code'] = code
-        client.close()
+            self.executor.spin_once(timeout_sec=0.1)
+
+    def run(self) -> dict:
+        """Wait for the node, play, let the last outputs arrive; the figures of the report."""
+        from dpv_sensor.data import rosbag_io as R
+        self.wait_for_node()
+        stats, rss = self.play()
+        self.spin_for(5.0)            # let the last outputs and a fresh diagnostics message arrive
+        rss_end = vm_rss_kib(self.proc.pid)
+        wall = stats.wall_s if stats else float('nan')
+        images_offered = stats.per_topic.get(R.IMAGE_TOPIC, 0) if stats else 0
+        self.settle(images_offered)
+        return _soak_figures(stats, wall, images_offered, self.collector, rss, rss_end, self.loop_starts.stamps_ns)
+
+    def close(self) -> int:
+        """Stop the node and the client; the node's exit code."""
+        code = stop_node_process(self.proc)
+        self.client.close()
+        return code
+
+
+def _soak_figures(stats, wall: float, images_offered: int, collector: OutputCollector, rss: _RssRecord,
+                  rss_end: int | None, loop_starts_ns: list) -> dict:
+    """The report's figures from the player's statistics, the collected outputs, the node's last diagnostics and
+    the memory samples."""
+    lat = collector.latency_ms
+    d = collector.diagnostics
+    return {
+        'wall_s': round(wall, 1),
+        'images_offered': images_offered,
+        'input_fps': round(images_offered / wall, 2) if wall else None,
+        'outputs_received': collector.depth_count,
+        'output_fps': round(collector.depth_count / wall, 3) if wall else None,
+        'latency_ms_median': round(_percentile(lat, 50), 1),
+        'latency_ms_p95': round(_percentile(lat, 95), 1),
+        'latency_ms_max': round(float(max(lat)), 1) if lat else None,
+        'node_latency_ms_median': d.get('latency_ms_median'),
+        'node_processing_ms_median': d.get('processing_ms_median'),
+        'node_keyframe_ms_median': d.get('keyframe_ms_median'),
+        'node_frames_received': d.get('frames_received'),
+        'node_frames_processed': d.get('frames_processed'),
+        'node_outputs_published': d.get('outputs_published'),
+        'dropped': {k: v for k, v in d.items() if k.startswith('dropped')},
+        'lost': {k: v for k, v in d.items() if k.startswith('lost.') or k == 'input_period_ms'},
+        'accounting': accounting(d, images_offered),
+        'faults': {k: v for k, v in d.items() if k.startswith('faults.')},
+        'measurement_model': d.get('measurement_model'),
+        'filter_resets': d.get('filter_resets'),
+        'output_resets': d.get('output_resets'),
+        'loop_starts': len(loop_starts_ns),
+        'loop_starts_ns': loop_starts_ns,
+        'rss_kib_start': rss.start,
+        'rss_kib_end': rss_end,
+        'rss_kib_max': max((r for _t, r in rss.samples), default=None),
+        # baseline (median) resident memory in the first and the last minute: flat memory means these agree
+        'rss_kib_median_first_min': _median_rss(rss.samples, 0.0, 60.0),
+        'rss_kib_median_last_min': _median_rss(rss.samples, wall - 60.0, wall + 1.0),
+        'rss_kib_median_by_window': rss_trend(rss.samples, wall),
+        'rss_halves_after_warmup': rss_halves(rss.samples, wall),
+        'rss_samples': rss.samples,
+        'player_worst_lateness_ms': round(stats.late_ms_max, 1) if stats else None,
+        'loops': stats.loops if stats else None,
+    }
+
+
+def run_soak(args) -> dict:
+    """Start the node, replay the bag in a loop for --minutes, stop the node; the report's figures."""
+    work = pathlib.Path(args.work_dir or tempfile.mkdtemp(prefix='dpv_soak_'))
+    work.mkdir(parents=True, exist_ok=True)
+    bag, n_images = _soak_bag(args, work)
+    params = _soak_params(args)
+    log_path = work / 'node.log'
+    soak = _Soak(args, bag, params, log_path)
+    result: dict = {'bag': str(bag), 'images_in_bag': n_images, 'minutes': args.minutes, 'rate': args.rate,
+                    'params': params, 'threads': args.threads}
     try:
-        result['resets_by_cause'] = classify_resets(log_path.read_text(errors='replace'), loop_starts_ns)
+        result.update(soak.run())
+    finally:
+        result['node_exit_code'] = soak.close()
+    try:
+        result['resets_by_cause'] = classify_resets(log_path.read_text(errors='replace'), soak.loop_starts.stamps_ns)
     except OSError:
         result['resets_by_cause'] = None
     return result
