@@ -48,7 +48,7 @@ import math
 import pathlib
 import time
 from dataclasses import dataclass
-from typing import Any, Dict, Iterable, List, Optional, Sequence as SequenceT, Tuple, Union
+from typing import TYPE_CHECKING, Any, Dict, Iterable, List, Optional, Sequence as SequenceT, Tuple, Union
 
 import cv2
 import numpy as np
@@ -59,6 +59,9 @@ from dpv_sensor.common import to_jsonable
 from dpv_sensor.evaluation.consumer_odometry import (  # noqa: F401
     CONSUMER_ODOMETRY_DEPTH_MAX, add_consumer_odometry, consumer_odometry, consumer_odometry_text)
 from dpv_sensor import params as P
+
+if TYPE_CHECKING:
+    from dpv_sensor.stream.estimator_config import EstimatorStatus
 
 LOG = logging.getLogger('dpv_sensor.evaluation.offline')
 
@@ -239,7 +242,7 @@ def input_poses(seq, options: EvalOptions) -> List[np.ndarray]:
 # ----------------------------------------------------------------------------------------------
 
 def run_sequence(seq, config, options: Optional[EvalOptions] = None, *, model=None, pose_refiner=None,
-                 keep_images: bool = True) -> Tuple[List[KeyframeRecord], Dict[str, Any]]:
+                 keep_images: bool = True) -> Tuple[List[KeyframeRecord], EstimatorStatus]:
     """Push the (prepared) sequence through an estimator; return (keyframe records, estimator status).
 
     config: an ``EstimatorConfig``; the pose source comes from it (``pipeline.PoseSource``): with
@@ -252,7 +255,6 @@ def run_sequence(seq, config, options: Optional[EvalOptions] = None, *, model=No
     options = (options or EvalOptions()).validate()
     seq = prepare_sequence(seq, options)
     pipe = Pipeline(config, model=model, pose_refiner=pose_refiner)
-    est = pipe.estimator
     poses_in = input_poses(seq, options)
     K = np.asarray(seq.K, np.float64)
     index_of: Dict[float, int] = {}
@@ -278,10 +280,16 @@ def run_sequence(seq, config, options: Optional[EvalOptions] = None, *, model=No
             T_world_cam_44=None if out.T_world_cam_44 is None else np.asarray(out.T_world_cam_44),
             image_hw3=image, reset_reason=out.reset_reason,
             time_ms=float(out.timings_ms.get('total', float('nan')))))
-    status = dict(pipe.status)
-    status['depth_range'] = list(status.get('depth_range', (est.d_min, est.d_max)))
-    status['d_min'], status['d_max'] = float(est.d_min), float(est.d_max)
-    return records, status
+    return records, pipe.status
+
+
+def status_json(status: EstimatorStatus) -> Dict[str, Any]:
+    """The estimator status as ``summary.json`` holds it: its fields (``EstimatorStatus.as_dict``) and the ends of
+    its depth range (d_min, d_max)."""
+    out = status.as_dict()
+    out['depth_range'] = list(status.depth_range)
+    out['d_min'], out['d_max'] = (float(d) for d in status.depth_range)
+    return out
 
 
 # ----------------------------------------------------------------------------------------------
@@ -355,7 +363,7 @@ def relative_pose_error(T_est_44: np.ndarray, T_gt_44: np.ndarray) -> Tuple[floa
 
 
 def summarize(acc: M.MetricAccumulator, records: SequenceT[KeyframeRecord], *,
-              configuration: Optional[Dict[str, Any]] = None, status: Optional[Dict[str, Any]] = None,
+              configuration: Optional[Dict[str, Any]] = None, status: Optional[EstimatorStatus] = None,
               source: Optional[str] = None) -> Dict[str, Any]:
     """The JSON summary: ``MetricAccumulator.summary()`` plus timing, pose error, configuration, status."""
     s = acc.summary()
@@ -377,7 +385,7 @@ def summarize(acc: M.MetricAccumulator, records: SequenceT[KeyframeRecord], *,
     if configuration is not None:
         s['configuration'] = configuration
     if status is not None:
-        s['estimator_status'] = status
+        s['estimator_status'] = status_json(status)
     return s
 
 
@@ -442,10 +450,10 @@ def write_report(out_dir, acc: M.MetricAccumulator, records: SequenceT[KeyframeR
     return files
 
 
-def depth_limits(options: EvalOptions, status: Dict[str, Any]) -> Tuple[Optional[float], Optional[float]]:
+def depth_limits(options: EvalOptions, status: EstimatorStatus) -> Tuple[Optional[float], Optional[float]]:
     """(min, max) GT depth that is scored: the options' limits, else the estimator's depth range."""
-    lo = options.min_depth if options.min_depth is not None else status.get('d_min')
-    hi = options.max_depth if options.max_depth is not None else status.get('d_max')
+    lo = options.min_depth if options.min_depth is not None else float(status.depth_range[0])
+    hi = options.max_depth if options.max_depth is not None else float(status.depth_range[1])
     return lo, hi
 
 
@@ -805,7 +813,7 @@ def evaluate_offline(sequence, config, *, model=None, pose_refiner=None,
 
     Returns ``{'rows': [per output: index, stamp, is_keyframe, abs_rel, rmse, delta1, ..., coverage,
     ms_* (median-scaled), ause, mean_confidence, time_ms], 'summary': MetricAccumulator.summary(),
-    'status': Estimator.status, 'outputs': [DepthOutput] (only with keep_outputs)}``.
+    'status': Pipeline.status (EstimatorStatus), 'outputs': [DepthOutput] (only with keep_outputs)}``.
     Only keyframe outputs are scored unless ``keyframes_only=False``.
     """
     from dpv_sensor.stream.frame import Frame
