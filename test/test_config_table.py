@@ -146,7 +146,7 @@ def test_evaluate_passes_the_refiner_sigmas_from_the_config(monkeypatch):
     assert len(built) == 1
     assert built[0].odom_sigma_rot_deg == 0.1 and built[0].odom_sigma_trans_m == 0.004
     assert built[0].odom_sigma_trans_rel == P.default('odom_sigma_trans_rel')
-    assert status['pose_refiner'] is True and records
+    assert status.pose_refiner is True and records
 
 
 def test_evaluate_runs_the_odometry_free_mode_offline():

@@ -118,7 +118,7 @@ def test_torch_threads_is_applied_at_construction():
         Estimator(small_config())                               # 0: torch's setting is left alone
         assert torch.get_num_threads() == 2
         est = Estimator(small_config(torch_threads=1))
-        assert torch.get_num_threads() == 1 and est.status['torch_threads'] == 1
+        assert torch.get_num_threads() == 1 and est.status.torch_threads == 1
     finally:
         torch.set_num_threads(1)
 
@@ -165,7 +165,7 @@ def test_keyframe_frame_count_fallback_and_disabled_thresholds():
 def test_estimator_uses_the_keyframe_rules():
     est = Estimator(small_config(keyframe_translation=0.1, keyframe_max_interval=100))
     outs = push_all(est, sideways(9))                          # 0.03 m per frame: keyframes 0, 4, 8
-    assert est.status['keyframes'] == 3
+    assert est.status.keyframes == 3
     assert [i for i, o in enumerate(outs) if o is not None] == [4, 8]
     assert all(o.is_keyframe for o in outs if o is not None)
 
@@ -273,7 +273,7 @@ def test_classical_estimator_beats_constant_depth_on_rendered_sequence(seed, mod
                           keyframe_translation=0.1, keyframe_rotation_deg=0.0, keyframe_max_interval=100,
                           window_mode=mode)
     records, status = run_sequence(seq, cfg, EvalOptions(progress=False), keep_images=False)
-    acc = score_records(records, min_depth=status['d_min'], max_depth=status['d_max'])
+    acc = score_records(records, min_depth=status.depth_range[0], max_depth=status.depth_range[1])
     assert len(acc.rows) >= 3
     baseline = []
     for row in acc.rows:
@@ -284,7 +284,7 @@ def test_classical_estimator_beats_constant_depth_on_rendered_sequence(seed, mod
     abs_rel = summary['metric']['frame_mean']['abs_rel']
     assert abs_rel < 0.7 * float(np.mean(baseline)), (abs_rel, np.mean(baseline))
     assert summary['coverage']['frame_mean'] > 0.8
-    assert status['measurement'] == 'classical'
+    assert status.measurement == 'classical'
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -295,11 +295,11 @@ def test_missing_weights_fall_back_to_classical(tmp_path):
     path = tmp_path / 'nothing_here.safetensors'
     est = Estimator(small_config(measurement='auto', weights=str(path), filter_mode='knet'))
     st = est.status
-    assert st['measurement'] == 'classical'
-    assert 'fallback' in st['measurement_reason'] and str(path) in st['measurement_reason']
-    assert 'not found' in st['measurement_reason']
-    assert st['filter_mode'] == 'global' and any('knet' in n for n in st['notes'])
-    assert st['depth_readout'] == 'mean'                       # 'auto' with the classical model
+    assert st.measurement == 'classical'
+    assert 'fallback' in st.measurement_reason and str(path) in st.measurement_reason
+    assert 'not found' in st.measurement_reason
+    assert st.filter_mode == 'global' and any('knet' in n for n in st.notes)
+    assert st.depth_readout == 'mean'                       # 'auto' with the classical model
     assert push_all(est, sideways(3))[-1] is not None
 
 
@@ -309,17 +309,17 @@ def test_corrupt_weights_fall_back_to_classical(tmp_path):
     path = tmp_path / 'lite.safetensors'
     save_checkpoint(path, DPVNet('lite'), {'training_data': 'none (test)'})
     est = Estimator(small_config(measurement='auto', weights=str(path)))
-    assert est.status['measurement'] == 'network' and est.status['weights'] == str(path)
+    assert est.status.measurement == 'network' and est.status.weights == str(path)
     data = bytearray(path.read_bytes())
     data[-100] ^= 0xFF                                         # flip bits in the tensor data
     path.write_bytes(bytes(data))
     est = Estimator(small_config(measurement='auto', weights=str(path)))
     st = est.status
-    assert st['measurement'] == 'classical'
-    assert 'CheckpointError' in st['measurement_reason'] and 'checksum' in st['measurement_reason']
+    assert st.measurement == 'classical'
+    assert 'CheckpointError' in st.measurement_reason and 'checksum' in st.measurement_reason
     path.write_bytes(b'not a checkpoint at all')
     assert 'not a safetensors file' in Estimator(small_config(measurement='auto', weights=str(path))
-                                                 ).status['measurement_reason']
+                                                 ).status.measurement_reason
 
 
 def test_depth_readout_is_applied_and_checked():
@@ -344,7 +344,7 @@ def test_confidence_definition_is_applied_and_checked():
     ok = np.isfinite(outs['plane'].depth_hw)
     assert np.abs(outs['plane'].confidence_hw[ok] - outs['ratio'].confidence_hw[ok]).max() > 1e-3
     est = Estimator(small_config(confidence='ratio', confidence_ratio=1.5))
-    assert est.status['confidence'] == 'ratio 1.5'
+    assert est.status.confidence == 'ratio 1.5'
     wider = push_all(est, sideways(4))[-1]
     assert (wider.confidence_hw[ok] >= outs['ratio'].confidence_hw[ok] - 1e-6).all()
     with pytest.raises(ValueError, match='confidence'):
@@ -383,8 +383,8 @@ def test_network_measurement_caches_features_and_uses_knet():
     original = net.extract_features
     net.extract_features = lambda img: (calls.append(tuple(img.shape)), original(img))[1]
     est = Estimator(small_config(measurement='auto', filter_mode='knet', output_resolution='processing'), model=net)
-    assert est.status['measurement'] == 'network' and est.status['filter_mode'] == 'knet'
-    assert est.status['depth_readout'] == 'relative'           # 'auto' with the network
+    assert est.status.measurement == 'network' and est.status.filter_mode == 'knet'
+    assert est.status.depth_readout == 'relative'           # 'auto' with the network
     outs = push_all(est, sideways(5))
     # every keyframe's image went through the feature extractor exactly once (sources reuse the cache)
     assert len(calls) == 5 and all(c == (1, 3, 48, 64) for c in calls)
@@ -393,7 +393,7 @@ def test_network_measurement_caches_features_and_uses_knet():
         assert 'refine' in o.timings_ms
         d = o.depth_hw[np.isfinite(o.depth_hw)]
         assert np.all((d >= net.d_min - 1e-4) & (d <= net.d_max + 1e-4))
-    assert est.status['depth_range'] == (net.d_min, net.d_max)
+    assert est.status.depth_range == (net.d_min, net.d_max)
 
 
 @pytest.mark.parametrize('precision', ['bfloat16', 'auto'])
@@ -410,7 +410,7 @@ def test_cpu_bfloat16_gives_the_float32_depths(precision):
         est = Estimator(small_config(measurement='network', filter_mode='knet', processing_width=128,
                                      processing_height=96, cpu_precision=p), model=net)
         outs[p] = push_all(est, frames)[-1]
-        status[p] = est.status['precision']
+        status[p] = est.status.precision
     assert status['float32'] == 'float32'
     native = cpu_native_bf16()            # from the CPU's flags, not from the code that chooses
     if precision == 'auto' and native is None:
@@ -440,22 +440,22 @@ def test_nan_pose_is_dropped():
                 T_world_cam_44=np.full((4, 4), np.nan))
     assert est.push(bad) is None
     st = est.status
-    assert st['frames_dropped'] == 1 and 'not finite' in st['last_drop_reason'] and st['resets'] == 0
+    assert st.frames_dropped == 1 and 'not finite' in st.last_drop_reason and st.resets == 0
     none_pose = Frame(stamp=0.04, image=frames[1].image, K_33=frames[1].K_33, T_world_cam_44=None)
-    assert est.push(none_pose) is None and 'no pose' in est.status['last_drop_reason']
+    assert est.push(none_pose) is None and 'no pose' in est.status.last_drop_reason
     out = est.push(frames[2])                                  # the stream goes on: keyframes 0 and 2
-    assert out is not None and out.reset_reason in (None, 'first frame') and est.status['resets'] == 0
+    assert out is not None and out.reset_reason in (None, 'first frame') and est.status.resets == 0
 
 
 def test_time_going_backwards_resets():
     est = Estimator(small_config())
     outs = push_all(est, sideways(4))
-    assert outs[-1] is not None and est.status['resets'] == 0
+    assert outs[-1] is not None and est.status.resets == 0
     back = frame_at(0, pose(x=0.12), stamp=0.01)
     assert est.push(back) is None                              # first keyframe of the new stream
     st = est.status
-    assert st['resets'] == 1 and 'backwards' in st['last_reset_reason']
-    assert st['keyframes_in_window'] == 1
+    assert st.resets == 1 and 'backwards' in st.last_reset_reason
+    assert st.keyframes_in_window == 1
     out = est.push(frame_at(0, pose(x=0.15), stamp=0.05))
     assert out is not None and 'backwards' in out.reset_reason
     out = est.push(frame_at(0, pose(x=0.18), stamp=0.09))
@@ -466,11 +466,11 @@ def test_time_gap_and_pose_jump_reset():
     est = Estimator(small_config(reset_time_gap=0.5))
     push_all(est, sideways(3))
     est.push(frame_at(0, pose(x=0.09), stamp=2.0))
-    assert est.status['resets'] == 1 and 'time gap' in est.status['last_reset_reason']
+    assert est.status.resets == 1 and 'time gap' in est.status.last_reset_reason
     est.push(frame_at(0, pose(x=1.0), stamp=2.03))
-    assert est.status['resets'] == 2 and 'teleported' in est.status['last_reset_reason']
+    assert est.status.resets == 2 and 'teleported' in est.status.last_reset_reason
     assert est.push(frame_at(0, pose(x=1.0), stamp=2.03)) is None   # duplicate stamp: dropped, no reset
-    assert est.status['resets'] == 2 and 'duplicate' in est.status['last_drop_reason']
+    assert est.status.resets == 2 and 'duplicate' in est.status.last_drop_reason
 
 
 def smooth_path(t):
@@ -505,7 +505,7 @@ def test_deliberate_drops_do_not_reset():
     est.filter.step = lambda *a, **kw: (lambda r: (predictions.append(r.predicted_logp_bdhw is not None), r)[1])(
         step(*a, **kw))
     outs = push_all(est, frames)
-    assert est.status['resets'] == 0 and est.status['last_reset_reason'] is None
+    assert est.status.resets == 0 and est.status.last_reset_reason is None
     assert all(o is not None for o in outs[1:])
     assert outs[1].reset_reason == 'first frame'                # the filter's start, not a restart
     assert [o.reset_reason for o in outs[2:]] == [None] * (len(frames) - 2)
@@ -537,7 +537,7 @@ def test_fast_smooth_motion_with_frames_far_apart_does_not_reset(path, spacing):
         step = pose_delta(frames[0].T_world_cam_44, frames[1].T_world_cam_44)
         assert step[0 if path is walk else 1] == pytest.approx((1.5 if path is walk else 90.0) * spacing)
         outs = [o for o in push_all(est, frames) if o is not None]
-        assert est.status['resets'] == 0, (mode, est.status['last_reset_reason'])
+        assert est.status.resets == 0, (mode, est.status.last_reset_reason)
         assert outs and all(o.reset_reason in (None, 'first frame') for o in outs)
 
 
@@ -550,8 +550,8 @@ def test_offline_pose_step_of_half_a_metre_resets():
         f.sensor_gap_s = 1 / 30.0
     est = Estimator(small_config())
     outs = push_all(est, frames)
-    assert est.status['resets'] == 1
-    assert est.status['last_reset_reason'].startswith('pose teleported: 0.500 m in 0.033 s (15.0 m/s > '
+    assert est.status.resets == 1
+    assert est.status.last_reset_reason.startswith('pose teleported: 0.500 m in 0.033 s (15.0 m/s > '
                                                       'odom_max_speed 10 m/s)')
     assert outs[3] is None                                      # first keyframe of the restarted stream
     from dpv_sensor.stream.pipeline import Pipeline
@@ -559,7 +559,7 @@ def test_offline_pose_step_of_half_a_metre_resets():
     for f in frames:
         f.sensor_gap_s = None
         pipe.push(f)
-    assert pipe.estimator.status['resets'] == 1 and 'teleported' in pipe.estimator.status['last_reset_reason']
+    assert pipe.estimator.status.resets == 1 and 'teleported' in pipe.estimator.status.last_reset_reason
 
 
 def test_without_sensor_gap_the_time_since_the_previous_frame_counts():
@@ -570,7 +570,7 @@ def test_without_sensor_gap_the_time_since_the_previous_frame_counts():
     est = Estimator(small_config())
     push_all(est, frames)
     st = est.status
-    assert st['resets'] == 2 and st['last_reset_reason'].startswith('time gap 3.333 s since the previous frame')
+    assert st.resets == 2 and st.last_reset_reason.startswith('time gap 3.333 s since the previous frame')
 
 
 def test_real_sensor_gap_resets():
@@ -579,8 +579,8 @@ def test_real_sensor_gap_resets():
     est = Estimator(small_config())
     outs = push_all(est, frames)
     st = est.status
-    assert st['resets'] == 1
-    assert 'time gap 1.500 s in the camera stream > reset_time_gap 1 s' in st['last_reset_reason']
+    assert st.resets == 1
+    assert 'time gap 1.500 s in the camera stream > reset_time_gap 1 s' in st.last_reset_reason
     assert outs[2] is None                                      # first keyframe of the restarted stream
     assert est.push(frame_at(0, smooth_path(7.0), stamp=7.0)).reset_reason.startswith('time gap')
 
@@ -596,8 +596,8 @@ def test_teleport_resets_even_between_distant_frames(extra, words):
     assert dt > 34.0
     est = Estimator(small_config())
     push_all(est, frames[:2] + [jump])
-    assert est.status['resets'] == 1 and words in est.status['last_reset_reason']
-    assert 'odom_max_speed 10 m/s' in est.status['last_reset_reason']
+    assert est.status.resets == 1 and words in est.status.last_reset_reason
+    assert 'odom_max_speed 10 m/s' in est.status.last_reset_reason
 
 
 def test_teleport_between_consecutive_frames_resets():
@@ -609,9 +609,9 @@ def test_teleport_between_consecutive_frames_resets():
         frames.append(frame_at(2, frames[1].T_world_cam_44 @ T))
         frames[2].sensor_gap_s = 1 / 30.0
         push_all(est, frames)
-        assert est.status['resets'] == resets, (T, est.status['last_reset_reason'])
+        assert est.status.resets == resets, (T, est.status.last_reset_reason)
         if resets:
-            assert 'teleported' in est.status['last_reset_reason']
+            assert 'teleported' in est.status.last_reset_reason
 
 
 def test_invalid_sensor_gap_is_an_error():
@@ -628,7 +628,7 @@ def test_image_size_change_resets():
     bigger = [frame_at(i, pose(x=0.03 * i), w=96, h=72) for i in range(3, 6)]
     outs = push_all(est, bigger)
     st = est.status
-    assert st['resets'] == 1 and 'image size changed from 80x60 to 96x72' in st['last_reset_reason']
+    assert st.resets == 1 and 'image size changed from 80x60 to 96x72' in st.last_reset_reason
     assert outs[0] is None                                     # new first keyframe
     assert outs[1].depth_hw.shape == (72, 96) and 'size' in outs[1].reset_reason
 
@@ -637,7 +637,7 @@ def test_explicit_reset():
     est = Estimator(small_config())
     push_all(est, sideways(3))
     est.reset('operator request')
-    assert est.status['resets'] == 1 and est.status['keyframes_in_window'] == 0
+    assert est.status.resets == 1 and est.status.keyframes_in_window == 0
     assert est.push(frame_at(3, pose(x=0.09))) is None
 
 
@@ -670,7 +670,7 @@ def test_publish_between_keyframes():
     est = Estimator(small_config(keyframe_max_interval=3, publish_between_keyframes=True, window_mode='centered'))
     outs = push_all(est, frames)
     assert all(o.is_keyframe for o in outs if o is not None)
-    assert any('publish_between_keyframes' in n for n in est.status['notes'])
+    assert any('publish_between_keyframes' in n for n in est.status.notes)
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -699,7 +699,7 @@ def test_pose_refiner_hook_gets_the_window_and_its_poses_are_used():
     np.testing.assert_allclose(outs[-1].T_world_cam_44, ref.T_world_cam_44)
     np.testing.assert_allclose(ref.odom_T_world_cam_44, frames[3].T_world_cam_44)
     assert not np.allclose(ref.T_world_cam_44, ref.odom_T_world_cam_44)
-    assert est.status['pose_refiner'] is True
+    assert est.status.pose_refiner is True
 
 
 def test_new_keyframes_start_from_the_refined_trajectory_and_tracking_loss_restarts():
@@ -733,20 +733,20 @@ def test_new_keyframes_start_from_the_refined_trajectory_and_tracking_loss_resta
     np.testing.assert_allclose(outs[1].T_world_cam_44, offset @ frames[1].T_world_cam_44, atol=1e-12)
     # call 3 reports lost tracking: no output for keyframe 3, the filter restarts, the next output says why
     assert outs[3] is None
-    assert est.status['resets'] == 1 and 'lost tracking' in est.status['last_reset_reason']
+    assert est.status.resets == 1 and 'lost tracking' in est.status.last_reset_reason
     assert outs[4] is not None and 'alignment diverged' in outs[4].reset_reason
     assert outs[5].reset_reason is None
     est.reset('test')
     assert refiner.resets == 1
-    assert est.status['pose_refinement_fallbacks'] == 0
+    assert est.status.pose_refinement_fallbacks == 0
 
     # odometry from a topic: the failed refinement falls back to the odometry for that keyframe, nothing restarts
     refiner = Refiner()
     est = Estimator(small_config(odometry='topic'), pose_refiner=refiner)
     outs = push_all(est, frames)
     assert outs[3] is not None and outs[3].reset_reason is None
-    assert est.status['resets'] == 0 and est.status['pose_refinement_fallbacks'] == 1
-    assert est.status['last_pose_refinement_fallback_reason'] == 'alignment diverged'
+    assert est.status.resets == 0 and est.status.pose_refinement_fallbacks == 1
+    assert est.status.last_pose_refinement_fallback_reason == 'alignment diverged'
     assert all(o.reset_reason is None for o in outs[2:])
 
 
@@ -764,14 +764,14 @@ def test_refiner_that_keeps_the_odometry_is_counted_as_a_fallback():
 
     est = Estimator(small_config(), pose_refiner=Refiner())
     outs = push_all(est, sideways(4))
-    assert est.status['resets'] == 0 and all(o is not None for o in outs[1:])
-    assert est.status['pose_refinement_fallbacks'] == 3           # one per window (keyframes 1, 2, 3)
-    assert est.status['last_pose_refinement_fallback_reason'] == 'turning in place: test'
+    assert est.status.resets == 0 and all(o is not None for o in outs[1:])
+    assert est.status.pose_refinement_fallbacks == 3           # one per window (keyframes 1, 2, 3)
+    assert est.status.last_pose_refinement_fallback_reason == 'turning in place: test'
 
 
 def test_pose_refinement_requested_without_refiner_is_noted():
     est = Estimator(small_config(pose_refinement='window'))
-    assert any('no pose refiner' in n for n in est.status['notes'])
+    assert any('no pose refiner' in n for n in est.status.notes)
 
 
 def test_run_sequence_records_and_scores():
@@ -782,18 +782,18 @@ def test_run_sequence_records_and_scores():
                                frames[0].K_33, stamps=[f.stamp for f in frames])
     cfg = small_config(num_planes=32, processing_width=128, processing_height=96)
     records, status = run_sequence(seq, cfg, EvalOptions(progress=False))
-    rows = score_records(records, min_depth=status['d_min'], max_depth=status['d_max']).rows
+    rows = score_records(records, min_depth=status.depth_range[0], max_depth=status.depth_range[1]).rows
     assert [r['index'] for r in rows] == [1, 2, 3, 4]
     assert [r.stamp for r in records] == [f.stamp for f in frames[1:]]
     assert rows[-1]['abs_rel'] < 0.05 and rows[-1]['coverage'] > 0.8
-    assert status['keyframes'] == 5
+    assert status.keyframes == 5
     # pose_source 'noisy': the estimator sees odometry-like poses (the depth is still scored against the GT)
     from dpv_sensor.data.trajectory import corrupt_trajectory
     noisy = corrupt_trajectory([seq.pose(i) for i in range(len(seq))], trans_noise_rel=0.5, rot_noise_deg=2.0, seed=1)
     options = EvalOptions(progress=False, pose_source='noisy', pose_noise=(0.5, 2.0), seed=1)
     bad_records, _ = run_sequence(seq, cfg, options)
     np.testing.assert_allclose(bad_records[-1].T_world_cam_44, noisy[-1])
-    bad = score_records(bad_records, min_depth=status['d_min'], max_depth=status['d_max']).rows
+    bad = score_records(bad_records, min_depth=status.depth_range[0], max_depth=status.depth_range[1]).rows
     assert bad[-1]['abs_rel'] > 2 * rows[-1]['abs_rel']
 
 
@@ -816,7 +816,7 @@ def test_cuda_matches_cpu():
     for dev in ('cpu', 'cuda'):
         est = Estimator(small_config(device=dev, num_planes=32, processing_width=128, processing_height=96))
         outs[dev] = push_all(est, frames)[-1]
-        assert est.status['device'].startswith(dev)
+        assert est.status.device.startswith(dev)
     a, b = outs['cpu'].depth_hw, outs['cuda'].depth_hw
     both = np.isfinite(a) & np.isfinite(b)
     assert both.mean() > 0.8 and np.isfinite(a).mean() == pytest.approx(np.isfinite(b).mean(), abs=0.02)
@@ -859,20 +859,20 @@ def test_a_larger_odometry_covariance_never_raises_the_confidence_and_off_ignore
         est = Estimator(small_config(num_planes=32, processing_width=128, processing_height=96))
         out = push_all(est, _with_covariance(frames, var))[-1]
         means.append(float(np.nanmean(out.confidence_hw)))
-        st = est.status['pose_uncertainty']
+        st = est.status.pose_uncertainty
         # the covariance's growth between two keyframes (one frame apart) is the relative pose's
         assert st['rot_deg_max'] == pytest.approx(math.degrees(math.sqrt(var * 4 if var else 0.0)), abs=2e-4)
     assert all(b <= a + 1e-6 for a, b in zip(means, means[1:]))
     assert means[-1] < means[0] - 0.05
     off = Estimator(small_config(num_planes=32, processing_width=128, processing_height=96, pose_uncertainty='off'))
     out_off = push_all(off, _with_covariance(frames, 1e-4))[-1]
-    assert off.status['pose_uncertainty'] == {}
+    assert off.status.pose_uncertainty == {}
     assert float(np.nanmean(out_off.confidence_hw)) > means[-1]
     # drift: the odom_drift_* figures over the path (5 cm per keyframe, 4 sources back): never above exact poses
     drift = Estimator(small_config(num_planes=32, processing_width=128, processing_height=96,
                                    pose_uncertainty='drift', odom_time_sync_ms=0.0))
     push_all(drift, _with_covariance(frames, 1e-4))
-    assert drift.status['pose_uncertainty']['trans_mm_max'] == pytest.approx(1000 * 0.02 * 0.20 / math.sqrt(3),
+    assert drift.status.pose_uncertainty['trans_mm_max'] == pytest.approx(1000 * 0.02 * 0.20 / math.sqrt(3),
                                                                             rel=1e-3)
 
 
@@ -888,4 +888,4 @@ def test_default_pose_uncertainty_reads_only_the_odometry_covariance():
     assert float(np.nanmean(drift.confidence_hw)) < float(np.nanmean(plain.confidence_hw))
     est = Estimator(small_config(**cfg))
     push_all(est, _with_covariance(frames, 1e-5))
-    assert est.status['pose_uncertainty']['source'] == 'covariance'
+    assert est.status.pose_uncertainty['source'] == 'covariance'

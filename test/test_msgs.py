@@ -8,6 +8,8 @@ from sensor_msgs.msg import Image
 from std_msgs.msg import Header
 
 from dpv_sensor.ros import msgs as M
+from dpv_sensor.ros import cloud_msgs as C
+from dpv_sensor.ros import compressed_depth as CD
 from dpv_sensor.stream.pose_buffer import make_pose
 
 RNG = np.random.default_rng(7)
@@ -228,12 +230,12 @@ def test_point_cloud_xyzrgb_organised_with_nan_points():
     depth[2, 0] = 4.0
     rgb = np.zeros((3, 4, 3), np.uint8)
     rgb[0, 3] = (255, 16, 1)
-    msg = M.depth_to_pointcloud(depth, rgb, K, header(frame_id='cam'))
+    msg = C.depth_to_pointcloud(depth, rgb, K, header(frame_id='cam'))
     assert (msg.height, msg.width, msg.point_step, msg.row_step) == (3, 4, 16, 64)
     assert msg.is_dense is False and msg.header.frame_id == 'cam'
     assert [(f.name, f.offset, f.datatype, f.count) for f in msg.fields] == [
         ('x', 0, 7, 1), ('y', 4, 7, 1), ('z', 8, 7, 1), ('rgb', 12, 7, 1)]
-    xyz, colours = M.pointcloud_to_xyzrgb(msg)
+    xyz, colours = C.pointcloud_to_xyzrgb(msg)
     assert xyz.shape == (12, 3)
     np.testing.assert_allclose(xyz[3], [(3 - 2.0) / 100 * 2.0, (0 - 1.0) / 50 * 2.0, 2.0], rtol=1e-6)
     np.testing.assert_allclose(xyz[8], [(0 - 2.0) / 100 * 4.0, (2 - 1.0) / 50 * 4.0, 4.0], rtol=1e-6)
@@ -246,12 +248,12 @@ def test_point_cloud_xyzrgb_organised_with_nan_points():
 def test_point_cloud_can_skip_invalid_points():
     K = np.array([[10.0, 0, 0], [0, 10.0, 0], [0, 0, 1]])
     depth = np.array([[1.0, np.nan], [0.0, 2.0]], np.float32)
-    msg = M.depth_to_pointcloud(depth, np.zeros((2, 2, 3), np.uint8), K, header(), skip_invalid=True)
+    msg = C.depth_to_pointcloud(depth, np.zeros((2, 2, 3), np.uint8), K, header(), skip_invalid=True)
     assert (msg.height, msg.width, msg.is_dense) == (1, 2, True)
-    xyz, _ = M.pointcloud_to_xyzrgb(msg)
+    xyz, _ = C.pointcloud_to_xyzrgb(msg)
     np.testing.assert_allclose(xyz, [[0, 0, 1], [0.2, 0.2, 2]])
     with pytest.raises(ValueError, match='sizes differ'):
-        M.depth_to_pointcloud(depth, np.zeros((3, 2, 3), np.uint8), K, header())
+        C.depth_to_pointcloud(depth, np.zeros((3, 2, 3), np.uint8), K, header())
 
 
 # ---- compressedDepth (image_transport's PNG flavour) and the decimated cloud -------------------------------------
@@ -265,14 +267,14 @@ def _png_payload(msg):
 def test_compressed_depth_32fc1_is_quantised_inverse_depth_with_the_plugin_header():
     import struct
     depth = np.array([[1.0, 2.0, 3.0], [np.nan, 12.0, 10.0]], np.float32)
-    msg = M.depth_to_compressed_depth(depth, header(frame_id='cam'), encoding='32FC1')
+    msg = CD.depth_to_compressed_depth(depth, header(frame_id='cam'), encoding='32FC1')
     assert msg.format == '32FC1; compressedDepth png'
     assert (msg.header.stamp.sec, msg.header.stamp.nanosec, msg.header.frame_id) == (1_700_000_000, 123_456_789, 'cam')
     # defaults depth_max 10, depth_quantization 100: a = 100 * 101 = 10100, b = 1 - 10100 / 10 = -1009
     assert bytes(msg.data[:12]) == struct.pack('<iff', 0, 10100.0, -1009.0)
     # q = trunc(10100 / d - 1009): 1 m -> 9091, 2 m -> 4041, 3 m -> 2357 (2357.67); NaN and d >= 10 m -> 0
     np.testing.assert_array_equal(_png_payload(msg), [[9091, 4041, 2357], [0, 0, 0]])
-    back = M.compressed_depth_to_float(msg)
+    back = CD.compressed_depth_to_float(msg)
     assert back.dtype == np.float32 and back.shape == (2, 3)
     assert back[0, 0] == 1.0 and back[0, 1] == 2.0                   # 10100 / (9091 + 1009), 10100 / 5050
     assert back[0, 2] == pytest.approx(10100 / 3366, rel=1e-6)       # 3.0006: the truncation's step at 3 m
@@ -282,11 +284,11 @@ def test_compressed_depth_32fc1_is_quantised_inverse_depth_with_the_plugin_heade
 def test_compressed_depth_16uc1_is_millimetres_cut_at_depth_max():
     import struct
     depth = np.array([[1.5, 0.0004, 10.0, 10.0006, -1.0]], np.float32)
-    msg = M.depth_to_compressed_depth(depth, 5, 'cam', encoding='16UC1', png_level=1)
+    msg = CD.depth_to_compressed_depth(depth, 5, 'cam', encoding='16UC1', png_level=1)
     assert msg.format == '16UC1; compressedDepth png'
     assert bytes(msg.data[:12]) == struct.pack('<iff', 0, 0.0, 0.0)
     np.testing.assert_array_equal(_png_payload(msg), [[1500, 0, 10000, 0, 0]])   # 10001 mm > 10000: cut
-    back = M.compressed_depth_to_float(msg)
+    back = CD.compressed_depth_to_float(msg)
     np.testing.assert_array_equal(back, np.array([[1.5, np.nan, 10.0, np.nan, np.nan]], np.float32))
 
 
@@ -294,8 +296,8 @@ def test_compressed_depth_round_trip_within_the_quantisation_and_other_settings(
     rng = np.random.default_rng(3)
     depth = rng.uniform(0.3, 4.0, (24, 32)).astype(np.float32)
     depth[0, :5] = np.nan
-    msg = M.depth_to_compressed_depth(depth, header(), encoding='32FC1', depth_max=5.0, depth_quantization=50.0)
-    back = M.compressed_depth_to_float(msg)
+    msg = CD.depth_to_compressed_depth(depth, header(), encoding='32FC1', depth_max=5.0, depth_quantization=50.0)
+    back = CD.compressed_depth_to_float(msg)
     a = 50.0 * 51.0
     ok = np.isfinite(depth)
     assert np.isnan(back[~ok]).all() and np.isfinite(back[ok]).all()
@@ -303,15 +305,15 @@ def test_compressed_depth_round_trip_within_the_quantisation_and_other_settings(
     err = back[ok] - depth[ok]
     assert (err >= -1e-5).all() and (err <= depth[ok] ** 2 / a * 1.01 + 1e-5).all()
     legacy = M.ROS('sensor_msgs/msg/CompressedImage', header=msg.header, format='32FC1', data=msg.data)
-    np.testing.assert_array_equal(M.compressed_depth_to_float(legacy), back)    # the plugin's old format string
+    np.testing.assert_array_equal(CD.compressed_depth_to_float(legacy), back)    # the plugin's old format string
     with pytest.raises(M.UnsupportedEncoding, match='only PNG'):
-        M.compressed_depth_to_float(M.ROS('sensor_msgs/msg/CompressedImage', header=msg.header,
+        CD.compressed_depth_to_float(M.ROS('sensor_msgs/msg/CompressedImage', header=msg.header,
                                           format='32FC1; compressedDepth rvl', data=msg.data))
     with pytest.raises(M.BadImage, match='holds no image'):
-        M.compressed_depth_to_float(M.ROS('sensor_msgs/msg/CompressedImage', header=msg.header,
+        CD.compressed_depth_to_float(M.ROS('sensor_msgs/msg/CompressedImage', header=msg.header,
                                           format='16UC1; compressedDepth png', data=bytes(12)))
     with pytest.raises(M.UnsupportedEncoding):
-        M.depth_to_compressed_depth(depth, header(), encoding='mono8')
+        CD.depth_to_compressed_depth(depth, header(), encoding='mono8')
 
 
 def test_decimated_cloud_keeps_the_full_clouds_points():
@@ -320,10 +322,10 @@ def test_decimated_cloud_keeps_the_full_clouds_points():
     depth[3, 3] = np.nan                                     # kept by the grid: a NaN point at (1, 1)
     rgb = rng.integers(0, 256, (7, 10, 3), dtype=np.uint8)
     K = np.array([[8.0, 0, 4.5], [0, 9.0, 3.5], [0, 0, 1]])
-    full_xyz, full_rgb = M.pointcloud_to_xyzrgb(M.depth_to_pointcloud(depth, rgb, K, header()))
-    msg = M.depth_to_pointcloud_decimated(depth, rgb, K, header(frame_id='cam'), decimation=3)
+    full_xyz, full_rgb = C.pointcloud_to_xyzrgb(C.depth_to_pointcloud(depth, rgb, K, header()))
+    msg = C.depth_to_pointcloud_decimated(depth, rgb, K, header(frame_id='cam'), decimation=3)
     assert (msg.height, msg.width, msg.is_dense, msg.header.frame_id) == (3, 4, False, 'cam')   # ceil(7/3), ceil(10/3)
-    xyz, colours = M.pointcloud_to_xyzrgb(msg)
+    xyz, colours = C.pointcloud_to_xyzrgb(msg)
     idx = (np.arange(0, 7, 3)[:, None] * 10 + np.arange(0, 10, 3)[None, :]).reshape(-1)
     np.testing.assert_allclose(xyz, full_xyz[idx], rtol=1e-6, equal_nan=True)
     np.testing.assert_array_equal(colours, full_rgb[idx])
@@ -331,6 +333,6 @@ def test_decimated_cloud_keeps_the_full_clouds_points():
     d = depth[6, 9]
     np.testing.assert_allclose(xyz[-1], [4.5 / 8 * d, 2.5 / 9 * d, d], rtol=1e-6)
     assert np.isnan(xyz[1 * 4 + 1]).all() and np.isfinite(xyz[1 * 4 + 2]).all()
-    assert M.depth_to_pointcloud_decimated(depth, rgb, K, header()).width == 10
+    assert C.depth_to_pointcloud_decimated(depth, rgb, K, header()).width == 10
     with pytest.raises(ValueError, match='positive integer'):
-        M.depth_to_pointcloud_decimated(depth, rgb, K, header(), decimation=0)
+        C.depth_to_pointcloud_decimated(depth, rgb, K, header(), decimation=0)

@@ -20,6 +20,7 @@ import rclpy
 
 from ros_helpers import start_node, stop_process, wait_for, write_rendered_bag
 from dpv_sensor.ros import msgs as M
+from dpv_sensor.ros import cloud_msgs as C
 from dpv_sensor import params as P
 from dpv_sensor.data import rosbag_io as R
 from dpv_sensor.stream.pose_buffer import NS
@@ -204,7 +205,7 @@ def test_replayed_bag_gives_depth_for_every_keyframe_with_exact_headers(scene, o
     for rec in with_points:
         assert M.stamp_to_ns(rec.points.header.stamp) == rec.stamp_ns and rec.points.header.frame_id == 'cam_optical'
         assert (rec.points.height, rec.points.width, rec.points.is_dense) == (64, 80, False)
-        xyz, rgb = M.pointcloud_to_xyzrgb(rec.points)
+        xyz, rgb = C.pointcloud_to_xyzrgb(rec.points)
         mm = np.frombuffer(bytes(rec.depth.data), '<u2').reshape(-1).astype(np.float64)
         valid = mm > 0
         np.testing.assert_allclose(xyz[valid, 2], mm[valid] / 1000.0, atol=5.1e-4)

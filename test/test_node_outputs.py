@@ -25,6 +25,7 @@ import pytest
 from ros_helpers import assert_clean_exits, start_node, stop_all, stop_process, wait_for, write_rendered_bag
 from test_node_integration import COMMON, T_BASE_CAMERA, ros_args
 from dpv_sensor.ros import msgs as M
+from dpv_sensor.ros import compressed_depth as CD
 from dpv_sensor.data import rosbag_io as R
 from dpv_sensor.core.rectify import RectifierCache
 from dpv_sensor.client.ros_io import BagPlayer
@@ -216,7 +217,7 @@ def test_rgb_confidence_info_compressed_points_and_rate_warning_in_both_resoluti
     for stamp, d in recs_a.items():
         np.testing.assert_array_equal(M.image_to_rgb(d['rgb']), seq.image(index[stamp]))
         depth = M.image_to_float(d['depth'])
-        decoded = M.compressed_depth_to_float(d['compressed'])
+        decoded = CD.compressed_depth_to_float(d['compressed'])
         assert d['compressed'].format == '32FC1; compressedDepth png'
         np.testing.assert_array_equal(np.isfinite(decoded), np.isfinite(depth) & (depth < 10.0))
         ok = np.isfinite(decoded)

@@ -128,12 +128,12 @@ def test_turning_in_place_publishes_no_confident_depth_while_a_baseline_does():
     assert outs
     conf = np.concatenate([o.confidence_hw.ravel() for o in outs])
     assert np.mean(conf <= 0.05) >= 0.99
-    assert est.status['parallax']['median_span_px'] < 0.05
+    assert est.status.parallax['median_span_px'] < 0.05
     # a sideways baseline of 10 cm per keyframe, plane at 2 m: the oldest source moves the pixels by
     # 57.6 px * 0.4 m * (1.25 / 2 m - 1 / 2.5 m) = 5.2 px > 2 px: confidence as without the rule
     est_on = Estimator(cfg)
     a = [o for o in (est_on.push(f) for f in sideways(5, step=0.1)) if o is not None][-1]
-    assert est_on.status['parallax']['median_span_px'] == pytest.approx(5.2, rel=0.1)
+    assert est_on.status.parallax['median_span_px'] == pytest.approx(5.2, rel=0.1)
     est_off = Estimator(small_config(parallax_full_px=0.0))
     b = [o for o in (est_off.push(f) for f in sideways(5, step=0.1)) if o is not None][-1]
     ok = np.isfinite(a.depth_hw) & np.isfinite(b.depth_hw)
@@ -174,11 +174,11 @@ def test_degenerate_frames_leave_the_belief_unchanged_and_publish_nothing(mode):
         bad = type(f)(stamp=f.stamp + 0.001 * (k + 1), image=img, K_33=f.K_33, T_world_cam_44=f.T_world_cam_44,
                       frame_id='cam')
         assert est.push(bad) is None, name
-        assert est.status['last_degenerate_reason'].startswith(name if name != 'white' else 'saturated')
+        assert est.status.last_degenerate_reason.startswith(name if name != 'white' else 'saturated')
     assert torch.equal(est.filter.logp_bdhw, belief)
     assert [kf.index for kf in est.window] == window and est._last_frame is last_frame
     st = est.status
-    assert st['frames_degenerate'] == 4 and 'degenerate image' in st['last_drop_reason']
+    assert st.frames_degenerate == 4 and 'degenerate image' in st.last_drop_reason
     # the stream goes on as if they had not come
     assert est.push(frames[5]) is not None
 
@@ -203,14 +203,14 @@ def test_degenerate_frames_at_the_defaults_leave_the_network_belief_unchanged():
     frames = [frame_at(i, pose(x=0.06 * i)) for i in range(4)]
     for f in frames[:3]:
         est.push(f)
-    assert est.status['measurement'] == 'network'
+    assert est.status.measurement == 'network'
     belief = est.filter.logp_bdhw.clone()
     for k, img in enumerate(degenerate_images().values()):
         f = frames[3]
         assert est.push(type(f)(stamp=f.stamp + 0.001 * k, image=img, K_33=f.K_33,
                                 T_world_cam_44=f.T_world_cam_44)) is None
     assert torch.equal(est.filter.logp_bdhw, belief)
-    assert est.status['frames_degenerate'] == 4
+    assert est.status.frames_degenerate == 4
 
 
 def _kf(i, x=0.0, yaw=0.0):

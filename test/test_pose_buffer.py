@@ -270,3 +270,22 @@ def test_covariance_track_interpolates_and_reports_unfilled():
     assert tr.at(15) is None
     tr.add(5, np.eye(6))          # time went backwards: the track starts again
     np.testing.assert_allclose(tr.at(100), np.eye(6))
+
+
+def test_received_images_apply_the_stream_rules_before_the_pose_lookup():
+    from dpv_sensor.stream.continuity import ImageVerdict, ReceivedImages
+    buf = PoseBuffer(max_gap_s=1.0, max_speed=10.0, max_rate_deg=720.0)
+    for t in range(5):
+        buf.add(t * S, translation(0.01 * t, 0, 0))
+    rules = ReceivedImages(buf)
+    assert rules.image(2 * S, (64, 48)) == rules.image(3 * S, (64, 48)) == ImageVerdict()     # nothing to say
+    assert rules.image(3 * S, (64, 48)).duplicate
+    back = rules.image(1 * S, (64, 48))          # the odometry has not gone back: its samples are stale
+    assert back.backwards == 'time went backwards (1.000 s after 3.000 s)' and back.poses_cleared
+    assert back.previous_ns == 3 * S and back.size_change is None and len(buf) == 0
+    resized = rules.image(2 * S, (32, 24))
+    assert resized.size_change == 'image size changed from 64x48 to 32x24' and resized.previous_size == (64, 48)
+    assert not rules.pose_teleported()
+    buf.add(5 * S, translation(0.0, 0, 0))
+    buf.add(6 * S, translation(50.0, 0, 0))      # 50 m in 1 s: a teleport the buffer counts
+    assert buf.jumps == 1 and rules.pose_teleported() and not rules.pose_teleported()

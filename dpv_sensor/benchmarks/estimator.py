@@ -55,8 +55,9 @@ def _estimator(model_name: str, width: int, height: int, device: str):
     quiet.propagate = False
     est = Estimator(cfg, logger=quiet)
     if est.measurement == 'network':
-        ck = est.status.get('checkpoint') or {}
-        return est, f'{model_name}: weights {est.status["weights"]} (training steps: {ck.get("steps")})'
+        status = est.status
+        ck = status.checkpoint or {}
+        return est, f'{model_name}: weights {status.weights} (training steps: {ck.get("steps")})'
     from dpv_sensor.core.nets.model import DPVNet
     torch.manual_seed(0)
     est = Estimator(cfg, model=DPVNet(model_name), logger=quiet)

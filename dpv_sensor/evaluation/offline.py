@@ -55,7 +55,7 @@ from dpv_sensor.evaluation.report import (  # noqa: F401
     get_path, markdown_table, table_row, write_frames_csv, write_report)
 from dpv_sensor.evaluation.runner import (  # noqa: F401
     EVAL_KEYS, POSE_SOURCES, EvalOptions, KeyframeRecord, build_config, depth_limits, input_poses, known_keys,
-    load_sequence, load_source, parse_overrides, prepare_sequence, run_sequence)
+    load_sequence, load_source, parse_overrides, prepare_sequence, run_sequence, status_json)
 from dpv_sensor.evaluation.scoring import pose_rpe, relative_pose_error, score_records, summarize  # noqa: F401
 from dpv_sensor import params as P
 

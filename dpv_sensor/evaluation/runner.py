@@ -10,12 +10,15 @@ from __future__ import annotations
 
 import pathlib
 from dataclasses import dataclass
-from typing import Any, Dict, Iterable, List, Optional, Tuple
+from typing import TYPE_CHECKING, Any, Dict, Iterable, List, Optional, Tuple
 
 import cv2
 import numpy as np
 
 from dpv_sensor import params as P
+
+if TYPE_CHECKING:
+    from dpv_sensor.stream.estimator_config import EstimatorStatus
 
 __all__ = ['POSE_SOURCES', 'EVAL_KEYS', 'EvalOptions', 'KeyframeRecord', 'known_keys', 'parse_overrides',
            'build_config', 'load_sequence', 'load_source', 'prepare_sequence', 'resize_nearest', 'resize_image',
@@ -187,9 +190,9 @@ def input_poses(seq, options: EvalOptions) -> List[np.ndarray]:
 # ----------------------------------------------------------------------------------------------
 
 def run_sequence(seq, config, options: Optional[EvalOptions] = None, *, model=None, pose_refiner=None,
-                 keep_images: bool = True) -> Tuple[List[KeyframeRecord], Dict[str, Any]]:
+                 keep_images: bool = True) -> Tuple[List[KeyframeRecord], EstimatorStatus]:
     """Push the sequence (prepared as ``options`` say) frame by frame through a :class:`Pipeline`, the node's code
-    path; return (keyframe records, estimator status with ``d_min`` / ``d_max``). The one offline runner.
+    path; return (keyframe records, the pipeline's :class:`EstimatorStatus`). The one offline runner.
 
     config: an ``EstimatorConfig``; the pose source comes from it (``pipeline.PoseSource``): with
     ``pose_refinement='window'`` and no ``pose_refiner`` given, a WindowPoseRefiner with the config's sigmas,
@@ -201,7 +204,6 @@ def run_sequence(seq, config, options: Optional[EvalOptions] = None, *, model=No
     options = (options or EvalOptions()).validate()
     seq = prepare_sequence(seq, options)
     pipe = Pipeline(config, model=model, pose_refiner=pose_refiner)
-    est = pipe.estimator
     poses_in = input_poses(seq, options)
     K = np.asarray(seq.K, np.float64)
     index_of: Dict[float, int] = {}
@@ -227,15 +229,21 @@ def run_sequence(seq, config, options: Optional[EvalOptions] = None, *, model=No
             T_world_cam_44=None if out.T_world_cam_44 is None else np.asarray(out.T_world_cam_44),
             image_hw3=image, reset_reason=out.reset_reason,
             time_ms=float(out.timings_ms.get('total', float('nan')))))
-    status = dict(pipe.status)
-    status['depth_range'] = list(status.get('depth_range', (est.d_min, est.d_max)))
-    status['d_min'], status['d_max'] = float(est.d_min), float(est.d_max)
-    return records, status
+    return records, pipe.status
 
 
-def depth_limits(options: EvalOptions, status: Dict[str, Any]) -> Tuple[Optional[float], Optional[float]]:
+def status_json(status: EstimatorStatus) -> Dict[str, Any]:
+    """The estimator status as ``summary.json`` holds it: its fields (``EstimatorStatus.as_dict``) and the ends of
+    its depth range (d_min, d_max)."""
+    out = status.as_dict()
+    out['depth_range'] = list(status.depth_range)
+    out['d_min'], out['d_max'] = (float(d) for d in status.depth_range)
+    return out
+
+
+def depth_limits(options: EvalOptions, status: EstimatorStatus) -> Tuple[Optional[float], Optional[float]]:
     """(min, max) GT depth that is scored: the options' limits, else the estimator's depth range."""
-    lo = options.min_depth if options.min_depth is not None else status.get('d_min')
-    hi = options.max_depth if options.max_depth is not None else status.get('d_max')
+    lo = options.min_depth if options.min_depth is not None else float(status.depth_range[0])
+    hi = options.max_depth if options.max_depth is not None else float(status.depth_range[1])
     return lo, hi
 

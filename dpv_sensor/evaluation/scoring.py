@@ -8,13 +8,16 @@ the same); the pooled, pixel-weighted numbers are reported next to them.
 """
 from __future__ import annotations
 
-from typing import Any, Dict, Iterable, Optional, Sequence as SequenceT, Tuple
+from typing import TYPE_CHECKING, Any, Dict, Iterable, Optional, Sequence as SequenceT, Tuple
 
 import numpy as np
 
 from dpv_sensor.core.geometry import relative_pose_error_np
 from dpv_sensor.evaluation import metrics as M
-from dpv_sensor.evaluation.runner import KeyframeRecord
+from dpv_sensor.evaluation.runner import KeyframeRecord, status_json
+
+if TYPE_CHECKING:
+    from dpv_sensor.stream.estimator_config import EstimatorStatus
 
 __all__ = ['score_records', 'pose_rpe', 'relative_pose_error', 'summarize']
 
@@ -85,7 +88,7 @@ def relative_pose_error(T_est_44: np.ndarray, T_gt_44: np.ndarray) -> Tuple[floa
 
 
 def summarize(acc: M.MetricAccumulator, records: SequenceT[KeyframeRecord], *,
-              configuration: Optional[Dict[str, Any]] = None, status: Optional[Dict[str, Any]] = None,
+              configuration: Optional[Dict[str, Any]] = None, status: Optional[EstimatorStatus] = None,
               source: Optional[str] = None) -> Dict[str, Any]:
     """The JSON summary: ``MetricAccumulator.summary()`` plus timing, pose error, configuration, status."""
     s = acc.summary()
@@ -107,5 +110,5 @@ def summarize(acc: M.MetricAccumulator, records: SequenceT[KeyframeRecord], *,
     if configuration is not None:
         s['configuration'] = configuration
     if status is not None:
-        s['estimator_status'] = status
+        s['estimator_status'] = status_json(status)
     return s

@@ -1,12 +1,30 @@
 """The node's ROS parameters from the settings table (dpv_sensor.params): declared with their descriptions, types
 and ranges, validated at start, and the ones in ``params.RUNTIME`` changeable while the node runs (`ros2 param set`),
-checked by the same table with its messages; every other parameter is read-only (it needs a restart)."""
+checked by the same table with its messages; every other parameter is read-only (it needs a restart). The node reads
+them as one typed :class:`NodeSettings`, rebuilt on every accepted change."""
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, SetParametersResult
 from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
 
 from dpv_sensor import params as P
+from dpv_sensor.stream.estimator import EstimatorConfig
+
+
+@dataclass(frozen=True)
+class NodeSettings:
+    """The node's parameters, typed, each setting in one place: ``node`` (``params.NodeConfig``: topics, QoS,
+    encodings, the odometry buffer, camera intrinsics, diagnostics) and ``estimator`` (``EstimatorConfig``: the
+    estimator and its pose source, the library settings at their defaults)."""
+    node: P.NodeConfig
+    estimator: EstimatorConfig
+
+    @classmethod
+    def from_params(cls, values: dict) -> 'NodeSettings':
+        """From the validated parameter dict (:func:`declare_parameters`)."""
+        return cls(node=P.NodeConfig.from_params(values), estimator=EstimatorConfig.from_params(values))
 
 
 def descriptor(spec: P.ParamSpec) -> ParameterDescriptor:

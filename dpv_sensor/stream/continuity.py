@@ -18,20 +18,22 @@ never resets (the filter's predict step warps the belief across any motion); a 0
 
 One teleport rule for both places that see poses: the pose buffer (``pose_buffer``) applies :func:`teleport` to
 consecutive odometry messages, the estimator to consecutive pushed frames (offline, where poses come without a
-buffer). The estimator applies :func:`stream_break` to every pushed frame (its resets); the node applies
-:func:`time_order` and :func:`size_change` to each received image before it looks up the image's pose (a stream
-that went backwards also restarts the odometry buffer).
+buffer). The estimator applies :func:`stream_break` to every pushed frame (its resets). A caller that looks poses
+up in a ``PoseBuffer`` (the node) applies :func:`time_order` and :func:`size_change` to each received image before
+the lookup, and the teleports the buffer found to the poses it gets, through :class:`ReceivedImages` (a stream that
+went backwards also restarts the odometry buffer).
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Optional, Tuple
 
 import numpy as np
 
 from dpv_sensor.core.geometry import pose_delta_np
 
-__all__ = ['teleport', 'time_order', 'size_change', 'stream_break', 'BACKWARDS', 'DUPLICATE', 'TELEPORT_FLOOR_M',
-           'TELEPORT_FLOOR_DEG']
+__all__ = ['teleport', 'time_order', 'size_change', 'stream_break', 'ReceivedImages', 'ImageVerdict', 'BACKWARDS',
+           'DUPLICATE', 'TELEPORT_FLOOR_M', 'TELEPORT_FLOOR_DEG']
 
 # A pose step is only a teleport when it is also larger than these (jitter of fast odometry is not one).
 TELEPORT_FLOOR_M = 0.1
@@ -103,3 +105,59 @@ def stream_break(last, stamp: float, T: np.ndarray, size, K_in, sensor_gap_s: Op
     jump = teleport(elapsed, dt, dr, max_speed, max_rate_deg)
     return None if jump is None else f'pose teleported: {jump}'
 
+
+
+@dataclass(frozen=True)
+class ImageVerdict:
+    """What the rules say about a received image (:meth:`ReceivedImages.image`): drop it (a duplicate stamp), or
+    restart the stream before it: time went backwards (``backwards``: the reason; ``previous_ns``: the stamp before;
+    ``poses_cleared``: the odometry had not gone back yet, so its samples were cleared) and / or the image size
+    changed (``size_change``: the reason; ``previous_size``: (w, h) before)."""
+    duplicate: bool = False
+    backwards: Optional[str] = None
+    previous_ns: Optional[int] = None
+    poses_cleared: bool = False
+    size_change: Optional[str] = None
+    previous_size: Optional[Tuple[int, int]] = None
+
+
+class ReceivedImages:
+    """The rules on the images a caller receives, before it looks their pose up in ``pose_buffer`` (a
+    ``PoseBuffer``): :func:`time_order` (a stream that went backwards clears the buffer unless the odometry went
+    back too) and :func:`size_change`; and :meth:`pose_teleported`: a pose from after an odometry teleport the
+    buffer found. The caller restarts its pipeline where they say so."""
+
+    def __init__(self, pose_buffer):
+        self.pose_buffer = pose_buffer
+        self._last_stamp_ns: Optional[int] = None
+        self._last_size: Optional[Tuple[int, int]] = None
+        self._last_epoch = pose_buffer.epoch
+        self._last_jumps = pose_buffer.jumps
+
+    def image(self, stamp_ns: int, size: Tuple[int, int]) -> ImageVerdict:
+        """The verdict on the image at ``stamp_ns`` of ``size`` (w, h); a duplicate leaves the state untouched."""
+        last_ns, last_size = self._last_stamp_ns, self._last_size
+        order = time_order(last_ns, stamp_ns)
+        if order == DUPLICATE:
+            return ImageVerdict(duplicate=True)
+        backwards, cleared = None, False
+        if order == BACKWARDS:
+            backwards = backwards_reason(last_ns / 1_000_000_000, stamp_ns / 1_000_000_000, digits=3)
+            cleared = self.pose_buffer.epoch == self._last_epoch   # the odometry has not jumped back (yet)
+            if cleared:
+                self.pose_buffer.clear('image time went backwards')
+            last_size = None
+        self._last_stamp_ns = stamp_ns
+        self._last_epoch = self.pose_buffer.epoch
+        self._last_size = tuple(size)
+        changed = size_change(last_size, size)
+        return ImageVerdict(backwards=backwards, previous_ns=last_ns if backwards else None, poses_cleared=cleared,
+                            size_change=changed, previous_size=last_size if changed else None)
+
+    def pose_teleported(self) -> bool:
+        """True once for a pose looked up after an odometry teleport the buffer found since the last one: the
+        pipeline's belief is in the old frame."""
+        if self.pose_buffer.jumps == self._last_jumps:
+            return False
+        self._last_jumps = self.pose_buffer.jumps
+        return True

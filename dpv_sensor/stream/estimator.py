@@ -28,12 +28,13 @@ from dpv_sensor.stream.frame import DepthOutput, Frame
 from dpv_sensor.core.edge_filter import joint_weighted_median
 from dpv_sensor.core.geometry import resample_to_camera, scale_intrinsics_np
 from dpv_sensor.stream.depth_output import compose_output, volume_maps_to_processing
-from dpv_sensor.stream.estimator_config import (EstimatorConfig, PoseRefinementRequest, PoseRefiner, _Measurement,  # noqa: F401
-                               _Posterior, default_weights_path, output_size)
+from dpv_sensor.stream.estimator_config import (EstimatorConfig, EstimatorStatus, PoseRefinementRequest,  # noqa: F401
+                                                PoseRefiner, _Measurement, _Posterior, default_weights_path,
+                                                output_size)
 from dpv_sensor.stream.keyframes import Keyframe, KeyframeSelector, KeyframeWindow
 from dpv_sensor.core.nets.model import cpu_bf16_fast
 
-__all__ = ['EstimatorConfig', 'Estimator', 'PoseRefinementRequest', 'default_weights_path',
+__all__ = ['EstimatorConfig', 'EstimatorStatus', 'Estimator', 'PoseRefinementRequest', 'default_weights_path',
            'MEASUREMENTS', 'FILTER_MODES']
 
 LOG = logging.getLogger('dpv_sensor.stream.estimator')
@@ -253,49 +254,48 @@ class Estimator:
 
     # ------------------------------------------------------------------ public API
     @property
-    def status(self) -> Dict[str, Any]:
+    def status(self) -> EstimatorStatus:
         """Diagnostics: measurement model in use and why, device, counters, resets, tracking state."""
         cfg = self.config
-        return {
-            'measurement': self.measurement,
-            'measurement_reason': self._measurement_reason,
-            'preset': self.model.preset.name if self.model is not None else None,
-            'weights': self._weights_path,
-            'checkpoint': {k: self._checkpoint_meta.get(k) for k in ('preset', 'steps', 'training_data',
-                                                                       'code_version')}
+        return EstimatorStatus(
+            measurement=self.measurement,
+            measurement_reason=self._measurement_reason,
+            preset=self.model.preset.name if self.model is not None else None,
+            weights=self._weights_path,
+            checkpoint={k: self._checkpoint_meta.get(k) for k in ('preset', 'steps', 'training_data', 'code_version')}
             if self._checkpoint_meta else None,
-            'device': str(self.device),
-            'precision': self._precision(),
-            'torch_threads': torch.get_num_threads(),
-            'filter_mode': self.filter_mode,
-            'filter_mode_requested': cfg.filter_mode,
-            'depth_readout': self.readout,
-            'confidence': cfg.confidence if cfg.confidence == 'plane' else f'ratio {cfg.confidence_ratio:g}',
-            'window_mode': cfg.window_mode,
-            'processing_size': cfg.processing_size,
-            'depth_range': (self.d_min, self.d_max),
-            'num_planes': self.num_planes,
-            'frames': self._frames_received,
-            'frames_accepted': self._frames_accepted,
-            'frames_dropped': self._frames_dropped,
-            'keyframes': self._keyframes,
-            'keyframes_in_window': len(self.window),
-            'outputs': self._outputs,
-            'resets': self._resets,
-            'pose_refinement_fallbacks': self._refine_fallbacks,
-            'last_pose_refinement_fallback_reason': self._last_refine_fallback_reason,
-            'last_reset_reason': self._last_reset_reason,
-            'last_drop_reason': self._last_drop_reason,
-            'frames_degenerate': self._frames_degenerate,
-            'last_degenerate_reason': self._last_degenerate_reason,
-            'parallax': dict(self._last_parallax),
-            'pose_uncertainty': dict(self._last_pose_sigma),
-            'tracking': self._tracking,
-            'pose_refinement': cfg.pose_refinement,
-            'pose_refiner': self.pose_refiner is not None,
-            'last_timings_ms': dict(self._last_timings),
-            'notes': list(self._notes),
-        }
+            device=str(self.device),
+            precision=self._precision(),
+            torch_threads=torch.get_num_threads(),
+            filter_mode=self.filter_mode,
+            filter_mode_requested=cfg.filter_mode,
+            depth_readout=self.readout,
+            confidence=cfg.confidence if cfg.confidence == 'plane' else f'ratio {cfg.confidence_ratio:g}',
+            window_mode=cfg.window_mode,
+            processing_size=cfg.processing_size,
+            depth_range=(self.d_min, self.d_max),
+            num_planes=self.num_planes,
+            frames=self._frames_received,
+            frames_accepted=self._frames_accepted,
+            frames_dropped=self._frames_dropped,
+            keyframes=self._keyframes,
+            keyframes_in_window=len(self.window),
+            outputs=self._outputs,
+            resets=self._resets,
+            pose_refinement_fallbacks=self._refine_fallbacks,
+            last_pose_refinement_fallback_reason=self._last_refine_fallback_reason,
+            last_reset_reason=self._last_reset_reason,
+            last_drop_reason=self._last_drop_reason,
+            frames_degenerate=self._frames_degenerate,
+            last_degenerate_reason=self._last_degenerate_reason,
+            parallax=dict(self._last_parallax),
+            pose_uncertainty=dict(self._last_pose_sigma),
+            tracking=self._tracking,
+            pose_refinement=cfg.pose_refinement,
+            pose_refiner=self.pose_refiner is not None,
+            last_timings_ms=dict(self._last_timings),
+            notes=list(self._notes),
+        )
 
     def reset(self, reason: str = 'reset requested') -> None:
         """Forget the window, the keyframe selector and the filter state (counters are kept)."""
@@ -374,7 +374,7 @@ class Estimator:
 
     def _degenerate_frame(self, quality: 'image_quality.ImageQuality') -> None:
         """A frame that carries no depth information (``image_quality.assess``): counted as dropped and as
-        degenerate (``status['frames_degenerate']``, ``status['last_degenerate_reason']``); the window, the
+        degenerate (``status.frames_degenerate``, ``status.last_degenerate_reason``); the window, the
         keyframe selector, the filter and the stream state are left exactly as they were."""
         self._frames_dropped += 1
         self._frames_degenerate += 1
@@ -661,7 +661,7 @@ class Estimator:
                            sources: List[Keyframe]) -> Optional[torch.Tensor]:
         """(1, h, w) std (planes, volume resolution) of the measured plane index that the sources' pose uncertainty
         relative to the reference causes (``pose_uncertainty.window_sigma_planes``); None with ``pose_uncertainty``
-        off, or covariance and no covariance. ``status['pose_uncertainty']`` says where it came from and its size."""
+        off, or covariance and no covariance. ``status.pose_uncertainty`` says where it came from and its size."""
         mode = self.config.pose_uncertainty
         if mode == 'off' or geom is None:
             self._last_pose_sigma = {}

@@ -1,11 +1,12 @@
 """The estimator's configuration and the records it passes around: ``EstimatorConfig`` (from the settings table),
-the output size rule, the pose refiner's request, and the filter's posterior and a measurement as the estimator
-keeps them. torch and numpy only; no ROS."""
+the output size rule, the pose refiner's request, the status it reports (``EstimatorStatus``), and the filter's
+posterior and a measurement as the estimator keeps them. torch and numpy only; no ROS."""
 from __future__ import annotations
 
+import dataclasses
 import pathlib
 from dataclasses import dataclass
-from typing import Any, Callable, List, Optional, Sequence, Tuple
+from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 import torch
@@ -13,7 +14,8 @@ import torch
 from dpv_sensor import params as P
 from dpv_sensor.stream.keyframes import Keyframe
 
-__all__ = ['EstimatorConfig', 'PoseRefinementRequest', 'PoseRefiner', 'default_weights_path', 'output_size']
+__all__ = ['EstimatorConfig', 'EstimatorStatus', 'PoseRefinementRequest', 'PoseRefiner', 'default_weights_path',
+           'output_size']
 
 
 def default_weights_path(preset: str) -> pathlib.Path:
@@ -52,6 +54,57 @@ messages as the node and ``evaluate``. ``torch_threads`` > 0 is applied with ``t
 Estimator is built (it is process-wide); 0 leaves torch's setting alone.""",
                                        {'processing_size': property(_processing_size)})
 EstimatorConfig.__module__ = 'dpv_sensor.stream.estimator'
+
+
+@dataclass
+class EstimatorStatus:
+    """What the estimator reports (``Estimator.status``, and ``Pipeline.status`` with the pose source's tracking):
+    the measurement model in use and why, device and precision, the settings in force, counters, resets, the
+    tracking state. :meth:`as_dict` is its JSON form (``summary.json``, ``fuse``)."""
+    measurement: str                            # 'network' or 'classical'
+    measurement_reason: str                     # why that model (weights loaded from, classical fallback ...)
+    preset: Optional[str]                       # the network's preset, None with the classical model
+    weights: Optional[str]                      # the checkpoint loaded, None when none was
+    checkpoint: Optional[Dict[str, Any]]        # preset, steps, training_data, code_version of the checkpoint
+    device: str
+    precision: str                              # what the networks run in
+    torch_threads: int
+    filter_mode: str                            # in use (knet falls back to global without the network)
+    filter_mode_requested: str
+    depth_readout: str                          # 'auto' resolved
+    confidence: str                             # 'plane' or 'ratio <r>'
+    window_mode: str
+    processing_size: Tuple[int, int]            # (width, height)
+    depth_range: Tuple[float, float]            # (d_min, d_max) of the depth planes in metres
+    num_planes: int
+    frames: int                                 # pushed
+    frames_accepted: int
+    frames_dropped: int
+    keyframes: int
+    keyframes_in_window: int
+    outputs: int
+    resets: int
+    pose_refinement_fallbacks: int
+    last_pose_refinement_fallback_reason: Optional[str]
+    last_reset_reason: Optional[str]
+    last_drop_reason: Optional[str]
+    frames_degenerate: int
+    last_degenerate_reason: Optional[str]
+    parallax: Dict[str, float]                  # the parallax rule's figures of the last window
+    pose_uncertainty: Dict[str, Any]            # source and size of the last window's pose uncertainty ({}: none)
+    tracking: str
+    pose_refinement: str
+    pose_refiner: bool                          # a pose refiner is in use
+    last_timings_ms: Dict[str, float]
+    notes: List[str]                            # one-time warnings
+    pose_refinement_tracking: Optional[str] = None   # the pose source's (Pipeline.status); None without a refiner
+
+    def as_dict(self) -> Dict[str, Any]:
+        """The fields by name (``dataclasses.asdict``); ``pose_refinement_tracking`` only when there is one."""
+        out = dataclasses.asdict(self)
+        if out['pose_refinement_tracking'] is None:
+            del out['pose_refinement_tracking']
+        return out
 
 
 @dataclass

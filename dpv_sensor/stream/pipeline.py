@@ -22,12 +22,13 @@ The stream-continuity rules are in ``dpv_sensor.stream.continuity`` (applied by 
 from __future__ import annotations
 
 import collections
+import dataclasses
 from dataclasses import dataclass
 from typing import Optional
 
 import numpy as np
 
-from dpv_sensor.stream.estimator import Estimator, EstimatorConfig
+from dpv_sensor.stream.estimator import Estimator, EstimatorConfig, EstimatorStatus
 from dpv_sensor.stream.frame import DepthOutput, Frame
 
 __all__ = ['PoseSource', 'Pipeline', 'PushResult', 'VO_LOST', 'DEGENERATE']
@@ -110,12 +111,9 @@ class Pipeline:
         self._keyframe_images: collections.OrderedDict = collections.OrderedDict()
 
     @property
-    def status(self) -> dict:
-        st = dict(self.estimator.status)
-        tracking = self.pose_source.tracking
-        if tracking is not None:
-            st['pose_refinement_tracking'] = tracking
-        return st
+    def status(self) -> EstimatorStatus:
+        """The estimator's status with the pose source's tracking (``pose_refinement_tracking``)."""
+        return dataclasses.replace(self.estimator.status, pose_refinement_tracking=self.pose_source.tracking)
 
     def push(self, frame: Frame) -> PushResult:
         T, lost = self.pose_source.frame_pose(frame)
@@ -128,9 +126,9 @@ class Pipeline:
         before = self.estimator.status
         out = self.estimator.push(frame)
         after = self.estimator.status
-        if int(after.get('frames_degenerate', 0)) > int(before.get('frames_degenerate', 0)):
-            return PushResult(output=out, drop=DEGENERATE, detail=str(after.get('last_degenerate_reason')))
-        is_keyframe = int(after.get('keyframes', 0)) > int(before.get('keyframes', 0))
+        if after.frames_degenerate > before.frames_degenerate:
+            return PushResult(output=out, drop=DEGENERATE, detail=str(after.last_degenerate_reason))
+        is_keyframe = after.keyframes > before.keyframes
         if is_keyframe and self.pose_source.visual_odometry is not None:
             self._keyframe_images[float(frame.stamp)] = (frame.image, np.asarray(frame.K_33, dtype=np.float64))
             while len(self._keyframe_images) > 2 * int(self.config.window_size) + 6:

@@ -103,7 +103,7 @@ def main(argv: Optional[List[str]] = None) -> int:
                                     pose_source=overrides.get('pose_source', 'gt')).validate()
             config, values = E.build_config(overrides)
             records, status = E.run_sequence(E.load_source(a.source, a.width, a.height), config, options)
-            info = {'source': a.source, 'overrides': overrides, 'estimator_status': status}
+            info = {'source': a.source, 'overrides': overrides, 'estimator_status': E.status_json(status)}
         elif a.command == 'bag':
             offset = a.stamp_offset if a.stamp_offset == 'auto' else float(a.stamp_offset)
             records, info = E.records_from_bag(a.bag, a.gt, image_topic=a.image_topic, stamp_offset=offset)

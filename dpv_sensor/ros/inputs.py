@@ -1,0 +1,236 @@
+"""The node's inputs: the subscriptions of image, camera_info and odometry with their QoS (input_reliability auto
+follows what the publishers offer), the callbacks that store what arrives (callbacks only store: the newest image
+waits in the one-slot mailbox, odometry goes into the pose buffer, camera_info sets K and the rectifier), and the
+worker's wait for the camera_info and the odometry pose of an image (``wait_for``).
+
+Images are checked on receipt (``dpv_sensor.ros.receipt``), so a bad one is counted and logged even when the
+newest-wins mailbox would have replaced it; images lost before the callback are counted by ``stream_loss``; a change
+of the odometry frame_id is logged and counted (faults.odometry_frame_change).
+"""
+from __future__ import annotations
+
+import threading
+import time
+
+import numpy as np
+from nav_msgs.msg import Odometry
+from sensor_msgs.msg import CameraInfo, Image
+
+from dpv_sensor.core.rectify import RectifierCache, UnsupportedDistortion
+from dpv_sensor.ros import msgs as M
+from dpv_sensor.ros import qos
+from dpv_sensor.ros.fault_kinds import (BAD_CAMERA_INFO, BUSY, EMPTY_FRAME_ID, NAN_ODOMETRY, ODOM_CONFLICT, ODOM_JUMP,
+                                        TIME_BACKWARDS, UNSUPPORTED_DISTORTION)
+from dpv_sensor.ros.node_support import Incoming, Mailbox, RateMeter, merge_incoming
+from dpv_sensor.ros.receipt import ImageReceipt, OdomFrameWatch
+from dpv_sensor.ros.stream_loss import StreamLoss
+from dpv_sensor.ros.transport import choose_reliability
+from dpv_sensor.stream.pose_buffer import CovarianceTrack, PoseBuffer
+
+NS = 1_000_000_000
+
+
+class NodeInputs:
+    """Subscriptions, their QoS and what the callbacks store. `node`: the rclpy node (its ``settings`` are read
+    at use); `drop(reason)`: counts an image the node refuses (dropped.*)."""
+
+    def __init__(self, node, faults, qos_events: qos.QosEvents, drop, T_base_camera_44):
+        s = node.settings.node
+        self.node = node
+        self.faults = faults
+        self._qos_events = qos_events
+        est = node.settings.estimator
+        self.pose_buffer = PoseBuffer(max_gap_s=s.max_odom_gap, history_s=max(10.0, 4 * s.max_odom_gap),
+                                      T_base_camera_44=T_base_camera_44, max_speed=est.odom_max_speed,
+                                      max_rate_deg=est.odom_max_rate_deg)
+        self.pose_covariance = CovarianceTrack()      # the odometry's pose covariance (pose_uncertainty: auto)
+        self.cv = threading.Condition()               # notified when odometry or camera_info arrives
+        self._K = None                                # (K 3x3, (w, h)) from camera_info or the parameters
+        if s.camera_info_source == 'parameters':
+            self._K = (np.array([[s.fx, 0.0, s.cx], [0.0, s.fy, s.cy], [0.0, 0.0, 1.0]]), (0, 0))
+        self._rectifiers = RectifierCache()           # distorted camera_info: undistortion maps of the latest one
+        self._rectifier = None                        # the Rectifier of the current camera_info (None: as-is)
+        self.odom_frame = 'odom'
+        self.tf = None                                # the TF output (set by the node), told the frame names
+        # images lost before on_image are counted by stream_loss (callback thread only)
+        self.stream_loss = StreamLoss()
+        self._receipt = ImageReceipt(faults, drop, self.stream_loss)
+        self._odom_frames = OdomFrameWatch(faults)
+        self.mailbox = Mailbox(merge=merge_incoming)
+        self._drop = drop
+        self._last_received_stamp_ns = None   # header stamp of the newest image received (callback thread only)
+        self.in_rate = RateMeter()
+        self.n_received = 0
+        self.first_image_mono = None
+        self.last_image_mono = None
+        self._callbacks = {'image': (Image, self.on_image)}
+        if s.camera_info_source == 'topic':
+            self._callbacks['camera_info'] = (CameraInfo, self.on_camera_info)
+        if est.odometry == 'topic':
+            self._callbacks['odom'] = (Odometry, self.on_odom)
+        self.subscriptions: dict = {}
+        self.reliability: dict = {}
+        self.matched: dict = {}                       # DDS-matched publishers per input (subscription events)
+        for topic in self._callbacks:
+            self.subscribe(topic, 'reliable' if s.input_reliability == 'reliable' else 'best_effort')
+
+    # ------------------------------------------------------------------------------------------ QoS
+    def topic_name(self, topic: str) -> str | None:
+        """The resolved name of an input's subscription, None when there is none."""
+        sub = self.subscriptions.get(topic)
+        return None if sub is None else sub.topic_name
+
+    def subscribe(self, topic: str, reliability: str) -> None:
+        """(Re)create the subscription of input `topic` with `reliability`; the image subscription also counts the
+        samples the middleware reports lost (where it reports them: Fast DDS does for best-effort readers)."""
+        old = self.subscriptions.pop(topic, None)
+        if old is not None:
+            self.node.destroy_subscription(old)
+        # DDS "subscription matched": a publisher the graph lists is not necessarily matched by this reader yet,
+        # and what it sends before the match is lost (volatile); a new subscription starts unmatched
+        self.matched[topic] = 0
+
+        def on_matched(info, topic=topic) -> None:
+            self.matched[topic] = int(info.current_count)
+        lost = None
+        if topic == 'image':
+            lost = lambda info: self.stream_loss.on_rmw_lost(int(info.total_count_change))  # noqa: E731
+        events = self._qos_events.subscription(topic, matched=on_matched, message_lost=lost)
+        msg_type, callback = self._callbacks[topic]
+        self.subscriptions[topic] = self.node.create_subscription(
+            msg_type, qos.resolve(self.node, topic), callback,
+            qos.profile(reliability, self.node.settings.node.input_depth), event_callbacks=events)
+        self.reliability[topic] = reliability
+
+    def adapt_qos(self) -> None:
+        """input_reliability auto: follow what the publishers of each input offer (transport.choose_reliability):
+        reliable while every publisher is reliable (lost samples are repaired), else best effort."""
+        for topic, sub in list(self.subscriptions.items()):
+            try:
+                infos = self.node.get_publishers_info_by_topic(sub.topic_name)
+            except Exception:   # the graph is not available (shutting down): try again next time
+                continue
+            offered = [qos.offered_reliability(i) for i in infos]
+            want = choose_reliability('auto', offered)
+            if want != self.reliability[topic]:
+                self.node.get_logger().info(f"input {sub.topic_name}: publishers offer "
+                                            f"{', '.join(sorted(set(offered)))}; subscribing {want}")
+                self.subscribe(topic, want)
+
+    # ------------------------------------------------------------------------------------------ callbacks
+    def on_image(self, msg) -> None:
+        self.n_received += 1
+        if self.tf is not None:
+            self.tf.frames(image_frame=msg.header.frame_id or self.node.settings.node.frame_id)
+        self.last_image_mono = time.monotonic()
+        if self.first_image_mono is None:
+            self.first_image_mono = self.last_image_mono
+        self.in_rate.tick(self.last_image_mono)
+        try:
+            stamp_ns = M.stamp_to_ns(msg.header.stamp)
+        except Exception:   # a malformed header is reported by the worker; no gap to measure here
+            stamp_ns = None
+        last, self._last_received_stamp_ns = self._last_received_stamp_ns, stamp_ns
+        gap_ns = stamp_ns - last if stamp_ns is not None and last is not None and stamp_ns > last else None
+        if not msg.header.frame_id:
+            self._on_empty_frame_id(stamp_ns)
+        # lost images, stamp jumps and unusable images: judged here, before the mailbox (dpv_sensor.ros.receipt)
+        item = self._receipt.image(msg, stamp_ns, gap_ns, time.monotonic(), time.time_ns())
+        if item is not None and self.mailbox.put(item):
+            self._drop(BUSY)
+            self.faults.report(BUSY, 'estimator busy: dropping an older image that was still waiting (newest wins; '
+                               'the count is in /diagnostics)', level='info', count=False, period_s=60.0)
+
+    def _on_empty_frame_id(self, stamp_ns) -> None:
+        """An image without header.frame_id: the outputs use the frame_id parameter (warned once, every one counted)."""
+        if self.faults.counts[EMPTY_FRAME_ID] == 0:
+            at = f' (first at {stamp_ns / NS:.3f} s)' if stamp_ns is not None else ''
+            self.faults.report(EMPTY_FRAME_ID, f"images arrive with an empty header.frame_id{at}; the outputs use the "
+                               f"frame_id parameter '{self.node.settings.node.frame_id}' (the camera driver should "
+                               'set its optical frame; this is not logged again, faults.empty_frame_id counts them)')
+        else:
+            self.faults.count(EMPTY_FRAME_ID)
+
+    def on_camera_info(self, msg) -> None:
+        where = self.topic_name('camera_info')
+        try:
+            K, size = M.camera_info_to_K(msg)
+        except M.BadCameraInfo as exc:
+            self.faults.report(BAD_CAMERA_INFO, f'ignoring camera_info on {where}: {exc}')
+            return
+        rect = None
+        if M.has_distortion(msg):
+            try:
+                rect = self._rectifiers.for_camera_info(msg)
+            except UnsupportedDistortion as exc:
+                self.faults.report(UNSUPPORTED_DISTORTION, f'cannot rectify the images of camera_info on {where}: '
+                                   f'{exc}; images are used as they are (depth is less accurate towards the borders)',
+                                   period_s=60.0)
+            if rect is not None:
+                K = np.array(rect.K, dtype=np.float64)
+        with self.cv:
+            self._K = (K, size)
+            self._rectifier = rect
+            self.cv.notify_all()
+
+    def on_odom(self, msg) -> None:
+        stamp_ns = M.stamp_to_ns(msg.header.stamp)
+        try:
+            T = M.odometry_to_matrix(msg)
+        except M.BadOdometry as exc:
+            self.faults.report(NAN_ODOMETRY, f'ignoring odometry at {stamp_ns / NS:.3f} s: {exc}; images '
+                               'interpolated across it are dropped')
+            T = None
+        self.odom_frame = self._odom_frames.update(msg.header.frame_id, stamp_ns)
+        if self.tf is not None and msg.child_frame_id:
+            self.tf.frames(odom_child_frame=msg.child_frame_id)
+        buffer = self.pose_buffer
+        jumps, conflicts = buffer.jumps, buffer.conflicts
+        cleared = buffer.add(stamp_ns, T)
+        self.pose_covariance.add(stamp_ns, M.odometry_covariance(msg))
+        if buffer.conflicts != conflicts:
+            self.faults.report(ODOM_CONFLICT, f'{buffer.last_conflict}; keeping the first (two odometry '
+                               'sources publishing on one topic?)')
+        if cleared and buffer.jumps != jumps:
+            self.faults.report(ODOM_JUMP, f'{cleared}: images before it are dropped and the estimator restarts '
+                               '(relocalisation or loop closure in the odometry frame?)')
+        elif cleared:
+            self.faults.report(TIME_BACKWARDS, f'time went backwards: {cleared} (bag restarted or simulator reset?)',
+                               key='time_backwards:odometry')
+        with self.cv:
+            self.cv.notify_all()
+
+    # ------------------------------------------------------------------------------------------ the worker's side
+    @property
+    def rectifier(self):
+        """The Rectifier of the current camera_info, None when the images are used as they are."""
+        with self.cv:
+            return self._rectifier
+
+    def wait_for(self, item: Incoming, stamp_ns: int, stop: threading.Event):
+        """Wait (at most odom_wait_timeout after the image arrived) for camera_info and a pose at `stamp_ns`.
+
+        Returns (K, camera_info size, T_world_cam | None, None) when both are there, else (None, None, None, why):
+        why is None when no camera_info has arrived, else the PoseQuery whose reason ('future' once the timeout
+        passed, 'gap', 'too old', 'nan') and detail say why there is no pose.
+        """
+        deadline = item.receipt_mono + self.node.settings.node.odom_wait_timeout
+        need_pose = self.node.settings.estimator.odometry == 'topic'
+        while True:
+            with self.cv:
+                K = self._K
+            query = self.pose_buffer.pose_at(stamp_ns) if need_pose else None
+            if K is not None and (not need_pose or query.ok):
+                return K[0], K[1], (query.T_world_cam_44 if need_pose else None), None
+            if K is not None and need_pose and query.reason != 'future':
+                return None, None, None, query          # waiting cannot help (gap, too old, invalid odometry)
+            if time.monotonic() >= deadline or stop.is_set():
+                return None, None, None, (query if K is not None else None)
+            with self.cv:
+                self.cv.wait(min(max(deadline - time.monotonic(), 0.0), 0.05))
+
+    def wake(self) -> None:
+        """Wake a worker waiting in :meth:`wait_for` (the node stops)."""
+        with self.cv:
+            self.cv.notify_all()
+
