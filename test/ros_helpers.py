@@ -77,3 +77,20 @@ def write_rendered_bag(tmp_path_factory, seed: int, frames: int, width: int, hei
     summary = R.write_sequence_bag(bag, seq, odom_rate=odom_rate, start_ns=start_ns, T_base_camera=T_base_camera,
                                    camera_frame=camera_frame, progress=False)
     return seq, bag, summary
+
+
+
+def forked_node_starts(starts: list[tuple[str, list[str]]], tmp_dir: pathlib.Path, parallel: int = 4,
+                       timeout: float = 300.0) -> list[tuple[int, str]]:
+    """Run the node's command lines `starts` = [(kind 'module' | 'console', args after the program)], `parallel` at a
+    time, each as its own process forked from one parent that has imported what a start imports (fork_starts.py);
+    their (exit code, output) in order."""
+    import json
+    logs = [str(tmp_dir / f'start_{i:03d}.log') for i in range(len(starts))]
+    jobs = [(kind, list(args), log) for (kind, args), log in zip(starts, logs)]
+    env = dict(os.environ, PYTHONUNBUFFERED='1')
+    res = subprocess.run([sys.executable, str(REPO / 'test' / 'fork_starts.py'), json.dumps(jobs), str(parallel)],
+                         cwd=REPO, env=env, capture_output=True, text=True, timeout=timeout)
+    assert res.returncode == 0, res.stdout + res.stderr
+    codes = json.loads(res.stdout.strip().splitlines()[-1])
+    return [(code, pathlib.Path(log).read_text()) for code, log in zip(codes, logs)]
