@@ -1,41 +1,54 @@
-"""The node's command lines as children of one parent that has already imported what every start imports (torch,
-rclpy and the message packages, OpenCV, the node module's own imports).
+"""Node processes forked from one parent that has already imported what every node start imports (torch, OpenCV,
+numpy, the stream layer): seconds of imports paid once per test session instead of once per node.
 
 Each child is a process of its own that runs exactly what `python -m dpv_sensor.ros.node ARGS` ('module') or the
-console script of `ros2 run dpv_sensor node ARGS` ('console') runs after the imports, from the entry point's signal
-handlers to its exit code and the interpreter's own shutdown, without paying the seconds of imports again: for tests
-of starts whose outcome does not depend on the imports' timing (a signal during the imports needs a real start).
+console script of `ros2 run dpv_sensor node ARGS` ('console') runs after those imports, in the environment the test
+gives it: the entry point's signal handlers, rclpy (imported and initialised in the child: the parent never touches
+ROS or DDS), the node, its exit code and the interpreter's own shutdown. A signal during the imports needs a real
+start (test_node_startup spawns those itself).
 
-    python test/fork_starts.py JOBS_JSON PARALLEL     JOBS_JSON: [[kind, [args...], log path], ...]
+    python test/fork_starts.py JOBS_JSON PARALLEL   run the jobs [[kind, [args...], log path], ...], PARALLEL at a
+                                                    time; print their exit codes, in order, as one JSON line
+    python test/fork_starts.py --serve              read one request a line on stdin ({"id", "kind", "args", "env",
+                                                    "log"}), answer {"id", "pid"} when forked and {"pid", "code"}
+                                                    when a child has exited; on end of input, kill what still runs
 
-Each child's stdout and stderr go to its log; the parent prints the exit codes, in order, as one JSON line.
+Each child's stdout and stderr go to its log; exit codes are those of subprocess (-N: killed by signal N).
 """
 import json
 import os
 import runpy
+import select
+import signal
 import sys
 
 import cv2  # noqa: F401
-import diagnostic_msgs.msg  # noqa: F401
-import geometry_msgs.msg  # noqa: F401
-import nav_msgs.msg  # noqa: F401
 import numpy  # noqa: F401
-import rclpy  # noqa: F401
 import safetensors.torch  # noqa: F401
-import sensor_msgs.msg  # noqa: F401
-import torch  # noqa: F401
+import torch
 
-import dpv_sensor.ros.node  # noqa: F401
+import dpv_sensor.core.rectify  # noqa: F401
+import dpv_sensor.stream.pipeline  # noqa: F401
 
 
-def child(kind: str, args: list, log: str) -> None:
-    """In the forked child: output to `log`, then the entry point; its SystemExit ends this process."""
+def child(kind: str, args: list, log: str, env: dict | None = None) -> None:
+    """In the forked child: its environment, output to `log`, then the entry point; its SystemExit ends the process."""
+    if env is not None:
+        os.environ.clear()
+        os.environ.update(env)
+        if env.get('OMP_NUM_THREADS', '').isdigit():          # read by torch at its import, in the parent
+            torch.set_num_threads(int(env['OMP_NUM_THREADS']))
     fd = os.open(log, os.O_WRONLY | os.O_CREAT | os.O_TRUNC)
     os.dup2(fd, 1)
     os.dup2(fd, 2)
+    os.close(fd)
+    null = os.open(os.devnull, os.O_RDONLY)
+    os.dup2(null, 0)
+    os.close(null)
+    signal.signal(signal.SIGINT, signal.default_int_handler)     # as in a fresh interpreter
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
     if kind == 'module':
         sys.argv = ['node'] + args
-        del sys.modules['dpv_sensor.ros.node']     # runs afresh as __main__, its imports already loaded
         runpy.run_module('dpv_sensor.ros.node', run_name='__main__', alter_sys=True)
     else:
         sys.argv = ['-c'] + args
@@ -44,8 +57,7 @@ def child(kind: str, args: list, log: str) -> None:
     sys.exit(0)
 
 
-def main() -> None:
-    jobs, parallel = json.loads(sys.argv[1]), int(sys.argv[2])
+def run_jobs(jobs: list, parallel: int) -> list:
     running, codes = {}, {}
     for n, (kind, args, log) in enumerate(jobs):
         while len(running) >= parallel:
@@ -58,8 +70,54 @@ def main() -> None:
     while running:
         pid, status = os.wait()
         codes[running.pop(pid)] = os.waitstatus_to_exitcode(status)
-    print(json.dumps([codes[n] for n in range(len(jobs))]))
+    return [codes[n] for n in range(len(jobs))]
+
+
+def _say(msg: dict) -> None:
+    sys.stdout.write(json.dumps(msg) + '\n')
+    sys.stdout.flush()
+
+
+def _reap(children: set) -> None:
+    while children:
+        try:
+            pid, status = os.waitpid(-1, os.WNOHANG)
+        except ChildProcessError:
+            return
+        if pid == 0:
+            return
+        children.discard(pid)
+        _say({'pid': pid, 'code': os.waitstatus_to_exitcode(status)})
+
+
+def serve() -> None:
+    children: set = set()
+    buf = b''
+    stdin = sys.stdin.fileno()
+    while True:
+        ready, _, _ = select.select([stdin], [], [], 0.05)
+        if ready:
+            data = os.read(stdin, 1 << 16)
+            if not data:
+                break
+            buf += data
+            while b'\n' in buf:
+                line, buf = buf.split(b'\n', 1)
+                req = json.loads(line)
+                pid = os.fork()
+                if pid == 0:
+                    child(req['kind'], req['args'], req['log'], req['env'])
+                children.add(pid)
+                _say({'id': req['id'], 'pid': pid})
+        _reap(children)
+    for pid in children:
+        os.kill(pid, signal.SIGKILL)
+    for pid in list(children):
+        os.waitpid(pid, 0)
 
 
 if __name__ == '__main__':
-    main()
+    if sys.argv[1:] == ['--serve']:
+        serve()
+    else:
+        print(json.dumps(run_jobs(json.loads(sys.argv[1]), int(sys.argv[2]))))

@@ -450,7 +450,7 @@ def test_training_runs_without_ros_gtsam_or_rosbags(tmp_path):
         "'--unroll', '2', '--steps', '2', '--val-every', '2', '--val-seeds', '0', '--val-keyframes', '6', "
         "'--threads', '1', "
         "'--num-workers', '0', '--quiet', '--pose-noise-prob', '1.0', '--val-stream-seeds', '20', "
-        "'--val-stream-frames', '12', '--select-metric', 'stream_abs_rel_knet_both']\n"
+        "'--val-stream-frames', '10', '--select-metric', 'stream_abs_rel_knet_both']\n"
         "from dpv_sensor.tools import train\n"
         "sys.exit(train.main())\n")
     res = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True, timeout=300)

@@ -1,5 +1,5 @@
 """Transport: a camera driver with no transport settings of its own (Fast DDS defaults) sends 640x480 rgb8 at 30 Hz
-with camera_info and 100 Hz odometry for 10 s, once best effort and once reliable, into the node process at its
+with camera_info and 100 Hz odometry for 6 s, once best effort and once reliable, into the node process at its
 default parameters. Every image sent is received by the node or counted as lost in /diagnostics (lost.transport);
 the node applies its own transport (dpv_sensor.ros.transport) and follows the publisher's reliability
 (input_reliability auto). The node may be slower than 30 Hz: what it skips while busy is counted in dropped.*."""
@@ -14,7 +14,7 @@ from ros_helpers import REPO, start_node, stop_process, wait_for
 from dpv_sensor.benchmarks.transport import TRANSPORT_VARS
 from dpv_sensor.tools.soak import OutputCollector
 
-SECONDS = 10
+SECONDS = 6
 
 
 def start_camera(reliability: str) -> subprocess.Popen:
