@@ -20,52 +20,11 @@ from dpv_sensor.training.dataset import (TRAIN_SEED_BASE, VAL_SEEDS, SceneStream
 from dpv_sensor.training import loop
 
 from conftest import cpu_native_bf16
+from keyframe_spy import KeyframeSpy, frame_mean_abs_rel
 
 
 def _small_stream(steps=2, w=64, h=48, **kw):
     return StreamConfig(width=w, height=h, layout=WindowLayout(steps=steps), gap_min=2, gap_max=3, **kw)
-
-
-class _KeyframeSpy:
-    """Records, per Pipeline, every keyframe output its push returns while the spy is installed."""
-
-    def __init__(self, monkeypatch):
-        from dpv_sensor.stream.pipeline import Pipeline
-        self._by_pipe: dict = {}
-        real = Pipeline.push
-
-        def push(pipe, frame):
-            res = real(pipe, frame)
-            outputs = self._by_pipe.setdefault(id(pipe), (pipe, []))[1]
-            if res.output is not None and res.output.is_keyframe:
-                outputs.append(res.output)
-            return res
-        monkeypatch.setattr(Pipeline, 'push', push)
-
-    def runs(self) -> list:
-        """[(pipeline, [keyframe outputs])] in the order the pipelines first pushed a frame."""
-        return list(self._by_pipe.values())
-
-
-def _frame_mean_abs_rel(outputs, seq, estimator) -> float:
-    """abs_rel by hand: GT of each output's frame (found by stamp) taken at the depth map's size by nearest pixel
-    centres, pixels with GT and a prediction inside the estimator's depth range (predictions clipped to it), the
-    mean of |pred - gt| / gt per frame, then the mean over frames."""
-    lo, hi = estimator.d_min, estimator.d_max
-    index = {float(seq.stamp(i)): i for i in range(len(seq))}
-    per_frame = []
-    for out in outputs:
-        pred = np.asarray(out.depth_hw, np.float64)
-        gt_full = np.asarray(seq.depth(index[out.stamp]), np.float64)
-        (h, w), (H, W) = pred.shape, gt_full.shape
-        rows = np.minimum(((np.arange(h) + 0.5) * H / h).astype(int), H - 1)
-        cols = np.minimum(((np.arange(w) + 0.5) * W / w).astype(int), W - 1)
-        gt = gt_full[rows][:, cols]
-        with np.errstate(invalid='ignore'):
-            m = np.isfinite(gt) & (gt >= lo) & (gt <= hi) & (gt > 0) & np.isfinite(pred) & (pred > 0)
-        p, g = np.clip(pred[m], lo, hi), gt[m]
-        per_frame.append(np.mean(np.abs(p - g) / g) if m.any() else np.nan)
-    return float(np.nanmean(per_frame))
 
 
 def test_window_layout_centered_and_causal():
@@ -324,7 +283,7 @@ def test_streaming_validation_scores_whole_sequences_through_the_estimator(tmp_p
                               select_metric='stream_abs_rel_knet_both')
     t = loop.Trainer(cfg, quiet=True)
     t.model.train()
-    spy = _KeyframeSpy(monkeypatch)
+    spy = KeyframeSpy(monkeypatch)
     metrics = t.validate()
     assert t.model.training
     clean, noisy = metrics['stream_net_knet'], metrics['stream_noisy_net_knet']
@@ -339,7 +298,7 @@ def test_streaming_validation_scores_whole_sequences_through_the_estimator(tmp_p
     seq = render_sequence(20, 16, width=320, height=240, lazy=True)
     for m, (pipe, outputs) in zip((clean, noisy), runs):
         assert m['frames'] == len(outputs) > 0
-        assert m['abs_rel'] == pytest.approx(_frame_mean_abs_rel(outputs, seq, pipe.estimator), rel=1e-6)
+        assert m['abs_rel'] == pytest.approx(frame_mean_abs_rel(outputs, seq, pipe.estimator), rel=1e-6)
     row = json.loads((tmp_path / 'run' / 'val.jsonl').read_text().splitlines()[-1])
     assert row['score'] == pytest.approx((clean['abs_rel'] + noisy['abs_rel']) / 2)
     assert t.best == pytest.approx(row['score'])
@@ -489,7 +448,7 @@ def test_selection_benchmark_scores_weight_files_like_the_streaming_validation(t
     w = tmp_path / 'w.safetensors'
     save_checkpoint(str(w), model, metadata={'steps': 7})
     out = tmp_path / 'sel.json'
-    spy = _KeyframeSpy(monkeypatch)
+    spy = KeyframeSpy(monkeypatch)
     assert selection.main(['--weights', str(w), '--seeds', '21', '--frames', '14', '--pose-noise', '0', '0',
                            '--threads', '1', '--out', str(out)]) == 0
     res = json.loads(out.read_text())['results'][str(w)]
@@ -500,7 +459,7 @@ def test_selection_benchmark_scores_weight_files_like_the_streaming_validation(t
     assert all(torch.equal(v, loaded[k]) for k, v in model.state_dict().items())
     seq = render_sequence(21, 14, width=320, height=240, lazy=True)
     assert res['stream_net_knet']['frames'] == len(outputs) > 0
-    assert res['stream_net_knet']['abs_rel'] == pytest.approx(_frame_mean_abs_rel(outputs, seq, pipe.estimator),
+    assert res['stream_net_knet']['abs_rel'] == pytest.approx(frame_mean_abs_rel(outputs, seq, pipe.estimator),
                                                               rel=1e-6)
     assert res['stream_net_knet']['per_seed'] == [round(res['stream_net_knet']['abs_rel'], 4)]
     assert f"| {w} | 7 | knet | {res['stream_net_knet']['abs_rel']:.4f} |" in capsys.readouterr().out
