@@ -9,9 +9,10 @@ start (test_node_startup spawns those itself).
 
     python test/fork_starts.py JOBS_JSON PARALLEL   run the jobs [[kind, [args...], log path], ...], PARALLEL at a
                                                     time; print their exit codes, in order, as one JSON line
-    python test/fork_starts.py --serve              read one request a line on stdin ({"id", "kind", "args", "env",
-                                                    "log"}), answer {"id", "pid"} when forked and {"pid", "code"}
-                                                    when a child has exited; on end of input, kill what still runs
+    python test/fork_starts.py --serve              read one request a line on stdin ({"id", "kind", "module",
+                                                    "args", "env", "log"}), answer {"id", "pid"} when forked and
+                                                    {"pid", "code"} when a child has exited; on end of input, kill
+                                                    what still runs
 
 Each child's stdout and stderr go to its log; exit codes are those of subprocess (-N: killed by signal N).
 """
@@ -31,8 +32,9 @@ import dpv_sensor.core.rectify  # noqa: F401
 import dpv_sensor.stream.pipeline  # noqa: F401
 
 
-def child(kind: str, args: list, log: str, env: dict | None = None) -> None:
-    """In the forked child: its environment, output to `log`, then the entry point; its SystemExit ends the process."""
+def child(kind: str, args: list, log: str, env: dict | None = None, module: str = 'dpv_sensor.ros.node') -> None:
+    """In the forked child: its environment, output to `log`, then the entry point (kind 'module': `python -m
+    module`); its SystemExit ends the process."""
     if env is not None:
         os.environ.clear()
         os.environ.update(env)
@@ -48,8 +50,8 @@ def child(kind: str, args: list, log: str, env: dict | None = None) -> None:
     signal.signal(signal.SIGINT, signal.default_int_handler)     # as in a fresh interpreter
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
     if kind == 'module':
-        sys.argv = ['node'] + args
-        runpy.run_module('dpv_sensor.ros.node', run_name='__main__', alter_sys=True)
+        sys.argv = [module] + args
+        runpy.run_module(module, run_name='__main__', alter_sys=True)
     else:
         sys.argv = ['-c'] + args
         from dpv_sensor.ros.entry import console_main
@@ -106,7 +108,7 @@ def serve() -> None:
                 req = json.loads(line)
                 pid = os.fork()
                 if pid == 0:
-                    child(req['kind'], req['args'], req['log'], req['env'])
+                    child(req['kind'], req['args'], req['log'], req['env'], req['module'])
                 children.add(pid)
                 _say({'id': req['id'], 'pid': pid})
         _reap(children)

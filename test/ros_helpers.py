@@ -29,14 +29,16 @@ def start_node(args: list[str] | None = None, executable: list[str] | None = Non
                env: dict | None = None) -> subprocess.Popen | ForkedNode:
     """Start `python -m dpv_sensor.ros.node` (or `executable`) as a separate process with its output captured.
 
-    The node is forked from the session's fork server (fork_starts.py: the imports are paid once), unless
-    `executable` is given or DPV_TEST_FORK_NODES=0; either way its own process with the same environment, command
-    line, signals, exit code and output."""
+    The node (or the module of an `executable` `python -m MODULE`) is forked from the session's fork server
+    (fork_starts.py: the imports are paid once), unless DPV_TEST_FORK_NODES=0; either way its own process with the
+    same environment, command line, signals, exit code and output."""
     full_env = dict(os.environ)
     full_env.update(env or {})
     full_env.setdefault('PYTHONUNBUFFERED', '1')
-    if executable is None and os.environ.get('DPV_TEST_FORK_NODES', '1') != '0':
-        return _fork_server().start(list(args or []), full_env)
+    module = 'dpv_sensor.ros.node' if executable is None else \
+        executable[2] if len(executable) == 3 and executable[:2] == [sys.executable, '-m'] else None
+    if module is not None and os.environ.get('DPV_TEST_FORK_NODES', '1') != '0':
+        return _fork_server().start(module, list(args or []), full_env)
     cmd = (executable or [sys.executable, '-m', 'dpv_sensor.ros.node']) + (args or [])
     return subprocess.Popen(cmd, cwd=REPO, env=full_env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                             text=True)
@@ -111,12 +113,12 @@ class _ForkServer:
     def stderr_text(self) -> str:
         return (self.dir / 'server.log').read_text(errors='replace')
 
-    def start(self, args: list[str], env: dict) -> ForkedNode:
+    def start(self, module: str, args: list[str], env: dict) -> ForkedNode:
         import json
         self.count += 1
         n, log = self.count, self.dir / f'node_{self.count:03d}.log'
-        self.proc.stdin.write(json.dumps({'id': n, 'kind': 'module', 'args': args, 'env': env, 'log': str(log)})
-                              + '\n')
+        self.proc.stdin.write(json.dumps({'id': n, 'kind': 'module', 'module': module, 'args': args, 'env': env,
+                                          'log': str(log)}) + '\n')
         self.proc.stdin.flush()
         with self.cond:
             if not self.cond.wait_for(lambda: n in self.pids or self.dead, 120.0) or n not in self.pids:
