@@ -7,12 +7,9 @@ gives it: the entry point's signal handlers, rclpy (imported and initialised in 
 ROS or DDS), the node, its exit code and the interpreter's own shutdown. A signal during the imports needs a real
 start (test_node_startup spawns those itself).
 
-    python test/fork_starts.py JOBS_JSON PARALLEL   run the jobs [[kind, [args...], log path], ...], PARALLEL at a
-                                                    time; print their exit codes, in order, as one JSON line
-    python test/fork_starts.py --serve              read one request a line on stdin ({"id", "kind", "module",
-                                                    "args", "env", "log"}), answer {"id", "pid"} when forked and
-                                                    {"pid", "code"} when a child has exited; on end of input, kill
-                                                    what still runs
+    python test/fork_starts.py --serve    read one request a line on stdin ({"id", "kind", "module", "args", "env",
+                                          "log"}), answer {"id", "pid"} when forked and {"pid", "code"} when a child
+                                          has exited; on end of input, kill what still runs (ros_helpers.start_node)
 
 Each child's stdout and stderr go to its log; exit codes are those of subprocess (-N: killed by signal N).
 """
@@ -32,14 +29,13 @@ import dpv_sensor.core.rectify  # noqa: F401
 import dpv_sensor.stream.pipeline  # noqa: F401
 
 
-def child(kind: str, args: list, log: str, env: dict | None = None, module: str = 'dpv_sensor.ros.node') -> None:
+def child(kind: str, module: str, args: list, log: str, env: dict) -> None:
     """In the forked child: its environment, output to `log`, then the entry point (kind 'module': `python -m
     module`); its SystemExit ends the process."""
-    if env is not None:
-        os.environ.clear()
-        os.environ.update(env)
-        if env.get('OMP_NUM_THREADS', '').isdigit():          # read by torch at its import, in the parent
-            torch.set_num_threads(int(env['OMP_NUM_THREADS']))
+    os.environ.clear()
+    os.environ.update(env)
+    if env.get('OMP_NUM_THREADS', '').isdigit():          # read by torch at its import, in the parent
+        torch.set_num_threads(int(env['OMP_NUM_THREADS']))
     fd = os.open(log, os.O_WRONLY | os.O_CREAT | os.O_TRUNC)
     os.dup2(fd, 1)
     os.dup2(fd, 2)
@@ -57,22 +53,6 @@ def child(kind: str, args: list, log: str, env: dict | None = None, module: str 
         from dpv_sensor.ros.entry import console_main
         sys.exit(console_main())
     sys.exit(0)
-
-
-def run_jobs(jobs: list, parallel: int) -> list:
-    running, codes = {}, {}
-    for n, (kind, args, log) in enumerate(jobs):
-        while len(running) >= parallel:
-            pid, status = os.wait()
-            codes[running.pop(pid)] = os.waitstatus_to_exitcode(status)
-        pid = os.fork()
-        if pid == 0:
-            child(kind, args, log)
-        running[pid] = n
-    while running:
-        pid, status = os.wait()
-        codes[running.pop(pid)] = os.waitstatus_to_exitcode(status)
-    return [codes[n] for n in range(len(jobs))]
 
 
 def _say(msg: dict) -> None:
@@ -108,7 +88,7 @@ def serve() -> None:
                 req = json.loads(line)
                 pid = os.fork()
                 if pid == 0:
-                    child(req['kind'], req['args'], req['log'], req['env'], req['module'])
+                    child(req['kind'], req['module'], req['args'], req['log'], req['env'])
                 children.add(pid)
                 _say({'id': req['id'], 'pid': pid})
         _reap(children)
@@ -119,7 +99,4 @@ def serve() -> None:
 
 
 if __name__ == '__main__':
-    if sys.argv[1:] == ['--serve']:
-        serve()
-    else:
-        print(json.dumps(run_jobs(json.loads(sys.argv[1]), int(sys.argv[2]))))
+    serve()

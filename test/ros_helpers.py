@@ -113,11 +113,12 @@ class _ForkServer:
     def stderr_text(self) -> str:
         return (self.dir / 'server.log').read_text(errors='replace')
 
-    def start(self, module: str, args: list[str], env: dict) -> ForkedNode:
+    def start(self, module: str, args: list[str], env: dict, kind: str = 'module') -> ForkedNode:
+        """Fork `python -m module args` (kind 'console': the node's console script with args) in `env`."""
         import json
         self.count += 1
         n, log = self.count, self.dir / f'node_{self.count:03d}.log'
-        self.proc.stdin.write(json.dumps({'id': n, 'kind': 'module', 'module': module, 'args': args, 'env': env,
+        self.proc.stdin.write(json.dumps({'id': n, 'kind': kind, 'module': module, 'args': args, 'env': env,
                                           'log': str(log)}) + '\n')
         self.proc.stdin.flush()
         with self.cond:
@@ -192,17 +193,16 @@ def write_rendered_bag(tmp_path_factory, seed: int, frames: int, width: int, hei
 
 
 
-def forked_node_starts(starts: list[tuple[str, list[str]]], tmp_dir: pathlib.Path, parallel: int = 4,
+def forked_node_starts(starts: list[tuple[str, list[str]]], parallel: int = 4,
                        timeout: float = 300.0) -> list[tuple[int, str]]:
     """Run the node's command lines `starts` = [(kind 'module' | 'console', args after the program)], `parallel` at a
-    time, each as its own process forked from one parent that has imported what a start imports (fork_starts.py);
-    their (exit code, output) in order."""
-    import json
-    logs = [str(tmp_dir / f'start_{i:03d}.log') for i in range(len(starts))]
-    jobs = [(kind, list(args), log) for (kind, args), log in zip(starts, logs)]
+    time, each as its own process forked by the session's fork server; their (exit code, output) in order."""
     env = dict(os.environ, PYTHONUNBUFFERED='1')
-    res = subprocess.run([sys.executable, str(REPO / 'test' / 'fork_starts.py'), json.dumps(jobs), str(parallel)],
-                         cwd=REPO, env=env, capture_output=True, text=True, timeout=timeout)
-    assert res.returncode == 0, res.stdout + res.stderr
-    codes = json.loads(res.stdout.strip().splitlines()[-1])
-    return [(code, pathlib.Path(log).read_text()) for code, log in zip(codes, logs)]
+    server = _fork_server()
+    procs: list[ForkedNode] = []
+    for kind, args in starts:
+        running = [p for p in procs if p.poll() is None]
+        if len(running) >= parallel:
+            running[0].wait(timeout)
+        procs.append(server.start('dpv_sensor.ros.node', list(args), env, kind=kind))
+    return [(p.wait(timeout), p.communicate(timeout)[0]) for p in procs]

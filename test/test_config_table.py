@@ -101,10 +101,10 @@ def test_estimator_and_evaluate_refuse_a_bad_value_with_the_same_message(name, v
     assert rc == 2 and message in capsys.readouterr().err
 
 
-def test_node_refuses_a_bad_value_with_the_same_message(tmp_path):
+def test_node_refuses_a_bad_value_with_the_same_message():
     from ros_helpers import forked_node_starts
     name, value, message = BAD[0]
-    ((code, out),) = forked_node_starts([('module', ['--ros-args', '-p', f'{name}:={value}'])], tmp_path)
+    ((code, out),) = forked_node_starts([('module', ['--ros-args', '-p', f'{name}:={value}'])])
     assert code == 2, out
     assert message in out and 'Traceback' not in out
 

@@ -38,10 +38,10 @@ REFUSED = [
 
 
 @pytest.fixture(scope='module')
-def refusals(tmp_path_factory):
+def refusals():
     """{override: (exit code, output)} of one start per invalid override, forked from one parent."""
     starts = [('module', ['--ros-args', '-p', override]) for override, _ in REFUSED]
-    return dict(zip((o for o, _ in REFUSED), forked_node_starts(starts, tmp_path_factory.mktemp('refused'))))
+    return dict(zip((o for o, _ in REFUSED), forked_node_starts(starts)))
 
 
 @pytest.mark.parametrize('override,message', REFUSED)

@@ -30,11 +30,11 @@ def _spawn(cmd):
                             preexec_fn=_default_signals)
 
 
-def test_missing_weights_with_network_measurement_exits_2_every_time(tmp_path):
+def test_missing_weights_with_network_measurement_exits_2_every_time():
     """20 starts (both entry points, four at a time): the worker's failure never races the main thread. The starts
     are forked from a parent that has imported what a start imports: the race is in the start-up after them."""
     starts = [('module' if i % 2 == 0 else 'console', MISSING_WEIGHTS) for i in range(20)]
-    results = forked_node_starts(starts, tmp_path, parallel=4)
+    results = forked_node_starts(starts, parallel=4)
     bad = [(i, code, out) for i, (code, out) in enumerate(results)
            if code != 2 or 'Traceback' in out or 'cannot build the estimator' not in out]
     assert not bad, '\n\n'.join(f'run {i}: exit {code}\n{out}' for i, code, out in bad[:3])
