@@ -4,6 +4,7 @@ import os
 import sys
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 import torch
@@ -148,7 +149,6 @@ SUN3D_CFG = dict(input_width=320, downscale=4, num_planes=64, d_min=0.3, d_max=8
 
 
 def _load_sequence(folder: Path, width: int):
-    cv2 = pytest.importorskip('cv2')
     P = np.loadtxt(folder / 'poses.txt').reshape(-1, 4, 4)
     K0 = np.loadtxt(folder / 'K.txt')
     imgs, deps = [], []

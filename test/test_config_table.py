@@ -106,11 +106,10 @@ def test_estimator_and_evaluate_refuse_a_bad_value_with_the_same_message(name, v
 
 
 def test_node_refuses_a_bad_value_with_the_same_message():
-    from ros_helpers import start_node
+    from ros_helpers import forked_node_starts
     name, value, message = BAD[0]
-    proc = start_node(['--ros-args', '-p', f'{name}:={value}'])
-    out, _ = proc.communicate(timeout=120.0)
-    assert proc.returncode == 2, out
+    ((code, out),) = forked_node_starts([('module', ['--ros-args', '-p', f'{name}:={value}'])])
+    assert code == 2, out
     assert message in out and 'Traceback' not in out
 
 

@@ -3,7 +3,7 @@ import signal
 
 import pytest
 
-from ros_helpers import start_node, stop_process, wait_for
+from ros_helpers import forked_node_starts, start_node, stop_process, wait_for
 from dpv_sensor.ros.node import NODE_NAME
 
 
@@ -30,15 +30,24 @@ def test_node_joins_graph_and_stops_cleanly(observer, sig):
     assert gone, 'node still listed in the graph after it stopped'
 
 
-@pytest.mark.parametrize('override,message', [
+REFUSED = [
     ('damping:=3.0', "parameter 'damping' = 3.0 is above its maximum 1.0"),
     ('filter_mode:=kalman', "parameter 'filter_mode' = 'kalman' is not one of"),
     ('d_min:=9.0', 'd_min (9.0) must be below d_max (8.0)'),
-])
-def test_invalid_parameter_is_refused_with_a_reason(override, message):
-    proc = start_node(['--ros-args', '-p', override])
-    out, _ = proc.communicate(timeout=60.0)
-    assert proc.returncode == 2, out
+]
+
+
+@pytest.fixture(scope='module')
+def refusals():
+    """{override: (exit code, output)} of one start per invalid override, forked from one parent."""
+    starts = [('module', ['--ros-args', '-p', override]) for override, _ in REFUSED]
+    return dict(zip((o for o, _ in REFUSED), forked_node_starts(starts)))
+
+
+@pytest.mark.parametrize('override,message', REFUSED)
+def test_invalid_parameter_is_refused_with_a_reason(override, message, refusals):
+    code, out = refusals[override]
+    assert code == 2, out
     assert message in out
     assert 'Traceback' not in out
 

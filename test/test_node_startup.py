@@ -1,7 +1,6 @@
 """Start-up of the node process: a start that cannot succeed always exits 2 with its one message, and SIGINT or
 SIGTERM at any moment of the start-up (or later) gives exit 0 without a traceback, for both entry points
 (`python -m dpv_sensor.ros.node` and the console script `ros2 run dpv_sensor node` runs)."""
-import concurrent.futures
 import os
 import re
 import signal
@@ -11,7 +10,7 @@ import time
 
 import pytest
 
-from ros_helpers import REPO, wait_exit
+from ros_helpers import REPO, forked_node_starts
 
 MODULE = [sys.executable, '-m', 'dpv_sensor.ros.node']
 # what the console script setuptools writes for `ros2 run dpv_sensor node` does
@@ -31,15 +30,11 @@ def _spawn(cmd):
                             preexec_fn=_default_signals)
 
 
-def _run_to_end(cmd, timeout=180.0):
-    return wait_exit(_spawn(cmd), timeout)
-
-
 def test_missing_weights_with_network_measurement_exits_2_every_time():
-    """20 starts (both entry points, four at a time): the worker's failure never races the main thread."""
-    cmds = [(MODULE if i % 2 == 0 else CONSOLE) + MISSING_WEIGHTS for i in range(20)]
-    with concurrent.futures.ThreadPoolExecutor(max_workers=4) as pool:
-        results = list(pool.map(_run_to_end, cmds))
+    """20 starts (both entry points, four at a time): the worker's failure never races the main thread. The starts
+    are forked from a parent that has imported what a start imports: the race is in the start-up after them."""
+    starts = [('module' if i % 2 == 0 else 'console', MISSING_WEIGHTS) for i in range(20)]
+    results = forked_node_starts(starts, parallel=4)
     bad = [(i, code, out) for i, (code, out) in enumerate(results)
            if code != 2 or 'Traceback' in out or 'cannot build the estimator' not in out]
     assert not bad, '\n\n'.join(f'run {i}: exit {code}\n{out}' for i, code, out in bad[:3])

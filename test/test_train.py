@@ -20,6 +20,7 @@ from dpv_sensor.training.dataset import (TRAIN_SEED_BASE, VAL_SEEDS, SceneStream
 from dpv_sensor.training import checkpoints, config, loop, unrolled, validation
 
 from conftest import cpu_native_bf16
+from keyframe_spy import KeyframeSpy, frame_mean_abs_rel
 
 
 def _small_stream(steps=2, w=64, h=48, **kw):
@@ -268,11 +269,10 @@ def test_selection_metric_names():
     assert config.TrainConfig.from_json(json.loads(json.dumps(cfg.to_json()))) == cfg
 
 
-def test_streaming_validation_scores_whole_sequences_through_the_estimator(tmp_path):
+def test_streaming_validation_scores_whole_sequences_through_the_estimator(tmp_path, monkeypatch):
     """--val-stream-seeds: every validation also streams rendered held-out sequences frame by frame through the
     Estimator (GT and noisy poses), reports stream_[noisy_]net_knet, selects on it, plots it and leaves the model
     in training mode."""
-    from dpv_sensor.evaluation.offline import EvalOptions, evaluate_sequence
     from dpv_sensor.data.synthetic import render_sequence
     from dpv_sensor.tools import train as tool
     a = tool.build_parser().parse_args(['--val-stream-seeds', '20-21', '--val-stream-frames', '30',
@@ -283,6 +283,7 @@ def test_streaming_validation_scores_whole_sequences_through_the_estimator(tmp_p
                               select_metric='stream_abs_rel_knet_both')
     t = loop.Trainer(cfg, quiet=True)
     t.model.train()
+    spy = KeyframeSpy(monkeypatch)
     metrics = t.validate()
     assert t.model.training
     clean, noisy = metrics['stream_net_knet'], metrics['stream_noisy_net_knet']
@@ -290,11 +291,14 @@ def test_streaming_validation_scores_whole_sequences_through_the_estimator(tmp_p
     for m in (clean, noisy):
         assert m['frames'] > 0 and len(m['per_seed']) == 1 and 0 < m['abs_rel'] < 10
     assert clean['abs_rel'] != noisy['abs_rel']
-    # the same number as scoring the sequence directly through the evaluation API
+    # the numbers are the frame-mean abs_rel of the depth the estimator published, computed here from its outputs
+    # and the rendered GT (the GT-pose pass first, then the noisy one), with the trainer's own model in it
+    runs = spy.runs()
+    assert len(runs) == 2 and all(pipe.estimator.model is t.model for pipe, _ in runs)
     seq = render_sequence(20, 16, width=320, height=240, lazy=True)
-    direct = evaluate_sequence(seq, {'filter_mode': 'knet', 'pose_source': 'gt'},
-                               options=EvalOptions(seed=20, progress=False), model=t.model)
-    assert clean['abs_rel'] == pytest.approx(direct['metric']['frame_mean']['abs_rel'], rel=1e-6)
+    for m, (pipe, outputs) in zip((clean, noisy), runs):
+        assert m['frames'] == len(outputs) > 0
+        assert m['abs_rel'] == pytest.approx(frame_mean_abs_rel(outputs, seq, pipe.estimator), rel=1e-6)
     row = json.loads((tmp_path / 'run' / 'val.jsonl').read_text().splitlines()[-1])
     assert row['score'] == pytest.approx((clean['abs_rel'] + noisy['abs_rel']) / 2)
     assert t.best == pytest.approx(row['score'])
@@ -405,7 +409,7 @@ def test_training_runs_without_ros_gtsam_or_rosbags(tmp_path):
         "'--unroll', '2', '--steps', '2', '--val-every', '2', '--val-seeds', '0', '--val-keyframes', '6', "
         "'--threads', '1', "
         "'--num-workers', '0', '--quiet', '--pose-noise-prob', '1.0', '--val-stream-seeds', '20', "
-        "'--val-stream-frames', '12', '--select-metric', 'stream_abs_rel_knet_both']\n"
+        "'--val-stream-frames', '10', '--select-metric', 'stream_abs_rel_knet_both']\n"
         "from dpv_sensor.tools import train\n"
         "sys.exit(train.main())\n")
     res = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True, timeout=300)
@@ -432,24 +436,32 @@ def test_seed_lists_parse_and_refuse_garbage():
         parse_seeds('a-b')
 
 
-def test_selection_benchmark_scores_weight_files_like_the_streaming_validation(tmp_path, capsys):
+def test_selection_benchmark_scores_weight_files_like_the_streaming_validation(tmp_path, capsys, monkeypatch):
     """benchmarks.selection: the figures equal the trainer's streaming validation of the same weights, are
     written as JSON and printed as a table; seeds outside the held-out range are refused."""
     from dpv_sensor.benchmarks import selection
     from dpv_sensor.core.nets.checkpoint import save_checkpoint
     from dpv_sensor.core.nets.model import DPVNet
-    from dpv_sensor.training.stream_validation import StreamValidationSpec, StreamValidator
+    from dpv_sensor.data.synthetic import render_sequence
     torch.manual_seed(3)
     model = DPVNet('lite').eval()
     w = tmp_path / 'w.safetensors'
     save_checkpoint(str(w), model, metadata={'steps': 7})
     out = tmp_path / 'sel.json'
+    spy = KeyframeSpy(monkeypatch)
     assert selection.main(['--weights', str(w), '--seeds', '21', '--frames', '14', '--pose-noise', '0', '0',
                            '--threads', '1', '--out', str(out)]) == 0
     res = json.loads(out.read_text())['results'][str(w)]
     assert res['steps'] == 7 and 'stream_noisy_net_knet' not in res
-    direct = StreamValidator(StreamValidationSpec(seeds=(21,), frames=14, pose_noise=(0.0, 0.0)))(model)
-    assert res['stream_net_knet']['abs_rel'] == pytest.approx(direct['stream_net_knet']['abs_rel'], rel=1e-6)
+    # the figure is the frame-mean abs_rel of what the estimator published with the saved weights, computed here
+    ((pipe, outputs),) = spy.runs()
+    loaded = pipe.estimator.model.state_dict()
+    assert all(torch.equal(v, loaded[k]) for k, v in model.state_dict().items())
+    seq = render_sequence(21, 14, width=320, height=240, lazy=True)
+    assert res['stream_net_knet']['frames'] == len(outputs) > 0
+    assert res['stream_net_knet']['abs_rel'] == pytest.approx(frame_mean_abs_rel(outputs, seq, pipe.estimator),
+                                                              rel=1e-6)
+    assert res['stream_net_knet']['per_seed'] == [round(res['stream_net_knet']['abs_rel'], 4)]
     assert f"| {w} | 7 | knet | {res['stream_net_knet']['abs_rel']:.4f} |" in capsys.readouterr().out
     assert selection.main(['--weights', str(w), '--seeds', '100']) == 2
     bad = tmp_path / 'bad.safetensors'
