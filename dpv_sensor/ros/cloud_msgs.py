@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from dpv_sensor.ros.msgs import ROS, MessageError, MessageTypes, _header
+from dpv_sensor.ros.msgs import ROS, MessageError, MessageTypes, header_for
 
 _FLOAT32 = 7  # sensor_msgs/PointField.FLOAT32
 
@@ -50,7 +50,7 @@ def depth_to_pointcloud(depth_hw, rgb_hw3, K_33, header, frame_id: str | None = 
     ph, pw = pts.shape[:2]
     fields = [types('sensor_msgs/msg/PointField', name=n, offset=4 * i, datatype=_FLOAT32, count=1)
               for i, n in enumerate(('x', 'y', 'z', 'rgb'))]
-    return types('sensor_msgs/msg/PointCloud2', header=_header(header, frame_id, types), height=ph, width=pw,
+    return types('sensor_msgs/msg/PointCloud2', header=header_for(header, frame_id, types), height=ph, width=pw,
                  fields=fields, is_bigendian=False, point_step=16, row_step=16 * pw,
                  data=types.u8(np.ascontiguousarray(pts).tobytes()), is_dense=bool(skip_invalid))
 

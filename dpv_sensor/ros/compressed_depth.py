@@ -6,7 +6,8 @@ import struct
 
 import numpy as np
 
-from dpv_sensor.ros.msgs import DEPTH_ENCODINGS, ROS, BadImage, MessageTypes, UnsupportedEncoding, _header, depth_to_mm
+from dpv_sensor.ros.msgs import (DEPTH_ENCODINGS, ROS, BadImage, MessageTypes, UnsupportedEncoding, depth_to_mm,
+                                 header_for)
 
 #: The 12-byte header in front of the PNG: int32 compression format (0 = INV_DEPTH, written for every image),
 #: float32 depthParam[2] (the inverse-depth quantisation a, b; zero for 16UC1). Little-endian, as the plugin's
@@ -67,7 +68,7 @@ def depth_to_compressed_depth(depth_hw, header, frame_id: str | None = None, enc
         head = COMPRESSED_DEPTH_HEADER.pack(COMPRESSED_DEPTH_INV_DEPTH, float(a), float(b))
     else:
         raise UnsupportedEncoding(f"compressedDepth encodes {', '.join(DEPTH_ENCODINGS)}, got '{encoding}'")
-    return types('sensor_msgs/msg/CompressedImage', header=_header(header, frame_id, types),
+    return types('sensor_msgs/msg/CompressedImage', header=header_for(header, frame_id, types),
                  format=f'{encoding}; compressedDepth png', data=types.u8(head + _png_u16(px, png_level)))
 
 

@@ -148,7 +148,8 @@ def copy_header(header, types: MessageTypes = ROS):
                  frame_id=str(header.frame_id))
 
 
-def _header(header_or_stamp, frame_id, types):
+def header_for(header_or_stamp, frame_id, types: MessageTypes = ROS):
+    """A header for an outgoing message: from a stamp in ns and ``frame_id``, or a copy of a received header."""
     if isinstance(header_or_stamp, (int, np.integer)):
         return make_header(int(header_or_stamp), frame_id or '', types)
     return copy_header(header_or_stamp, types)
@@ -227,7 +228,7 @@ def rgb_to_image(rgb_hw3, header, frame_id: str | None = None, encoding: str = '
         raise UnsupportedEncoding(f"cannot write colour as '{encoding}'")
     px = np.ascontiguousarray(px)
     h, w, c = px.shape
-    return types('sensor_msgs/msg/Image', header=_header(header, frame_id, types), height=h, width=w,
+    return types('sensor_msgs/msg/Image', header=header_for(header, frame_id, types), height=h, width=w,
                  encoding=enc, is_bigendian=0, step=w * c, data=types.u8(px.tobytes()))
 
 
@@ -258,7 +259,7 @@ def depth_to_image(depth_hw, header, frame_id: str | None = None, encoding: str 
         bpp = 2
     else:
         raise UnsupportedEncoding(f"depth encoding must be one of {', '.join(DEPTH_ENCODINGS)}, got '{encoding}'")
-    return types('sensor_msgs/msg/Image', header=_header(header, frame_id, types), height=h, width=w,
+    return types('sensor_msgs/msg/Image', header=header_for(header, frame_id, types), height=h, width=w,
                  encoding=encoding, is_bigendian=0, step=w * bpp, data=types.u8(px.tobytes()))
 
 
@@ -267,7 +268,7 @@ def confidence_to_image(confidence_hw, header, frame_id: str | None = None, type
     conf = np.nan_to_num(np.asarray(confidence_hw, dtype=np.float32), nan=0.0, posinf=1.0, neginf=0.0)
     conf = np.clip(conf, 0.0, 1.0).astype('<f4')
     h, w = conf.shape
-    return types('sensor_msgs/msg/Image', header=_header(header, frame_id, types), height=h, width=w,
+    return types('sensor_msgs/msg/Image', header=header_for(header, frame_id, types), height=h, width=w,
                  encoding='32FC1', is_bigendian=0, step=w * 4, data=types.u8(conf.tobytes()))
 
 
@@ -324,7 +325,7 @@ def K_to_camera_info(K_33, width: int, height: int, header, frame_id: str | None
     P = np.zeros((3, 4))
     P[:, :3] = K
     roi = types('sensor_msgs/msg/RegionOfInterest', x_offset=0, y_offset=0, height=0, width=0, do_rectify=False)
-    return types('sensor_msgs/msg/CameraInfo', header=_header(header, frame_id, types), height=int(height),
+    return types('sensor_msgs/msg/CameraInfo', header=header_for(header, frame_id, types), height=int(height),
                  width=int(width), distortion_model='plumb_bob', d=types.f64seq([0.0] * 5), k=_f64(K, 9),
                  r=_f64(np.eye(3), 9), p=_f64(P, 12), binning_x=0, binning_y=0, roi=roi)
 
@@ -375,7 +376,8 @@ def _pose_msg(T_44, types):
 
 
 def matrix_to_pose_stamped(T_44, header, frame_id: str | None = None, types: MessageTypes = ROS):
-    return types('geometry_msgs/msg/PoseStamped', header=_header(header, frame_id, types), pose=_pose_msg(T_44, types))
+    return types('geometry_msgs/msg/PoseStamped', header=header_for(header, frame_id, types),
+                 pose=_pose_msg(T_44, types))
 
 
 def matrix_to_odometry(T_world_base_44, header, child_frame_id: str, frame_id: str | None = None,
@@ -385,7 +387,8 @@ def matrix_to_odometry(T_world_base_44, header, child_frame_id: str, frame_id: s
     cov[[0, 1, 2], [0, 1, 2]] = position_sigma ** 2
     cov[[3, 4, 5], [3, 4, 5]] = rotation_sigma ** 2
     vec = lambda: types('geometry_msgs/msg/Vector3', x=0.0, y=0.0, z=0.0)  # noqa: E731
-    return types('nav_msgs/msg/Odometry', header=_header(header, frame_id, types), child_frame_id=str(child_frame_id),
+    return types('nav_msgs/msg/Odometry', header=header_for(header, frame_id, types),
+                 child_frame_id=str(child_frame_id),
                  pose=types('geometry_msgs/msg/PoseWithCovariance', pose=_pose_msg(T_world_base_44, types),
                             covariance=_f64(cov, 36)),
                  twist=types('geometry_msgs/msg/TwistWithCovariance',
