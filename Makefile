@@ -16,6 +16,8 @@ PARAMS ?=
 DEMO_ARGS ?=
 BENCH_OUT ?= out/bench
 BENCH_ARGS ?=
+# make test runs the suite in this many pytest-xdist workers (a test file stays on one worker; 1 = no workers)
+TEST_WORKERS ?= 2
 
 .PHONY: venv demo test bench clean
 
@@ -28,7 +30,7 @@ demo: venv
 	  $(if $(ODOM_TOPIC),--odom-topic $(ODOM_TOPIC)) $(if $(GT),--gt $(GT)) $(if $(PARAMS),--params $(PARAMS)) $(DEMO_ARGS)
 
 test: venv
-	$(PY) -m pytest -q -ra test
+	$(PY) -m pytest -q -ra $(if $(filter-out 1,$(TEST_WORKERS)),-n $(TEST_WORKERS) --dist loadfile) test
 
 bench: venv
 	$(PY) -m dpv_sensor.tools.bench --out $(BENCH_OUT) $(BENCH_ARGS)

@@ -13,8 +13,15 @@ SHARED_DATA = REPO.parent / 'shared' / 'data'
 
 # rclpy writes logs under ROS_LOG_DIR; keep them out of $HOME and out of the repo.
 os.environ.setdefault('ROS_LOG_DIR', str(REPO / 'log' / 'ros-test'))
-# A DDS domain of our own so tests never talk to another ROS graph on the machine (or a parallel run).
-os.environ.setdefault('ROS_DOMAIN_ID', str(random.Random(os.getpid()).randint(100, 200)))
+# A DDS domain of our own so tests never talk to another ROS graph on the machine (or a parallel run). Under
+# pytest-xdist (make test runs two workers) every worker gets a domain of its own: one base per run (the run's id,
+# which all its workers share), plus the worker's number (gw0, gw1, ...).
+_WORKER = os.environ.get('PYTEST_XDIST_WORKER', '')
+if _WORKER.startswith('gw'):
+    _BASE = random.Random(os.environ.get('PYTEST_XDIST_TESTRUNUID', '')).randint(0, 100)
+    os.environ['ROS_DOMAIN_ID'] = str(100 + (_BASE + int(_WORKER[2:])) % 101)
+else:
+    os.environ.setdefault('ROS_DOMAIN_ID', str(random.Random(os.getpid()).randint(100, 200)))
 os.environ.setdefault('ROS_LOCALHOST_ONLY', '1')
 if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
