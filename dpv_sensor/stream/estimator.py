@@ -17,22 +17,18 @@ import cv2
 import numpy as np
 import torch
 
-from dpv_sensor.core import dpv as dpv_ops
 from dpv_sensor import params as P
-from dpv_sensor.core import geometry
-from dpv_sensor.stream.continuity import DUPLICATE, stream_break, time_order
-from dpv_sensor.core import image_quality
-from dpv_sensor.core import parallax
-from dpv_sensor.core import pose_uncertainty
-from dpv_sensor.stream.frame import DepthOutput, Frame
+from dpv_sensor.core import dpv as dpv_ops, geometry, image_quality, parallax, pose_uncertainty
 from dpv_sensor.core.edge_filter import joint_weighted_median
 from dpv_sensor.core.geometry import resample_to_camera, scale_intrinsics_np
+from dpv_sensor.core.nets.model import cpu_bf16_fast
+from dpv_sensor.stream.continuity import DUPLICATE, stream_break, time_order
+from dpv_sensor.stream.frame import DepthOutput, Frame
 from dpv_sensor.stream.depth_output import compose_output, volume_maps_to_processing
 from dpv_sensor.stream.estimator_config import (EstimatorConfig, EstimatorStatus, PoseRefinementRequest,  # noqa: F401
                                                 PoseRefiner, _Measurement, _Posterior, default_weights_path,
                                                 output_size)
 from dpv_sensor.stream.keyframes import Keyframe, KeyframeSelector, KeyframeWindow
-from dpv_sensor.core.nets.model import cpu_bf16_fast
 
 __all__ = ['EstimatorConfig', 'EstimatorStatus', 'Estimator', 'PoseRefinementRequest', 'default_weights_path',
            'MEASUREMENTS', 'FILTER_MODES']
@@ -253,6 +249,11 @@ class Estimator:
         return g
 
     # ------------------------------------------------------------------ public API
+    @property
+    def counts(self) -> Tuple[int, int]:
+        """(keyframes, degenerate frames) so far: what a caller compares around one push, without the status."""
+        return self._keyframes, self._frames_degenerate
+
     @property
     def status(self) -> EstimatorStatus:
         """Diagnostics: measurement model in use and why, device, counters, resets, tracking state."""

@@ -123,12 +123,12 @@ class Pipeline:
         if T is not frame.T_world_cam_44:
             frame = Frame(stamp=frame.stamp, image=frame.image, K_33=frame.K_33, T_world_cam_44=T,
                           frame_id=frame.frame_id, sensor_gap_s=frame.sensor_gap_s)
-        before = self.estimator.status
+        keyframes_before, degenerate_before = self.estimator.counts
         out = self.estimator.push(frame)
-        after = self.estimator.status
-        if after.frames_degenerate > before.frames_degenerate:
-            return PushResult(output=out, drop=DEGENERATE, detail=str(after.last_degenerate_reason))
-        is_keyframe = after.keyframes > before.keyframes
+        keyframes_after, degenerate_after = self.estimator.counts
+        if degenerate_after > degenerate_before:
+            return PushResult(output=out, drop=DEGENERATE, detail=str(self.estimator.status.last_degenerate_reason))
+        is_keyframe = keyframes_after > keyframes_before
         if is_keyframe and self.pose_source.visual_odometry is not None:
             self._keyframe_images[float(frame.stamp)] = (frame.image, np.asarray(frame.K_33, dtype=np.float64))
             while len(self._keyframe_images) > 2 * int(self.config.window_size) + 6:
