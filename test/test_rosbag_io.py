@@ -292,3 +292,23 @@ def test_export_finds_image_and_odometry_by_type(tmp_path):
     assert len(list((tmp_path / 'export' / 'images').glob('*.png'))) == 3
     np.testing.assert_allclose(np.loadtxt(tmp_path / 'export' / 'poses.txt').reshape(-1, 4, 4), trajectory(3),
                                atol=1e-9)
+
+
+def test_pose_variance_is_written_as_the_odometry_covariance(tmp_path):
+    from dpv_sensor.core.pose_uncertainty import covariance_sigma
+    seq = make_seq(n=5, rate=10.0)
+    var = np.array([[0.0, 0.0], [1e-4, 4e-6], [4e-4, 1e-5], [9e-4, 2e-5], [16e-4, 3e-5]])
+    R.write_sequence_bag(tmp_path / 'bag', seq, odom_rate=20.0, pose_variance=var, progress=False)
+    covs = [np.asarray(m.pose.covariance).reshape(6, 6)
+            for _t, _ty, _ns, m in R.read_messages(tmp_path / 'bag', [R.ODOM_TOPIC])]
+    assert len(covs) == 9                                   # 20 Hz over 0.4 s
+    assert np.all(np.diag(covs[0]) > 0)                     # the first pose's covariance reads as filled
+    assert np.allclose(np.diag(covs[2])[:3], 1e-4) and np.allclose(np.diag(covs[2])[3:], 4e-6)   # frame 1
+    assert np.allclose(np.diag(covs[3])[:3], 2.5e-4)        # halfway between frames 1 and 2: linear in time
+    assert np.count_nonzero(covs[4] - np.diag(np.diag(covs[4]))) == 0   # diagonal
+    sigma = covariance_sigma(covs[2], covs[6])              # frames 1 -> 3: the growth between them
+    assert sigma.trans_m == pytest.approx(math.sqrt(8e-4)) and sigma.rot_rad == pytest.approx(math.sqrt(1.6e-5))
+    with pytest.raises(R.BagError, match='one row'):
+        R.write_sequence_bag(tmp_path / 'bad', seq, pose_variance=var[:3], progress=False)
+    with pytest.raises(R.BagError, match='non-negative'):
+        R.write_sequence_bag(tmp_path / 'bad2', seq, pose_variance=-var, progress=False)

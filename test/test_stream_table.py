@@ -10,6 +10,7 @@ small cases.
 import json
 import math
 import os
+import pathlib
 import subprocess
 import sys
 
@@ -174,3 +175,38 @@ def test_consumer_odometry_on_gt_depth_is_ratio_one_and_a_constant_depth_is_wors
     worse = E.consumer_odometry(flat)
     assert worse['color']['ratio_trans'] > 1.0 or worse['color']['ratio_rot'] > 1.0
     assert math.isfinite(worse['ratio_trans'])
+
+
+def test_corruption_variance_by_hand_and_against_the_noise_it_describes():
+    from dpv_sensor.data.trajectory import corrupt_trajectory, corruption_variance
+    # a straight line of 1 m steps: per step (0.02 m)^2 / 3 per axis, plus the heading error's tilt
+    gt = [np.eye(4) for _ in range(4)]
+    for i, T in enumerate(gt):
+        T[2, 3] = float(i)
+    var = corruption_variance(gt, trans_noise_rel=0.02, rot_noise_deg=0.1)
+    r = math.radians(0.1) ** 2 / 3
+    assert var[0].tolist() == [0.0, 0.0]
+    assert var[1, 0] == pytest.approx(0.02 ** 2 / 3) and var[1, 1] == pytest.approx(r)
+    assert var[2, 0] == pytest.approx(2 * 0.02 ** 2 / 3 + 2 * r / 3)
+    assert var[3, 1] == pytest.approx(3 * r)
+    # it is the variance of the error corrupt_trajectory makes (per axis, 400 seeds, 30 steps of 5 cm)
+    for i, T in enumerate(gt := [np.eye(4) for _ in range(31)]):
+        T[0, 3], T[2, 3] = 0.05 * i, 0.01 * i
+    var = corruption_variance(gt, trans_noise_rel=0.05, rot_noise_deg=1.0)
+    err = np.array([corrupt_trajectory(gt, trans_noise_rel=0.05, rot_noise_deg=1.0, seed=s)[-1][:3, 3] - gt[-1][:3, 3]
+                    for s in range(400)])
+    assert np.mean(err ** 2) == pytest.approx(var[-1, 0], rel=0.2)
+
+
+def test_the_honest_odometry_source_has_the_noisy_poses_and_a_covariance():
+    from dpv_sensor.data.synthetic import render_sequence
+    seq = render_sequence(50, 6, width=32, height=24, lazy=True)
+    assert [T.tolist() for T in ST.odometry_poses(seq, 'noisy1cov')] == \
+        [T.tolist() for T in ST.odometry_poses(seq, 'noisy1')]
+    assert ST.odometry_variance(seq, 'noisy1') is None and ST.odometry_variance(seq, 'gt') is None
+    var = ST.odometry_variance(seq, 'noisy1cov')
+    assert var.shape == (6, 2) and np.all(np.diff(var[:, 1]) > 0)
+    assert ST.noise_description('noisy1cov')['covariance'] and not ST.noise_description('noisy1')['covariance']
+    table = ST._Table(out=pathlib.Path('.'), params={}, folders={'a': None}, noise_seeds=[0, 1],
+                      single_sources=('gt',), command='', covariance=True)
+    assert table.sources == ['gt', 'noisy0', 'noisy1', 'noisy0cov', 'noisy1cov']

@@ -11,9 +11,11 @@ dropped) while the outputs are recorded, and the recorded bag is scored with ``e
 (dpv_sensor.evaluation.offline.records_from_bag / evaluate_records).
 
 Pose sources: ``gt`` (the sequence's poses as odometry), ``offset<t>ms`` (``--offset-ms``, default 10: the GT pose
-t ms after each image's stamp, a camera-odometry time offset) and ``noisy<k>`` for each noise seed k (odometry-like
+t ms after each image's stamp, a camera-odometry time offset), ``noisy<k>`` for each noise seed k (odometry-like
 drift: 2 % of each step's translation in a random direction and a 0.1 deg rotation about a random axis per frame,
-chained: dpv_sensor.data.trajectory.corrupt_trajectory). Depth is always scored against the GT depth, and consumer
+chained: dpv_sensor.data.trajectory.corrupt_trajectory) and ``noisy<k>cov`` (``--covariance``: the same poses with the
+noise model's own accumulated variance in ``pose.covariance``, as an honest odometry publishes it:
+dpv_sensor.data.trajectory.corruption_variance). Depth is always scored against the GT depth, and consumer
 odometry against the GT poses.
 
 Columns (frame means over the recorded keyframe outputs unless said otherwise):
@@ -36,7 +38,8 @@ Columns (frame means over the recorded keyframe outputs unless said otherwise):
   translation / rotation RPE (hybrid Jacobian, Open3D's default). col t×, col r×: the same with the photometric-only
   Jacobian (the depth only warps), which stays accurate on GT depth where the hybrid one drifts.
 
-Rows ``noisy`` are the mean over the noise seeds (with the spread of abs_rel); each seed's numbers are in the JSON.
+Rows ``noisy`` (and ``noisy+cov``) are the mean over the noise seeds (with the spread of abs_rel); each seed's
+numbers are in the JSON.
 
 Resumable: every run is cached as ``OUT/runs/<sequence>__<pose>__<params>.json`` and skipped when present (delete a
 file to redo that run); rendered seeds are cached under ``OUT/sequences``. Bags live under ``OUT/work/<run>`` while
@@ -97,21 +100,35 @@ class PosedView:
         return getattr(self._seq, name)
 
 
+NOISY_SOURCE = re.compile(r'noisy(\d+)(cov)?')
+
+
 def odometry_poses(seq, pose_source: str) -> List[np.ndarray]:
-    """The poses written as odometry for a pose source: 'gt', 'noisy<seed>' (corrupt_trajectory with the table's
-    noise, seeded), or 'offset<ms>' (the GT pose ``ms`` milliseconds after each image's stamp, SLERP + linear
-    between frames: a camera-odometry time offset)."""
+    """The poses written as odometry for a pose source: 'gt', 'noisy<seed>' or 'noisy<seed>cov' (corrupt_trajectory
+    with the table's noise, seeded), or 'offset<ms>' (the GT pose ``ms`` milliseconds after each image's stamp,
+    SLERP + linear between frames: a camera-odometry time offset)."""
     gt = [np.asarray(seq.pose(i), np.float64) for i in range(len(seq))]
     if pose_source == 'gt':
         return gt
     m = re.fullmatch(r'offset(\d+(?:\.\d+)?)ms', pose_source)
     if m:
         return time_shifted_poses(seq, gt, float(m.group(1)) / 1000.0)
-    m = re.fullmatch(r'noisy(\d+)', pose_source)
+    m = NOISY_SOURCE.fullmatch(pose_source)
     if not m:
-        raise ValueError(f'pose source {pose_source!r} is neither gt nor noisy<seed>')
+        raise ValueError(f'pose source {pose_source!r} is neither gt, offset<ms>ms, noisy<seed> nor noisy<seed>cov')
     from dpv_sensor.data.trajectory import corrupt_trajectory
     return corrupt_trajectory(gt, trans_noise_rel=NOISE_TRANS_REL, rot_noise_deg=NOISE_ROT_DEG, seed=int(m.group(1)))
+
+
+def odometry_variance(seq, pose_source: str) -> Optional[np.ndarray]:
+    """The pose variance a pose source's odometry publishes (rows per frame: position m^2, rotation rad^2 per
+    axis): the noise model's accumulated variance for 'noisy<seed>cov', None (covariance not filled) otherwise."""
+    m = NOISY_SOURCE.fullmatch(pose_source)
+    if not (m and m.group(2)):
+        return None
+    from dpv_sensor.data.trajectory import corruption_variance
+    gt = [np.asarray(seq.pose(i), np.float64) for i in range(len(seq))]
+    return corruption_variance(gt, trans_noise_rel=NOISE_TRANS_REL, rot_noise_deg=NOISE_ROT_DEG)
 
 
 def time_shifted_poses(seq, poses: List[np.ndarray], offset_s: float) -> List[np.ndarray]:
@@ -250,7 +267,14 @@ def noise_description(pose_source: str) -> Optional[Dict[str, float]]:
     m = re.fullmatch(r'offset(\d+(?:\.\d+)?)ms', pose_source)
     if m:
         return {'time_offset_ms': float(m.group(1))}
-    return {'trans_rel': NOISE_TRANS_REL, 'rot_deg_per_frame': NOISE_ROT_DEG}
+    return {'trans_rel': NOISE_TRANS_REL, 'rot_deg_per_frame': NOISE_ROT_DEG,
+            'covariance': odometry_variance_named(pose_source)}
+
+
+def odometry_variance_named(pose_source: str) -> bool:
+    """Whether a pose source's odometry publishes its accumulated variance ('noisy<seed>cov')."""
+    m = NOISY_SOURCE.fullmatch(pose_source)
+    return bool(m and m.group(2))
 
 
 def run_one(seq_name: str, seq_dir: pathlib.Path, pose_source: str, user_params: Dict[str, Any],
@@ -279,7 +303,8 @@ def run_one(seq_name: str, seq_dir: pathlib.Path, pose_source: str, user_params:
     seq = Sequence(seq_dir)
     t = time.perf_counter()
     odom = PosedView(seq, odometry_poses(seq, pose_source))
-    bs = R.write_sequence_bag(input_bag, odom, odom_rate=D.ODOM_RATE_HZ, progress=progress)
+    bs = R.write_sequence_bag(input_bag, odom, odom_rate=D.ODOM_RATE_HZ,
+                              pose_variance=odometry_variance(seq, pose_source), progress=progress)
     timing['bag_s'] = round(time.perf_counter() - t, 1)
 
     steps = D.Steps(3)
@@ -402,19 +427,26 @@ def table_rows(runs: List[Dict[str, Any]], sequences: List[str], noise_seeds: Li
             if one is not None:
                 rows.append({'sequence': s, 'poses': src, 'runs': 1,
                              **{h: _value(one, k) for h, k, _f_ in COLUMNS}})
-        noisy = [by_key[run_key(s, f'noisy{k}', params)] for k in noise_seeds
-                 if run_key(s, f'noisy{k}', params) in by_key]
-        if noisy:
-            row = {'sequence': s, 'poses': f'noisy ×{len(noisy)}', 'runs': len(noisy)}
-            for h, k, _ in COLUMNS:
-                vals = [v for v in (_value(r, k) for r in noisy) if v is not None]
-                row[h] = float(np.mean(vals)) if vals else None
-            if row['resets'] is not None:      # resets: the total over the seeds
-                row['resets'] = int(sum(_value(r, 'output_resets') or 0 for r in noisy))
-            ab = [v for v in (_value(r, 'abs_rel') for r in noisy) if v is not None]
-            row['abs_rel_range'] = [min(ab), max(ab)] if ab else None
-            rows.append(row)
+        for suffix, label in (('', 'noisy'), ('cov', 'noisy+cov')):
+            noisy = [by_key[run_key(s, f'noisy{k}{suffix}', params)] for k in noise_seeds
+                     if run_key(s, f'noisy{k}{suffix}', params) in by_key]
+            if noisy:
+                rows.append(_mean_row(s, f'{label} ×{len(noisy)}', noisy))
     return rows
+
+
+def _mean_row(sequence: str, poses: str, noisy: List[Dict[str, Any]]) -> Dict[str, Any]:
+    """One table row: the mean of the columns over the runs of several noise seeds (resets: their total; the
+    spread of abs_rel)."""
+    row = {'sequence': sequence, 'poses': poses, 'runs': len(noisy)}
+    for h, k, _ in COLUMNS:
+        vals = [v for v in (_value(r, k) for r in noisy) if v is not None]
+        row[h] = float(np.mean(vals)) if vals else None
+    if row['resets'] is not None:      # resets: the total over the seeds
+        row['resets'] = int(sum(_value(r, 'output_resets') or 0 for r in noisy))
+    ab = [v for v in (_value(r, 'abs_rel') for r in noisy) if v is not None]
+    row['abs_rel_range'] = [min(ab), max(ab)] if ab else None
+    return row
 
 
 def markdown(rows: List[Dict[str, Any]]) -> str:
@@ -444,7 +476,8 @@ LEGEND = ('Frame means over the keyframe outputs recorded from the node (lockste
           'once it has its first camera_info; the drops are listed per run below). '
           "poses: gt = the sequence's poses as odometry; offset<t>ms = the GT pose t ms after each image stamp (a "
           'camera-odometry time offset); noisy ×n = mean over n odometry noise seeds (2 % of each '
-          'step, 0.1°/frame rotation random walk; abs_rel range over the seeds in brackets). ms = median-scaled. '
+          'step, 0.1°/frame rotation random walk; abs_rel range over the seeds in brackets); noisy+cov = the same '
+          "odometry publishing the noise model's accumulated variance in pose.covariance. ms = median-scaled. "
           "conf½ = abs_rel of the most confident half of each frame's pixels / abs_rel of all. ECE = expected "
           'calibration error of the confidence against the event "true depth within ×1.25" (10 bins, pixels pooled '
           'over the run); mean conf vs d1 pooled = the same two averages over all pooled pixels; kept@.9 / d1@.9 = '
@@ -470,11 +503,12 @@ def run_details(runs: List[Dict[str, Any]]) -> str:
 
 
 def write_table(out: pathlib.Path, runs, sequences, noise_seeds, params, command: str,
-                failures: Dict[str, str], single_sources: Tuple[str, ...] = ('gt',)) -> Tuple[str, Dict[str, Any]]:
+                failures: Dict[str, str], single_sources: Tuple[str, ...] = ('gt',),
+                covariance: bool = False) -> Tuple[str, Dict[str, Any]]:
     rows = table_rows(runs, sequences, noise_seeds, params, single_sources)
     md = markdown(rows)
     done = len(runs)
-    wanted = len(sequences) * (len(single_sources) + len(noise_seeds))
+    wanted = len(sequences) * (len(single_sources) + len(noise_seeds) * (2 if covariance else 1))
     times = [r['timing']['total_s'] for r in runs if _get(r, 'timing', 'total_s') is not None]
     head = (f'Command: `{command}`\n\nParameters: {params_tag(params)}; {done} of {wanted} runs done'
             + (f', {len(failures)} failed' if failures else '')
@@ -510,6 +544,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--render-size', default=f'{RENDER_SIZE[0]}x{RENDER_SIZE[1]}', metavar='WxH',
                    help=f'size of the rendered seeds ({RENDER_SIZE[0]}x{RENDER_SIZE[1]})')
     p.add_argument('--noise-seeds', default='0-2', help="odometry noise seeds ('' for GT poses only)")
+    p.add_argument('--covariance', action='store_true',
+                   help='add the honest-odometry pose sources noisy<k>cov: the noisy poses of every noise seed with '
+                        "the noise model's accumulated variance in pose.covariance")
     p.add_argument('--no-gt', action='store_true', help='only the noisy (and time-offset) pose sources')
     p.add_argument('--offset-ms', type=float, default=TIME_OFFSET_MS,
                    help=f'add the time-offset pose source: GT poses taken this many ms after each image stamp '
@@ -548,6 +585,7 @@ class _Table:
     noise_seeds: List[int]
     single_sources: Tuple[str, ...]      # pose sources with one run per sequence (gt, offset<t>ms)
     command: str
+    covariance: bool = False             # also the noisy<k>cov sources (the noise model's variance published)
 
     @property
     def sequences(self) -> List[str]:
@@ -555,7 +593,8 @@ class _Table:
 
     @property
     def sources(self) -> List[str]:
-        return list(self.single_sources) + [f'noisy{k}' for k in self.noise_seeds]
+        suffixes = ('', 'cov') if self.covariance else ('',)
+        return list(self.single_sources) + [f'noisy{k}{x}' for x in suffixes for k in self.noise_seeds]
 
     def run_file(self, seq_name: str, pose_source: str) -> pathlib.Path:
         return self.out / 'runs' / f'{run_key(seq_name, pose_source, self.params)}.json'
@@ -575,7 +614,7 @@ class _Table:
     def write(self, failures: Dict[str, str]) -> str:
         """Write the table of the cached runs; its text."""
         text, _ = write_table(self.out, self.cached_runs(), self.sequences, self.noise_seeds, self.params,
-                              self.command, failures, self.single_sources)
+                              self.command, failures, self.single_sources, self.covariance)
         return text
 
 
@@ -685,7 +724,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     single = tuple(([] if a.no_gt else ['gt']) + ([f'offset{a.offset_ms:g}ms'] if a.offset_ms > 0 else []))
     table = _Table(out=out, params=opts.params, folders=folders, noise_seeds=opts.noise_seeds, single_sources=single,
                    command='python -m dpv_sensor.benchmarks.stream_table ' +
-                   ' '.join(x for x in argv if x != '--table-only'))
+                   ' '.join(x for x in argv if x != '--table-only'), covariance=a.covariance)
     failures: Dict[str, str] = {}
     if not a.table_only:
         _prepare_to_run(out, a.domain_id)

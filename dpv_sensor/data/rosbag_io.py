@@ -217,6 +217,23 @@ def _perturb(T: np.ndarray, rng, pos_sigma: float, rot_sigma_rad: float) -> np.n
     return out
 
 
+COVARIANCE_FLOOR_SIGMA = 1e-6   # m and rad: the smallest sigma written with pose_variance
+
+
+def _pose_variance(pose_variance, n_frames: int, idx: list[int]) -> np.ndarray | None:
+    """write_sequence_bag's pose_variance checked (one finite, non-negative row of two per frame) and taken at the
+    written frames; None when not given."""
+    if pose_variance is None:
+        return None
+    var = np.asarray(pose_variance, dtype=np.float64)
+    if var.shape != (n_frames, 2):
+        raise BagError(f'pose_variance must have one row (position, rotation variance) per frame: shape '
+                       f'({n_frames}, 2), got {var.shape}')
+    if not (np.all(np.isfinite(var)) and np.all(var >= 0)):
+        raise BagError('pose_variance must be finite and non-negative')
+    return var[idx]
+
+
 def _sequence_pose_at(stamps_ns: np.ndarray, poses: np.ndarray, t_ns: int) -> np.ndarray:
     """Camera pose of the sequence at t (SLERP + linear between the two frames around it; clamped at the ends)."""
     i = int(np.searchsorted(stamps_ns, t_ns, side='left'))
@@ -251,7 +268,7 @@ def write_sequence_bag(path: str | os.PathLike, seq, *, storage: str = 'mcap', r
                        odom_topic: str = ODOM_TOPIC, camera_frame: str = 'camera_optical_frame',
                        odom_frame: str = 'odom', base_frame: str = 'base_link', T_base_camera=None,
                        encoding: str = 'rgb8', frames: Iterable[int] | None = None, with_odometry: bool = True,
-                       overwrite: bool = False, progress: bool = True) -> BagSummary:
+                       pose_variance=None, overwrite: bool = False, progress: bool = True) -> BagSummary:
     """Write a posed image sequence as a rosbag2 and return what was written.
 
     seq: anything with len(), .K, image(i) (uint8 RGB), pose(i) (4x4 T_world_cam) and stamp(i) (s); e.g. a
@@ -260,8 +277,11 @@ def write_sequence_bag(path: str | os.PathLike, seq, *, storage: str = 'mcap', r
     one message per image, at its stamp). odom_noise: (position sigma m, rotation sigma deg) white noise per
     message. odom_dropout: probability that an odometry message is left out (the first and last never are).
     T_base_camera: camera pose in the odometry child frame ([x,y,z,qx,qy,qz,qw] or 4x4); odometry carries
-    T_world_base = T_world_cam @ inv(T_base_camera). The bag's record time of every message is its header stamp;
-    at equal stamps odometry is written before camera_info, camera_info before the image.
+    T_world_base = T_world_cam @ inv(T_base_camera). pose_variance: one row per sequence frame (position variance
+    per axis m^2, rotation variance per axis rad^2), e.g. data.trajectory.corruption_variance: the odometry's pose
+    covariance then carries it (linear in time between frames, plus the odom_noise variances) as an odometry that
+    reports its own accumulated uncertainty does; None: only the odom_noise variances. The bag's record time of
+    every message is its header stamp; at equal stamps odometry is written before camera_info, camera_info before the image.
     """
     if storage not in STORAGES:
         raise BagError(f'storage must be one of {STORAGES}, got {storage!r}')
@@ -285,6 +305,7 @@ def write_sequence_bag(path: str | os.PathLike, seq, *, storage: str = 'mcap', r
     poses = np.stack([np.asarray(seq.pose(i), dtype=np.float64) for i in idx])
     K = np.asarray(seq.K, dtype=np.float64)
 
+    variance_n2 = _pose_variance(pose_variance, len(seq), idx)
     rng = np.random.default_rng(seed)
     events: list[tuple[int, int, str, Any]] = []   # (stamp, order, kind, payload)
     odom_count = odom_dropped = 0
@@ -296,7 +317,12 @@ def write_sequence_bag(path: str | os.PathLike, seq, *, storage: str = 'mcap', r
                 odom_dropped += 1
                 continue
             T_wb = _sequence_pose_at(img_ns, poses, int(t)) @ T_cb
-            events.append((int(t), 0, 'odom', _perturb(T_wb, rng, pos_sigma, rot_sigma)))
+            sigmas = (float(odom_noise[0]), float(np.deg2rad(odom_noise[1])))
+            if variance_n2 is not None:
+                var = [float(np.interp(t, img_ns, variance_n2[:, j])) for j in (0, 1)]
+                # floored so that the first pose's covariance reads as filled (ROS: all zeros = unknown)
+                sigmas = tuple(max(float(np.sqrt(s0 ** 2 + v)), COVARIANCE_FLOOR_SIGMA) for s0, v in zip(sigmas, var))
+            events.append((int(t), 0, 'odom', (_perturb(T_wb, rng, pos_sigma, rot_sigma), sigmas)))
             odom_count += 1
     for k, t in enumerate(img_ns):
         events.append((int(t), 1, 'image', k))
@@ -310,9 +336,9 @@ def write_sequence_bag(path: str | os.PathLike, seq, *, storage: str = 'mcap', r
     with BagWriter(path, storage=storage, overwrite=overwrite) as bag:
         for t, _order, kind, payload in iterator:
             if kind == 'odom':
-                msg = M.matrix_to_odometry(payload, t, base_frame, frame_id=odom_frame, types=ROSBAGS,
-                                           position_sigma=float(odom_noise[0]),
-                                           rotation_sigma=float(np.deg2rad(odom_noise[1])))
+                T_wb, (position_sigma, rotation_sigma) = payload
+                msg = M.matrix_to_odometry(T_wb, t, base_frame, frame_id=odom_frame, types=ROSBAGS,
+                                           position_sigma=position_sigma, rotation_sigma=rotation_sigma)
                 bag.write(odom_topic, ODOMETRY, msg, t, reliable)
             else:
                 rgb = np.asarray(seq.image(idx[payload]))

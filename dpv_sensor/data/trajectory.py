@@ -251,6 +251,33 @@ class HandheldTrajectory:
                    yaw_terms=yaw_terms, pitch_mean=pitch_mean, pitch_terms=pitch_terms, roll_terms=roll_terms)
 
 
+def corruption_variance(T_world_cam: Sequence[np.ndarray], trans_noise_rel: float = 0.03,
+                        rot_noise_deg: float = 0.5) -> np.ndarray:
+    """The accumulated pose variance that an honest odometry would publish for :func:`corrupt_trajectory`'s noise
+    (same ``trans_noise_rel`` and ``rot_noise_deg``), one row per pose: (position variance per axis in m^2, rotation
+    variance per axis in rad^2: the means of the diagonal of the pose covariance), zero at the first pose.
+
+    First-order propagation of the world-frame error (dp, dtheta) along the trajectory: a step w (world frame) from a
+    pose whose rotation is off by dtheta lands off by dtheta x w, so dp' = dp - [w]x dtheta + e_t and
+    dtheta' = dtheta + e_r, with e_t of length ``trans_noise_rel * |w|`` and e_r of ``rot_noise_deg`` in random
+    directions (per-axis variances a third of their squares): P' = F P F^T + Q with F = [[I, -[w]x], [0, I]]. The
+    cross-covariance between position and heading is carried, so the position variance grows with the cube of the
+    path where the heading error dominates, as the noise does.
+    """
+    T_world_cam = [np.asarray(T, dtype=np.float64) for T in T_world_cam]
+    q_rot = math.radians(rot_noise_deg) ** 2 / 3.0
+    P_66 = np.zeros((6, 6), np.float64)
+    var_n2 = np.zeros((len(T_world_cam), 2), np.float64)
+    for i in range(1, len(T_world_cam)):
+        w = T_world_cam[i][:3, 3] - T_world_cam[i - 1][:3, 3]
+        F_66 = np.eye(6)
+        F_66[:3, 3:] = -np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
+        Q_66 = np.diag([(trans_noise_rel * float(np.linalg.norm(w))) ** 2 / 3.0] * 3 + [q_rot] * 3)
+        P_66 = F_66 @ P_66 @ F_66.T + Q_66
+        var_n2[i] = [np.trace(P_66[:3, :3]) / 3.0, np.trace(P_66[3:, 3:]) / 3.0]
+    return var_n2
+
+
 def corrupt_trajectory(T_world_cam: Sequence[np.ndarray], trans_noise_rel: float = 0.03,
                        rot_noise_deg: float = 0.5, scale_bias: float = 0.0, seed: int = 0) -> List[np.ndarray]:
     """Odometry-like corruption of a trajectory (pose-refinement experiments, training augmentation, tests).
