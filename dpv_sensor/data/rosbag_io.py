@@ -281,7 +281,8 @@ def write_sequence_bag(path: str | os.PathLike, seq, *, storage: str = 'mcap', r
     per axis m^2, rotation variance per axis rad^2), e.g. data.trajectory.corruption_variance: the odometry's pose
     covariance then carries it (linear in time between frames, plus the odom_noise variances) as an odometry that
     reports its own accumulated uncertainty does; None: only the odom_noise variances. The bag's record time of
-    every message is its header stamp; at equal stamps odometry is written before camera_info, camera_info before the image.
+    every message is its header stamp; at equal stamps odometry is written before camera_info, camera_info before
+    the image.
     """
     if storage not in STORAGES:
         raise BagError(f'storage must be one of {STORAGES}, got {storage!r}')
