@@ -32,14 +32,14 @@ __all__ = ['KeypointConfig', 'KeypointPose', 'keypoint_relative_pose', 'keypoint
 @dataclass
 class KeypointConfig:
     """detector: 'sift' or 'orb'; max_features: keypoints per image; ratio: Lowe's ratio test; ransac_px: the
-    essential matrix's RANSAC threshold (pixels); confidence: RANSAC confidence; min_inliers: fewer inliers than
+    essential matrix's RANSAC threshold (pixels); ransac_confidence: its confidence; min_inliers: fewer inliers than
     this is no estimate (``ok`` False); pixel_sigma: the std of a keypoint's position (pixels) for the covariance;
     min_parallax_px: a median parallax below this gives no translation direction (``t_dir_b`` None)."""
     detector: str = 'sift'
     max_features: int = 1000
     ratio: float = 0.8
     ransac_px: float = 1.0
-    confidence: float = 0.999
+    ransac_confidence: float = 0.999
     min_inliers: int = 20
     pixel_sigma: float = 1.0
     min_parallax_px: float = 1.0
@@ -167,7 +167,7 @@ def keypoint_relative_pose(image_a, image_b, K_33: np.ndarray, config: Optional[
         if len(pa) < cfg.min_inliers:
             return KeypointPose(False, f'too few matches agree with the prior ({len(pa)} < {cfg.min_inliers})',
                                 matches=len(pa))
-    E, mask = cv2.findEssentialMat(pa, pb, K, method=cv2.RANSAC, prob=cfg.confidence, threshold=cfg.ransac_px)
+    E, mask = cv2.findEssentialMat(pa, pb, K, method=cv2.RANSAC, prob=cfg.ransac_confidence, threshold=cfg.ransac_px)
     if E is None or E.shape != (3, 3):
         return KeypointPose(False, 'no essential matrix', matches=len(good))
     n_in, R, t, mask = cv2.recoverPose(E, pa, pb, K, mask=mask)

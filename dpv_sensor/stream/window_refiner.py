@@ -52,12 +52,15 @@ import gtsam
 import numpy as np
 
 from dpv_sensor import params as _params
+from dpv_sensor.core import pose_uncertainty
+from dpv_sensor.core.keypoint_pose import KeypointConfig, KeypointPose, keypoint_relative_pose
 from dpv_sensor.core.geometry import rotation_angle_np
 from dpv_sensor.core.photometric import (AlignmentConfig, AlignmentResult, Aligner, ImagePyramid,
                                    inverse_depth_std_from_confidence, pose_error)
 
 __all__ = ['PoseRefinerConfig', 'WindowKeyframe', 'RefinementResult', 'WindowPoseRefiner',
-           'odometry_between_sigmas', 'relative_pose_errors', 'pose3_from_matrix', 'relative_pose']
+           'odometry_between_sigmas', 'odometry_step_covariance', 'relative_pose_errors', 'pose3_from_matrix',
+           'relative_pose']
 
 
 # ------------------------------------------------------------------------------------------------------------------
@@ -134,6 +137,30 @@ class PoseRefinerConfig:
     lm_max_iterations: int = 30
     warmup_keyframes: int = 0
     max_rotation_parallax: float = 8.0
+    odom_covariance: str = 'fixed'
+    drift: pose_uncertainty.DriftModel = field(default_factory=lambda: pose_uncertainty.DriftModel(sync_s=0.0))
+    keypoint_factors: bool = False
+    keypoint: KeypointConfig = field(default_factory=KeypointConfig)
+    keypoint_sources: int = 2
+    keypoint_prior_gate_px: float = 0.0
+    keypoint_huber_k: float = 1.345
+    keypoint_scale_sigma_rel: float = 0.5
+    marginals: bool = False
+    gate_chi2: float = 0.0
+    gate_min_inliers: int = 0
+
+    # Pose-error model of the window (all off by default; see :meth:`WindowPoseRefiner._optimize`):
+    # odom_covariance: 'fixed' (the odom_sigma_* above) or 'odometry' (each step's covariance: the growth of the
+    #     keyframes' published pose covariance where both are filled, else the ``drift`` figures of the step).
+    # keypoint_factors: add keypoint relative-pose factors (core.keypoint_pose) between the reference and its
+    #     ``keypoint_sources`` nearest sources: rotation and direction from the images, the translation's length
+    #     from the odometry (``keypoint_scale_sigma_rel`` of it along the baseline), Huber ``keypoint_huber_k``.
+    # marginals: after the solve, each source's pose covariance relative to the reference (gtsam Marginals) in
+    #     ``RefinementResult.source_sigma``, the pose uncertainty the estimator widens with in place of the
+    #     odometry's.
+    # gate_chi2 > 0: keep the odometry when a step's correction d (tangent of T_odom^-1 T_refined) has
+    #     d^T S^-1 d above this under the step's odometry covariance S. gate_min_inliers > 0 (with keypoint
+    #     factors): keep the odometry when no keypoint pair has this many inliers (e.g. a textureless window).
 
     #: node parameters (dpv_sensor.params) that set fields of this class, same names
     PARAMS = ('odom_sigma_rot_deg', 'odom_sigma_trans_m', 'odom_sigma_trans_rel')
@@ -157,6 +184,7 @@ class WindowKeyframe:
     image: object
     K_33: np.ndarray
     T_world_cam_odom_44: np.ndarray
+    pose_cov_66: Optional[np.ndarray] = None
 
 
 @dataclass
@@ -184,6 +212,10 @@ class RefinementResult:
     alignments: List[Optional[AlignmentResult]]
     timings_ms: Dict[str, float] = field(default_factory=dict)
     skipped: Optional[str] = None
+    source_sigma: Dict[Hashable, pose_uncertainty.PoseSigma] = field(default_factory=dict)
+    gate: str = 'none'
+    correction: Tuple[float, float] = (0.0, 0.0)
+    keypoints: List[KeypointPose] = field(default_factory=list)
 
 
 def odometry_between_sigmas(T_a_b_44: np.ndarray, cfg: PoseRefinerConfig) -> np.ndarray:
@@ -191,6 +223,23 @@ def odometry_between_sigmas(T_a_b_44: np.ndarray, cfg: PoseRefinerConfig) -> np.
     rot = math.radians(cfg.odom_sigma_rot_deg)
     tr = cfg.odom_sigma_trans_m + cfg.odom_sigma_trans_rel * float(np.linalg.norm(np.asarray(T_a_b_44)[:3, 3]))
     return np.array([rot, rot, rot, tr, tr, tr])
+
+
+def odometry_step_covariance(T_odom_a: np.ndarray, T_odom_b: np.ndarray, cov_a_66, cov_b_66,
+                             cfg: PoseRefinerConfig) -> np.ndarray:
+    """gtsam-ordered 6x6 covariance of the odometry's motion from keyframe a to b: ``odom_covariance='fixed'``
+    the configured sigmas; 'odometry' the growth of the published covariance where both are filled, else the drift
+    figures of the step (never below 1e-3 deg / 0.1 mm per axis: odometry is never exact)."""
+    T_ab = relative_pose(T_odom_a, T_odom_b)
+    if cfg.odom_covariance == 'fixed':
+        return np.diag(odometry_between_sigmas(T_ab, cfg) ** 2)
+    if cfg.odom_covariance != 'odometry':
+        raise ValueError(f"odom_covariance must be 'fixed' or 'odometry', not {cfg.odom_covariance!r}")
+    sig = pose_uncertainty.relative_pose_sigma(cfg.drift, [T_odom_a, T_odom_b], cov_ref_66=cov_a_66,
+                                               cov_src_66=cov_b_66)
+    rot = max(sig.rot_rad, math.radians(1e-3))
+    tr = max(sig.trans_m, 1e-4)
+    return np.diag([rot ** 2] * 3 + [tr ** 2] * 3)
 
 
 def relative_pose_errors(T_world_est: Sequence[np.ndarray], T_world_gt: Sequence[np.ndarray]
@@ -274,8 +323,12 @@ class WindowPoseRefiner:
         self._factors: List[Tuple[Hashable, Hashable, np.ndarray, np.ndarray]] = []  # (ref, src, T_ref_src, cov)
         self._pyramids: Dict[Hashable, ImagePyramid] = {}   # per keyframe, reused while it stays in the window
         self._depth_refs = 0                                 # references with a predicted depth since the start
+        self._cov: Dict[Hashable, Optional[np.ndarray]] = {}   # first odometry pose covariance seen per key
+        self._graph = None                                   # (graph, result, index) of the last solve
         self.last_result: Optional[RefinementResult] = None
         self.losses = 0
+        if not hasattr(self, 'gate_counts'):
+            self.gate_counts: Dict[str, int] = {}   # windows per gate outcome since construction (not reset)
 
     @property
     def tracking_lost(self) -> bool:
@@ -304,7 +357,8 @@ class WindowPoseRefiner:
             odom = getattr(kf, 'odom_T_world_cam_44', None)
             odom = kf.T_world_cam_44 if odom is None else odom
             frames.append(WindowKeyframe(float(kf.stamp), img.detach().float().cpu() if hasattr(img, 'detach')
-                                         else img, K, np.asarray(odom, dtype=np.float64)))
+                                         else img, K, np.asarray(odom, dtype=np.float64),
+                                         getattr(kf, 'pose_cov_66', None)))
         r = int(request.reference)
         depth = request.depth_hw
         conf = request.confidence_hw
@@ -377,13 +431,28 @@ class WindowPoseRefiner:
         if skipped is not None:
             # a fallback, not a loss: the odometry-chained poses, and no photometric history across the turn
             self._factors = []
+        kp_factors, kps = [], []
+        if self.config.keypoint_factors and sources and skipped is None and reason is None:
+            kp_factors, kps = self._keypoint_factors(ref, sources, init)
         factors = self._factors + aligned.new_factors
-        poses, refined, reason = self._solve(window, init, factors, reason)
+        gate = self._evidence_gate(factors, kps, skipped)
+        if gate != 'none':
+            factors, kp_factors = [], []
+        self._graph = None
+        poses, refined, reason = self._solve(window, init, factors, reason, kp_factors)
         tracking_ok = reason is None
         if not tracking_ok:
             self.losses += 1
             poses, refined = init, False
+            gate = 'lost'
+        elif refined:
+            gate, poses, refined = self._chi2_gate(window, init, poses)
+            if not refined:
+                factors = []
+        correction = self._correction(window, poses)
+        self.gate_counts[gate] = self.gate_counts.get(gate, 0) + 1
         self._keep_solution(window, poses, factors, tracking_ok)
+        sigmas = self._marginal_sigmas(window, ref, sources) if refined and self.config.marginals else {}
         t1 = time.perf_counter()
         T_world_ref = poses[ref.key]
         self.last_result = RefinementResult(
@@ -392,7 +461,8 @@ class WindowPoseRefiner:
             T_src_ref=[relative_pose(poses[s.key], T_world_ref) for s in sources],
             tracking_ok=tracking_ok, reason=reason, refined=refined, alignments=aligned.alignments,
             timings_ms={'align': 1e3 * (t_opt - t_align), 'optimize': 1e3 * (t1 - t_opt),
-                        'total': 1e3 * (t1 - t0), 'cpu': 1e3 * (time.process_time() - c0)}, skipped=skipped)
+                        'total': 1e3 * (t1 - t0), 'cpu': 1e3 * (time.process_time() - c0)}, skipped=skipped,
+            source_sigma=sigmas, gate=gate, correction=correction, keypoints=kps)
         return self.last_result
 
     def _admit_window(self, frames: List[WindowKeyframe]) -> List[Hashable]:
@@ -404,7 +474,8 @@ class WindowPoseRefiner:
         for f in frames:
             if f.key not in self._odom:
                 self._odom[f.key] = np.asarray(f.T_world_cam_odom_44, dtype=np.float64).copy()
-        for store in (self._est, self._odom, self._pyramids):
+                self._cov[f.key] = None if f.pose_cov_66 is None else np.asarray(f.pose_cov_66, np.float64)
+        for store in (self._est, self._odom, self._pyramids, self._cov):
             for k in list(store):
                 if k not in keys:
                     del store[k]
@@ -472,13 +543,88 @@ class WindowPoseRefiner:
             return f'only {n_ok}/{len(order)} alignments usable ({fails})'
         return None
 
+    def _keypoint_factors(self, ref: WindowKeyframe, sources: Sequence[WindowKeyframe],
+                          init: Dict[Hashable, np.ndarray]) -> Tuple[list, List[KeypointPose]]:
+        """Keypoint relative poses of the reference to its nearest sources; usable ones as (src, ref, T_src_ref,
+        cov) between factors, the translation's length the odometry's."""
+        cfg = self.config
+        order = sorted(range(len(sources)), key=lambda i: _key_distance(sources[i].key, ref.key))
+        factors, kps = [], []
+        for i in order[:cfg.keypoint_sources]:
+            s = sources[i]
+            T0 = relative_pose(init[s.key], init[ref.key])                # T_src_ref from the odometry
+            kp = keypoint_relative_pose(ref.image, s.image, ref.K_33, cfg.keypoint, T0, cfg.keypoint_prior_gate_px)
+            kps.append(kp)
+            if not kp.ok or kp.t_dir_b is None:
+                continue
+            base = float(np.linalg.norm(T0[:3, 3]))
+            T = np.eye(4)
+            T[:3, :3] = kp.R_b_a
+            T[:3, 3] = base * kp.t_dir_b
+            factors.append((s.key, ref.key, T, kp.between_covariance_gtsam(base, cfg.keypoint_scale_sigma_rel)))
+        return factors, kps
+
+    def _evidence_gate(self, factors: list, kps: List[KeypointPose], skipped) -> str:
+        """'kept_few_inliers' when keypoint evidence is required and no pair has enough inliers, else 'none'."""
+        cfg = self.config
+        if skipped is not None:
+            return 'skipped'
+        if cfg.keypoint_factors and cfg.gate_min_inliers > 0 and kps:
+            if max(k.inliers for k in kps) < cfg.gate_min_inliers:
+                return 'kept_few_inliers'
+        return 'none'
+
+    def _chi2_gate(self, window, init, poses):
+        """('refined', poses, True), or ('rejected_chi2', init, False) when a step's correction is implausible
+        under the odometry's covariance of that step (``gate_chi2``)."""
+        cfg = self.config
+        if cfg.gate_chi2 > 0:
+            for a, b in zip(window[:-1], window[1:]):
+                T_odom = relative_pose(self._odom[a], self._odom[b])
+                d = gtsam.Pose3.Logmap(pose3_from_matrix(T_odom).between(
+                    pose3_from_matrix(relative_pose(poses[a], poses[b]))))
+                S = odometry_step_covariance(self._odom[a], self._odom[b], self._cov.get(a), self._cov.get(b), cfg)
+                if float(d @ np.linalg.solve(S, d)) > cfg.gate_chi2:
+                    return 'rejected_chi2', init, False
+        return 'refined', poses, True
+
+    def _correction(self, window, poses) -> Tuple[float, float]:
+        """The largest change (m, deg) the refinement made to a step's odometry motion in this window."""
+        worst = (0.0, 0.0)
+        for a, b in zip(window[:-1], window[1:]):
+            dt, dr = pose_error(relative_pose(self._odom[a], self._odom[b]), relative_pose(poses[a], poses[b]))
+            worst = (max(worst[0], dt), max(worst[1], dr))
+        return worst
+
+    def _marginal_sigmas(self, window, ref, sources) -> Dict[Hashable, pose_uncertainty.PoseSigma]:
+        """Per source, per-axis stds of its pose relative to the reference from the solved graph's marginals."""
+        if self._graph is None:
+            return {}
+        graph, result, idx = self._graph
+        try:
+            marg = gtsam.Marginals(graph, result)
+        except RuntimeError:
+            return {}
+        out = {}
+        r = idx[ref.key]
+        for s in sources:
+            j = idx[s.key]
+            C = marg.jointMarginalCovariance([r, j]).fullMatrix()
+            T_rs = result.atPose3(r).between(result.atPose3(j))
+            J = np.hstack([-T_rs.inverse().AdjointMap(), np.eye(6)])   # d(T_r^-1 T_s) = -Ad(T_rs^-1) d_r + d_s
+            Crel = J @ C @ J.T
+            out[s.key] = pose_uncertainty.PoseSigma(rot_rad=math.sqrt(max(np.trace(Crel[:3, :3]) / 3, 0.0)),
+                                                    trans_m=math.sqrt(max(np.trace(Crel[3:, 3:]) / 3, 0.0)))
+        return out
+
     def _solve(self, window: List[Hashable], init: Dict[Hashable, np.ndarray], factors: list,
-               reason: Optional[str]) -> Tuple[Dict[Hashable, np.ndarray], bool, Optional[str]]:
+               reason: Optional[str], kp_factors: Sequence = ()) -> Tuple[Dict[Hashable, np.ndarray], bool,
+                                                                        Optional[str]]:
         """Optimise the window over its factors unless a reason says not to; returns (poses, refined, reason)."""
-        if reason is not None or not factors:
+        if reason is not None or not (factors or kp_factors):
             return init, False, reason
         try:
-            poses = self._optimize(window, init, factors)
+            poses = self._optimize(window, init, factors, kp_factors)
         except RuntimeError as e:      # gtsam raises on indeterminate systems
             return init, False, f'window optimisation failed: {e}'
         return poses, True, self._jump_check(window, poses)
@@ -527,7 +673,7 @@ class WindowPoseRefiner:
             init[k] = self.initial_pose(k, self._odom[k])
         return init
 
-    def _optimize(self, window, init, factors) -> Dict[Hashable, np.ndarray]:
+    def _optimize(self, window, init, factors, kp_factors=()) -> Dict[Hashable, np.ndarray]:
         cfg = self.config
         idx = {k: i for i, k in enumerate(window)}
         graph = gtsam.NonlinearFactorGraph()
@@ -542,8 +688,12 @@ class WindowPoseRefiner:
         # Odometry between consecutive keyframes.
         for a, b in zip(window[:-1], window[1:]):
             T_ab = relative_pose(self._odom[a], self._odom[b])
-            graph.add(gtsam.BetweenFactorPose3(idx[a], idx[b], pose3_from_matrix(T_ab),
-                                               gtsam.noiseModel.Diagonal.Sigmas(odometry_between_sigmas(T_ab, cfg))))
+            if cfg.odom_covariance == 'fixed':
+                noise = gtsam.noiseModel.Diagonal.Sigmas(odometry_between_sigmas(T_ab, cfg))
+            else:
+                noise = gtsam.noiseModel.Gaussian.Covariance(odometry_step_covariance(
+                    self._odom[a], self._odom[b], self._cov.get(a), self._cov.get(b), cfg))
+            graph.add(gtsam.BetweenFactorPose3(idx[a], idx[b], pose3_from_matrix(T_ab), noise))
         # Photometric alignments with their covariance, robustified.
         huber = gtsam.noiseModel.mEstimator.Huber.Create(cfg.photometric_huber_k)
         for r, s, T_ref_src, cov in factors:
@@ -551,9 +701,15 @@ class WindowPoseRefiner:
                 continue
             noise = gtsam.noiseModel.Robust.Create(huber, gtsam.noiseModel.Gaussian.Covariance(cov))
             graph.add(gtsam.BetweenFactorPose3(idx[r], idx[s], pose3_from_matrix(T_ref_src), noise))
+        # Keypoint relative poses (rotation and direction; length from the odometry), robustified.
+        kp_huber = gtsam.noiseModel.mEstimator.Huber.Create(cfg.keypoint_huber_k)
+        for s, r, T_src_ref, cov in kp_factors:
+            noise = gtsam.noiseModel.Robust.Create(kp_huber, gtsam.noiseModel.Gaussian.Covariance(cov))
+            graph.add(gtsam.BetweenFactorPose3(idx[s], idx[r], pose3_from_matrix(T_src_ref), noise))
         params = gtsam.LevenbergMarquardtParams()
         params.setMaxIterations(cfg.lm_max_iterations)
         result = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
+        self._graph = (graph, result, idx)
         out = {k: result.atPose3(idx[k]).matrix() for k in window}
         for k, T in out.items():
             if not np.all(np.isfinite(T)):
