@@ -158,8 +158,8 @@ class PoseRefinerConfig:
     # marginals: after the solve, each source's pose covariance relative to the reference (gtsam Marginals) in
     #     ``RefinementResult.source_sigma``, the pose uncertainty the estimator widens with in place of the
     #     odometry's.
-    # gate_chi2 > 0: keep the odometry when a step's correction d (tangent of T_odom^-1 T_refined) has
-    #     d^T S^-1 d above this under the step's odometry covariance S. gate_min_inliers > 0 (with keypoint
+    # gate_chi2 > 0: keep the odometry when a keypoint rotation differs from the odometry's by d with
+    #     d^T (S_odom + S_kp)^-1 d above this (3 dof; 16.27 = 99.9 %). gate_min_inliers > 0 (with keypoint
     #     factors): keep the odometry when no keypoint pair has this many inliers (e.g. a textureless window).
 
     #: node parameters (dpv_sensor.params) that set fields of this class, same names
@@ -435,7 +435,7 @@ class WindowPoseRefiner:
         if self.config.keypoint_factors and sources and skipped is None and reason is None:
             kp_factors, kps = self._keypoint_factors(ref, sources, init)
         factors = self._factors + aligned.new_factors
-        gate = self._evidence_gate(factors, kps, skipped)
+        gate = self._evidence_gate(kps, kp_factors, skipped)
         if gate != 'none':
             factors, kp_factors = [], []
         self._graph = None
@@ -446,9 +446,9 @@ class WindowPoseRefiner:
             poses, refined = init, False
             gate = 'lost'
         elif refined:
-            gate, poses, refined = self._chi2_gate(window, init, poses)
-            if not refined:
-                factors = []
+            gate = 'refined'
+        if gate == 'none':
+            gate = 'kept_no_factors'
         correction = self._correction(window, poses)
         self.gate_counts[gate] = self.gate_counts.get(gate, 0) + 1
         self._keep_solution(window, poses, factors, tracking_ok)
@@ -564,29 +564,24 @@ class WindowPoseRefiner:
             factors.append((s.key, ref.key, T, kp.between_covariance_gtsam(base, cfg.keypoint_scale_sigma_rel)))
         return factors, kps
 
-    def _evidence_gate(self, factors: list, kps: List[KeypointPose], skipped) -> str:
-        """'kept_few_inliers' when keypoint evidence is required and no pair has enough inliers, else 'none'."""
+    def _evidence_gate(self, kps: List[KeypointPose], kp_factors: list, skipped) -> str:
+        """Before the solve: 'kept_few_inliers' when keypoint evidence is required and no pair has enough inliers;
+        'rejected_chi2' when a keypoint rotation differs from the odometry's by more than ``gate_chi2`` allows
+        under the sum of the two rotation covariances (d^T (S_odom + S_kp)^-1 d); else 'none'."""
         cfg = self.config
         if skipped is not None:
             return 'skipped'
         if cfg.keypoint_factors and cfg.gate_min_inliers > 0 and kps:
             if max(k.inliers for k in kps) < cfg.gate_min_inliers:
                 return 'kept_few_inliers'
-        return 'none'
-
-    def _chi2_gate(self, window, init, poses):
-        """('refined', poses, True), or ('rejected_chi2', init, False) when a step's correction is implausible
-        under the odometry's covariance of that step (``gate_chi2``)."""
-        cfg = self.config
         if cfg.gate_chi2 > 0:
-            for a, b in zip(window[:-1], window[1:]):
-                T_odom = relative_pose(self._odom[a], self._odom[b])
-                d = gtsam.Pose3.Logmap(pose3_from_matrix(T_odom).between(
-                    pose3_from_matrix(relative_pose(poses[a], poses[b]))))
-                S = odometry_step_covariance(self._odom[a], self._odom[b], self._cov.get(a), self._cov.get(b), cfg)
-                if float(d @ np.linalg.solve(S, d)) > cfg.gate_chi2:
-                    return 'rejected_chi2', init, False
-        return 'refined', poses, True
+            for s, r, T_src_ref, cov in kp_factors:
+                T_odom = relative_pose(self._odom[s], self._odom[r])
+                d = gtsam.Pose3.Logmap(pose3_from_matrix(T_odom).between(pose3_from_matrix(T_src_ref)))[:3]
+                S = odometry_step_covariance(self._odom[s], self._odom[r], self._cov.get(s), self._cov.get(r), cfg)
+                if float(d @ np.linalg.solve(S[:3, :3] + cov[:3, :3], d)) > cfg.gate_chi2:
+                    return 'rejected_chi2'
+        return 'none'
 
     def _correction(self, window, poses) -> Tuple[float, float]:
         """The largest change (m, deg) the refinement made to a step's odometry motion in this window."""
