@@ -128,7 +128,7 @@ def _sequence(n=6):
 
 def test_evaluate_passes_the_refiner_sigmas_from_the_config(monkeypatch):
     import torch
-    from dpv_sensor.stream import poses
+    from dpv_sensor.stream import window_refiner as poses
     torch.set_num_threads(1)
     built = []
     real = poses.WindowPoseRefiner

@@ -19,8 +19,8 @@ from dpv_sensor.core.geometry import backproject, se3_exp, warp_image_with_depth
 from dpv_sensor.core.photometric import (AlignmentConfig, align_photometric, inverse_depth_std_from_confidence,
                                    pose_error, resample_map, twist_to_gtsam_order)
 from dpv_sensor.data.trajectory import corrupt_trajectory
-from dpv_sensor.stream.poses import (PoseRefinerConfig, VisualOdometry, VisualOdometryConfig, WindowKeyframe,
-                              WindowPoseRefiner, relative_pose_errors)
+from dpv_sensor.stream.visual_odometry import VisualOdometry, VisualOdometryConfig
+from dpv_sensor.stream.window_refiner import PoseRefinerConfig, WindowKeyframe, WindowPoseRefiner, relative_pose_errors
 
 
 

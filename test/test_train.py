@@ -103,7 +103,7 @@ def test_stream_start_runs_use_growing_source_counts():
 
 
 def test_pose_noise_corrupts_relative_motion_but_not_images_or_depth():
-    from dpv_sensor.stream.poses import relative_pose_errors
+    from dpv_sensor.stream.window_refiner import relative_pose_errors
     clean = SceneStream(_small_stream(steps=2)).make_sample(3)
     noisy = SceneStream(_small_stream(steps=2, pose_noise_prob=1.0, pose_noise_rot_deg=1.0,
                                       pose_noise_trans_rel=0.1)).make_sample(3)

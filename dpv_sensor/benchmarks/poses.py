@@ -12,16 +12,18 @@ Parts:
   keyframe step in a random direction, ``--rot-noise`` (0.5 deg) about a random axis, optional
   ``--scale-bias``). Runs the
   estimator (``estimator.Estimator``, causal window of 5 keyframes) three times - GT poses, noisy poses, noisy
-  poses with the :class:`~dpv_sensor.stream.poses.WindowPoseRefiner` hook - and reports the keyframe relative pose error
+  poses with the :class:`~dpv_sensor.stream.window_refiner.WindowPoseRefiner` hook - and reports the keyframe
+  relative pose error
   (RPE between consecutive output keyframes, of the poses the outputs were computed with) and depth abs_rel
   (metric and median-scaled), and the fraction of the noisy-to-GT abs_rel gap the refinement recovers. A
   ``refiner on GT depth`` row shows the RPE the window reaches when it aligns against the true depth (an upper
   bound for what the filter's predicted depth allows).
 * ``sun3d`` - the same on ``sun3d_3dmatch_frag1`` and ``frag2`` of the shared development data folder
   (skipped when absent).
-* ``vo`` - odometry-free mode (``poses.VisualOdometry``, bootstrapped from a fronto-parallel plane, refined by the
-  same window) on rendered sequences and SUN3D: metric and median-scaled abs_rel next to the GT-pose figures; a
-  second run replaces the middle keyframe's image by noise (must lose tracking and publish nothing for it);
+* ``vo`` - odometry-free mode (``visual_odometry.VisualOdometry``, bootstrapped from a fronto-parallel plane,
+  refined by the same window) on rendered sequences and SUN3D: metric and median-scaled abs_rel next to the
+  GT-pose figures; a second run replaces the middle keyframe's image by noise (must lose tracking and publish
+  nothing for it);
   keyframes lost, and the worst rotation RPE among the published keyframes (a published diverged pose would show
   there). Frames whose tracking is lost are never pushed / their output is discarded.
 * ``gtcheck`` - how far the ground-truth poses themselves are from photometric consistency: every pair of
@@ -63,8 +65,8 @@ from dpv_sensor.stream.estimator import Estimator, EstimatorConfig
 from dpv_sensor.stream.frame import Frame
 from dpv_sensor.evaluation.metrics import MetricAccumulator
 from dpv_sensor.core.photometric import pose_error
-from dpv_sensor.stream.poses import (PoseRefinerConfig, VisualOdometry, VisualOdometryConfig, WindowKeyframe,
-                              WindowPoseRefiner)
+from dpv_sensor.stream.visual_odometry import VisualOdometry, VisualOdometryConfig
+from dpv_sensor.stream.window_refiner import PoseRefinerConfig, WindowKeyframe, WindowPoseRefiner
 
 # the filter of these runs: the classical model's default measurement cannot drive knet (it needs a network)
 FILTER_MODE = 'global'

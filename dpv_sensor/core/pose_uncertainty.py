@@ -173,7 +173,8 @@ def inverse_depth_sigma(depth_bhw: torch.Tensor, span_nbhw: torch.Tensor, shift_
 
 def window_sigma_planes(ref, sources: Sequence, depth_bhw: torch.Tensor, span_nbhw: torch.Tensor,
                         K_vol_b33: torch.Tensor, model: DriftModel, plane_step_rho: float, *,
-                        covariance_only: bool = False) -> Tuple[Optional[torch.Tensor], dict]:
+                        covariance_only: bool = False, source_sigma: Optional[dict] = None
+                        ) -> Tuple[Optional[torch.Tensor], dict]:
     """(B, H, W) std in planes of the measured plane index of a window, and a status dict (items 1-3 of the module
     docstring, all sources).
 
@@ -182,8 +183,12 @@ def window_sigma_planes(ref, sources: Sequence, depth_bhw: torch.Tensor, span_nb
     pixels) on the volume grid ``K_vol_b33``. plane_step_rho: the plane spacing in inverse depth. covariance_only:
     without any source's covariance, None (the poses count as exact). Status: ``source`` (covariance when every
     source's came from the odometry's covariance, else drift; none without covariance in covariance_only), the
-    largest per-axis rotation (deg) and translation (mm) std and the median std in planes."""
-    from_cov = [covariance_sigma(ref.pose_cov_66, s.pose_cov_66) is not None for s in sources]
+    largest per-axis rotation (deg) and translation (mm) std and the median std in planes. source_sigma: per-source
+    :class:`PoseSigma` by ``float(stamp)`` (a pose refiner's marginals) used instead of items 1's terms for the
+    sources it names (``source`` then says ``window marginals``)."""
+    given = source_sigma or {}
+    from_win = [float(getattr(s, 'stamp', math.nan)) in given for s in sources]
+    from_cov = [covariance_sigma(ref.pose_cov_66, s.pose_cov_66) is not None or w for s, w in zip(sources, from_win)]
     if covariance_only and not any(from_cov):
         return None, {'source': 'none (no odometry covariance)'}
     kfs = sorted([ref] + list(sources), key=lambda k: k.index)
@@ -193,13 +198,15 @@ def window_sigma_planes(ref, sources: Sequence, depth_bhw: torch.Tensor, span_nb
     for s in sources:
         i = kfs.index(s)
         chain = [k.T_world_cam_44 for k in kfs[min(i, r):max(i, r) + 1]]
-        sig = relative_pose_sigma(model, chain, cov_ref_66=ref.pose_cov_66, cov_src_66=s.pose_cov_66,
-                                  twist_ref_6=ref.twist_world_6, twist_src_6=s.twist_world_6)
+        sig = given.get(float(getattr(s, 'stamp', math.nan)))
+        if sig is None:
+            sig = relative_pose_sigma(model, chain, cov_ref_66=ref.pose_cov_66, cov_src_66=s.pose_cov_66,
+                                      twist_ref_6=ref.twist_world_6, twist_src_6=s.twist_world_6)
         sig_r.append(sig.rot_rad)
         sig_t.append(sig.trans_m)
         shifts.append(match_shift_px(depth_bhw, K_vol_b33, sig) * to_proc)
     sigma_planes = inverse_depth_sigma(depth_bhw, span_nbhw, torch.stack(shifts, 0), BAND_RATIO) / plane_step_rho
-    status = {'source': 'covariance' if all(from_cov) else 'drift',
+    status = {'source': 'window marginals' if all(from_win) else 'covariance' if all(from_cov) else 'drift',
               'rot_deg_max': math.degrees(max(sig_r)), 'trans_mm_max': 1000.0 * max(sig_t),
               'median_planes': float(sigma_planes.clamp_max(1e3).median())}
     return sigma_planes, status

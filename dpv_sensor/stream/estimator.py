@@ -296,6 +296,9 @@ class Estimator:
             pose_refiner=self.pose_refiner is not None,
             last_timings_ms=dict(self._last_timings),
             notes=list(self._notes),
+            pose_refinement_gate=dict(getattr(self.pose_refiner, 'gate_counts', None) or {}),
+            pose_refinement_correction=tuple(getattr(getattr(self.pose_refiner, 'last_result', None),
+                                                     'correction', (0.0, 0.0))),
         )
 
     def reset(self, reason: str = 'reset requested') -> None:
@@ -668,9 +671,13 @@ class Estimator:
             self._last_pose_sigma = {}
             return None
         depth, spans = geom
+        # the window refiner's marginals (relative to the reference), where it solved this window, replace the
+        # odometry's uncertainty of those sources
+        marginals = getattr(getattr(self.pose_refiner, 'last_result', None), 'source_sigma', None) or None
         sigma, self._last_pose_sigma = pose_uncertainty.window_sigma_planes(
             ref, sources, depth, spans, meas.K_vol_b33, self._drift_model(),
-            geometry.inverse_depth_step(self.d_min, self.d_max, self.num_planes), covariance_only=mode == 'covariance')
+            geometry.inverse_depth_step(self.d_min, self.d_max, self.num_planes), covariance_only=mode == 'covariance',
+            source_sigma=marginals)
         return sigma
 
     def _pose_confidence_factor(self, post_bdhw: torch.Tensor, sigma_planes_bhw: torch.Tensor) -> torch.Tensor:

@@ -98,6 +98,10 @@ class EstimatorStatus:
     last_timings_ms: Dict[str, float]
     notes: List[str]                            # one-time warnings
     pose_refinement_tracking: Optional[str] = None   # the pose source's (Pipeline.status); None without a refiner
+    # the window refiner's gate: windows per outcome (refined, kept_few_inliers, rejected_chi2, skipped, lost, none)
+    # and the last window's largest step correction (m, deg); empty / zeros without a refiner that reports them
+    pose_refinement_gate: Dict[str, int] = dataclasses.field(default_factory=dict)
+    pose_refinement_correction: Tuple[float, float] = (0.0, 0.0)
 
     def as_dict(self) -> Dict[str, Any]:
         """The fields by name (``dataclasses.asdict``); ``pose_refinement_tracking`` only when there is one."""

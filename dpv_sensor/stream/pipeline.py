@@ -8,11 +8,12 @@ sequence, so odometry-free mode, pose refinement and their tracking-loss rules b
 The pose source (:class:`PoseSource`), built from the :class:`~dpv_sensor.stream.estimator.EstimatorConfig`:
 
 * ``odometry='topic'``: the frame's pose is the odometry pose the caller gives (``Frame.T_world_cam_44``);
-* ``odometry='none'``: :class:`~dpv_sensor.stream.poses.VisualOdometry` tracks every frame against the latest keyframe
-  depth; when it loses tracking the frame is dropped (``PushResult.drop``) and the pipeline restarts;
-* ``pose_refinement='window'``: :class:`~dpv_sensor.stream.poses.WindowPoseRefiner`, with the sigmas of the config
-  (``odom_sigma_rot_deg``, ``odom_sigma_trans_m``, ``odom_sigma_trans_rel``), refines the keyframe poses of each
-  window inside the estimator. A refinement that fails (an alignment that does not converge, too few usable
+* ``odometry='none'``: :class:`~dpv_sensor.stream.visual_odometry.VisualOdometry` tracks every frame against the
+  latest keyframe depth; when it loses tracking the frame is dropped (``PushResult.drop``) and the pipeline
+  restarts;
+* ``pose_refinement='window'``: :class:`~dpv_sensor.stream.window_refiner.WindowPoseRefiner`, with the sigmas of
+  the config (``odom_sigma_rot_deg``, ``odom_sigma_trans_m``, ``odom_sigma_trans_rel``), refines the keyframe poses
+  of each window inside the estimator. A refinement that fails (an alignment that does not converge, too few usable
   alignments, a refined pose implausibly far from the odometry) keeps the odometry poses for that keyframe when
   the odometry comes from a topic (counted as a fallback, the filter goes on); with visual odometry it is a
   tracking loss and restarts the filter.
@@ -54,11 +55,11 @@ class PoseSource:
         self.config = config
         self.refiner = pose_refiner
         if self.refiner is None and config.pose_refinement == 'window':
-            from dpv_sensor.stream.poses import PoseRefinerConfig, WindowPoseRefiner
+            from dpv_sensor.stream.window_refiner import PoseRefinerConfig, WindowPoseRefiner
             self.refiner = WindowPoseRefiner(PoseRefinerConfig.from_params(config.as_dict()))
         self.visual_odometry = None
         if config.odometry == 'none':
-            from dpv_sensor.stream.poses import VisualOdometry
+            from dpv_sensor.stream.visual_odometry import VisualOdometry
             self.visual_odometry = VisualOdometry()
 
     def frame_pose(self, frame: Frame):

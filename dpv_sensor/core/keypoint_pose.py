@@ -1,0 +1,258 @@
+"""Relative pose of two views from matched keypoints: rotation and translation direction, with a covariance.
+
+Image evidence on the pose that does not depend on any depth estimate: SIFT (or ORB) keypoints of both images,
+nearest-neighbour matching with Lowe's ratio test, RANSAC on the essential matrix and the cheirality test of
+``cv2.recoverPose``. Monocular matches fix the rotation and the direction of the translation, not its length.
+
+Convention: for views ``a`` and ``b`` with intrinsics ``K``, the result is ``T_b_a`` (points in ``a``'s camera
+frame to ``b``'s): ``R_b_a`` and the unit direction ``t_dir_b`` of ``t_b_a``.
+
+Covariance: after RANSAC, rotation and direction are refined by Gauss-Newton on the Sampson distances of the
+inliers (pixels), and their covariance is ``s^2 (J^T J)^-1`` with ``J`` the Jacobian of those distances with
+respect to a left rotation increment (3) and a direction increment (2, in the plane normal to the direction), and
+``s`` the larger of ``pixel_sigma`` and the distances' rms. Near-degenerate pairs (small parallax) couple rotation
+and translation direction; the covariance then says so (large, correlated), where an isotropic model would not.
+:func:`keypoint_covariance` is the isotropic figure for ``n`` well-spread inliers (``pixel_sigma / (f sqrt(n))``
+rad about each axis, ``pixel_sigma / (p sqrt(n))`` for the direction at median parallax ``p``), a lower bound.
+
+Fewer inliers give a larger covariance (``1 / n``). numpy and OpenCV only; no ROS.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Optional, Tuple
+
+import cv2
+import numpy as np
+
+__all__ = ['KeypointConfig', 'KeypointPose', 'keypoint_relative_pose', 'keypoint_covariance', 'to_gray_u8']
+
+
+@dataclass
+class KeypointConfig:
+    """detector: 'sift' or 'orb'; max_features: keypoints per image; ratio: Lowe's ratio test; ransac_px: the
+    essential matrix's RANSAC threshold (pixels); ransac_confidence: its confidence; min_inliers: fewer inliers than
+    this is no estimate (``ok`` False); pixel_sigma: the std of a keypoint's position (pixels) for the covariance;
+    min_parallax_px: a median parallax below this gives no translation direction (``t_dir_b`` None)."""
+    detector: str = 'sift'
+    max_features: int = 1000
+    ratio: float = 0.8
+    ransac_px: float = 1.0
+    ransac_confidence: float = 0.999
+    min_inliers: int = 20
+    pixel_sigma: float = 1.0
+    min_parallax_px: float = 1.0
+
+
+@dataclass
+class KeypointPose:
+    """The keypoint estimate of ``T_b_a``.
+
+    ok: False when there is no estimate (reason says why); R_b_a: rotation (3x3); t_dir_b: unit direction of
+    ``t_b_a`` (None when the parallax is too small to give one); inliers / matches: counts after RANSAC and the
+    cheirality test / after the ratio test; parallax_px: median de-rotated displacement of the inliers;
+    sigma_rot_rad, sigma_dir_rad: per-axis stds (module doc).
+    """
+    ok: bool
+    reason: Optional[str] = None
+    R_b_a: np.ndarray = field(default_factory=lambda: np.eye(3))
+    t_dir_b: Optional[np.ndarray] = None
+    inliers: int = 0
+    matches: int = 0
+    parallax_px: float = 0.0
+    sigma_rot_rad: float = math.inf
+    sigma_dir_rad: float = math.inf
+    cov_55: Optional[np.ndarray] = None      # (left rotation increment, direction increment in basis_32)
+    basis_32: Optional[np.ndarray] = None    # two unit vectors normal to t_dir_b
+    residual_px: float = 0.0                 # rms Sampson distance of the inliers
+
+    def rotation_covariance(self) -> np.ndarray:
+        """3x3 covariance of the rotation (rad^2) about the axes of frame b."""
+        if self.cov_55 is not None:
+            return self.cov_55[:3, :3].copy()
+        return np.eye(3) * self.sigma_rot_rad ** 2
+
+    def between_covariance_gtsam(self, baseline_m: float, scale_sigma_rel: float) -> np.ndarray:
+        """6x6 covariance (gtsam order: rotation, translation) of a Pose3 between factor ``T_b_a`` whose translation
+        is ``baseline_m * t_dir_b``: the direction's std across the baseline, ``scale_sigma_rel * baseline_m``
+        along it (the length is not measured by the images; it is the odometry's)."""
+        along = (scale_sigma_rel * baseline_m) ** 2
+        cov = np.zeros((6, 6))
+        if self.cov_55 is not None and self.t_dir_b is not None:
+            J = np.zeros((6, 5))                 # (rotation, translation) in frame b from the 5 parameters
+            J[:3, :3] = np.eye(3)
+            J[3:, 3:] = baseline_m * self.basis_32
+            cov = J @ self.cov_55 @ J.T
+            t = np.asarray(self.t_dir_b, np.float64)
+            cov[3:, 3:] += along * np.outer(t, t)
+        else:
+            cov[:3, :3] = self.rotation_covariance()
+            cov[3:, 3:] = np.eye(3) * max(along, 1e6 if self.t_dir_b is None else along)
+        # gtsam's tangent is on the right: rotation and translation increments in frame a's axes (R^T)
+        Rt = np.asarray(self.R_b_a, np.float64).T
+        A = np.zeros((6, 6))
+        A[:3, :3] = Rt
+        A[3:, 3:] = Rt
+        return A @ cov @ A.T
+
+
+def keypoint_covariance(n_inliers: int, focal_px: float, parallax_px: float, pixel_sigma: float = 1.0
+                        ) -> Tuple[float, float]:
+    """(sigma_rot_rad, sigma_dir_rad) for ``n_inliers`` matches (module doc); inf for no inliers."""
+    if n_inliers <= 0:
+        return math.inf, math.inf
+    root = math.sqrt(n_inliers)
+    s_rot = pixel_sigma / (focal_px * root)
+    s_dir = pixel_sigma / (parallax_px * root) if parallax_px > 0 else math.inf
+    return s_rot, s_dir
+
+
+def to_gray_u8(image) -> np.ndarray:
+    """uint8 HxW grey from uint8 / float [0, 1] HxW(x3) or a (3, H, W) / (1, 3, H, W) tensor."""
+    a = image.detach().cpu().numpy() if hasattr(image, 'detach') else np.asarray(image)
+    if a.ndim == 4:
+        a = a[0]
+    if a.ndim == 3 and a.shape[0] in (1, 3) and a.shape[-1] not in (1, 3):
+        a = np.moveaxis(a, 0, -1)
+    if a.dtype != np.uint8:
+        a = np.clip(np.asarray(a, np.float32) * 255.0 + 0.5, 0, 255).astype(np.uint8)
+    if a.ndim == 3:
+        a = cv2.cvtColor(a, cv2.COLOR_RGB2GRAY) if a.shape[2] == 3 else a[..., 0]
+    return np.ascontiguousarray(a)
+
+
+def _detect(gray: np.ndarray, cfg: KeypointConfig):
+    if cfg.detector == 'sift':
+        det = cv2.SIFT_create(nfeatures=cfg.max_features)
+    elif cfg.detector == 'orb':
+        det = cv2.ORB_create(nfeatures=cfg.max_features)
+    else:
+        raise ValueError(f"detector must be 'sift' or 'orb', not {cfg.detector!r}")
+    return det.detectAndCompute(gray, None)
+
+
+def _match(desc_a, desc_b, cfg: KeypointConfig):
+    norm = cv2.NORM_L2 if cfg.detector == 'sift' else cv2.NORM_HAMMING
+    pairs = cv2.BFMatcher(norm).knnMatch(desc_a, desc_b, k=2)
+    return [p[0] for p in pairs if len(p) == 2 and p[0].distance < cfg.ratio * p[1].distance]
+
+
+def keypoint_relative_pose(image_a, image_b, K_33: np.ndarray, config: Optional[KeypointConfig] = None,
+                           T_b_a_prior_44: Optional[np.ndarray] = None, prior_gate_px: float = 0.0) -> KeypointPose:
+    """``T_b_a`` from matched keypoints of two views with the same intrinsics ``K_33`` (module doc).
+
+    ``T_b_a_prior_44`` with ``prior_gate_px > 0``: before RANSAC, drop matches whose Sampson distance under the
+    prior (e.g. the odometry) exceeds the gate. Repetitive texture (tiles, checkers) gives ratio-test matches one
+    period off that agree with each other on a wrong motion; the gate removes them without fixing the estimate
+    to the prior (it should be several times the shift the prior's error can cause)."""
+    cfg = config or KeypointConfig()
+    K = np.asarray(K_33, np.float64)
+    kp_a, d_a = _detect(to_gray_u8(image_a), cfg)
+    kp_b, d_b = _detect(to_gray_u8(image_b), cfg)
+    if d_a is None or d_b is None or len(kp_a) < cfg.min_inliers or len(kp_b) < cfg.min_inliers:
+        n = min(len(kp_a or ()), len(kp_b or ()))
+        return KeypointPose(False, f'too few keypoints ({n} < {cfg.min_inliers})')
+    good = _match(d_a, d_b, cfg)
+    if len(good) < cfg.min_inliers:
+        return KeypointPose(False, f'too few matches after the ratio test ({len(good)} < {cfg.min_inliers})',
+                            matches=len(good))
+    pa = np.float64([kp_a[m.queryIdx].pt for m in good])
+    pb = np.float64([kp_b[m.trainIdx].pt for m in good])
+    if T_b_a_prior_44 is not None and prior_gate_px > 0:
+        T0 = np.asarray(T_b_a_prior_44, np.float64)
+        t0 = T0[:3, 3] / max(float(np.linalg.norm(T0[:3, 3])), 1e-12)
+        keep = np.abs(_sampson_px(_normalised(pa, K), _normalised(pb, K), T0[:3, :3], t0, K[0, 0])) <= prior_gate_px
+        pa, pb = pa[keep], pb[keep]
+        if len(pa) < cfg.min_inliers:
+            return KeypointPose(False, f'too few matches agree with the prior ({len(pa)} < {cfg.min_inliers})',
+                                matches=len(pa))
+    E, mask = cv2.findEssentialMat(pa, pb, K, method=cv2.RANSAC, prob=cfg.ransac_confidence, threshold=cfg.ransac_px)
+    if E is None or E.shape != (3, 3):
+        return KeypointPose(False, 'no essential matrix', matches=len(good))
+    n_in, R, t, mask = cv2.recoverPose(E, pa, pb, K, mask=mask)
+    n_in = int(n_in)
+    if n_in < cfg.min_inliers:
+        return KeypointPose(False, f'too few inliers ({n_in} < {cfg.min_inliers})', inliers=n_in,
+                            matches=len(good))
+    sel = mask.ravel() > 0
+    parallax = _derotated_parallax(pa[sel], pb[sel], K, R)
+    f = 0.5 * (K[0, 0] + K[1, 1])
+    s_rot, s_dir = keypoint_covariance(n_in, f, parallax, cfg.pixel_sigma)
+    R = np.asarray(R, np.float64)
+    t_dir = np.asarray(t, np.float64).ravel()
+    t_dir = t_dir / np.linalg.norm(t_dir)
+    xa = _normalised(pa[sel], K)
+    xb = _normalised(pb[sel], K)
+    R, t_dir, cov, B, rms = _refine(xa, xb, R, t_dir, f, cfg.pixel_sigma)
+    if parallax < cfg.min_parallax_px:
+        return KeypointPose(True, None, R, None, n_in, len(good), parallax, s_rot, math.inf, residual_px=rms)
+    s_rot = math.sqrt(max(np.linalg.eigvalsh(cov[:3, :3])[-1], s_rot ** 2))
+    s_dir = math.sqrt(max(np.linalg.eigvalsh(cov[3:, 3:])[-1], s_dir ** 2))
+    return KeypointPose(True, None, R, t_dir, n_in, len(good), parallax, s_rot, s_dir, cov, B, rms)
+
+
+def _normalised(p: np.ndarray, K: np.ndarray) -> np.ndarray:
+    return np.c_[p, np.ones(len(p))] @ np.linalg.inv(K).T
+
+
+def _skew(v: np.ndarray) -> np.ndarray:
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+
+
+def _basis(t: np.ndarray) -> np.ndarray:
+    """Two unit vectors normal to ``t`` (3x2)."""
+    a = np.eye(3)[int(np.argmin(np.abs(t)))]
+    u = np.cross(t, a)
+    u /= np.linalg.norm(u)
+    return np.c_[u, np.cross(t, u)]
+
+
+def _apply(R: np.ndarray, t: np.ndarray, B: np.ndarray, d: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+    R2 = cv2.Rodrigues(d[:3].reshape(3, 1))[0] @ R
+    t2 = t + B @ d[3:]
+    return R2, t2 / np.linalg.norm(t2)
+
+
+def _sampson_px(xa: np.ndarray, xb: np.ndarray, R: np.ndarray, t: np.ndarray, f: float) -> np.ndarray:
+    E = _skew(t) @ R
+    Ea = xa @ E.T
+    Eb = xb @ E
+    num = np.sum(xb * Ea, axis=1)
+    den = np.sqrt(Ea[:, 0] ** 2 + Ea[:, 1] ** 2 + Eb[:, 0] ** 2 + Eb[:, 1] ** 2) + 1e-15
+    return f * num / den
+
+
+def _refine(xa, xb, R, t, f, pixel_sigma, iterations: int = 5):
+    """Gauss-Newton on the Sampson distances; returns (R, t, 5x5 covariance, basis, rms px)."""
+    eps = 1e-6
+    for it in range(iterations + 1):
+        B = _basis(t)
+        r0 = _sampson_px(xa, xb, R, t, f)
+        J = np.empty((len(r0), 5))
+        for k in range(5):
+            d = np.zeros(5)
+            d[k] = eps
+            J[:, k] = (_sampson_px(xa, xb, *_apply(R, t, B, d), f) - _sampson_px(xa, xb, *_apply(R, t, B, -d), f)) \
+                / (2 * eps)
+        JtJ = J.T @ J
+        if it == iterations:
+            break
+        step = np.linalg.lstsq(JtJ, -J.T @ r0, rcond=None)[0]
+        R_new, t_new = _apply(R, t, B, step)
+        if np.sum(_sampson_px(xa, xb, R_new, t_new, f) ** 2) >= np.sum(r0 ** 2):
+            break
+        R, t = R_new, t_new
+    n = len(r0)
+    rms = float(np.sqrt(np.sum(r0 ** 2) / max(n - 5, 1)))
+    s = max(pixel_sigma, rms)
+    cov = s ** 2 * np.linalg.pinv(JtJ)
+    return R, t, cov, B, rms
+
+
+def _derotated_parallax(pa: np.ndarray, pb: np.ndarray, K: np.ndarray, R_b_a: np.ndarray) -> float:
+    """Median displacement (pixels) of the matches after mapping ``a``'s points through the rotation only."""
+    H = K @ R_b_a @ np.linalg.inv(K)
+    ph = np.c_[pa, np.ones(len(pa))] @ H.T
+    pr = ph[:, :2] / ph[:, 2:3]
+    return float(np.median(np.linalg.norm(pb - pr, axis=1))) if len(pa) else 0.0

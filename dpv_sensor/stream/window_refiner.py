@@ -1,0 +1,728 @@
+"""Sliding-window pose refinement with gtsam (layer 5).
+
+Paper sec. 3.4 (eq. 11): the depth and confidence predicted for the new reference keyframe (the filter's
+previous belief warped into it) are used to re-estimate the relative poses of the window's source frames to the
+reference by minimising the confidence-weighted robust photometric error. Here those photometric alignments
+(:mod:`dpv_sensor.core.photometric`) become ``BetweenFactorPose3`` factors with the alignment's covariance (robustified
+with a Huber norm) in a gtsam factor graph over the keyframes of the sliding window, next to odometry between
+factors with configurable sigmas and a prior that fixes the gauge on the oldest keyframe; Levenberg-Marquardt
+solves it at every keyframe.
+
+The refiner, :class:`WindowPoseRefiner` (``pose_refinement: window``): the estimator calls
+:meth:`WindowPoseRefiner.refine` once per keyframe with the window's keyframes (their images and odometry poses) and
+the reference's predicted depth/confidence; it returns refined ``T_world_cam`` of every window keyframe, the refined
+``T_src_ref`` for the plane sweep, and a ``tracking_ok`` flag with a reason. It keeps its own state between calls
+(refined poses, earlier alignment factors whose keyframes are still in the window). Visual odometry
+(:mod:`dpv_sensor.stream.visual_odometry`, ``odometry: none``) produces poses that the same refiner refines.
+
+Estimator integration: a :class:`WindowPoseRefiner` instance *is* the estimator's ``pose_refiner`` hook
+(:meth:`WindowPoseRefiner.__call__` takes its ``PoseRefinementRequest`` and returns one ``T_world_cam`` per window
+keyframe); after the call, :attr:`WindowPoseRefiner.tracking_lost` and ``last_result.reason`` report tracking
+loss, and ``reset()`` forgets the window. Keyframes are keyed by stamp. The hook turns the DPV confidence into a
+per-pixel inverse-depth std (:func:`~dpv_sensor.core.photometric.inverse_depth_std_from_confidence`).
+
+What the alignments can and cannot correct: against the filter's predicted depth, photometric alignment pins the
+rotation to a few hundredths of a degree but the translation only to a few percent of the baseline (the depth's
+scale and structure errors enter it directly), and a constant inverse-depth error of the predicted depth - what
+rotation errors leave in plane-swept depth - maps back onto a rotation about the axis normal to the baseline.
+The factors' covariances are widened accordingly (``depth_scale_sigma``, ``inv_depth_offset_sigma``,
+``translation_sigma_rel``). The defaults (5 % depth scale, 10 % of the step isotropically) still let the
+alignments move the translation by about the odometry's own error: keeping the odometry's translation while the
+alignments turn the rotation leaves a pose that agrees with neither, and plane-swept depth from such poses is
+biased (measured with ``benchmarks.poses``, classical model: with 50 % / 20 % widening, SUN3D recovered 0.22 and
+-0.01 of the noisy-to-GT abs_rel gap; with 10 % / 5 % (and 2 sources per keyframe), 0.74 and 0.59, and rendered
+sequences 0.87 and 0.81 instead of 0.82 and 0.79, at the same metric translation RPE).
+
+Tracking loss: an alignment that does not converge (see :class:`~dpv_sensor.core.photometric.AlignmentResult`), too
+few valid pixels, or a refined pose that jumps away from the odometry (or constant-velocity) prediction by more
+than the configured thresholds sets ``tracking_ok = False`` with a reason. The estimator must then reset the
+filter and not publish depth computed with that pose; the refiner itself discards the diverged solution (it keeps
+the odometry-chained poses and drops its photometric factors), and the visual odometry re-bootstraps.
+
+Poses are float64 numpy 4x4 ``T_world_cam`` (camera-to-world, OpenCV axes). No ROS import.
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Dict, Hashable, List, Optional, Sequence, Tuple
+
+import gtsam
+import numpy as np
+
+from dpv_sensor import params as _params
+from dpv_sensor.core import pose_uncertainty
+from dpv_sensor.core.keypoint_pose import KeypointConfig, KeypointPose, keypoint_relative_pose
+from dpv_sensor.core.geometry import rotation_angle_np
+from dpv_sensor.core.photometric import (AlignmentConfig, AlignmentResult, Aligner, ImagePyramid,
+                                   inverse_depth_std_from_confidence, pose_error)
+
+__all__ = ['PoseRefinerConfig', 'WindowKeyframe', 'RefinementResult', 'WindowPoseRefiner',
+           'odometry_between_sigmas', 'odometry_step_covariance', 'relative_pose_errors', 'pose3_from_matrix',
+           'relative_pose']
+
+
+# ------------------------------------------------------------------------------------------------------------------
+# Configuration and data
+# ------------------------------------------------------------------------------------------------------------------
+
+@dataclass
+class PoseRefinerConfig:
+    """Parameters of :class:`WindowPoseRefiner`.
+
+    alignment: photometric alignment parameters (pyramid, robust norm, convergence tests).
+    odom_sigma_rot_deg: rotation sigma of an odometry between factor (per keyframe step, degrees).
+    odom_sigma_trans_m, odom_sigma_trans_rel: translation sigma of an odometry between factor:
+        ``odom_sigma_trans_m + odom_sigma_trans_rel * |step translation|`` (metres).
+    prior_sigma_rot_deg, prior_sigma_trans_m: the gauge prior on the oldest keyframe of the window.
+    photometric_huber_k: Huber threshold (in sigmas) of the robust noise model of photometric factors.
+    depth_scale_sigma: relative uncertainty of the predicted depth's overall scale; widens each photometric
+        factor along its translation (the part of the translation the depth's scale decides; see
+        :meth:`~dpv_sensor.core.photometric.AlignmentResult.between_covariance_gtsam`).
+    inv_depth_offset_sigma: std (1/m) of a constant inverse-depth error of the predicted depth, which widens each
+        photometric factor along the pose change such an error causes (mostly a rotation about the axis normal to
+        the baseline: plane-swept depth from poses with rotation errors is off by about rotation error / baseline
+        in inverse depth, and aligning against it would re-create those rotation errors). None: automatic,
+        ``radians(odom_sigma_rot_deg) / |baseline to the nearest source|``.
+    translation_sigma_rel: isotropic widening of the photometric translation, relative to the step length, for
+        errors in the predicted depth's structure. With the filter's depth, photometric translations are only
+        good to a few percent of the baseline (rotations to a few hundredths of a degree); with exact depth, about
+        1-3 mm at 3-5 cm baselines (``benchmarks.poses --parts gtcheck``), so sub-millimetre odometry errors are
+        below what the alignment resolves.
+    use_depth_uncertainty: in the estimator hook, derive the per-pixel inverse-depth std from the DPV confidence
+        (:func:`~dpv_sensor.core.photometric.inverse_depth_std_from_confidence`) and let the alignment weigh it.
+    max_sources: align the reference against at most this many sources (nearest in key order first);
+        None = all sources of the window. The earlier alignments stay in the window (``keep_old_factors``), so
+        2 keeps every window keyframe tied to two others at half the cost of 4 (measured on a rendered
+        sequence with the classical model: rotation RPE 0.054 deg either way, abs_rel 0.166 vs 0.165,
+        alignment 46 vs 86 ms per keyframe).
+    keep_old_factors: keep earlier alignments between keyframes that are still in the window.
+    min_converged_fraction: tracking is lost when fewer than this fraction of the alignments are usable
+        (converged and no jump).
+    require_nearest: tracking is lost when the alignment to the nearest source is not usable.
+    max_jump_translation_m, max_jump_rotation_deg: pose-jump limits. An alignment that moves the relative pose
+        further than this from its odometry initialisation is not used (a jump); and tracking is lost when the
+        refined relative motion between consecutive keyframes differs from the odometry's by more than this.
+    lm_max_iterations: Levenberg-Marquardt iterations of the window optimisation.
+    warmup_keyframes: after a (re)start, the first this many references that come with a predicted depth are
+        not aligned (odometry only): that depth has integrated few measurements, and aligning against a wrong
+        depth makes the rotation consistent with it (rotation-translation ambiguity), locking the error in.
+    max_rotation_parallax: a window is not refined (the odometry poses are kept, ``RefinementResult.skipped``
+        says why) when the camera turns in place: the rotation to the nearest source (radians) is more than this
+        many times the parallax its baseline gives at the predicted depth's median (baseline / depth). There the
+        predicted depth carries little information and aligning against it moves the rotation away from the
+        truth: on tum_fr1_rpy (median ratio 14.5 between keyframes) refinement doubled the rotation RPE against the
+        motion-capture poses (0.16 -> 0.34 deg). The rendered selection scenes stay below 4.4, the SUN3D
+        fragments below 7 (90th percentiles). 0 disables the rule.
+    """
+    alignment: AlignmentConfig = field(default_factory=lambda: AlignmentConfig(
+        finest_level=1, num_levels=3, max_pixels=2000, step_tolerance=5e-4))
+    odom_sigma_rot_deg: float = _params.default('odom_sigma_rot_deg')
+    odom_sigma_trans_m: float = _params.default('odom_sigma_trans_m')
+    odom_sigma_trans_rel: float = _params.default('odom_sigma_trans_rel')
+    prior_sigma_rot_deg: float = 1e-3
+    prior_sigma_trans_m: float = 1e-5
+    photometric_huber_k: float = 3.0
+    depth_scale_sigma: float = 0.05
+    inv_depth_offset_sigma: Optional[float] = None
+    translation_sigma_rel: float = 0.1
+    use_depth_uncertainty: bool = True
+    max_sources: Optional[int] = 2
+    keep_old_factors: bool = True
+    min_converged_fraction: float = 0.5
+    require_nearest: bool = True
+    max_jump_translation_m: float = 0.10
+    max_jump_rotation_deg: float = 5.0
+    lm_max_iterations: int = 30
+    warmup_keyframes: int = 0
+    max_rotation_parallax: float = 8.0
+    odom_covariance: str = 'fixed'
+    drift: pose_uncertainty.DriftModel = field(default_factory=lambda: pose_uncertainty.DriftModel(sync_s=0.0))
+    keypoint_factors: bool = False
+    keypoint: KeypointConfig = field(default_factory=KeypointConfig)
+    keypoint_sources: int = 2
+    keypoint_prior_gate_px: float = 0.0
+    keypoint_huber_k: float = 1.345
+    keypoint_scale_sigma_rel: float = 0.5
+    marginals: bool = False
+    gate_chi2: float = 0.0
+    gate_min_inliers: int = 0
+
+    # Pose-error model of the window (all off by default; see :meth:`WindowPoseRefiner._optimize`):
+    # odom_covariance: 'fixed' (the odom_sigma_* above) or 'odometry' (each step's covariance: the growth of the
+    #     keyframes' published pose covariance where both are filled, else the ``drift`` figures of the step).
+    # keypoint_factors: add keypoint relative-pose factors (core.keypoint_pose) between the reference and its
+    #     ``keypoint_sources`` nearest sources: rotation and direction from the images, the translation's length
+    #     from the odometry (``keypoint_scale_sigma_rel`` of it along the baseline), Huber ``keypoint_huber_k``.
+    # marginals: after the solve, each source's pose covariance relative to the reference (gtsam Marginals) in
+    #     ``RefinementResult.source_sigma``, the pose uncertainty the estimator widens with in place of the
+    #     odometry's.
+    # gate_chi2 > 0: keep the odometry when a keypoint rotation differs from the odometry's by d with
+    #     d^T (S_odom + S_kp)^-1 d above this (3 dof; 16.27 = 99.9 %). gate_min_inliers > 0 (with keypoint
+    #     factors): keep the odometry when no keypoint pair has this many inliers (e.g. a textureless window).
+
+    #: node parameters (dpv_sensor.params) that set fields of this class, same names
+    PARAMS = ('odom_sigma_rot_deg', 'odom_sigma_trans_m', 'odom_sigma_trans_rel')
+
+    @classmethod
+    def from_params(cls, values) -> 'PoseRefinerConfig':
+        """The defaults, with the fields named in :attr:`PARAMS` taken from the node's parameter values."""
+        return cls(**{k: type(getattr(cls, k))(values[k]) for k in cls.PARAMS if k in values})
+
+
+@dataclass
+class WindowKeyframe:
+    """One keyframe of the window as the estimator hands it over.
+
+    key: an identifier that orders keyframes in time (a keyframe counter or the stamp); the same keyframe must
+        carry the same key in every call. image: uint8 HxWx3 RGB (or grey / float [0,1], any form
+        :func:`~dpv_sensor.core.photometric.to_gray` takes), at the processing size. K_33: its intrinsics.
+    T_world_cam_odom_44: the pose from odometry (or visual odometry); only its first value per key is used.
+    """
+    key: Hashable
+    image: object
+    K_33: np.ndarray
+    T_world_cam_odom_44: np.ndarray
+    pose_cov_66: Optional[np.ndarray] = None
+
+
+@dataclass
+class RefinementResult:
+    """What :meth:`WindowPoseRefiner.refine` returns.
+
+    T_world_cam: refined (or, after tracking loss, odometry-chained) pose of every window keyframe, by key.
+    T_world_ref_44: the reference keyframe's pose (``T_world_cam[ref.key]``).
+    T_src_ref: per source (in the order given) the relative pose for the plane sweep, ``T_src_ref = T_world_src^-1
+        T_world_ref`` from the poses above.
+    tracking_ok: False when the refinement diverged (see the module doc); reason says why (None when ok or when
+        there was nothing to refine, e.g. no depth yet: then ``refined`` is False).
+    refined: True when photometric factors entered the optimisation.
+    alignments: per source (order given) the :class:`AlignmentResult` (None when not aligned).
+    timings_ms: wall time of 'align', 'optimize', 'total'; 'cpu': process CPU time of the call.
+    skipped: why this window was not refined although it could have been (the camera turns in place: see
+        ``PoseRefinerConfig.max_rotation_parallax``); the poses are then the odometry-chained ones, tracking is ok.
+    """
+    T_world_cam: Dict[Hashable, np.ndarray]
+    T_world_ref_44: np.ndarray
+    T_src_ref: List[np.ndarray]
+    tracking_ok: bool
+    reason: Optional[str]
+    refined: bool
+    alignments: List[Optional[AlignmentResult]]
+    timings_ms: Dict[str, float] = field(default_factory=dict)
+    skipped: Optional[str] = None
+    source_sigma: Dict[Hashable, pose_uncertainty.PoseSigma] = field(default_factory=dict)
+    gate: str = 'none'
+    correction: Tuple[float, float] = (0.0, 0.0)
+    keypoints: List[KeypointPose] = field(default_factory=list)
+
+
+def odometry_between_sigmas(T_a_b_44: np.ndarray, cfg: PoseRefinerConfig) -> np.ndarray:
+    """gtsam-ordered (rot, rot, rot, trans, trans, trans) sigmas of an odometry between factor for step T_a_b."""
+    rot = math.radians(cfg.odom_sigma_rot_deg)
+    tr = cfg.odom_sigma_trans_m + cfg.odom_sigma_trans_rel * float(np.linalg.norm(np.asarray(T_a_b_44)[:3, 3]))
+    return np.array([rot, rot, rot, tr, tr, tr])
+
+
+def odometry_step_covariance(T_odom_a: np.ndarray, T_odom_b: np.ndarray, cov_a_66, cov_b_66,
+                             cfg: PoseRefinerConfig) -> np.ndarray:
+    """gtsam-ordered 6x6 covariance of the odometry's motion from keyframe a to b: ``odom_covariance='fixed'``
+    the configured sigmas; 'odometry' the growth of the published covariance where both are filled, else the drift
+    figures of the step (never below 1e-3 deg / 0.1 mm per axis: odometry is never exact)."""
+    T_ab = relative_pose(T_odom_a, T_odom_b)
+    if cfg.odom_covariance == 'fixed':
+        return np.diag(odometry_between_sigmas(T_ab, cfg) ** 2)
+    if cfg.odom_covariance != 'odometry':
+        raise ValueError(f"odom_covariance must be 'fixed' or 'odometry', not {cfg.odom_covariance!r}")
+    sig = pose_uncertainty.relative_pose_sigma(cfg.drift, [T_odom_a, T_odom_b], cov_ref_66=cov_a_66,
+                                               cov_src_66=cov_b_66)
+    rot = max(sig.rot_rad, math.radians(1e-3))
+    tr = max(sig.trans_m, 1e-4)
+    return np.diag([rot ** 2] * 3 + [tr ** 2] * 3)
+
+
+def relative_pose_errors(T_world_est: Sequence[np.ndarray], T_world_gt: Sequence[np.ndarray]
+                         ) -> Tuple[np.ndarray, np.ndarray]:
+    """Relative pose errors between consecutive poses: (translation m, rotation deg) arrays of length n-1."""
+    t_err, r_err = [], []
+    for i in range(1, len(T_world_est)):
+        rel_est = np.linalg.inv(T_world_est[i - 1]) @ T_world_est[i]
+        rel_gt = np.linalg.inv(T_world_gt[i - 1]) @ T_world_gt[i]
+        te, re = pose_error(rel_gt, rel_est)
+        t_err.append(te)
+        r_err.append(re)
+    return np.asarray(t_err), np.asarray(r_err)
+
+
+def pose3_from_matrix(T_44: np.ndarray) -> gtsam.Pose3:
+    """A gtsam Pose3 from a 4x4 matrix, its rotation re-orthonormalised."""
+    T = np.asarray(T_44, dtype=np.float64)
+    # Re-orthonormalise the rotation (odometry poses arrive with float rounding).
+    U, _, Vt = np.linalg.svd(T[:3, :3])
+    R = U @ Vt
+    if np.linalg.det(R) < 0:
+        R = U @ np.diag([1.0, 1.0, -1.0]) @ Vt
+    return gtsam.Pose3(gtsam.Rot3(R), gtsam.Point3(*T[:3, 3]))
+
+
+def relative_pose(T_world_a: np.ndarray, T_world_b: np.ndarray) -> np.ndarray:
+    """T_a_b = T_world_a^-1 T_world_b."""
+    return np.linalg.inv(T_world_a) @ T_world_b
+
+
+# ------------------------------------------------------------------------------------------------------------------
+# Sliding-window refiner
+# ------------------------------------------------------------------------------------------------------------------
+
+@dataclass
+class _DepthReference:
+    """What a window is aligned against: the reference's depth and its weights (the arguments of
+    :meth:`WindowPoseRefiner.refine`)."""
+    depth_hw: object
+    conf_hw: object = None
+    K_depth_33: Optional[np.ndarray] = None
+    inv_depth_std_hw: object = None
+
+
+@dataclass
+class _WindowAlignments:
+    """The photometric alignments of one window: per source the result (None: not tried), the sources tried
+    (nearest first), why some are unusable, and the between factors of the usable ones."""
+    alignments: List[Optional[AlignmentResult]]
+    order: List[int] = field(default_factory=list)
+    nearest: Optional[int] = None
+    failed: Dict[int, str] = field(default_factory=dict)
+    new_factors: list = field(default_factory=list)
+
+
+class WindowPoseRefiner:
+    """Sliding-window pose refinement: photometric alignments + odometry in a gtsam factor graph.
+
+    Usage by the estimator, once per keyframe (after predicting the reference's DPV)::
+
+        T_init = refiner.initial_pose(ref_key, T_world_cam_odom)      # odometry chained onto refined poses
+        ... predict the DPV of the reference with T_init, depth_hat / conf_hat = eq. 1 / eq. 2 ...
+        res = refiner.refine(WindowKeyframe(ref_key, ref_img, K, T_odom_ref),
+                             [WindowKeyframe(k, img_k, K, T_odom_k) for the window's sources],
+                             depth_hat, conf_hat, K_depth_33=K_volume)
+        if not res.tracking_ok: reset the filter, do not publish this keyframe
+        else: plane sweep with res.T_src_ref; predict/update the filter with res.T_world_ref_44
+
+    ``reset()`` forgets everything (call it with the estimator's reset).
+    """
+
+    def __init__(self, config: Optional[PoseRefinerConfig] = None):
+        self.config = config or PoseRefinerConfig()
+        self.calls = 0          # refine() calls since construction (not cleared by reset)
+        self.reset()
+
+    def reset(self) -> None:
+        self._odom: Dict[Hashable, np.ndarray] = {}       # first odometry pose seen per key
+        self._est: Dict[Hashable, np.ndarray] = {}        # current refined pose per key
+        self._factors: List[Tuple[Hashable, Hashable, np.ndarray, np.ndarray]] = []  # (ref, src, T_ref_src, cov)
+        self._pyramids: Dict[Hashable, ImagePyramid] = {}   # per keyframe, reused while it stays in the window
+        self._depth_refs = 0                                 # references with a predicted depth since the start
+        self._cov: Dict[Hashable, Optional[np.ndarray]] = {}   # first odometry pose covariance seen per key
+        self._graph = None                                   # (graph, result, index) of the last solve
+        self.last_result: Optional[RefinementResult] = None
+        self.losses = 0
+        if not hasattr(self, 'gate_counts'):
+            self.gate_counts: Dict[str, int] = {}   # windows per gate outcome since construction (not reset)
+
+    @property
+    def tracking_lost(self) -> bool:
+        """True when the last :meth:`refine` flagged tracking loss (reason in ``last_result.reason``)."""
+        return self.last_result is not None and not self.last_result.tracking_ok
+
+    # ---------------------------------------------------------------------------------------------------------
+    def __call__(self, request) -> Optional[List[np.ndarray]]:
+        """The estimator's ``pose_refiner`` hook: ``(PoseRefinementRequest) -> list of T_world_cam``.
+
+        ``request`` has ``keyframes`` (time order; each with ``stamp``, ``image_b3hw`` (1, 3, H, W) in [0, 1],
+        ``K_b33``, ``odom_T_world_cam_44``), ``reference`` (index), ``depth_hw`` / ``confidence_hw`` (torch,
+        volume resolution, or None) and ``K_depth_33``. Keyframes are keyed by their stamp. Returns one
+        ``T_world_cam`` per keyframe in the request's order: refined, or after tracking loss the odometry
+        motion chained onto the last refined poses (never a diverged pose). The outcome (``tracking_ok``,
+        ``reason``, alignments, timings) is in :attr:`last_result` / :attr:`tracking_lost`.
+        """
+        kfs = list(request.keyframes)
+        frames = []
+        for kf in kfs:
+            img = kf.image_b3hw
+            img = img[0] if getattr(img, 'dim', lambda: 0)() == 4 else img
+            K = kf.K_b33
+            K = K[0] if getattr(K, 'dim', lambda: 0)() == 3 else K
+            K = K.detach().double().cpu().numpy() if hasattr(K, 'detach') else np.asarray(K, dtype=np.float64)
+            odom = getattr(kf, 'odom_T_world_cam_44', None)
+            odom = kf.T_world_cam_44 if odom is None else odom
+            frames.append(WindowKeyframe(float(kf.stamp), img.detach().float().cpu() if hasattr(img, 'detach')
+                                         else img, K, np.asarray(odom, dtype=np.float64),
+                                         getattr(kf, 'pose_cov_66', None)))
+        r = int(request.reference)
+        depth = request.depth_hw
+        conf = request.confidence_hw
+        depth = depth.detach().float().cpu() if depth is not None and hasattr(depth, 'detach') else depth
+        conf = conf.detach().float().cpu() if conf is not None and hasattr(conf, 'detach') else conf
+        rho_std = None
+        depths_d = getattr(request, 'depths_d', None)
+        if self.config.use_depth_uncertainty and conf is not None and depths_d is not None:
+            rho_std = inverse_depth_std_from_confidence(conf, depths_d.detach().cpu()
+                                                        if hasattr(depths_d, 'detach') else depths_d)
+        res = self.refine(frames[r], [f for i, f in enumerate(frames) if i != r], depth, conf,
+                          request.K_depth_33, rho_std)
+        return [res.T_world_cam[f.key] for f in frames]
+
+    # ---------------------------------------------------------------------------------------------------------
+    @property
+    def window_keys(self) -> List[Hashable]:
+        return sorted(self._est)
+
+    def initial_pose(self, key: Hashable, T_world_cam_odom_44: np.ndarray) -> np.ndarray:
+        """Best pose of a keyframe before refinement: its refined pose if known, else the odometry motion from the
+        nearest refined keyframe chained onto that keyframe's refined pose (falls back to the odometry pose)."""
+        if key in self._est:
+            return self._est[key].copy()
+        T_odom = self._odom.get(key, np.asarray(T_world_cam_odom_44, dtype=np.float64))
+        if not self._est:
+            return T_odom.copy()
+        anchor = self._nearest_known(key)
+        return self._est[anchor] @ relative_pose(self._odom[anchor], T_odom)
+
+    def _nearest_known(self, key: Hashable) -> Hashable:
+        known = sorted(self._est)
+        older = [k for k in known if k <= key]
+        return older[-1] if older else known[0]
+
+    # ---------------------------------------------------------------------------------------------------------
+    def refine(self, ref: WindowKeyframe, sources: Sequence[WindowKeyframe], depth_ref=None, conf_ref=None,
+               K_depth_33=None, inv_depth_std_ref=None) -> RefinementResult:
+        """Refine the window's keyframe poses (see the class doc).
+
+        Args:
+            ref: the reference keyframe (the one whose depth is being estimated).
+            sources: the other keyframes of the window (older and, for a centred window, newer ones).
+            depth_ref: predicted depth of the reference (h, w) in metres, 0/NaN = none; None = nothing to align
+                against (first keyframe, right after a reset): the poses are the odometry-chained ones.
+            conf_ref: its confidence (h, w) in [0, 1] (paper eq. 2), None = uniform.
+            K_depth_33: intrinsics of the depth grid when it differs in size from the images (e.g. the quarter-
+                resolution volume); must be ``ref.K_33`` scaled.
+            inv_depth_std_ref: optional per-pixel std of the inverse depth (1/m) on the depth grid: uncertain depth
+                then weighs less in the alignment and widens its covariance.
+        """
+        t0 = time.perf_counter()
+        c0 = time.process_time()
+        self.calls += 1
+        keys = [ref.key] + [f.key for f in sources]
+        window = self._admit_window([ref] + list(sources))
+        init = self._initial_values(window)
+        t_align = time.perf_counter()
+        warm = self._count_depth_ref(keys, depth_ref)
+        skipped = None
+        if depth_ref is not None and sources and warm:
+            skipped = self._turning_in_place(ref, sources, init, depth_ref)
+        if skipped is None and depth_ref is not None and sources and warm:
+            depth = _DepthReference(depth_ref, conf_ref, K_depth_33, inv_depth_std_ref)
+            aligned = self._align_sources(ref, sources, init, depth)
+        else:
+            aligned = _WindowAlignments(alignments=[None] * len(sources))
+        t_opt = time.perf_counter()
+        reason = self._alignment_failure(aligned)
+        if skipped is not None:
+            # a fallback, not a loss: the odometry-chained poses, and no photometric history across the turn
+            self._factors = []
+        kp_factors, kps = [], []
+        if self.config.keypoint_factors and sources and skipped is None and reason is None:
+            kp_factors, kps = self._keypoint_factors(ref, sources, init)
+        factors = self._factors + aligned.new_factors
+        gate = self._evidence_gate(kps, kp_factors, skipped)
+        if gate != 'none':
+            factors, kp_factors = [], []
+        self._graph = None
+        poses, refined, reason = self._solve(window, init, factors, reason, kp_factors)
+        tracking_ok = reason is None
+        if not tracking_ok:
+            self.losses += 1
+            poses, refined = init, False
+            gate = 'lost'
+        elif refined:
+            gate = 'refined'
+        if gate == 'none':
+            gate = 'kept_no_factors'
+        correction = self._correction(window, poses)
+        self.gate_counts[gate] = self.gate_counts.get(gate, 0) + 1
+        self._keep_solution(window, poses, factors, tracking_ok)
+        sigmas = self._marginal_sigmas(window, ref, sources) if refined and self.config.marginals else {}
+        t1 = time.perf_counter()
+        T_world_ref = poses[ref.key]
+        self.last_result = RefinementResult(
+            T_world_cam={k: poses[k].copy() for k in window},
+            T_world_ref_44=T_world_ref.copy(),
+            T_src_ref=[relative_pose(poses[s.key], T_world_ref) for s in sources],
+            tracking_ok=tracking_ok, reason=reason, refined=refined, alignments=aligned.alignments,
+            timings_ms={'align': 1e3 * (t_opt - t_align), 'optimize': 1e3 * (t1 - t_opt),
+                        'total': 1e3 * (t1 - t0), 'cpu': 1e3 * (time.process_time() - c0)}, skipped=skipped,
+            source_sigma=sigmas, gate=gate, correction=correction, keypoints=kps)
+        return self.last_result
+
+    def _admit_window(self, frames: List[WindowKeyframe]) -> List[Hashable]:
+        """Take the window's keyframes in (their odometry poses) and forget the keyframes that left it, with their
+        factors; returns the window's keys in order."""
+        keys = [f.key for f in frames]
+        if len(set(keys)) != len(keys):
+            raise ValueError(f'duplicate keys in the window: {keys}')
+        for f in frames:
+            if f.key not in self._odom:
+                self._odom[f.key] = np.asarray(f.T_world_cam_odom_44, dtype=np.float64).copy()
+                self._cov[f.key] = None if f.pose_cov_66 is None else np.asarray(f.pose_cov_66, np.float64)
+        for store in (self._est, self._odom, self._pyramids, self._cov):
+            for k in list(store):
+                if k not in keys:
+                    del store[k]
+        if self.config.keep_old_factors:
+            self._factors = [f for f in self._factors if f[0] in keys and f[1] in keys]
+        else:
+            self._factors = []
+        return sorted(keys)
+
+    def _count_depth_ref(self, keys: List[Hashable], depth_ref) -> bool:
+        """Count a window with a depth to align against; whether enough came in a row to align (the warm-up)."""
+        if depth_ref is not None:
+            if not set(keys) & set(self._est):
+                self._depth_refs = 0                         # a new stream: the window shares nothing with ours
+            self._depth_refs += 1
+        return self._depth_refs > self.config.warmup_keyframes
+
+    def _align_sources(self, ref: WindowKeyframe, sources: Sequence[WindowKeyframe],
+                       init: Dict[Hashable, np.ndarray], depth: '_DepthReference') -> '_WindowAlignments':
+        """Align the nearest sources to the reference's depth; each usable alignment becomes a between factor."""
+        cfg = self.config
+        out = _WindowAlignments(alignments=[None] * len(sources))
+        order = sorted(range(len(sources)), key=lambda i: _key_distance(sources[i].key, ref.key))
+        if cfg.max_sources is not None:
+            order = order[:cfg.max_sources]
+        out.order = order
+        aligner = Aligner(self._pyramid(ref), depth.depth_hw, ref.K_33, conf_ref=depth.conf_hw,
+                          K_depth_33=depth.K_depth_33, inv_depth_std_ref=depth.inv_depth_std_hw,
+                          config=cfg.alignment)
+        offset_sigma = cfg.inv_depth_offset_sigma
+        if offset_sigma is None:
+            base = float(np.linalg.norm(relative_pose(init[sources[order[0]].key], init[ref.key])[:3, 3]))
+            offset_sigma = math.radians(cfg.odom_sigma_rot_deg) / max(base, 1e-3)
+        for i in order:
+            s = sources[i]
+            T_src_ref0 = relative_pose(init[s.key], init[ref.key])
+            res = aligner.align(self._pyramid(s), T_src_ref0)
+            out.alignments[i] = res
+            if not res.converged:
+                out.failed[i] = res.reason
+                continue
+            # A converged alignment that lands far from the odometry prediction is a pose jump.
+            dt, dr = pose_error(T_src_ref0, res.T_src_ref_44)
+            if dt > cfg.max_jump_translation_m or dr > cfg.max_jump_rotation_deg:
+                out.failed[i] = (f'pose jump: the alignment moved {dt:.3f} m / {dr:.2f} deg away from the odometry '
+                                 f'(limits {cfg.max_jump_translation_m} m / {cfg.max_jump_rotation_deg} deg)')
+                continue
+            out.new_factors.append((ref.key, s.key, res.T_ref_src_44,
+                                    res.between_covariance_gtsam(cfg.depth_scale_sigma, cfg.translation_sigma_rel,
+                                                                 offset_sigma)))
+        out.nearest = order[0] if order else None
+        return out
+
+    def _alignment_failure(self, aligned: '_WindowAlignments') -> Optional[str]:
+        """Why the window's alignments are not enough to refine it (None: they are, or none was tried)."""
+        cfg = self.config
+        order, failed = aligned.order, aligned.failed
+        if not order:
+            return None
+        n_ok = len(order) - len(failed)
+        if cfg.require_nearest and aligned.nearest in failed:
+            return f'alignment to the nearest keyframe failed: {failed[aligned.nearest]}'
+        if n_ok < cfg.min_converged_fraction * len(order):
+            fails = '; '.join(sorted(set(failed.values())))
+            return f'only {n_ok}/{len(order)} alignments usable ({fails})'
+        return None
+
+    def _keypoint_factors(self, ref: WindowKeyframe, sources: Sequence[WindowKeyframe],
+                          init: Dict[Hashable, np.ndarray]) -> Tuple[list, List[KeypointPose]]:
+        """Keypoint relative poses of the reference to its nearest sources; usable ones as (src, ref, T_src_ref,
+        cov) between factors, the translation's length the odometry's."""
+        cfg = self.config
+        order = sorted(range(len(sources)), key=lambda i: _key_distance(sources[i].key, ref.key))
+        factors, kps = [], []
+        for i in order[:cfg.keypoint_sources]:
+            s = sources[i]
+            T0 = relative_pose(init[s.key], init[ref.key])                # T_src_ref from the odometry
+            kp = keypoint_relative_pose(ref.image, s.image, ref.K_33, cfg.keypoint, T0, cfg.keypoint_prior_gate_px)
+            kps.append(kp)
+            if not kp.ok or kp.t_dir_b is None:
+                continue
+            base = float(np.linalg.norm(T0[:3, 3]))
+            T = np.eye(4)
+            T[:3, :3] = kp.R_b_a
+            T[:3, 3] = base * kp.t_dir_b
+            factors.append((s.key, ref.key, T, kp.between_covariance_gtsam(base, cfg.keypoint_scale_sigma_rel)))
+        return factors, kps
+
+    def _evidence_gate(self, kps: List[KeypointPose], kp_factors: list, skipped) -> str:
+        """Before the solve: 'kept_few_inliers' when keypoint evidence is required and no pair has enough inliers;
+        'rejected_chi2' when a keypoint rotation differs from the odometry's by more than ``gate_chi2`` allows
+        under the sum of the two rotation covariances (d^T (S_odom + S_kp)^-1 d); else 'none'."""
+        cfg = self.config
+        if skipped is not None:
+            return 'skipped'
+        if cfg.keypoint_factors and cfg.gate_min_inliers > 0 and kps:
+            if max(k.inliers for k in kps) < cfg.gate_min_inliers:
+                return 'kept_few_inliers'
+        if cfg.gate_chi2 > 0:
+            for s, r, T_src_ref, cov in kp_factors:
+                T_odom = relative_pose(self._odom[s], self._odom[r])
+                d = gtsam.Pose3.Logmap(pose3_from_matrix(T_odom).between(pose3_from_matrix(T_src_ref)))[:3]
+                S = odometry_step_covariance(self._odom[s], self._odom[r], self._cov.get(s), self._cov.get(r), cfg)
+                if float(d @ np.linalg.solve(S[:3, :3] + cov[:3, :3], d)) > cfg.gate_chi2:
+                    return 'rejected_chi2'
+        return 'none'
+
+    def _correction(self, window, poses) -> Tuple[float, float]:
+        """The largest change (m, deg) the refinement made to a step's odometry motion in this window."""
+        worst = (0.0, 0.0)
+        for a, b in zip(window[:-1], window[1:]):
+            dt, dr = pose_error(relative_pose(self._odom[a], self._odom[b]), relative_pose(poses[a], poses[b]))
+            worst = (max(worst[0], dt), max(worst[1], dr))
+        return worst
+
+    def _marginal_sigmas(self, window, ref, sources) -> Dict[Hashable, pose_uncertainty.PoseSigma]:
+        """Per source, per-axis stds of its pose relative to the reference from the solved graph's marginals."""
+        if self._graph is None:
+            return {}
+        graph, result, idx = self._graph
+        try:
+            marg = gtsam.Marginals(graph, result)
+        except RuntimeError:
+            return {}
+        out = {}
+        r = idx[ref.key]
+        for s in sources:
+            j = idx[s.key]
+            C = marg.jointMarginalCovariance([r, j]).fullMatrix()
+            T_rs = result.atPose3(r).between(result.atPose3(j))
+            J = np.hstack([-T_rs.inverse().AdjointMap(), np.eye(6)])   # d(T_r^-1 T_s) = -Ad(T_rs^-1) d_r + d_s
+            Crel = J @ C @ J.T
+            out[s.key] = pose_uncertainty.PoseSigma(rot_rad=math.sqrt(max(np.trace(Crel[:3, :3]) / 3, 0.0)),
+                                                    trans_m=math.sqrt(max(np.trace(Crel[3:, 3:]) / 3, 0.0)))
+        return out
+
+    def _solve(self, window: List[Hashable], init: Dict[Hashable, np.ndarray], factors: list,
+               reason: Optional[str], kp_factors: Sequence = ()) -> Tuple[Dict[Hashable, np.ndarray], bool,
+                                                                        Optional[str]]:
+        """Optimise the window over its factors unless a reason says not to; returns (poses, refined, reason)."""
+        if reason is not None or not (factors or kp_factors):
+            return init, False, reason
+        try:
+            poses = self._optimize(window, init, factors, kp_factors)
+        except RuntimeError as e:      # gtsam raises on indeterminate systems
+            return init, False, f'window optimisation failed: {e}'
+        return poses, True, self._jump_check(window, poses)
+
+    def _keep_solution(self, window: List[Hashable], poses: Dict[Hashable, np.ndarray], factors: list,
+                       tracking_ok: bool) -> None:
+        """Keep a tracked window's poses and factors; after a loss keep the odometry-chained poses (``poses``
+        then are those) and no photometric history."""
+        self._est = {k: poses[k] for k in window}
+        if tracking_ok:
+            self._factors = factors
+        else:
+            self._factors = []
+            self._depth_refs = 0
+
+    def _turning_in_place(self, ref, sources, init, depth_ref) -> Optional[str]:
+        """Why the window is not refined (``PoseRefinerConfig.max_rotation_parallax``), or None."""
+        limit = self.config.max_rotation_parallax
+        if not limit > 0:
+            return None
+        d = np.asarray(depth_ref.numpy() if hasattr(depth_ref, 'numpy') else depth_ref, dtype=np.float64)
+        d = d[np.isfinite(d) & (d > 0)]
+        if d.size == 0:
+            return None
+        nearest = min(sources, key=lambda s: _key_distance(s.key, ref.key))
+        rel = relative_pose(init[nearest.key], init[ref.key])
+        parallax = float(np.linalg.norm(rel[:3, 3])) / float(np.median(d))
+        angle = rotation_angle_np(rel[:3, :3])
+        if angle > limit * parallax:
+            return (f'turning in place: {math.degrees(angle):.1f} deg to the nearest keyframe against a baseline of '
+                    f'{parallax:.4f} x the median depth (ratio {angle / max(parallax, 1e-12):.1f} > {limit:g})')
+        return None
+
+    def _pyramid(self, f: WindowKeyframe) -> ImagePyramid:
+        if f.key not in self._pyramids:
+            self._pyramids[f.key] = ImagePyramid(f.image, f.K_33, self.config.alignment.num_levels)
+        return self._pyramids[f.key]
+
+    # ---------------------------------------------------------------------------------------------------------
+    def _initial_values(self, window: List[Hashable]) -> Dict[Hashable, np.ndarray]:
+        if not self._est:
+            # No refined pose yet: start from the odometry (the world frame of the odometry).
+            return {k: self._odom[k].copy() for k in window}
+        init = {}
+        for k in window:
+            init[k] = self.initial_pose(k, self._odom[k])
+        return init
+
+    def _optimize(self, window, init, factors, kp_factors=()) -> Dict[Hashable, np.ndarray]:
+        cfg = self.config
+        idx = {k: i for i, k in enumerate(window)}
+        graph = gtsam.NonlinearFactorGraph()
+        values = gtsam.Values()
+        for k in window:
+            values.insert(idx[k], pose3_from_matrix(init[k]))
+        # Gauge: the oldest keyframe that already has a refined pose (else the oldest) stays where it is.
+        anchor = next((k for k in window if k in self._est), window[0])
+        prior_sigmas = np.array([math.radians(cfg.prior_sigma_rot_deg)] * 3 + [cfg.prior_sigma_trans_m] * 3)
+        graph.add(gtsam.PriorFactorPose3(idx[anchor], pose3_from_matrix(init[anchor]),
+                                         gtsam.noiseModel.Diagonal.Sigmas(prior_sigmas)))
+        # Odometry between consecutive keyframes.
+        for a, b in zip(window[:-1], window[1:]):
+            T_ab = relative_pose(self._odom[a], self._odom[b])
+            if cfg.odom_covariance == 'fixed':
+                noise = gtsam.noiseModel.Diagonal.Sigmas(odometry_between_sigmas(T_ab, cfg))
+            else:
+                noise = gtsam.noiseModel.Gaussian.Covariance(odometry_step_covariance(
+                    self._odom[a], self._odom[b], self._cov.get(a), self._cov.get(b), cfg))
+            graph.add(gtsam.BetweenFactorPose3(idx[a], idx[b], pose3_from_matrix(T_ab), noise))
+        # Photometric alignments with their covariance, robustified.
+        huber = gtsam.noiseModel.mEstimator.Huber.Create(cfg.photometric_huber_k)
+        for r, s, T_ref_src, cov in factors:
+            if r not in idx or s not in idx:
+                continue
+            noise = gtsam.noiseModel.Robust.Create(huber, gtsam.noiseModel.Gaussian.Covariance(cov))
+            graph.add(gtsam.BetweenFactorPose3(idx[r], idx[s], pose3_from_matrix(T_ref_src), noise))
+        # Keypoint relative poses (rotation and direction; length from the odometry), robustified.
+        kp_huber = gtsam.noiseModel.mEstimator.Huber.Create(cfg.keypoint_huber_k)
+        for s, r, T_src_ref, cov in kp_factors:
+            noise = gtsam.noiseModel.Robust.Create(kp_huber, gtsam.noiseModel.Gaussian.Covariance(cov))
+            graph.add(gtsam.BetweenFactorPose3(idx[s], idx[r], pose3_from_matrix(T_src_ref), noise))
+        params = gtsam.LevenbergMarquardtParams()
+        params.setMaxIterations(cfg.lm_max_iterations)
+        result = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
+        self._graph = (graph, result, idx)
+        out = {k: result.atPose3(idx[k]).matrix() for k in window}
+        for k, T in out.items():
+            if not np.all(np.isfinite(T)):
+                raise RuntimeError(f'non-finite pose for keyframe {k}')
+        return out
+
+    def _jump_check(self, window, poses) -> Optional[str]:
+        cfg = self.config
+        for a, b in zip(window[:-1], window[1:]):
+            dt, dr = pose_error(relative_pose(self._odom[a], self._odom[b]), relative_pose(poses[a], poses[b]))
+            if dt > cfg.max_jump_translation_m or dr > cfg.max_jump_rotation_deg:
+                return (f'pose jump between keyframes {a} and {b}: {dt:.3f} m / {dr:.2f} deg away from odometry '
+                        f'(limits {cfg.max_jump_translation_m} m / {cfg.max_jump_rotation_deg} deg)')
+        return None
+
+
+def _key_distance(a, b) -> float:
+    try:
+        return abs(float(a) - float(b))
+    except (TypeError, ValueError):
+        return 0.0

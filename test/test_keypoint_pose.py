@@ -1,0 +1,66 @@
+"""Keypoint relative pose (core.keypoint_pose): a rendered pair, the covariance's dependence on the inliers, and
+images without texture."""
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+import pytest
+
+from dpv_sensor.core.geometry import rotation_angle_np
+from dpv_sensor.core.keypoint_pose import KeypointConfig, keypoint_covariance, keypoint_relative_pose
+
+
+@pytest.fixture(scope='module')
+def pair():
+    """Frames 0 and 8 of rendered room 7 (320x240; 7.9 deg and 0.107 m apart) and their true T_b_a."""
+    from dpv_sensor.data.synthetic import render_sequence
+    seq = render_sequence(seed=7, num_frames=9, width=320, height=240, plain_wall_prob=0.0)
+    T_b_a = np.linalg.inv(seq.pose(8)) @ seq.pose(0)
+    return seq.image(0), seq.image(8), np.asarray(seq.K, np.float64), T_b_a
+
+
+def _rot_err_deg(R, T_b_a):
+    return math.degrees(rotation_angle_np(np.asarray(R).T @ T_b_a[:3, :3]))
+
+
+def test_keypoints_recover_a_known_rotation_error(pair):
+    img_a, img_b, K, T_b_a = pair
+    odom = T_b_a.copy()
+    odom[:3, :3] = cv2.Rodrigues(np.radians([2.0, 0.0, 0.0]).reshape(3, 1))[0] @ T_b_a[:3, :3]
+    assert _rot_err_deg(odom[:3, :3], T_b_a) == pytest.approx(2.0, abs=1e-6)
+    res = keypoint_relative_pose(img_a, img_b, K, KeypointConfig(max_features=2000, ratio=0.75))
+    assert res.ok, res.reason
+    assert res.inliers >= 50
+    assert _rot_err_deg(res.R_b_a, T_b_a) < 0.5            # 2 deg of odometry error -> under a quarter of it
+    t_true = T_b_a[:3, 3] / np.linalg.norm(T_b_a[:3, 3])
+    assert math.degrees(math.acos(float(np.clip(res.t_dir_b @ t_true, -1, 1)))) < 10.0
+    cov = res.between_covariance_gtsam(0.1, 0.05)
+    assert cov.shape == (6, 6) and np.allclose(cov, cov.T) and np.all(np.linalg.eigvalsh(cov) > 0)
+    # along the baseline the translation is the odometry's: its variance is (0.05 * 0.1)^2 plus the direction's
+    t_a = res.R_b_a.T @ res.t_dir_b                      # the direction in frame a's axes (gtsam tangent)
+    assert float(t_a @ cov[3:, 3:] @ t_a) == pytest.approx(0.005 ** 2, rel=1e-6)
+
+
+def test_fewer_inliers_give_a_larger_covariance(pair):
+    # by hand: 4x fewer inliers double the std; the direction's std scales with 1 / parallax
+    s100 = keypoint_covariance(100, 200.0, 10.0)
+    s25 = keypoint_covariance(25, 200.0, 10.0)
+    assert s100 == pytest.approx((1 / (200 * 10), 1 / (10 * 10)))
+    assert s25[0] == pytest.approx(2 * s100[0]) and s25[1] == pytest.approx(2 * s100[1])
+    assert keypoint_covariance(0, 200.0, 10.0) == (math.inf, math.inf)
+    img_a, img_b, K, _ = pair
+    many = keypoint_relative_pose(img_a, img_b, K, KeypointConfig(max_features=2000, ratio=0.75))
+    few = keypoint_relative_pose(img_a, img_b, K, KeypointConfig(max_features=80, ratio=0.75))
+    assert many.ok and few.ok, (many.reason, few.reason)
+    assert few.inliers < many.inliers
+    assert np.trace(few.rotation_covariance()) > np.trace(many.rotation_covariance())
+
+
+def test_textureless_images_give_no_estimate():
+    K = np.array([[200.0, 0, 160], [0, 200.0, 120], [0, 0, 1]])
+    flat = np.full((240, 320, 3), 128, np.uint8)
+    res = keypoint_relative_pose(flat, flat, K)
+    assert not res.ok and 'too few keypoints' in res.reason
+    assert res.inliers == 0 and math.isinf(res.sigma_rot_rad)

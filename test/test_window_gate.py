@@ -1,0 +1,95 @@
+"""The window refiner's pose-error model: keypoint factors, marginals and the gate (stream.window_refiner)."""
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+import pytest
+
+from dpv_sensor.core.geometry import rotation_angle_np
+from dpv_sensor.core.keypoint_pose import KeypointConfig
+from dpv_sensor.stream.window_refiner import PoseRefinerConfig, WindowKeyframe, WindowPoseRefiner
+
+ERR_DEG = 2.0
+
+
+@pytest.fixture(scope='module')
+def pair():
+    """Frames 0 and 8 of rendered room 7 (320x240; 7.9 deg, 0.107 m apart): images, K, true world poses."""
+    from dpv_sensor.data.synthetic import render_sequence
+    seq = render_sequence(seed=7, num_frames=9, width=320, height=240, plain_wall_prob=0.0)
+    return seq.image(0), seq.image(8), np.asarray(seq.K, np.float64), seq.pose(0), seq.pose(8)
+
+
+def _cov(rot_deg: float, trans_m: float) -> np.ndarray:
+    """ROS-order pose covariance with per-axis stds rot_deg and trans_m."""
+    return np.diag([trans_m ** 2] * 3 + [math.radians(rot_deg) ** 2] * 3)
+
+
+def _window(pair, src_rot_deg: float, ref_img=None, src_img=None):
+    """Source (key 1) with the published covariance src_rot_deg (per axis) and a 2 deg rotation error in its
+    odometry; the reference (key 0) exact, with a tiny covariance."""
+    img_a, img_b, K, T_wa, T_wb = pair
+    T_odom_b = T_wb.copy()
+    T_odom_b[:3, :3] = T_wb[:3, :3] @ cv2.Rodrigues(np.radians([ERR_DEG, 0, 0]).reshape(3, 1))[0]
+    ref = WindowKeyframe(0, img_a if ref_img is None else ref_img, K, T_wa, _cov(0.001, 1e-4))
+    src = WindowKeyframe(1, img_b if src_img is None else src_img, K, T_odom_b,
+                         _cov(0.001, 1e-4) + _cov(src_rot_deg, 0.005))
+    return ref, src
+
+
+def _config(max_features=2000, **kw):
+    return PoseRefinerConfig(odom_covariance='odometry', keypoint_factors=True, marginals=True,
+                             keypoint=KeypointConfig(max_features=max_features, ratio=0.75), **kw)
+
+
+def _rot_err(T_est, T_true):
+    return math.degrees(rotation_angle_np(T_est[:3, :3].T @ T_true[:3, :3]))
+
+
+def test_keypoint_factor_corrects_rotation_and_the_marginal_is_below_the_odometry(pair):
+    ref, src = _window(pair, 2.0)
+    res = WindowPoseRefiner(_config()).refine(ref, [src])
+    assert res.refined and res.gate == 'refined'
+    assert _rot_err(src.T_world_cam_odom_44, pair[4]) == pytest.approx(ERR_DEG, abs=1e-6)
+    assert _rot_err(res.T_world_cam[1], pair[4]) < 0.5
+    sig = res.source_sigma[1]
+    assert sig.rot_rad < math.radians(2.0)                  # the images told more than the odometry's 2 deg
+    assert res.correction[1] > 1.0
+
+
+def test_the_marginal_grows_when_inliers_drop(pair):
+    ref, src = _window(pair, 2.0)
+    many = WindowPoseRefiner(_config(2000)).refine(ref, [src])
+    few = WindowPoseRefiner(_config(80)).refine(ref, [src])
+    assert many.refined and few.refined
+    assert few.keypoints[0].inliers < many.keypoints[0].inliers
+    assert few.source_sigma[1].rot_rad > many.source_sigma[1].rot_rad
+
+
+def test_gate_keeps_odometry_on_a_textureless_window(pair):
+    flat = np.full((240, 320, 3), 128, np.uint8)
+    ref, src = _window(pair, 2.0, flat, flat)
+    refiner = WindowPoseRefiner(_config(gate_min_inliers=20))
+    res = refiner.refine(ref, [src])
+    assert not res.refined and res.gate == 'kept_few_inliers'
+    np.testing.assert_array_equal(res.T_world_cam[1], src.T_world_cam_odom_44)
+    assert res.source_sigma == {} and res.correction == pytest.approx((0.0, 0.0), abs=1e-9)
+    assert refiner.gate_counts == {'kept_few_inliers': 1}
+
+
+def test_gate_rejects_a_correction_the_odometry_covariance_rules_out(pair):
+    # the odometry claims 0.01 deg per axis, the keypoints differ from it by about 2 deg
+    ref, src = _window(pair, 0.01)
+    refiner = WindowPoseRefiner(_config(gate_chi2=16.27))     # 3 dof (rotation), 99.9 %
+    res = refiner.refine(ref, [src])
+    assert res.gate == 'rejected_chi2' and not res.refined
+    np.testing.assert_array_equal(res.T_world_cam[1], src.T_world_cam_odom_44)
+    # the same images with an odometry that admits 2 deg per axis: the correction passes the same gate
+    assert refiner.gate_counts == {'rejected_chi2': 1}
+    ref, src = _window(pair, 2.0)
+    refiner = WindowPoseRefiner(_config(gate_chi2=16.27))
+    res = refiner.refine(ref, [src])
+    assert res.gate == 'refined' and _rot_err(res.T_world_cam[1], pair[4]) < 0.5
+    assert refiner.gate_counts == {'refined': 1}
