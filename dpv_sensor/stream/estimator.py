@@ -29,6 +29,7 @@ from dpv_sensor.stream.estimator_config import (EstimatorConfig, EstimatorStatus
                                                 PoseRefiner, _Measurement, _Posterior, default_weights_path,
                                                 output_size)
 from dpv_sensor.stream.keyframes import Keyframe, KeyframeSelector, KeyframeWindow
+from dpv_sensor.stream import window_pose_uncertainty
 
 __all__ = ['EstimatorConfig', 'EstimatorStatus', 'Estimator', 'PoseRefinementRequest', 'default_weights_path',
            'MEASUREMENTS', 'FILTER_MODES']
@@ -297,9 +298,12 @@ class Estimator:
             last_timings_ms=dict(self._last_timings),
             notes=list(self._notes),
             pose_refinement_gate=dict(getattr(self.pose_refiner, 'gate_counts', None) or {}),
-            pose_refinement_correction=tuple(getattr(getattr(self.pose_refiner, 'last_result', None),
-                                                     'correction', (0.0, 0.0))),
+            pose_refinement_correction=tuple(getattr(self._refinement_result(), 'correction', (0.0, 0.0))),
         )
+
+    def _refinement_result(self):
+        """The pose refiner's result of the last window it solved (None without a refiner that keeps one)."""
+        return getattr(self.pose_refiner, 'last_result', None)
 
     def reset(self, reason: str = 'reset requested') -> None:
         """Forget the window, the keyframe selector and the filter state (counters are kept)."""
@@ -432,7 +436,8 @@ class Estimator:
                       T_world_cam_44=self._chain_pose(T), image_b3hw=img_t,
                       K_b33=torch.as_tensor(K_proc, dtype=torch.float32, device=self.device)[None],
                       input_size=size, input_K_33=K_in, frame_id=frame.frame_id, odom_T_world_cam_44=T,
-                      twist_world_6=self._twist, pose_cov_66=self._pose_covariance(frame))
+                      twist_world_6=self._twist,
+                      pose_cov_66=window_pose_uncertainty.frame_covariance(self.config, frame))
         self._kf_counter += 1
         self._keyframes += 1
         self.window.append(kf)
@@ -475,7 +480,12 @@ class Estimator:
         geom = self._sweep_geometry(meas, ref, T_src_ref_t, vol_hw)
         weight = self._parallax_weight(geom, ref, T_src_ref_t)
         t_pose = time.perf_counter()
-        sigma_planes = self._pose_sigma_planes(meas, geom, ref, sources)
+        # the window refiner's marginals (relative to the reference), where it solved this window, replace the
+        # odometry's uncertainty of those sources
+        sigma_planes, self._last_pose_sigma = window_pose_uncertainty.window_sigma_planes(
+            self.config, geom, ref, sources, meas.K_vol_b33,
+            geometry.inverse_depth_step(self.d_min, self.d_max, self.num_planes),
+            marginals=getattr(self._refinement_result(), 'source_sigma', None))
         if sigma_planes is not None:
             meas.logp_bdhw = pose_uncertainty.widen_planes(meas.logp_bdhw, sigma_planes)
             timings['pose_uncertainty'] = self._ms(t_pose)
@@ -497,7 +507,8 @@ class Estimator:
             full = full.float()
             depth, conf = self._readout(full, ref.image_b3hw)
             if sigma_planes is not None:
-                factor = self._pose_confidence_factor(post, sigma_planes)
+                factor = window_pose_uncertainty.confidence_factor(self.config, post, sigma_planes, self.depths_d,
+                                                                   self.readout)
                 conf = conf * resample_to_camera(factor[:, None], meas.K_vol_b33[0], K_proc_t, (H, W))[:, 0]
             if support is not None:
                 conf = conf * resample_to_camera(support[:, None], meas.K_vol_b33[0], K_proc_t, (H, W))[:, 0]
@@ -643,51 +654,6 @@ class Estimator:
                                         per_source=True)                       # N, 1, h, w
         spans = spans * float(ref.K_b33[0, 0, 0] / meas.K_vol_b33[0, 0, 0])  # volume -> processing pixels
         return depth, spans
-
-    def _pose_covariance(self, frame: Frame) -> Optional[np.ndarray]:
-        """The frame's odometry pose covariance when ``pose_uncertainty`` reads it (covariance, auto) and the
-        frame has one."""
-        cov = getattr(frame, 'pose_covariance_66', None)
-        if cov is None or self.config.pose_uncertainty not in ('covariance', 'auto'):
-            return None
-        cov = np.asarray(cov, np.float64)
-        return cov.reshape(6, 6) if cov.size == 36 else None
-
-    def _drift_model(self) -> pose_uncertainty.DriftModel:
-        """The drift figures (all zero with ``pose_uncertainty: covariance``: only the odometry's covariance)."""
-        cfg = self.config
-        if cfg.pose_uncertainty == 'covariance':
-            return pose_uncertainty.DriftModel(0.0, 0.0, 0.0, 0.0)
-        return pose_uncertainty.DriftModel(trans_per_m=cfg.odom_drift_trans, rot_deg_per_m=cfg.odom_drift_rot_deg_per_m,
-                                           rot_per_deg=cfg.odom_drift_rot, sync_s=cfg.odom_time_sync_ms / 1000.0)
-
-    def _pose_sigma_planes(self, meas: _Measurement, geom, ref: Keyframe,
-                           sources: List[Keyframe]) -> Optional[torch.Tensor]:
-        """(1, h, w) std (planes, volume resolution) of the measured plane index that the sources' pose uncertainty
-        relative to the reference causes (``pose_uncertainty.window_sigma_planes``); None with ``pose_uncertainty``
-        off, or covariance and no covariance. ``status.pose_uncertainty`` says where it came from and its size."""
-        mode = self.config.pose_uncertainty
-        if mode == 'off' or geom is None:
-            self._last_pose_sigma = {}
-            return None
-        depth, spans = geom
-        # the window refiner's marginals (relative to the reference), where it solved this window, replace the
-        # odometry's uncertainty of those sources
-        marginals = getattr(getattr(self.pose_refiner, 'last_result', None), 'source_sigma', None) or None
-        sigma, self._last_pose_sigma = pose_uncertainty.window_sigma_planes(
-            ref, sources, depth, spans, meas.K_vol_b33, self._drift_model(),
-            geometry.inverse_depth_step(self.d_min, self.d_max, self.num_planes), covariance_only=mode == 'covariance',
-            source_sigma=marginals)
-        return sigma
-
-    def _pose_confidence_factor(self, post_bdhw: torch.Tensor, sigma_planes_bhw: torch.Tensor) -> torch.Tensor:
-        """(1, h, w) in [0, 1]: the share of the belief's ratio confidence that survives the pose uncertainty
-        (``pose_uncertainty.confidence_factor``; 1 everywhere for the ``plane`` confidence)."""
-        cfg = self.config
-        if cfg.confidence != 'ratio':
-            return torch.ones_like(sigma_planes_bhw)
-        return pose_uncertainty.confidence_factor(post_bdhw, self.depths_d, self.readout, cfg.confidence_ratio,
-                                                  sigma_planes_bhw)
 
     def _parallax_weight(self, geom, ref: Keyframe, T_src_ref_t: torch.Tensor) -> Optional[torch.Tensor]:
         """(1, h, w) weight in [0, 1] of this measurement per pixel (``parallax.parallax_support`` of the
