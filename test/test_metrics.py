@@ -426,6 +426,18 @@ def test_ece_and_reliability_bins_by_hand():
     assert np.isnan(M.expected_calibration_error(np.zeros(0), np.zeros(0, bool)))
 
 
+def test_ece_weights_each_bin_by_its_share_of_the_pixels():
+    """Unequal bins: 1 pixel at 0.25 (a miss, |0.25 - 0| = 0.25) and 3 pixels at 0.95 (all hits, |0.95 - 1| =
+    0.05): ECE = 1/4 * 0.25 + 3/4 * 0.05 = 0.1 (an unweighted mean over the bins would give 0.15)."""
+    conf = np.array([0.25, 0.95, 0.95, 0.95])
+    hit = np.array([0, 1, 1, 1], bool)
+    assert M.expected_calibration_error(conf, hit) == pytest.approx(0.1)
+    # and with the bins' sizes swapped: 3/4 * 0.25 + 1/4 * 0.05 = 0.2
+    conf2 = np.array([0.25, 0.25, 0.25, 0.95])
+    hit2 = np.array([0, 0, 0, 1], bool)
+    assert M.expected_calibration_error(conf2, hit2) == pytest.approx(0.2)
+
+
 def test_kept_at_thresholds_and_the_delta1_event():
     pred = np.array([1.0, 1.0, 1.0, 1.0])
     gt = np.array([1.0, 1.3, 0.79, 1.2])

@@ -91,6 +91,27 @@ def test_inconsistent_images_raise_bad_image():
     assert issubclass(M.BadImage, M.MessageError) and issubclass(M.UnsupportedEncoding, M.MessageError)
 
 
+@pytest.mark.parametrize('pad', [0, 3])
+@pytest.mark.parametrize('delta, ok', [(0, True), (-1, False), (1, False), (-21, False), (21, False)])
+def test_the_receipt_check_wants_exactly_step_times_height_bytes(pad, delta, ok):
+    """Either side of the rule: exactly step*height bytes pass (with or without row padding); one byte short or
+    over, or a whole row short or over, is refused by the check the subscription callback runs (and by the
+    conversion, which shares it)."""
+    good = raw_image(RGB, 'rgb8', pad=pad)
+    data = bytes(good.data) + bytes(max(delta, 0)) if delta >= 0 else bytes(good.data)[:delta]
+    msg = Image(header=good.header, height=good.height, width=good.width, encoding='rgb8', step=good.step,
+                data=data)
+    if ok:
+        assert M.check_colour_image(msg) == (3, (0, 1, 2))
+        np.testing.assert_array_equal(M.image_to_rgb(msg), RGB)
+        return
+    n, want = len(data), good.step * good.height
+    for check in (M.check_colour_image, M.image_to_rgb):
+        with pytest.raises(M.BadImage, match=f'data length {n} does not match step\\*height = '
+                                             f'{good.step}\\*5 = {want}'):
+            check(msg)
+
+
 # ---------------------------------------------------------------- depth and confidence output
 def test_depth_32FC1_keeps_values_and_marks_no_estimate_with_nan():
     d = np.array([[1.25, np.nan, -1.0], [0.0, np.inf, 70.0]], np.float32)

@@ -181,3 +181,22 @@ def test_images_lost_before_the_period_is_known_are_counted_once_it_is():
     # a loss report for them afterwards matches the gap instead of counting the images twice
     sl.on_rmw_lost(3)
     assert sl.lost_total == 3 and sl.lost_rmw == 3 and sl.lost_stamp_gap_only == 0
+
+
+@pytest.mark.parametrize('period_ns, gap_periods, jump, lost', [
+    (200 * MS, 7.9, False, 7),     # 5 Hz: 8 periods (1.6 s) is the line, above max_loss_gap (1 s)
+    (200 * MS, 8.1, True, 0),
+    (33 * MS, 0.9 * NS / (33 * MS), False, 26),    # 30 Hz: max_loss_gap (1 s) is the line, above 8 periods
+    (33 * MS, 1.1 * NS / (33 * MS), True, 0),
+])
+def test_the_stamp_jump_rule_either_side_of_its_threshold(period_ns, gap_periods, jump, lost):
+    """A stamp interval longer than max(max_loss_gap, 8 periods) is a discontinuity (nothing counted lost); one just
+    shorter is images lost in transport (round(interval / period) - 1 of them, once the stream after it runs at
+    the rate again)."""
+    loss = StreamLoss()
+    t = stream(loss, 0, period_ns, 40)
+    t += int(round(gap_periods * period_ns))
+    loss.on_image(t)
+    stream(loss, t, period_ns, 20)
+    assert loss.stamp_jumps == int(jump), loss.counts()
+    assert loss.lost_total == lost, loss.counts()

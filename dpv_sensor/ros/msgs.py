@@ -160,15 +160,23 @@ def header_for(header_or_stamp, frame_id, types: MessageTypes = ROS):
 # --------------------------------------------------------------------------------------------------------------
 def _image_array(msg, bytes_per_pixel: int, what: str) -> np.ndarray:
     """The pixel bytes of `msg` as an HxWx(bytes_per_pixel) uint8 view, honouring `step` padding."""
+    h, w, step = check_image_layout(msg, bytes_per_pixel, what)
+    data = np.frombuffer(msg.data, dtype=np.uint8)
+    return data.reshape(h, step)[:, :w * bytes_per_pixel].reshape(h, w, bytes_per_pixel)
+
+
+def check_image_layout(msg, bytes_per_pixel: int, what: str) -> tuple[int, int, int]:
+    """(height, width, step) of an image message whose size, step and data length agree (the one home of this
+    check: on receipt and before the pixels are read). Raises BadImage naming `what` otherwise: zero size, a step
+    shorter than a row of pixels, or data whose length is not exactly step*height (not a byte short or over)."""
     h, w, step = int(msg.height), int(msg.width), int(msg.step)
     if h <= 0 or w <= 0:
         raise BadImage(f'{what} has zero size ({w}x{h})')
     if step < w * bytes_per_pixel:
         raise BadImage(f'{what} step {step} is smaller than width*bytes per pixel = {w}*{bytes_per_pixel}')
-    data = np.frombuffer(msg.data, dtype=np.uint8)
-    if data.size != step * h:
-        raise BadImage(f'{what} data length {data.size} does not match step*height = {step}*{h} = {step * h}')
-    return data.reshape(h, step)[:, :w * bytes_per_pixel].reshape(h, w, bytes_per_pixel)
+    if len(msg.data) != step * h:
+        raise BadImage(f'{what} data length {len(msg.data)} does not match step*height = {step}*{h} = {step * h}')
+    return h, w, step
 
 
 def check_colour_image(msg) -> tuple[int, tuple]:
@@ -182,13 +190,7 @@ def check_colour_image(msg) -> tuple[int, tuple]:
         raise UnsupportedEncoding(f"unsupported image encoding '{msg.encoding}'{hint}; the colour input must be one "
                                   f"of {', '.join(COLOUR_ENCODINGS)}")
     channels, order = _COLOUR[enc]
-    h, w, step, what = int(msg.height), int(msg.width), int(msg.step), f"'{msg.encoding}' image"
-    if h <= 0 or w <= 0:
-        raise BadImage(f'{what} has zero size ({w}x{h})')
-    if step < w * channels:
-        raise BadImage(f'{what} step {step} is smaller than width*bytes per pixel = {w}*{channels}')
-    if len(msg.data) != step * h:
-        raise BadImage(f'{what} data length {len(msg.data)} does not match step*height = {step}*{h} = {step * h}')
+    check_image_layout(msg, channels, f"'{msg.encoding}' image")
     return channels, order
 
 

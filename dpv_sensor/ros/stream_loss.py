@@ -64,6 +64,9 @@ class Gap:
         return self.period_ns if self.explained else self.interval_ns
 
 
+JUMP_PERIODS = 8      # a stamp interval over this many frame periods (and over max_loss_gap) is a jump
+
+
 class StreamLoss:
     """Counts images lost in a camera stream (see the module docs). Not thread-safe: call from one thread.
 
@@ -163,6 +166,11 @@ class StreamLoss:
         self._early = []
         self._intervals.clear()
 
+    def _is_jump(self, interval_ns: int, period_ns: int) -> bool:
+        """The one rule: an interval longer than max(max_loss_gap, JUMP_PERIODS frame periods) is a discontinuity of
+        the stamps, not images lost in transport."""
+        return interval_ns > max(self.max_loss_gap_ns, JUMP_PERIODS * period_ns)
+
     def on_image(self, stamp_ns: int) -> Gap | None:
         """An image with header stamp `stamp_ns` arrived; returns the Gap it ends (pending until the stream around
         it confirms it), or None (no image missing, the first image, a period not known yet, a stamp jump, or time
@@ -176,7 +184,7 @@ class StreamLoss:
             return None
         interval = stamp_ns - last
         period = self.period_ns
-        if period is not None and period > 0 and interval > max(self.max_loss_gap_ns, 8 * period) \
+        if period is not None and period > 0 and self._is_jump(interval, period) \
                 and self._unmatched_reports < round(interval / period) - 1:
             self.stamp_jumps += 1
             self.last_jump_ns = interval
@@ -212,7 +220,7 @@ class StreamLoss:
         period = self.period_ns
         for interval in self._early:
             multiple = round(interval / period)
-            if interval < 1.5 * period or multiple < 2 or interval > max(self.max_loss_gap_ns, 8 * period):
+            if interval < 1.5 * period or multiple < 2 or self._is_jump(interval, period):
                 continue
             gap = Gap(interval_ns=interval, period_ns=period, missing=int(multiple) - 1, state=PENDING)
             n = min(gap.missing, self._unmatched_reports)
