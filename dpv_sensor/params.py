@@ -216,8 +216,9 @@ SPECS: tuple[ParamSpec, ...] = (
     ParamSpec('image_transport', 'raw', 'How the colour image arrives, as an image_transport subscriber chooses: raw '
               '(sensor_msgs/Image on `image`) or compressed (sensor_msgs/CompressedImage, JPEG or PNG, on the image '
               "topic's child `image/compressed`, e.g. /camera/color/image_raw/compressed when `image` is remapped "
-              'to /camera/color/image_raw; decoded with OpenCV on receipt, about 3 ms for a 640x480 JPEG). A payload '
-              'that cannot be decoded is counted (faults.undecodable_image) and dropped.',
+              'to /camera/color/image_raw; decoded with OpenCV on receipt: about 1 ms for a 640x480 JPEG, 7 ms for '
+              'a PNG on one core of the 2-core CPU, benchmarks/image_decode.py). A payload that cannot be decoded '
+              'is counted (faults.undecodable_image) and dropped.',
               choices=('raw', 'compressed'), scope='node'),
     ParamSpec('output_reliability', 'reliable', 'QoS reliability of the publishers.',
               choices=('best_effort', 'reliable'), scope='node'),

@@ -150,3 +150,10 @@ def test_receipt_counts_an_undecodable_image_and_passes_the_next_good_one():
     good = CI.decode_message(compressed(JPEG, 'rgb8; jpeg compressed bgr8'))
     item = receipt.image(good, 1_700_000_000_033_000_000, 33_000_000, 0.0, 0)
     assert item is not None and item.msg is good and M.image_to_rgb(item.msg).shape == RGB.shape
+
+
+def test_the_decode_benchmark_runs_and_reports_both_codecs():
+    from dpv_sensor.benchmarks import image_decode
+    res = image_decode.run(width=64, height=48, repeats=3)
+    assert set(res['codecs']) == {'jpeg', 'png'} and res['codecs']['png']['mean_abs_error'] == 0.0
+    assert res['codecs']['jpeg']['decode']['median_ms'] > 0 and '| jpeg | quality 90 |' in image_decode.table(res)
