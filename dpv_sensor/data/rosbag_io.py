@@ -586,10 +586,13 @@ def image_topic_line(path, topics: dict, topic: str) -> str:
     transport = image_transport_of(topics, topic)
     what = msgtype.replace('/msg/', '/')
     if transport == 'compressed':
-        fmt = ''
-        for _t, _ty, _log, msg in read_messages(path, [topic]):
-            fmt = str(msg.format)
-            break
+        messages = read_messages(path, [topic])
+        try:
+            fmt = str(next(messages)[3].format)
+        except StopIteration:
+            fmt = ''
+        finally:
+            messages.close()            # closes the bag reader
         codec = 'PNG' if 'png' in fmt.lower() else 'JPEG' if 'jp' in fmt.lower() else 'unknown codec'
         what += f", {codec} '{fmt}'"
     return f'image topic: {topic} ({what}) -> node image_transport={transport}'
