@@ -213,6 +213,13 @@ SPECS: tuple[ParamSpec, ...] = (
               'publisher of the topic offers reliable, else best effort (which matches both kinds).',
               choices=('auto', 'best_effort', 'reliable'), scope='node'),
     ParamSpec('input_depth', 5, 'QoS history depth of the subscriptions.', min_value=1, max_value=1000, scope='node'),
+    ParamSpec('image_transport', 'raw', 'How the colour image arrives, as an image_transport subscriber chooses: raw '
+              '(sensor_msgs/Image on `image`) or compressed (sensor_msgs/CompressedImage, JPEG or PNG, on the image '
+              "topic's child `image/compressed`, e.g. /camera/color/image_raw/compressed when `image` is remapped "
+              'to /camera/color/image_raw; decoded with OpenCV on receipt: about 1 ms for a 640x480 JPEG, 7 ms for '
+              'a PNG on one core of the 2-core CPU, benchmarks/image_decode.py). A payload that cannot be decoded '
+              'is counted (faults.undecodable_image) and dropped.',
+              choices=('raw', 'compressed'), scope='node'),
     ParamSpec('output_reliability', 'reliable', 'QoS reliability of the publishers.',
               choices=('best_effort', 'reliable'), scope='node'),
     ParamSpec('output_depth', 5, 'QoS history depth of the publishers.', min_value=1, max_value=1000, scope='node'),

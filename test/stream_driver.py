@@ -17,11 +17,12 @@ FAST_PARAMS = {'measurement': 'classical', 'processing_width': W, 'processing_he
 
 class StreamDriver:
     """Publishes a rendered sequence to a node process started with `args` (the node's command line after
-    `python -m dpv_sensor.ros.node`); topics: the absolute names the node is expected to subscribe."""
+    `python -m dpv_sensor.ros.node`); topics: the absolute names the node is expected to subscribe; image_type: the
+    image publisher's message type (default sensor_msgs/Image; send `image_msg` of another type)."""
 
     def __init__(self, args: list[str], topics: dict | None = None, frames: int = 40, seed: int = 4,
                  reliability: str = 'reliable', name: str = 'stream_driver', env: dict | None = None,
-                 namespace: str = '', depth: int = 50):
+                 namespace: str = '', depth: int = 50, image_type=None):
         from nav_msgs.msg import Odometry
         from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
         from sensor_msgs.msg import CameraInfo, Image
@@ -36,7 +37,7 @@ class StreamDriver:
         rel = ReliabilityPolicy.RELIABLE if reliability == 'reliable' else ReliabilityPolicy.BEST_EFFORT
         qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth, reliability=rel,
                          durability=DurabilityPolicy.VOLATILE)
-        types = {'image': Image, 'camera_info': CameraInfo, 'odom': Odometry}
+        types = {'image': image_type or Image, 'camera_info': CameraInfo, 'odom': Odometry}
         self.pubs = {k: self.node.create_publisher(types[k], t, qos) for k, t in topics.items()}
         self.outputs = OutputCollector(self.node, namespace=namespace)
         self.reliability = reliability

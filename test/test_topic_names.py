@@ -30,6 +30,9 @@ def test_camera_info_is_the_image_topics_sibling():
 @pytest.mark.parametrize('remaps,name,expected', [
     ({}, 'camera_info', 'camera_info'),                                           # nothing remapped: as it is
     ({'image': '/camera/color/image_raw'}, 'camera_info', '/camera/color/camera_info'),
+    ({}, 'image/compressed', 'image/compressed'),                                # image_transport: compressed
+    ({'image': '/camera/color/image_raw'}, 'image/compressed', '/camera/color/image_raw/compressed'),
+    ({'image': '/a/image', 'image/compressed': '/b/jpeg'}, 'image/compressed', 'image/compressed'),
     ({'image': '/a/image', 'camera_info': '/b/info'}, 'camera_info', 'camera_info'),   # remapped itself: its rule
     ({'depth/image': '/dpv/depth'}, 'depth/camera_info', '/dpv/camera_info'),
     ({'depth/image': '/dpv/depth'}, 'depth/image/compressedDepth', '/dpv/depth/compressedDepth'),

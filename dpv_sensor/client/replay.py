@@ -1,7 +1,9 @@
 """Replaying a bag through the node process, as `make demo` and the stream-table benchmark do (not a console
 tool): start the node with a private DDS environment, wait until it is ready and matched, play the bag in lockstep
 (each image held back until the node has finished the earlier ones) while recording its outputs, stop it with
-SIGINT and report what happened (``run_node_replay``), plus the small pieces around it (``Steps`` progress lines,
+SIGINT and report what happened (``run_node_replay``). A camera image topic of image_transport's compressed kind
+(sensor_msgs/CompressedImage) is replayed to the node's ``image/compressed`` with ``image_transport: compressed``,
+plus the small pieces around it (``Steps`` progress lines,
 ``NodeMonitor`` on /diagnostics, ``render_scene``, ``parse_params``)."""
 from __future__ import annotations
 
@@ -171,8 +173,9 @@ class GatedPublisher:
     earlier images; stops the player after `max_images`. Everything else is the wrapped publisher's."""
 
     def __init__(self, pub, monitor: NodeMonitor, player, *, lockstep: bool, timeout: float,
-                 max_images: int = 0, on_image=None):
+                 max_images: int = 0, on_image=None, msg_class=None):
         self._pub = pub
+        self._msg_class = msg_class          # the image's message class (sensor_msgs/Image by default)
         self._monitor = monitor
         self._player = player
         self._lockstep = lockstep
@@ -198,7 +201,7 @@ class GatedPublisher:
         if self._monitor.abort.is_set():
             self._player.stop()
             return
-        stamp_ns = self._stamp_ns(msg)
+        stamp_ns = self._stamp_ns(msg, self._msg_class)
         self._pub.publish(msg)
         if stamp_ns is not None:
             self.sent_wall_ns[stamp_ns] = time.time_ns()
@@ -207,13 +210,13 @@ class GatedPublisher:
             self._on_image(self.sent)
 
     @staticmethod
-    def _stamp_ns(msg) -> Optional[int]:
+    def _stamp_ns(msg, msg_class=None) -> Optional[int]:
         """Header stamp of an image given as a message or as CDR bytes (what the player publishes)."""
         try:
             if isinstance(msg, (bytes, bytearray, memoryview)):
                 from rclpy.serialization import deserialize_message
                 from sensor_msgs.msg import Image
-                msg = deserialize_message(bytes(msg), Image)
+                msg = deserialize_message(bytes(msg), msg_class or Image)
             return msg.header.stamp.sec * NS + msg.header.stamp.nanosec
         except Exception:
             return None
@@ -252,6 +255,7 @@ class ReplayResult:
     node_stop_s: float = 0.0
     node_log: str = ''
     node_command: List[str] = field(default_factory=list)
+    image_transport: str = 'raw'         # how the node was fed the bag's image topic (raw | compressed)
     warnings: List[str] = field(default_factory=list)
     e2e_ms: Dict[str, Any] = field(default_factory=dict)
 
@@ -319,8 +323,13 @@ class _NodeReplay:
         from dpv_sensor.data import rosbag_io as R
         self.steps, self.input_bag, self.output_bag, self.opts = steps, input_bag, output_bag, opts
         self.res = ReplayResult(lockstep=opts.lockstep, rate=opts.rate)
-        self.res.images_in_bag = R.bag_topics(input_bag)[opts.topics['image']][1]
-        remaps = {name: t for name, t in opts.topics.items() if t}
+        bag_topics = R.bag_topics(input_bag)
+        self.res.images_in_bag = bag_topics[opts.topics['image']][1]
+        # the bag's image type decides the node's image_transport: a CompressedImage topic goes to image/compressed
+        transport = self.res.image_transport = R.image_transport_of(bag_topics, opts.topics['image'])
+        params = {**params, 'image_transport': transport}
+        remaps = {('image/compressed' if name == 'image' and transport == 'compressed' else name): t
+                  for name, t in opts.topics.items() if t}
         self.cmd = node_command(params, remaps)
         self.res.node_command = self.cmd
         self.log_path = log_dir / 'node.log'
@@ -427,7 +436,7 @@ class _NodeReplay:
 
         gate = GatedPublisher(self.player.publishers[opts.topics['image']], monitor, self.player,
                               lockstep=opts.lockstep, timeout=opts.frame_timeout, max_images=opts.max_images,
-                              on_image=on_image)
+                              on_image=on_image, msg_class=self.player.classes[opts.topics['image']])
         self.player.publishers[opts.topics['image']] = gate
         t0 = time.perf_counter()
         stats = self._play_while_watching()

@@ -1,14 +1,17 @@
 """rosbag2 read / write for dpv_sensor with the `rosbags` library (no rclpy; ROS 2 Jazzy message definitions).
 
 - `write_sequence_bag`: a posed image sequence (a `Sequence`, the synthetic renderer's output, or plain arrays via
-  `ArraySequence`) -> a bag with sensor_msgs/Image on /image, sensor_msgs/CameraInfo on /camera_info
+  `ArraySequence`) -> a bag with sensor_msgs/Image on /image (or, with ``compressed``, image_transport's
+  sensor_msgs/CompressedImage JPEG or PNG on /image/compressed), sensor_msgs/CameraInfo on /camera_info
   and nav_msgs/Odometry on /odom, odometry at its own rate (interpolated between frames), with optional noise and
   dropouts. MCAP by default, sqlite3 on request.
 - `BagWriter`: a generic writer (rosbags messages or raw CDR bytes) — what `bag record` uses for a live graph.
 - Readers: `bag_topics`, `read_messages`, `read_images`, `read_depth_images`, `read_camera_infos`,
   `read_odometry` return numpy arrays with the exact header stamps (ns) and frame ids.
-- `detect_input_topics` / `detect_topic`: which topic is the image, camera_info, odometry - by message type, names
-  needed only to choose among several (shared by the demo, `bag` and `evaluate`).
+- `detect_input_topics` / `detect_topic` / `detect_image_topic`: which topic is the image, camera_info, odometry -
+  by message type, names needed only to choose among several (shared by the demo, `bag` and `evaluate`); a camera
+  image is a sensor_msgs/Image or an image_transport compressed CompressedImage topic (raw preferred when a bag
+  holds both: lossless and nothing to decode), replayed to the node with ``image_transport: compressed``.
 - `export_depth_bag`: a recorded depth/confidence bag -> a sequence-folder-like directory (depth PNG mm,
   confidence PNG, K.txt, stamps.txt, images and poses when the bag has them).
 
@@ -38,6 +41,8 @@ CONFIDENCE_TOPIC = '/confidence/image'
 DEPTH_INFO_TOPIC = '/depth/camera_info'
 
 IMAGE = 'sensor_msgs/msg/Image'
+COMPRESSED_IMAGE = 'sensor_msgs/msg/CompressedImage'
+COMPRESSED_SUFFIX = '/compressed'         # image_transport's compressed topic: the image topic's child
 CAMERA_INFO = 'sensor_msgs/msg/CameraInfo'
 ODOMETRY = 'nav_msgs/msg/Odometry'
 POSE_STAMPED = 'geometry_msgs/msg/PoseStamped'
@@ -188,6 +193,8 @@ class BagSummary:
     start_ns: int
     end_ns: int
     image_stamps_ns: list[int] = field(default_factory=list)
+    image_topic: str = IMAGE_TOPIC
+    image_format: str = ''           # CompressedImage's format field ('' for raw images)
 
     @property
     def duration_s(self) -> float:
@@ -264,11 +271,12 @@ def odometry_stamps(image_stamps_ns: np.ndarray, odom_rate: float | None) -> np.
 def write_sequence_bag(path: str | os.PathLike, seq, *, storage: str = 'mcap', rate: float | None = None,
                        odom_rate: float | None = None, odom_noise: tuple[float, float] = (0.0, 0.0),
                        odom_dropout: float = 0.0, seed: int = 0, start_ns: int | None = None,
-                       image_topic: str = IMAGE_TOPIC, camera_info_topic: str = CAMERA_INFO_TOPIC,
+                       image_topic: str | None = None, camera_info_topic: str = CAMERA_INFO_TOPIC,
                        odom_topic: str = ODOM_TOPIC, camera_frame: str = 'camera_optical_frame',
                        odom_frame: str = 'odom', base_frame: str = 'base_link', T_base_camera=None,
                        encoding: str = 'rgb8', frames: Iterable[int] | None = None, with_odometry: bool = True,
-                       pose_variance=None, overwrite: bool = False, progress: bool = True) -> BagSummary:
+                       pose_variance=None, compressed: str | None = None, jpeg_quality: int = 90,
+                       overwrite: bool = False, progress: bool = True) -> BagSummary:
     """Write a posed image sequence as a rosbag2 and return what was written.
 
     seq: anything with len(), .K, image(i) (uint8 RGB), pose(i) (4x4 T_world_cam) and stamp(i) (s); e.g. a
@@ -280,7 +288,11 @@ def write_sequence_bag(path: str | os.PathLike, seq, *, storage: str = 'mcap', r
     T_world_base = T_world_cam @ inv(T_base_camera). pose_variance: one row per sequence frame (position variance
     per axis m^2, rotation variance per axis rad^2), e.g. data.trajectory.corruption_variance: the odometry's pose
     covariance then carries it (linear in time between frames, plus the odom_noise variances) as an odometry that
-    reports its own accumulated uncertainty does; None: only the odom_noise variances. The bag's record time of
+    reports its own accumulated uncertainty does; None: only the odom_noise variances. compressed: 'jpeg' or 'png'
+    writes image_transport's sensor_msgs/CompressedImage (``ros.compressed_image.rgb_to_compressed``: format
+    '<encoding>; jpeg compressed bgr8', JPEG at jpeg_quality) instead of sensor_msgs/Image, as a robot recording its
+    camera's compressed topic; image_topic defaults to /image, or /image/compressed with `compressed`. The bag's
+    record time of
     every message is its header stamp; at equal stamps odometry is written before camera_info, camera_info before
     the image.
     """
@@ -293,6 +305,7 @@ def write_sequence_bag(path: str | os.PathLike, seq, *, storage: str = 'mcap', r
         raise BagError(f'rate must be > 0, got {rate}')
     if not 0.0 <= odom_dropout < 1.0:
         raise BagError(f'odom_dropout must be in [0, 1), got {odom_dropout}')
+    image_writer, image_topic = _image_writer(compressed, jpeg_quality, encoding, image_topic)
     if rate is not None:
         base = 0 if start_ns is None else int(start_ns)
         img_ns = np.array([base + int(round(k * NS / rate)) for k in range(len(idx))], dtype=np.int64)
@@ -330,6 +343,7 @@ def write_sequence_bag(path: str | os.PathLike, seq, *, storage: str = 'mcap', r
     events.sort(key=lambda e: (e[0], e[1]))
 
     reliable = qos_profile(True, 10)
+    image_format = ''
     iterator: Iterable = events
     if progress:
         from tqdm import tqdm
@@ -345,10 +359,27 @@ def write_sequence_bag(path: str | os.PathLike, seq, *, storage: str = 'mcap', r
                 rgb = np.asarray(seq.image(idx[payload]))
                 info = M.K_to_camera_info(K, rgb.shape[1], rgb.shape[0], t, frame_id=camera_frame, types=ROSBAGS)
                 bag.write(camera_info_topic, CAMERA_INFO, info, t, reliable)
-                img = M.rgb_to_image(rgb, t, frame_id=camera_frame, encoding=encoding, types=ROSBAGS)
-                bag.write(image_topic, IMAGE, img, t, reliable)
+                msgtype, img = image_writer(rgb, t, camera_frame)
+                bag.write(image_topic, msgtype, img, t, reliable)
+                image_format = str(getattr(img, 'format', ''))
     return BagSummary(pathlib.Path(path), storage, len(idx), odom_count, odom_dropped, int(min(e[0] for e in events)),
-                      int(max(e[0] for e in events)), img_ns.tolist())
+                      int(max(e[0] for e in events)), img_ns.tolist(), image_topic, image_format)
+
+
+def _image_writer(compressed: str | None, jpeg_quality: int, encoding: str, image_topic: str | None):
+    """write_sequence_bag's image message builder, (rgb, stamp ns, frame) -> (message type, rosbags message), and
+    the image topic (default /image, or image_transport's /image/compressed)."""
+    if not compressed:
+        return (lambda rgb, t, frame: (IMAGE, M.rgb_to_image(rgb, t, frame_id=frame, encoding=encoding,
+                                                               types=ROSBAGS))), image_topic or IMAGE_TOPIC
+    from dpv_sensor.ros.compressed_image import CODECS, rgb_to_compressed
+    if compressed not in CODECS:
+        raise BagError(f"compressed must be one of {', '.join(CODECS)}, got {compressed!r}")
+    if not 1 <= int(jpeg_quality) <= 100:
+        raise BagError(f'jpeg_quality must be in [1, 100], got {jpeg_quality}')
+    return (lambda rgb, t, frame: (COMPRESSED_IMAGE, rgb_to_compressed(
+        rgb, t, frame_id=frame, codec=compressed, jpeg_quality=jpeg_quality, encoding=encoding, types=ROSBAGS))), \
+        image_topic or IMAGE_TOPIC + COMPRESSED_SUFFIX
 
 
 # --------------------------------------------------------------------------------------------------------------
@@ -419,7 +450,11 @@ def _read(path, topic, expected_type, decode) -> list[Stamped]:
 
 
 def read_images(path, topic: str = IMAGE_TOPIC) -> list[Stamped]:
-    """Colour images -> HxWx3 uint8 RGB (extra['encoding'] keeps the recorded encoding)."""
+    """Colour images (sensor_msgs/Image, or image_transport's compressed CompressedImage) -> HxWx3 uint8 RGB
+    (extra['encoding'] keeps the recorded encoding, extra['format'] a compressed image's format)."""
+    if bag_topics(path).get(topic, ('',))[0] == COMPRESSED_IMAGE:
+        from dpv_sensor.ros.compressed_image import compressed_to_rgb
+        return _read(path, topic, COMPRESSED_IMAGE, lambda m: (compressed_to_rgb(m), {'format': m.format}))
     return _read(path, topic, IMAGE, lambda m: (M.image_to_rgb(m), {'encoding': m.encoding}))
 
 
@@ -459,6 +494,15 @@ def read_poses(path, topic: str) -> list[Stamped]:
 INPUT_TYPES = {'image': IMAGE, 'camera_info': CAMERA_INFO, 'odom': ODOMETRY}
 #: Image topics the node itself publishes (never a camera input; matched as name endings).
 OUTPUT_IMAGE_SUFFIXES = ('depth/image', 'confidence/image', 'rgb/image')
+#: CompressedImage topics that are never a camera's colour input: depth (compressedDepth) and the node's outputs.
+NOT_COLOUR_COMPRESSED_SUFFIXES = ('compressedDepth',) + tuple(f'{s}{COMPRESSED_SUFFIX}' for s in OUTPUT_IMAGE_SUFFIXES)
+
+
+def _not_an_input(topic: str, msgtype: str) -> bool:
+    """A topic of the camera image's types that is no camera input (a node output, compressed depth)."""
+    if msgtype == IMAGE:
+        return topic.endswith(OUTPUT_IMAGE_SUFFIXES)
+    return msgtype == COMPRESSED_IMAGE and topic.endswith(NOT_COLOUR_COMPRESSED_SUFFIXES)
 
 
 def _namespace(topic: str) -> str:
@@ -490,8 +534,7 @@ def detect_topic(topics: dict, role: str, msgtype: str, *, wanted: str | None = 
             raise BagError(f'{wanted} carries {topics[wanted][0]}, {role} needs {msgtype}')
         return wanted, 'named'
     skip = set(exclude)
-    cands = sorted(t for t, (ty, _n) in topics.items()
-                   if ty == msgtype and t not in skip and not (msgtype == IMAGE and t.endswith(OUTPUT_IMAGE_SUFFIXES)))
+    cands = sorted(t for t, (ty, _n) in topics.items() if ty == msgtype and t not in skip and not _not_an_input(t, ty))
     if len(cands) == 1:
         return cands[0], f'the only {msgtype} topic'
     if not cands:
@@ -503,6 +546,56 @@ def detect_topic(topics: dict, role: str, msgtype: str, *, wanted: str | None = 
         if len(close) == 1:
             return close[0], f'the only {msgtype} topic next to {near}'
     raise BagError(f'{len(cands)} {msgtype} topics could be the {role}: {_listing(topics, cands)}{hint}')
+
+
+def detect_image_topic(topics: dict, role: str = 'image', *, wanted: str | None = None, option: str = '',
+                       exclude: Iterable[str] = (), required: bool = True) -> tuple[str | None, str]:
+    """The camera image topic (``detect_topic`` for a colour image): a sensor_msgs/Image topic, or an image_transport
+    compressed sensor_msgs/CompressedImage one (compressedDepth and the node's outputs left out). ``wanted``: a name
+    of either type. Without one, a raw Image topic wins over compressed ones (lossless, nothing to decode; the
+    reason says so); a CompressedImage topic is taken when the bag has no raw one."""
+    if wanted:
+        msgtype = COMPRESSED_IMAGE if topics.get(wanted, ('',))[0] == COMPRESSED_IMAGE else IMAGE
+        return detect_topic(topics, role, msgtype, wanted=wanted, option=option)
+    skip = set(exclude)
+    compressed = [t for t, (ty, _n) in topics.items()
+                  if ty == COMPRESSED_IMAGE and t not in skip and not _not_an_input(t, ty)]
+    topic, how = detect_topic(topics, role, IMAGE, option=option, exclude=exclude, required=False)
+    if topic is not None:
+        return topic, how + (f' (preferred to {len(compressed)} {COMPRESSED_IMAGE} topic(s): raw is lossless)'
+                             if compressed else '')
+    if not compressed and not required:
+        return None, 'absent'
+    if not compressed:
+        hint = f'; choose with {option}' if option else ''
+        raise BagError(f'no {IMAGE} or {COMPRESSED_IMAGE} topic for {role} in the bag{hint} '
+                       f'(topics: {_listing(topics, topics)})')
+    return detect_topic(topics, role, COMPRESSED_IMAGE, option=option, exclude=exclude, required=required)
+
+
+def image_transport_of(topics: dict, topic: str) -> str:
+    """The node's image_transport for a bag's camera image topic: 'compressed' for CompressedImage, else 'raw'."""
+    return 'compressed' if topics.get(topic, ('',))[0] == COMPRESSED_IMAGE else 'raw'
+
+
+def image_topic_line(path, topics: dict, topic: str) -> str:
+    """One line for the user: which image topic a tool reads and how the node is fed it, e.g. 'image topic:
+    /cam/image_raw/compressed (sensor_msgs/CompressedImage, JPEG 'rgb8; jpeg compressed bgr8') -> node
+    image_transport=compressed'."""
+    msgtype = topics[topic][0]
+    transport = image_transport_of(topics, topic)
+    what = msgtype.replace('/msg/', '/')
+    if transport == 'compressed':
+        messages = read_messages(path, [topic])
+        try:
+            fmt = str(next(messages)[3].format)
+        except StopIteration:
+            fmt = ''
+        finally:
+            messages.close()            # closes the bag reader
+        codec = 'PNG' if 'png' in fmt.lower() else 'JPEG' if 'jp' in fmt.lower() else 'unknown codec'
+        what += f", {codec} '{fmt}'"
+    return f'image topic: {topic} ({what}) -> node image_transport={transport}'
 
 
 def detect_input_topics(path_or_topics, *, image: str | None = None, camera_info: str | None = None,
@@ -523,14 +616,27 @@ def detect_input_topics(path_or_topics, *, image: str | None = None, camera_info
     how: dict = {}
     for role, msgtype in INPUT_TYPES.items():
         try:
+            if role == 'image':
+                chosen[role], how[role] = detect_image_topic(topics, role, wanted=given[role],
+                                                             option=options.get(role, ''), required=role in need)
+                continue
             chosen[role], how[role] = detect_topic(
                 topics, role, msgtype, wanted=given[role], option=options.get(role, ''),
-                near=chosen.get('image') if role == 'camera_info' else None, required=role in need)
+                near=image_base_topic(topics, chosen.get('image')) if role == 'camera_info' else None,
+                required=role in need)
         except BagError:
             if role in need or given[role]:
                 raise
             chosen[role], how[role] = None, 'several, none needed'
     return chosen, how
+
+
+def image_base_topic(topics: dict, topic: str | None) -> str | None:
+    """The image topic a transport topic belongs to (``/cam/image_raw/compressed`` -> ``/cam/image_raw``), where its
+    camera_info is the sibling; a raw image topic itself."""
+    if topic and image_transport_of(topics, topic) == 'compressed' and topic.endswith(COMPRESSED_SUFFIX):
+        return topic[:-len(COMPRESSED_SUFFIX)]
+    return topic
 
 
 def describe_choice(chosen: dict, how: dict) -> str:
@@ -591,8 +697,8 @@ def _export_topics(path, topics: dict, depth_topic: str, confidence_topic: str, 
     info_t = find_topic(topics, info_topic, 'depth/camera_info', CAMERA_INFO)
     how = {}
     if image_topic is not None:
-        image_topic, how['image'] = detect_topic(
-            topics, 'colour image', IMAGE, wanted=None if image_topic == 'auto' else image_topic,
+        image_topic, how['image'] = detect_image_topic(
+            topics, 'colour image', wanted=None if image_topic == 'auto' else image_topic,
             option='--image-topic', exclude=(depth_topic_found, conf_topic), required=False)
     if odom_topic is not None:
         odom_topic, how['odom'] = detect_topic(topics, 'odometry', ODOMETRY,
@@ -729,7 +835,8 @@ def export_depth_bag(path, out_dir, *, depth_topic: str = DEPTH_TOPIC, confidenc
 __all__ = ['BagError', 'BagSummary', 'BagWriter', 'ArraySequence', 'Stamped', 'ROSBAGS', 'typestore', 'qos_profile',
            'write_sequence_bag', 'odometry_stamps', 'bag_topics', 'bag_qos', 'read_messages', 'read_images',
            'read_depth_images', 'read_camera_infos', 'read_odometry', 'read_poses', 'export_depth_bag', 'find_topic',
-           'detect_topic', 'detect_input_topics', 'describe_choice', 'INPUT_TYPES', 'OUTPUT_IMAGE_SUFFIXES',
+           'detect_topic', 'detect_input_topics', 'detect_image_topic', 'image_transport_of', 'image_topic_line',
+           'image_base_topic', 'describe_choice', 'INPUT_TYPES', 'OUTPUT_IMAGE_SUFFIXES', 'COMPRESSED_IMAGE',
            'IMAGE_TOPIC', 'CAMERA_INFO_TOPIC', 'ODOM_TOPIC', 'DEPTH_TOPIC', 'CONFIDENCE_TOPIC', 'DEPTH_INFO_TOPIC']
 
 

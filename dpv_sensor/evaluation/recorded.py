@@ -79,8 +79,9 @@ def records_from_bag(bag, gt, *, depth_topic: Optional[str] = None, confidence_t
     that type ending the same way, for a namespaced node). ``stamp_offset`` (s) is subtracted from the bag
     stamps before matching; ``'auto'``: when the bag also holds the camera images, the first image stamp is
     taken to be GT frame 0 (a bag written by ``bag`` / ``write_sequence_bag`` from the sequence), else 0. The camera
-    image topic is ``image_topic``, or the only sensor_msgs/Image topic besides the node's outputs
-    (``rosbag_io.detect_topic``; several: BagError listing them).
+    image topic is ``image_topic``, or the only sensor_msgs/Image topic besides the node's outputs, else the only
+    image_transport compressed CompressedImage topic (``rosbag_io.detect_image_topic``; several: BagError listing
+    them).
     A depth image matches a GT frame within ``tolerance`` seconds; unmatched ones are counted and skipped.
     Returns (records, info).
     """
@@ -96,9 +97,9 @@ def records_from_bag(bag, gt, *, depth_topic: Optional[str] = None, confidence_t
     infos = {s.stamp_ns: s.data for s in R.read_camera_infos(bag, i_topic)} if i_topic else {}
     if stamp_offset == 'auto':
         gt_seq = load_sequence(gt)
-        img_topic, img_how = R.detect_topic(topics, 'camera image', R.IMAGE, wanted=image_topic,
-                                            option='--image-topic, or --stamp-offset', exclude=(d_topic, c_topic),
-                                            required=False)
+        img_topic, img_how = R.detect_image_topic(topics, 'camera image', wanted=image_topic,
+                                                  option='--image-topic, or --stamp-offset', exclude=(d_topic, c_topic),
+                                                  required=False)
         offset = 0.0
         if img_topic is not None:
             offset = gt_stamp_offset(first_image_stamp(bag, img_topic), gt_seq, tolerance)

@@ -142,6 +142,11 @@ class NodeDiagnostics:
             values[f'publishers.{topic}'] = min(sub.get_publisher_count(), inputs.matched.get(topic, 0))
         for topic, reliability in inputs.reliability.items():
             values[f'input_qos.{topic}'] = reliability
+        # how the colour image arrives (image_transport raw | compressed), where, and the decode time of compressed
+        values['image_transport'] = inputs.image_transport
+        values['image_topic'] = inputs.topic_name('image') or ''
+        if inputs.image_transport == 'compressed':
+            values['image_decode_ms_median'] = _median(list(inputs.decode_ms))
         return values
 
     def _drop_share_status(self, values: dict):

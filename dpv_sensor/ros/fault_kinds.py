@@ -1,6 +1,7 @@
 """The kinds of fault the node counts (their names are the counters faults.* and dropped.* in /diagnostics; each
 has its own log message where it happens). No ROS. The receipt's kinds are in ``receipt`` (unsupported_encoding,
-bad_image), the pipeline's in ``dpv_sensor.stream.pipeline`` (degenerate_image, visual_odometry_lost)."""
+bad_image) and ``compressed_image`` (undecodable_image), the pipeline's in ``dpv_sensor.stream.pipeline``
+(degenerate_image, visual_odometry_lost)."""
 
 SIZE_CHANGE = 'image_size_change'
 NO_CAMERA_INFO = 'no_camera_info'

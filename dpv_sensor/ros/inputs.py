@@ -3,22 +3,28 @@ follows what the publishers offer), the callbacks that store what arrives (callb
 waits in the one-slot mailbox, odometry goes into the pose buffer, camera_info sets K and the rectifier), and the
 worker's wait for the camera_info and the odometry pose of an image (``wait_for``).
 
+With ``image_transport: compressed`` the image subscription is sensor_msgs/CompressedImage on ``image/compressed``
+(following a remapped ``image`` as image_transport names it); each message is decoded on receipt
+(``dpv_sensor.ros.compressed_image``) and then takes the raw image's path.
+
 Images are checked on receipt (``dpv_sensor.ros.receipt``), so a bad one is counted and logged even when the
 newest-wins mailbox would have replaced it; images lost before the callback are counted by ``stream_loss``; a change
 of the odometry frame_id is logged and counted (faults.odometry_frame_change).
 """
 from __future__ import annotations
 
+import collections
 import threading
 import time
 
 import numpy as np
 from nav_msgs.msg import Odometry
-from sensor_msgs.msg import CameraInfo, Image
+from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 
 from dpv_sensor.core.rectify import RectifierCache, UnsupportedDistortion
 from dpv_sensor.ros import msgs as M
 from dpv_sensor.ros import qos
+from dpv_sensor.ros.compressed_image import decode_message
 from dpv_sensor.ros.fault_kinds import (BAD_CAMERA_INFO, BUSY, EMPTY_FRAME_ID, NAN_ODOMETRY, ODOM_CONFLICT, ODOM_JUMP,
                                         TIME_BACKWARDS, UNSUPPORTED_DISTORTION)
 from dpv_sensor.ros.node_support import Incoming, Mailbox, RateMeter, merge_incoming
@@ -63,7 +69,12 @@ class NodeInputs:
         self.n_received = 0
         self.first_image_mono = None
         self.last_image_mono = None
-        self._callbacks = {'image': (Image, self.on_image)}
+        self.image_transport = s.image_transport
+        self.decode_ms: collections.deque[float] = collections.deque(maxlen=200)   # compressed: decode per image
+        self._callbacks = {'image': (CompressedImage, self.on_compressed_image) if s.image_transport == 'compressed'
+                           else (Image, self.on_image)}
+        # the name each input subscribes (qos.resolve: a transport follows its remapped image topic)
+        self._names = {'image': 'image/compressed'} if s.image_transport == 'compressed' else {}
         if s.camera_info_source == 'topic':
             self._callbacks['camera_info'] = (CameraInfo, self.on_camera_info)
         if est.odometry == 'topic':
@@ -98,7 +109,7 @@ class NodeInputs:
         events = self._qos_events.subscription(topic, matched=on_matched, message_lost=lost)
         msg_type, callback = self._callbacks[topic]
         self.subscriptions[topic] = self.node.create_subscription(
-            msg_type, qos.resolve(self.node, topic), callback,
+            msg_type, qos.resolve(self.node, self._names.get(topic, topic)), callback,
             qos.profile(reliability, self.node.settings.node.input_depth), event_callbacks=events)
         self.reliability[topic] = reliability
 
@@ -140,6 +151,14 @@ class NodeInputs:
             self._drop(BUSY)
             self.faults.report(BUSY, 'estimator busy: dropping an older image that was still waiting (newest wins; '
                                'the count is in /diagnostics)', level='info', count=False, period_s=60.0)
+
+    def on_compressed_image(self, msg) -> None:
+        """image_transport compressed: decode (JPEG / PNG), then the raw image's path; a payload that cannot be
+        decoded goes that path too, to be counted (stream loss, received) and refused by the receipt."""
+        t0 = time.perf_counter()
+        decoded = decode_message(msg)
+        self.decode_ms.append((time.perf_counter() - t0) * 1000.0)
+        self.on_image(decoded)
 
     def _on_empty_frame_id(self, stamp_ns) -> None:
         """An image without header.frame_id: the outputs use the frame_id parameter (warned once, every one counted)."""

@@ -7,8 +7,10 @@ stream layer (``dpv_sensor.stream.pipeline.Pipeline.push(Frame) -> PushResult``,
 ``dpv_sensor.stream.continuity``); messages are converted by ``dpv_sensor.ros.msgs``.
 
 Topics (relative names, remappable; a camera_info or compressedDepth follows its remapped image topic as
-image_transport names them, unless remapped itself: dpv_sensor.ros.topic_names):
-  in   image (sensor_msgs/Image rgb8/bgr8/rgba8/bgra8/mono8), camera_info (sensor_msgs/CameraInfo),
+image_transport names them, as does image/compressed, unless remapped itself: dpv_sensor.ros.topic_names):
+  in   image (sensor_msgs/Image rgb8/bgr8/rgba8/bgra8/mono8; with image_transport compressed instead
+       image/compressed: sensor_msgs/CompressedImage JPEG/PNG as image_transport's compressed plugin publishes it,
+       decoded on receipt, dpv_sensor.ros.compressed_image), camera_info (sensor_msgs/CameraInfo),
        odom (nav_msgs/Odometry) - QoS: input_reliability (auto: as the publishers offer), input_depth; transport:
        dpv_sensor.ros.transport (docs/transport.md), applied by the start-up steps before rclpy starts
   out  depth/image (32FC1 m, NaN = none | 16UC1 mm, 0 = none), depth/camera_info (K of the output size),
@@ -32,7 +34,8 @@ with code 2. SIGINT / SIGTERM stop the node cleanly (exit 0), also while it is s
 Distorted input (camera_info with non-zero D, plumb_bob / rational_polynomial / equidistant) is rectified
 (dpv_sensor.core.rectify) before the estimator; every output then carries the rectified K with D zero.
 
-Bad input never stops the node: each kind of fault (``fault_kinds``: unsupported encoding, inconsistent image, size
+Bad input never stops the node: each kind of fault (``fault_kinds``: unsupported encoding, inconsistent image, a
+compressed image that cannot be decoded, size
 change, missing or zero camera_info, NaN odometry, odometry gap or timeout, conflicting odometry at one stamp, time
 going backwards, an empty image frame_id, a degenerate image, an exception inside the estimator) is counted, reported
 in /diagnostics and logged with a specific, rate-limited message. No image is lost uncounted: images lost before the
@@ -130,7 +133,7 @@ class DepthCameraNode(Node):
                 f' cpu_precision={est.cpu_precision} measurement={est.measurement} '
                 f'filter={est.filter_mode} readout={est.depth_readout} confidence={est.confidence}{ratio} '
                 f'odometry={est.odometry} processing={est.processing_width}x{est.processing_height} '
-                f'input QoS={s.input_reliability}/{s.input_depth} '
+                f'input QoS={s.input_reliability}/{s.input_depth} image_transport={s.image_transport} '
                 f"image='{self.inputs.topic_name('image')}' "
                 f"camera_info='{self.inputs.topic_name('camera_info') or 'parameters'}' "
                 f"odom='{self.inputs.topic_name('odom') or 'none'}'")

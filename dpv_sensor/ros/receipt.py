@@ -1,11 +1,13 @@
 """What the node decides about an input message on receipt, in the subscription callback, before the newest-wins
 mailbox (no rclpy): images lost in transport or a discontinuity in the stamps (stream_loss), an image that cannot be
 used (unsupported encoding, size, step and data disagreeing: checked without touching the pixels, so a bad image
-is counted and logged even when the worker is busy and the image would have been replaced unseen), and a change of
-the odometry's frame_id."""
+is counted and logged even when the worker is busy and the image would have been replaced unseen; a compressed image
+arrives decoded, ``compressed_image.DecodedImage``, or as one that could not be decoded), and a change of the
+odometry's frame_id."""
 from __future__ import annotations
 
 from dpv_sensor.ros import msgs as M
+from dpv_sensor.ros.compressed_image import UNDECODABLE_IMAGE, DecodedImage
 from dpv_sensor.ros.node_support import Incoming, merge_incoming
 from dpv_sensor.ros.stream_loss import StreamLoss
 
@@ -44,6 +46,8 @@ class ImageReceipt:
         item = Incoming(msg, receipt_mono, receipt_ns, None if lost else gap_ns, [lost] if lost else [])
         if self._carry is not None:
             item = merge_incoming(self._carry, item)
+        if isinstance(msg, DecodedImage) and msg.error is not None:
+            return self._reject(item, UNDECODABLE_IMAGE, msg.error, stamp_ns)
         try:
             M.check_colour_image(msg)
         except M.UnsupportedEncoding as exc:
@@ -57,7 +61,8 @@ class ImageReceipt:
         self._carry = item
         self.drop(kind)
         at = f'{stamp_ns / NS:.3f} s' if stamp_ns is not None else 'an unreadable stamp'
-        self.faults.report(kind, f'dropping image at {at}: {exc}')
+        what = f"compressed image (format '{item.msg.format}')" if isinstance(item.msg, DecodedImage) else 'image'
+        self.faults.report(kind, f'dropping {what} at {at}: {exc}')
         return None
 
 

@@ -1,9 +1,11 @@
 """Topic names that follow their image topic, as image_transport names them (no ROS import).
 
 image_transport's convention: an image topic's camera_info is its sibling (``/cam/color/image_raw`` ->
-``/cam/color/camera_info``) and a transport's topic is its child (``depth/image`` -> ``depth/image/compressedDepth``).
+``/cam/color/camera_info``) and a transport's topic is its child (``depth/image`` -> ``depth/image/compressedDepth``,
+``image`` -> ``image/compressed``).
 So a remapped image topic takes its camera_info and transports with it, unless those are remapped themselves:
-``-r image:=/camera/color/image_raw`` alone subscribes ``/camera/color/camera_info``, and ``-r depth/image:=/dpv/depth``
+``-r image:=/camera/color/image_raw`` alone subscribes ``/camera/color/camera_info`` (and, with
+``image_transport: compressed``, ``/camera/color/image_raw/compressed``), and ``-r depth/image:=/dpv/depth``
 publishes ``/dpv/camera_info`` and ``/dpv/depth/compressedDepth``.
 """
 from __future__ import annotations
@@ -13,6 +15,7 @@ from typing import Callable
 # follower topic -> (image topic it follows, how: 'sibling' camera_info or 'child' transport suffix)
 FOLLOWERS: dict[str, tuple[str, str]] = {
     'camera_info': ('image', 'sibling'),
+    'image/compressed': ('image', 'child'),          # the input with image_transport: compressed
     'depth/camera_info': ('depth/image', 'sibling'),
     'rgb/camera_info': ('rgb/image', 'sibling'),
     'confidence/camera_info': ('confidence/image', 'sibling'),

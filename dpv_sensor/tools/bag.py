@@ -1,7 +1,8 @@
 """`ros2 run dpv_sensor bag`: write, play, record and export rosbag2 files for dpv_sensor.
 
   bag write SEQUENCE_DIR OUT_BAG     a sequence folder (or --synthetic SEED) -> rosbag2 with image, camera_info and
-                                     odometry (--rate, --odom-rate, --odom-noise, --odom-dropout, --format)
+                                     odometry (--rate, --odom-rate, --odom-noise, --odom-dropout, --format);
+                                     --compressed [jpeg|png]: image_transport's CompressedImage on /image/compressed
   bag play BAG                       replay into the live ROS graph at real time (or --rate x), with the recorded
                                      QoS, after waiting for subscribers (--wait-for, --wait-timeout); topics are
                                      remapped the ROS way: bag play BAG --ros-args -r /image:=/cam/image
@@ -20,6 +21,7 @@ import time
 
 from dpv_sensor.data import rosbag_io as R
 from dpv_sensor.client.ros_io import BagPlayer, BagRecorder
+from dpv_sensor.ros.compressed_image import CODECS
 
 NS = 1_000_000_000
 
@@ -50,9 +52,12 @@ def _cmd_write(args) -> int:
         image_topic=args.image_topic, camera_info_topic=args.camera_info_topic, odom_topic=args.odom_topic,
         camera_frame=args.camera_frame, odom_frame=args.odom_frame, base_frame=args.base_frame,
         T_base_camera=T_base_camera, encoding=args.encoding, with_odometry=not args.no_odometry,
-        overwrite=args.overwrite, progress=not args.no_progress)
-    print(f'wrote {summary.path} ({summary.storage}): {summary.frames} images, {summary.odometry} odometry '
-          f'messages ({summary.odometry_dropped} dropped on purpose), {summary.duration_s:.2f} s')
+        compressed=args.compressed, jpeg_quality=args.jpeg_quality, overwrite=args.overwrite,
+        progress=not args.no_progress)
+    what = f"CompressedImage '{summary.image_format}'" if args.compressed else f'Image {args.encoding}'
+    print(f'wrote {summary.path} ({summary.storage}): {summary.frames} images ({what} on {summary.image_topic}), '
+          f'{summary.odometry} odometry messages ({summary.odometry_dropped} dropped on purpose), '
+          f'{summary.duration_s:.2f} s')
     return 0
 
 
@@ -180,7 +185,14 @@ def build_parser() -> argparse.ArgumentParser:
     w.add_argument('--format', choices=R.STORAGES, default='mcap', help='storage plugin (default mcap)')
     w.add_argument('--seed', type=int, default=0, help='random seed of the odometry noise / dropouts')
     w.add_argument('--encoding', default='rgb8', choices=('rgb8', 'bgr8', 'rgba8', 'bgra8', 'mono8'))
-    w.add_argument('--image-topic', default=R.IMAGE_TOPIC)
+    w.add_argument('--compressed', nargs='?', const='jpeg', choices=CODECS, default=None,
+                   help="write image_transport's sensor_msgs/CompressedImage (JPEG, or --compressed png) instead "
+                        'of sensor_msgs/Image, as robots record a camera (the node reads it with '
+                        'image_transport=compressed)')
+    w.add_argument('--jpeg-quality', type=int, default=90, help='JPEG quality 1-100 with --compressed (default 90)')
+    w.add_argument('--image-topic', default=None,
+                   help=f'image topic (default {R.IMAGE_TOPIC}; {R.IMAGE_TOPIC}{R.COMPRESSED_SUFFIX} with '
+                        '--compressed)')
     w.add_argument('--camera-info-topic', default=R.CAMERA_INFO_TOPIC)
     w.add_argument('--odom-topic', default=R.ODOM_TOPIC)
     w.add_argument('--camera-frame', default='camera_optical_frame')
@@ -227,7 +239,7 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument('--camera-info-topic', default=R.DEPTH_INFO_TOPIC)
     e.add_argument('--image-topic', default='auto',
                    help='colour images to export alongside (default: the only Image topic that is not a node output, '
-                        'if recorded)')
+                        'else the only image_transport CompressedImage topic, if recorded)')
     e.add_argument('--odom-topic', default='auto',
                    help='odometry for poses.txt (default: the only Odometry topic, if recorded)')
     e.add_argument('--pose-topic', help='PoseStamped topic for poses.txt (instead of odometry)')

@@ -38,10 +38,12 @@ Steps (each prints a progress line and its time):
 With --bag (a user's own recording): steps 1-2 are skipped; the image, camera_info and odometry topics are found by
 message type (the only sensor_msgs/Image, CameraInfo and nav_msgs/Odometry topic; the camera_info next to the image
 among several) and printed; --image-topic / --camera-info-topic / --odom-topic choose among several (all are remapped
-onto the node's `image`, `camera_info`, `odom`). Camera settings and
-everything else go in as node parameters with --params (e.g. camera_info_source=parameters fx=... fy=... cx=...
-cy=..., odometry=none, T_base_camera=[x,y,z,qx,qy,qz,qw]). Without --gt there is nothing to score against: the
-outputs are still recorded, and OUT/montage.png shows image | depth | confidence for a few keyframes, with
+onto the node's `image`, `camera_info`, `odom`). A camera recorded as image_transport's compressed
+sensor_msgs/CompressedImage (JPEG or PNG; a bag holding raw Image too plays the raw one unless --image-topic names
+the compressed one) is remapped onto `image/compressed` and the node runs with image_transport=compressed. Camera
+settings and everything else go in as node parameters with --params (e.g. camera_info_source=parameters fx=...
+fy=... cx=... cy=..., odometry=none, T_base_camera=[x,y,z,qx,qy,qz,qw]). Without --gt there is nothing to score
+against: the outputs are still recorded, and OUT/montage.png shows image | depth | confidence for a few keyframes, with
 coverage and confidence statistics in the summary. With --gt (a sequence folder whose stamps match the bag's, or
 whose frame 0 is the bag's first image) steps 6 and 7 run as for the synthetic scene.
 
@@ -101,6 +103,7 @@ def montage_without_gt(input_bag, output_bag, image_topic: str, path: pathlib.Pa
     """image | depth | confidence for a few recorded outputs (no ground truth); returns output statistics."""
     import numpy as np
     from dpv_sensor.ros import msgs as M
+    from dpv_sensor.ros.compressed_image import image_message_to_rgb
     from dpv_sensor.data import rosbag_io as R
     from dpv_sensor.evaluation.plots import _plt, depth_range
     topics = R.bag_topics(output_bag)
@@ -127,7 +130,7 @@ def montage_without_gt(input_bag, output_bag, image_topic: str, path: pathlib.Pa
     for _t, _ty, _log, msg in R.read_messages(input_bag, [image_topic]):
         s = M.stamp_to_ns(msg.header.stamp)
         if s in wanted:
-            images[s] = M.image_to_rgb(msg)
+            images[s] = image_message_to_rgb(msg)
             if len(images) == len(wanted):
                 break
     plt = _plt()
@@ -343,6 +346,7 @@ def _node_summary(replay, values: Dict[str, Any], logs: pathlib.Path) -> Dict[st
         'precision': d.get('precision'),
         'processing_size': [values['processing_width'], values['processing_height']],
         'images_in_bag': replay.images_in_bag, 'images_sent': replay.images_sent,
+        'image_transport': replay.image_transport, 'image_decode_ms_median': d.get('image_decode_ms_median'),
         'frames_received': d.get('frames_received'), 'frames_processed': d.get('frames_processed'),
         'keyframes': d.get('estimator_keyframes'), 'outputs_published': d.get('outputs_published'),
         'recorded': replay.recorded, 'dropped_total': d.get('dropped_total'),
@@ -405,9 +409,11 @@ def _input_steps(steps: Steps, a, seq_dir: pathlib.Path, input_bag: pathlib.Path
     else:
         topics, how, bt = bag_inputs
         print(f'demo: input topics: {R.describe_choice(topics, how)}', flush=True)
+        print(f"demo: {R.image_topic_line(input_bag, bt, topics['image'])}", flush=True)
         steps.skip('render', f'using your bag {_rel(input_bag)}')
         steps.skip('bag', f"{bt[topics['image']][1]} images on {topics['image']}")
         summary['input'] = {'kind': 'bag', 'bag': str(input_bag), 'topics': topics, 'topics_chosen_by': how,
+                            'image_transport': R.image_transport_of(bt, topics['image']),
                             'gt': str(gt_dir) if gt_dir else None}
     return topics
 

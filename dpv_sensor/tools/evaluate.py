@@ -91,7 +91,7 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument('--info-topic', default=None)
     b.add_argument('--image-topic', default=None,
                    help='camera images for --stamp-offset auto (default: the only sensor_msgs/Image topic that is '
-                        'not a node output)')
+                        'not a node output, else the only image_transport CompressedImage topic)')
     b.add_argument('--stamp-offset', default='auto',
                    help="seconds subtracted from the bag stamps before matching, or 'auto' (the bag's first "
                         "camera image is GT frame 0)")
