@@ -116,4 +116,5 @@ def test_no_transform_warns_counts_and_publishes_nothing_until_tf_static_arrives
     assert "no transform from 'base_link' to 'cam' on /tf_static or /tf yet" in log, log
     assert 'set T_base_camera or publish the camera mount' in log and 'WARN' in log, log
     assert "camera mount from TF: 'base_link' -> 'cam'" in log, log
+    assert 'camera mount=tf (auto): looked up on /tf_static and /tf' in log, log          # the starting line
     assert min(drv.outputs.order) > drv.stamp_ns(n_without - 1)       # no output for an image without a mount

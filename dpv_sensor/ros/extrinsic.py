@@ -8,8 +8,9 @@ volatile (it matches reliable and best-effort publishers alike). Every transform
 ``dpv_sensor.stream.transform_tree.TransformTree`` (the latest per link); per image the mount is looked up from the
 odometry's child_frame_id to the image's header.frame_id, chained through the frames between them (base_link ->
 camera_link -> camera_color_optical_frame). A transform that changes is followed: the next image uses the new one,
-and the change is logged at info. A transform with NaN or a non-unit quaternion is ignored and counted
-(faults.bad_transform); the caller drops an image without a mount (dropped.no_extrinsic, faults.no_extrinsic).
+and the change is logged at info (at most three lines in 10 s; extrinsic_changes counts them all). A transform with
+NaN or a non-unit quaternion is ignored and counted (faults.bad_transform); the caller drops an image without a
+mount (dropped.no_extrinsic, faults.no_extrinsic).
 """
 from __future__ import annotations
 
