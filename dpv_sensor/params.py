@@ -120,6 +120,14 @@ SPECS: tuple[ParamSpec, ...] = (
     ParamSpec('T_base_camera', list(IDENTITY_POSE), 'Static camera pose in the odometry child frame: '
               '[x, y, z, qx, qy, qz, qw] (identity: odometry already tracks the optical frame).', length=7,
               scope='node'),
+    ParamSpec('extrinsic_source', 'auto', 'Where the camera mount (odometry child frame -> image frame) comes from: '
+              "parameter (T_base_camera), tf (looked up on /tf_static and /tf from the odometry's child_frame_id to "
+              "the images' header.frame_id, chained through the frames between, as a URDF's robot_state_publisher "
+              'or a camera driver publishes them; the latest transform is used) or auto (T_base_camera when it is '
+              'not the identity, else tf: the identity is the default and the value the parameters file lists, so '
+              'it cannot say that the user set it; with an identity mount between two differently named frames '
+              'choose parameter). Images without a mount are dropped (dropped.no_extrinsic).',
+              choices=('auto', 'tf', 'parameter'), scope='node'),
     ParamSpec('odom_wait_timeout', 0.5, 'How long an image waits for odometry that brackets its stamp (s).',
               min_value=0.0, max_value=60.0, scope='node'),
     ParamSpec('max_odom_gap', 0.5, 'Largest gap between the two odometry messages an image pose is '
@@ -277,6 +285,16 @@ NODE_SPECS = tuple(s for s in SPECS if s.scope == 'node')
 RUNTIME = frozenset({'min_confidence', 'damping', 'edge_filter_radius', 'edge_filter_sigma', 'depth_encoding',
                      'points_decimation', 'points_max_rate', 'expected_depth_rate', 'expected_points_rate',
                      'rate_tolerance', 'drop_warn_share', 'drop_error_share', 'odom_wait_timeout', 'frame_id'})
+
+
+def extrinsic_source(setting: str, T_base_camera) -> str:
+    """The camera mount's source in use, 'parameter' or 'tf', for the extrinsic_source `setting` (auto: the
+    T_base_camera parameter when it is not the identity pose, else tf)."""
+    if setting != 'auto':
+        return setting
+    pose = [float(v) for v in T_base_camera]
+    identity = all(abs(v) <= 1e-9 for v in pose[:3]) and abs(abs(pose[6]) - 1.0) <= 1e-9
+    return 'tf' if identity else 'parameter'
 
 
 class ParameterError(ValueError):

@@ -10,7 +10,7 @@ Arguments
   image, camera_info, odom
                 input topics; each one given overrides the driver's. camera_info follows image (its sibling, as
                 image_transport names it) unless given
-  preset, window_mode, T_base_camera, measurement, device, publish_tf, base_frame
+  preset, window_mode, T_base_camera, extrinsic_source, measurement, device, publish_tf, base_frame
                 node parameters (empty: the params file's value), e.g. preset:=paper T_base_camera:='[0,0,0,0,0,0,1]'
   params        any further node parameters, space separated `name:=value` pairs, e.g. params:='damping:=0.5'
   remaps        further remappings, space separated `from:=to` pairs, e.g. remaps:='depth/image:=/dpv/depth' (a
@@ -34,15 +34,17 @@ PACKAGE = 'dpv_sensor'
 EXECUTABLE = 'node'                 # console_scripts entry point of setup.py (lib/dpv_sensor/node)
 PARAMS_FILE = os.path.join('config', 'dpv_sensor.yaml')   # relative to the package share directory
 INPUTS = ('image', 'camera_info', 'odom')
-PARAMETERS = ('preset', 'window_mode', 'T_base_camera', 'measurement', 'device', 'publish_tf', 'base_frame')
+PARAMETERS = ('preset', 'window_mode', 'T_base_camera', 'extrinsic_source', 'measurement', 'device', 'publish_tf',
+              'base_frame')
 ZED_OPTICAL_IN_CAMERA_LINK = [0.0, 0.06, 0.0, -0.5, 0.5, -0.5, 0.5]
 
 # Input topics (and parameters) of camera drivers started with their own launch files and defaults.
 DRIVERS: dict[str, dict] = {
     'none': {'topics': {}, 'parameters': {}},
     # realsense2_camera 4.5x rs_launch.py: camera_namespace 'camera' and camera_name 'camera'. D4xx cameras have
-    # no odometry: remap odom to your odometry source and set T_base_camera to the colour optical frame's pose in
-    # its child frame.
+    # no odometry: remap odom to your odometry source; the camera mount comes from TF (extrinsic_source auto: the
+    # driver publishes camera_link -> camera_color_optical_frame on /tf_static, the robot's URDF base_link ->
+    # camera_link), or set T_base_camera to the colour optical frame's pose in the odometry's child frame.
     'realsense': {'topics': {'image': '/camera/camera/color/image_raw',
                              'camera_info': '/camera/camera/color/camera_info'},
                   'parameters': {}},

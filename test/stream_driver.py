@@ -12,7 +12,9 @@ from dpv_sensor.stream.pose_buffer import NS
 W, H = 160, 128
 BASE_NS = 1_760_000_000 * NS
 FAST_PARAMS = {'measurement': 'classical', 'processing_width': W, 'processing_height': H, 'num_planes': 32,
-               'keyframe_max_interval': 1, 'input_depth': 50, 'diagnostics_period': 0.1}
+               'keyframe_max_interval': 1, 'input_depth': 50, 'diagnostics_period': 0.1,
+               # the odometry of 'base_link' tracks the camera 'cam' itself: the identity mount, not looked up on TF
+               'extrinsic_source': 'parameter'}
 
 
 class StreamDriver:

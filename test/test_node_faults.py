@@ -129,7 +129,7 @@ def test_fault_bag_replays_without_crash_and_every_fault_is_reported(fault_bag, 
     outputs = OutputCollector(node)
     params = {'measurement': 'auto', 'weights': str(corrupt), 'processing_width': W, 'processing_height': H,
               'num_planes': 32, 'max_odom_gap': 0.05, 'odom_wait_timeout': 0.5, 'input_reliability': 'reliable',
-              'input_depth': 50, 'diagnostics_period': 0.5}
+              'input_depth': 50, 'diagnostics_period': 0.5, 'extrinsic_source': 'parameter'}
     args = ['--ros-args'] + [a for k, v in params.items() for a in ('-p', f'{k}:={v}')] + [
         '-r', 'image:=/image', '-r', 'camera_info:=/camera_info', '-r', 'odom:=/odom']
     proc = start_node(args, env={'OMP_NUM_THREADS': '1'})

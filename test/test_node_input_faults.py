@@ -66,7 +66,8 @@ def replay():
             'odom': node.create_publisher(Odometry, '/odom', qos)}
     outputs = OutputCollector(node)
     params = {'measurement': 'classical', 'processing_width': W, 'processing_height': H, 'num_planes': 32,
-              'keyframe_max_interval': 1, 'input_depth': 50, 'diagnostics_period': 0.1}
+              'keyframe_max_interval': 1, 'input_depth': 50, 'diagnostics_period': 0.1,
+              'extrinsic_source': 'parameter'}
     args = ['--ros-args'] + [a for k, v in params.items() for a in ('-p', f'{k}:={v}')] + [
         '-r', 'image:=/cam/image', '-r', 'camera_info:=/cam/camera_info', '-r', 'odom:=/odom']
     proc = start_node(args, env={'OMP_NUM_THREADS': '1'})

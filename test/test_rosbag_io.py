@@ -312,3 +312,30 @@ def test_pose_variance_is_written_as_the_odometry_covariance(tmp_path):
         R.write_sequence_bag(tmp_path / 'bad', seq, pose_variance=var[:3], progress=False)
     with pytest.raises(R.BagError, match='non-negative'):
         R.write_sequence_bag(tmp_path / 'bad2', seq, pose_variance=-var, progress=False)
+
+
+def test_the_mount_on_tf_static_as_a_two_link_chain(tmp_path):
+    """bag write --tf-static: odometry of base_link and the mount on /tf_static, latched, written first; the chain
+    base_link -> camera_link -> camera frame composes to T_base_camera, so odometry @ chain = the camera poses."""
+    from dpv_sensor.ros.extrinsic import transform_to_matrix
+    from dpv_sensor.stream.transform_tree import TransformTree
+    seq = make_seq()
+    R.write_sequence_bag(tmp_path / 'bag', seq, T_base_camera=T_BASE_CAM, tf_static=True, camera_link='camera_link',
+                         progress=False)
+    assert R.bag_topics(tmp_path / 'bag')['/tf_static'] == ('tf2_msgs/msg/TFMessage', 1)
+    qos = R.bag_qos(tmp_path / 'bag')['/tf_static'][0]
+    assert (qos.reliability.name, qos.durability.name) == ('RELIABLE', 'TRANSIENT_LOCAL')
+    first = next(R.read_messages(tmp_path / 'bag'))
+    assert first[0] == '/tf_static' and first[2] == 100 * NS
+    tree = TransformTree()
+    links = [(tf.header.frame_id, tf.child_frame_id) for tf in first[3].transforms]
+    assert links == [('base_link', 'camera_link'), ('camera_link', 'camera_optical_frame')]
+    for tf in first[3].transforms:
+        tree.set(tf.header.frame_id, tf.child_frame_id, transform_to_matrix(tf.transform), static=True)
+    T_bc = tree.lookup('base_link', 'camera_optical_frame').T_target_source_44
+    np.testing.assert_allclose(T_bc, pose7_to_matrix(T_BASE_CAM), atol=1e-12)
+    for i, s in enumerate(R.read_odometry(tmp_path / 'bag')):
+        np.testing.assert_allclose(s.data @ T_bc, seq.pose(i), atol=1e-12)
+    R.write_sequence_bag(tmp_path / 'one', seq, T_base_camera=T_BASE_CAM, tf_static=True, progress=False)
+    one = next(R.read_messages(tmp_path / 'one', ['/tf_static']))[3].transforms
+    assert [(tf.header.frame_id, tf.child_frame_id) for tf in one] == [('base_link', 'camera_optical_frame')]

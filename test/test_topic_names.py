@@ -56,7 +56,8 @@ def test_readme_one_liner_subscribes_the_sibling_camera_info_and_produces_depth(
     assert args[:1] == ['--ros-args'] and 'image:=/camera/color/image_raw' in args, args
     assert not any(a.startswith('camera_info:=') for a in args), args
     drv = StreamDriver(args + ['-p', 'measurement:=classical', '-p', 'processing_width:=160',
-                               '-p', 'processing_height:=128', '-p', 'diagnostics_period:=0.25'],
+                               '-p', 'processing_height:=128', '-p', 'diagnostics_period:=0.25',
+                               '-p', 'extrinsic_source:=parameter'],
                        topics={'image': '/camera/color/image_raw', 'camera_info': '/camera/color/camera_info',
                                'odom': '/odom'}, frames=12, name='readme_camera')
     try:

@@ -1,10 +1,16 @@
 """Replaying a bag through the node process, as `make demo` and the stream-table benchmark do (not a console
 tool): start the node with a private DDS environment, wait until it is ready and matched, play the bag in lockstep
 (each image held back until the node has finished the earlier ones) while recording its outputs, stop it with
-SIGINT and report what happened (``run_node_replay``). A camera image topic of image_transport's compressed kind
-(sensor_msgs/CompressedImage) is replayed to the node's ``image/compressed`` with ``image_transport: compressed``,
-plus the small pieces around it (``Steps`` progress lines,
-``NodeMonitor`` on /diagnostics, ``render_scene``, ``parse_params``)."""
+SIGINT and report what happened (``run_node_replay``), plus the small pieces around it (``Steps`` progress lines,
+``NodeMonitor`` on /diagnostics, ``render_scene``, ``parse_params``).
+
+A camera image topic of image_transport's compressed kind (sensor_msgs/CompressedImage) is replayed to the node's
+``image/compressed`` with ``image_transport: compressed``.
+
+The bag's /tf_static and /tf (tf2_msgs/TFMessage) are played too, /tf_static with its recorded transient-local QoS,
+before the first image: the node then finds the camera mount on TF (extrinsic_source auto, no T_base_camera typed).
+A bag without them replays with extrinsic_source: parameter unless the caller chose one (``mount_params``): the
+mount is T_base_camera, identity unless given, as before TF was read."""
 from __future__ import annotations
 
 import contextlib
@@ -16,6 +22,7 @@ import time
 from dataclasses import dataclass, field
 from typing import Any, Dict, List, Optional
 
+from dpv_sensor import params as P
 from dpv_sensor.ros.process_memory import proc_status_kib
 from dpv_sensor.client.node_process import ClientNode, node_command
 
@@ -57,6 +64,20 @@ def _as_number(text, default=None):
         return float(text)
     except (TypeError, ValueError):
         return default
+
+
+def tf_topics(bag_topics: Dict[str, Any]) -> List[str]:
+    """/tf_static and /tf when the bag has them as tf2_msgs/msg/TFMessage (bag_topics: ``rosbag_io.bag_topics``)."""
+    from dpv_sensor.data import rosbag_io as R
+    return [t for t in (R.TF_STATIC_TOPIC, R.TF_TOPIC) if bag_topics.get(t, ('',))[0] == R.TF_MESSAGE]
+
+
+def mount_params(params: Dict[str, Any], tf: List[str]) -> Dict[str, Any]:
+    """The node parameters for a bag with the TF topics `tf`: without any, extrinsic_source: parameter unless
+    `params` choose it (no mount to look up; T_base_camera, identity unless given, as before TF was read)."""
+    if tf or 'extrinsic_source' in params:
+        return dict(params)
+    return {**params, 'extrinsic_source': 'parameter'}
 
 
 def parse_params(items: List[str]) -> Dict[str, Any]:
@@ -255,7 +276,8 @@ class ReplayResult:
     node_stop_s: float = 0.0
     node_log: str = ''
     node_command: List[str] = field(default_factory=list)
-    image_transport: str = 'raw'         # how the node was fed the bag's image topic (raw | compressed)
+    # how the node was fed the bag's image topic (raw | compressed)
+    image_transport: str = field(default_factory=lambda: P.default('image_transport'))
     warnings: List[str] = field(default_factory=list)
     e2e_ms: Dict[str, Any] = field(default_factory=dict)
 
@@ -330,7 +352,8 @@ class _NodeReplay:
         params = {**params, 'image_transport': transport}
         remaps = {('image/compressed' if name == 'image' and transport == 'compressed' else name): t
                   for name, t in opts.topics.items() if t}
-        self.cmd = node_command(params, remaps)
+        self.tf_topics = tf_topics(bag_topics)         # played as they are (absolute names, not remapped)
+        self.cmd = node_command(mount_params(params, self.tf_topics), remaps)
         self.res.node_command = self.cmd
         self.log_path = log_dir / 'node.log'
         self.log_file = open(self.log_path, 'w')
@@ -376,7 +399,8 @@ class _NodeReplay:
         self.node.get_logger().set_level(LoggingSeverity.WARN)   # the recorder's "recording ..." lines
         self.monitor = NodeMonitor(self.node)
         self.recorder = BagRecorder(self.node, self.output_bag, OUTPUT_TOPICS, overwrite=True)
-        self.player = BagPlayer(self.node, self.input_bag, rate=self.opts.rate, topics=self.opts.play_topics)
+        self.player = BagPlayer(self.node, self.input_bag, rate=self.opts.rate,
+                                topics=self.opts.play_topics + self.tf_topics)
         self._wait_estimator()
         self._wait_subscribed()
         self._wait_publishing()
@@ -412,6 +436,12 @@ class _NodeReplay:
             unmatched = [r for r in roles if monitor.get_int(f'publishers.{r}') < 1]
             raise ReplayError(f"the node's subscriptions did not match the player's {unmatched} publishers "
                               f'within {wait_s:g} s (log: {_rel(self.log_path)})')
+        # TF: the node subscribes it only when it looks the camera mount up there; then its reader should match
+        # the player's (latched) /tf_static before the first image, so the first images find the mount
+        listened = [t for t in self.tf_topics if self.node.count_subscribers(t) > 0]
+        if listened:
+            self.player.wait_for_subscribers(listened, timeout=wait_s,
+                                             spin=lambda t: self.executor.spin_once(timeout_sec=t))
 
     def _wait_publishing(self) -> None:
         self.spin_until(lambda: not self.recorder.poll(), 10.0)

@@ -4,7 +4,8 @@
   `ArraySequence`) -> a bag with sensor_msgs/Image on /image (or, with ``compressed``, image_transport's
   sensor_msgs/CompressedImage JPEG or PNG on /image/compressed), sensor_msgs/CameraInfo on /camera_info
   and nav_msgs/Odometry on /odom, odometry at its own rate (interpolated between frames), with optional noise and
-  dropouts. MCAP by default, sqlite3 on request.
+  dropouts, and optionally the camera mount on /tf_static (tf2_msgs/TFMessage, latched as robot_state_publisher
+  publishes it). MCAP by default, sqlite3 on request.
 - `BagWriter`: a generic writer (rosbags messages or raw CDR bytes) — what `bag record` uses for a live graph.
 - Readers: `bag_topics`, `read_messages`, `read_images`, `read_depth_images`, `read_camera_infos`,
   `read_odometry` return numpy arrays with the exact header stamps (ns) and frame ids.
@@ -28,6 +29,7 @@ from typing import Any, Iterable, Iterator
 import numpy as np
 
 from dpv_sensor.ros import msgs as M
+from dpv_sensor.ros.tf_publisher import tf_message, transform_stamped
 from dpv_sensor import params as P
 from dpv_sensor.stream.pose_buffer import PoseBuffer, interpolate_pose, make_pose, pose7_to_matrix
 
@@ -46,6 +48,9 @@ COMPRESSED_SUFFIX = '/compressed'         # image_transport's compressed topic: 
 CAMERA_INFO = 'sensor_msgs/msg/CameraInfo'
 ODOMETRY = 'nav_msgs/msg/Odometry'
 POSE_STAMPED = 'geometry_msgs/msg/PoseStamped'
+TF_MESSAGE = 'tf2_msgs/msg/TFMessage'
+TF_STATIC_TOPIC = '/tf_static'
+TF_TOPIC = '/tf'
 
 STORAGES = ('mcap', 'sqlite3')
 
@@ -77,13 +82,15 @@ ROSBAGS = M.MessageTypes('rosbags', _rosbags_class, lambda b: np.frombuffer(byte
                          lambda v: np.asarray(list(v), dtype=np.float64))
 
 
-def qos_profile(reliable: bool = True, depth: int = 10):
-    """A rosbags Qos record (keep-last, volatile) for a connection's offered_qos_profiles."""
+def qos_profile(reliable: bool = True, depth: int = 10, latched: bool = False):
+    """A rosbags Qos record (keep-last, volatile; transient local when `latched`, as /tf_static) for a
+    connection's offered_qos_profiles."""
     from rosbags.interfaces import (Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime)
     zero = QosTime(sec=0, nsec=0)
     return Qos(history=QosHistory.KEEP_LAST, depth=int(depth),
                reliability=QosReliability.RELIABLE if reliable else QosReliability.BEST_EFFORT,
-               durability=QosDurability.VOLATILE, deadline=zero, lifespan=zero,
+               durability=QosDurability.TRANSIENT_LOCAL if latched else QosDurability.VOLATILE,
+               deadline=zero, lifespan=zero,
                liveliness=QosLiveliness.AUTOMATIC, liveliness_lease_duration=zero,
                avoid_ros_namespace_conventions=False)
 
@@ -268,6 +275,18 @@ def odometry_stamps(image_stamps_ns: np.ndarray, odom_rate: float | None) -> np.
     return grid
 
 
+def _check_write_options(storage: str, idx: list, rate: float | None, odom_dropout: float) -> None:
+    """BagError for options write_sequence_bag cannot write."""
+    if storage not in STORAGES:
+        raise BagError(f'storage must be one of {STORAGES}, got {storage!r}')
+    if not idx:
+        raise BagError('no frames to write')
+    if rate is not None and rate <= 0:
+        raise BagError(f'rate must be > 0, got {rate}')
+    if not 0.0 <= odom_dropout < 1.0:
+        raise BagError(f'odom_dropout must be in [0, 1), got {odom_dropout}')
+
+
 def write_sequence_bag(path: str | os.PathLike, seq, *, storage: str = 'mcap', rate: float | None = None,
                        odom_rate: float | None = None, odom_noise: tuple[float, float] = (0.0, 0.0),
                        odom_dropout: float = 0.0, seed: int = 0, start_ns: int | None = None,
@@ -276,7 +295,8 @@ def write_sequence_bag(path: str | os.PathLike, seq, *, storage: str = 'mcap', r
                        odom_frame: str = 'odom', base_frame: str = 'base_link', T_base_camera=None,
                        encoding: str = 'rgb8', frames: Iterable[int] | None = None, with_odometry: bool = True,
                        pose_variance=None, compressed: str | None = None, jpeg_quality: int = 90,
-                       overwrite: bool = False, progress: bool = True) -> BagSummary:
+                       tf_static: bool = False, camera_link: str = '', overwrite: bool = False,
+                       progress: bool = True) -> BagSummary:
     """Write a posed image sequence as a rosbag2 and return what was written.
 
     seq: anything with len(), .K, image(i) (uint8 RGB), pose(i) (4x4 T_world_cam) and stamp(i) (s); e.g. a
@@ -294,17 +314,12 @@ def write_sequence_bag(path: str | os.PathLike, seq, *, storage: str = 'mcap', r
     camera's compressed topic; image_topic defaults to /image, or /image/compressed with `compressed`. The bag's
     record time of
     every message is its header stamp; at equal stamps odometry is written before camera_info, camera_info before
-    the image.
+    the image. tf_static: also write the mount (T_base_camera) on /tf_static, one latched message before everything
+    else: base_frame -> camera_frame, or with `camera_link` a chain of two as a URDF has it: base_frame -> camera_link
+    (the mount's translation) -> camera_frame (its rotation).
     """
-    if storage not in STORAGES:
-        raise BagError(f'storage must be one of {STORAGES}, got {storage!r}')
     idx = list(range(len(seq))) if frames is None else [int(i) for i in frames]
-    if not idx:
-        raise BagError('no frames to write')
-    if rate is not None and rate <= 0:
-        raise BagError(f'rate must be > 0, got {rate}')
-    if not 0.0 <= odom_dropout < 1.0:
-        raise BagError(f'odom_dropout must be in [0, 1), got {odom_dropout}')
+    _check_write_options(storage, idx, rate, odom_dropout)
     image_writer, image_topic = _image_writer(compressed, jpeg_quality, encoding, image_topic)
     if rate is not None:
         base = 0 if start_ns is None else int(start_ns)
@@ -340,6 +355,9 @@ def write_sequence_bag(path: str | os.PathLike, seq, *, storage: str = 'mcap', r
             odom_count += 1
     for k, t in enumerate(img_ns):
         events.append((int(t), 1, 'image', k))
+    if tf_static:
+        events.append((min(e[0] for e in events), -1, 'tf_static',
+                       mount_links(T_bc, base_frame, camera_frame, camera_link)))
     events.sort(key=lambda e: (e[0], e[1]))
 
     reliable = qos_profile(True, 10)
@@ -350,7 +368,11 @@ def write_sequence_bag(path: str | os.PathLike, seq, *, storage: str = 'mcap', r
         iterator = tqdm(events, desc=f'writing {pathlib.Path(path).name}', unit='msg', leave=False)
     with BagWriter(path, storage=storage, overwrite=overwrite) as bag:
         for t, _order, kind, payload in iterator:
-            if kind == 'odom':
+            if kind == 'tf_static':
+                msg = tf_message([transform_stamped(T, t, parent, child, ROSBAGS) for parent, child, T in payload],
+                                 ROSBAGS)
+                bag.write(TF_STATIC_TOPIC, TF_MESSAGE, msg, t, qos_profile(True, 1, latched=True))
+            elif kind == 'odom':
                 T_wb, (position_sigma, rotation_sigma) = payload
                 msg = M.matrix_to_odometry(T_wb, t, base_frame, frame_id=odom_frame, types=ROSBAGS,
                                            position_sigma=position_sigma, rotation_sigma=rotation_sigma)
@@ -380,6 +402,19 @@ def _image_writer(compressed: str | None, jpeg_quality: int, encoding: str, imag
     return (lambda rgb, t, frame: (COMPRESSED_IMAGE, rgb_to_compressed(
         rgb, t, frame_id=frame, codec=compressed, jpeg_quality=jpeg_quality, encoding=encoding, types=ROSBAGS))), \
         image_topic or IMAGE_TOPIC + COMPRESSED_SUFFIX
+
+
+def mount_links(T_base_camera_44, base_frame: str, camera_frame: str, camera_link: str = '') -> list:
+    """The camera mount as TF links [(parent, child, T_parent_child)]: base_frame -> camera_frame, or with
+    `camera_link` base_frame -> camera_link (the translation) -> camera_frame (the rotation), as URDFs and camera
+    drivers chain them."""
+    T = np.asarray(T_base_camera_44, dtype=np.float64)
+    if not camera_link:
+        return [(base_frame, camera_frame, T)]
+    T_base_link, T_link_cam = np.eye(4), np.eye(4)
+    T_base_link[:3, 3] = T[:3, 3]
+    T_link_cam[:3, :3] = T[:3, :3]
+    return [(base_frame, camera_link, T_base_link), (camera_link, camera_frame, T_link_cam)]
 
 
 # --------------------------------------------------------------------------------------------------------------

@@ -130,7 +130,8 @@ class NodeDiagnostics:
         """Pose buffer, TF, rectification and the QoS and publishers of the inputs."""
         node, inputs = self.node, self.node.inputs
         values = {'pose_buffer_size': len(inputs.pose_buffer),
-                  'tf': node.outputs.tf.status() if node.outputs.tf is not None else 'off'}
+                  'tf': node.outputs.tf.status() if node.outputs.tf is not None else 'off',
+                  **inputs.extrinsic.values()}
         rect = inputs.rectifier
         values['rectification'] = 'off' if rect is None else \
             f'on ({rect.calibration.model}, K fx={rect.K[0, 0]:.2f} fy={rect.K[1, 1]:.2f})'

@@ -27,3 +27,5 @@ RECTIFY_SIZE = 'rectify_size_mismatch'
 MISSING_RGB = 'missing_output_colour'
 INCOMPATIBLE_QOS = 'incompatible_qos'
 OUTPUT_K_MISMATCH = 'output_K_mismatch'
+NO_EXTRINSIC = 'no_extrinsic'                  # no camera mount (extrinsic_source tf) for an image yet: dropped
+BAD_TRANSFORM = 'bad_transform'                # a transform on /tf_static or /tf with NaN or a non-unit quaternion

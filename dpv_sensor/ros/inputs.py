@@ -9,7 +9,8 @@ With ``image_transport: compressed`` the image subscription is sensor_msgs/Compr
 
 Images are checked on receipt (``dpv_sensor.ros.receipt``), so a bad one is counted and logged even when the
 newest-wins mailbox would have replaced it; images lost before the callback are counted by ``stream_loss``; a change
-of the odometry frame_id is logged and counted (faults.odometry_frame_change).
+of the odometry frame_id is logged and counted (faults.odometry_frame_change). The camera mount the odometry is
+composed with comes from ``extrinsic`` (the T_base_camera parameter, or /tf_static and /tf).
 """
 from __future__ import annotations
 
@@ -25,13 +26,16 @@ from dpv_sensor.core.rectify import RectifierCache, UnsupportedDistortion
 from dpv_sensor.ros import msgs as M
 from dpv_sensor.ros import qos
 from dpv_sensor.ros.compressed_image import decode_message
+from dpv_sensor.ros.extrinsic import CameraExtrinsic
 from dpv_sensor.ros.fault_kinds import (BAD_CAMERA_INFO, BUSY, EMPTY_FRAME_ID, NAN_ODOMETRY, ODOM_CONFLICT, ODOM_JUMP,
                                         TIME_BACKWARDS, UNSUPPORTED_DISTORTION)
 from dpv_sensor.ros.node_support import Incoming, Mailbox, RateMeter, merge_incoming
 from dpv_sensor.ros.receipt import ImageReceipt, OdomFrameWatch
 from dpv_sensor.ros.stream_loss import StreamLoss
 from dpv_sensor.ros.transport import choose_reliability
-from dpv_sensor.stream.pose_buffer import CovarianceTrack, PoseBuffer
+from dpv_sensor.stream.pose_buffer import CovarianceTrack, PoseBuffer, PoseQuery
+
+NO_MOUNT = 'no mount'    # PoseQuery.reason: no camera mount (TF) for the image yet
 
 NS = 1_000_000_000
 
@@ -40,15 +44,14 @@ class NodeInputs:
     """Subscriptions, their QoS and what the callbacks store. `node`: the rclpy node (its ``settings`` are read
     at use); `drop(reason)`: counts an image the node refuses (dropped.*)."""
 
-    def __init__(self, node, faults, qos_events: qos.QosEvents, drop, T_base_camera_44):
+    def __init__(self, node, faults, qos_events: qos.QosEvents, drop, T_base_camera_44, extrinsic_source: str):
         s = node.settings.node
         self.node = node
         self.faults = faults
         self._qos_events = qos_events
         est = node.settings.estimator
         self.pose_buffer = PoseBuffer(max_gap_s=s.max_odom_gap, history_s=max(10.0, 4 * s.max_odom_gap),
-                                      T_base_camera_44=T_base_camera_44, max_speed=est.odom_max_speed,
-                                      max_rate_deg=est.odom_max_rate_deg)
+                                      max_speed=est.odom_max_speed, max_rate_deg=est.odom_max_rate_deg)
         self.pose_covariance = CovarianceTrack()      # the odometry's pose covariance (pose_uncertainty: auto)
         self.cv = threading.Condition()               # notified when odometry or camera_info arrives
         self._K = None                                # (K 3x3, (w, h)) from camera_info or the parameters
@@ -57,6 +60,10 @@ class NodeInputs:
         self._rectifiers = RectifierCache()           # distorted camera_info: undistortion maps of the latest one
         self._rectifier = None                        # the Rectifier of the current camera_info (None: as-is)
         self.odom_frame = 'odom'
+        self.odom_child_frame = ''                    # child_frame_id of the latest odometry: the mount's parent
+        # the camera mount (T_base_camera): the parameter, or looked up on /tf_static and /tf per image
+        self.extrinsic = CameraExtrinsic(node, faults, extrinsic_source, s.extrinsic_source, T_base_camera_44,
+                                         on_update=self.wake)
         self.tf = None                                # the TF output (set by the node), told the frame names
         # images lost before on_image are counted by stream_loss (callback thread only)
         self.stream_loss = StreamLoss()
@@ -201,6 +208,7 @@ class NodeInputs:
                                'interpolated across it are dropped')
             T = None
         self.odom_frame = self._odom_frames.update(msg.header.frame_id, stamp_ns)
+        self.odom_child_frame = msg.child_frame_id
         if self.tf is not None and msg.child_frame_id:
             self.tf.frames(odom_child_frame=msg.child_frame_id)
         buffer = self.pose_buffer
@@ -227,26 +235,43 @@ class NodeInputs:
             return self._rectifier
 
     def wait_for(self, item: Incoming, stamp_ns: int, stop: threading.Event):
-        """Wait (at most odom_wait_timeout after the image arrived) for camera_info and a pose at `stamp_ns`.
+        """Wait (at most odom_wait_timeout after the image arrived) for camera_info, a pose at `stamp_ns` and the
+        camera mount.
 
-        Returns (K, camera_info size, T_world_cam | None, None) when both are there, else (None, None, None, why):
+        Returns (K, camera_info size, T_world_cam | None, None) when all are there, else (None, None, None, why):
         why is None when no camera_info has arrived, else the PoseQuery whose reason ('future' once the timeout
-        passed, 'gap', 'too old', 'nan') and detail say why there is no pose.
+        passed, 'gap', 'too old', 'nan', or NO_MOUNT: no camera mount from TF) and detail say why there is no pose.
         """
         deadline = item.receipt_mono + self.node.settings.node.odom_wait_timeout
         need_pose = self.node.settings.estimator.odometry == 'topic'
         while True:
             with self.cv:
                 K = self._K
-            query = self.pose_buffer.pose_at(stamp_ns) if need_pose else None
+            query = self._camera_pose(item, stamp_ns) if need_pose else None
             if K is not None and (not need_pose or query.ok):
                 return K[0], K[1], (query.T_world_cam_44 if need_pose else None), None
-            if K is not None and need_pose and query.reason != 'future':
+            if K is not None and need_pose and query.reason not in ('future', NO_MOUNT):
                 return None, None, None, query          # waiting cannot help (gap, too old, invalid odometry)
             if time.monotonic() >= deadline or stop.is_set():
                 return None, None, None, (query if K is not None else None)
             with self.cv:
                 self.cv.wait(min(max(deadline - time.monotonic(), 0.0), 0.05))
+
+    def image_frames(self, item: Incoming) -> tuple[str, str]:
+        """(the mount's parent: the odometry's child_frame_id or else base_frame, the image's frame)."""
+        s = self.node.settings.node
+        return self.odom_child_frame or s.base_frame, item.msg.header.frame_id or s.frame_id
+
+    def _camera_pose(self, item: Incoming, stamp_ns: int) -> PoseQuery:
+        """The odometry pose at the stamp composed with the camera mount of the image's frame."""
+        query = self.pose_buffer.base_pose_at(stamp_ns)
+        if not query.ok:
+            return query
+        base, image = self.image_frames(item)
+        T_base_camera, why = self.extrinsic.lookup(base, image)
+        if T_base_camera is None:
+            return PoseQuery(None, NO_MOUNT, why)
+        return self.pose_buffer.pose_at(stamp_ns, T_base_camera)
 
     def wake(self) -> None:
         """Wake a worker waiting in :meth:`wait_for` (the node stops)."""

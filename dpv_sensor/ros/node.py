@@ -13,13 +13,16 @@ image_transport names them, as does image/compressed, unless remapped itself: dp
        decoded on receipt, dpv_sensor.ros.compressed_image), camera_info (sensor_msgs/CameraInfo),
        odom (nav_msgs/Odometry) - QoS: input_reliability (auto: as the publishers offer), input_depth; transport:
        dpv_sensor.ros.transport (docs/transport.md), applied by the start-up steps before rclpy starts
+       /tf_static, /tf (tf2_msgs/TFMessage), with extrinsic_source tf: the camera mount from the odometry's child
+       frame to the image frame (dpv_sensor.ros.extrinsic)
   out  depth/image (32FC1 m, NaN = none | 16UC1 mm, 0 = none), depth/camera_info (K of the output size),
        rgb/image (rgb8: the colour image the depth was computed for, rectified when the node rectifies, at the
        depth's size) + rgb/camera_info, confidence/image (32FC1 in [0, 1]) + confidence/camera_info (all camera_info
        the same: K of the output size, D zero), depth/image/compressedDepth (with publish_compressed_depth),
        depth/points (PointCloud2 XYZRGB, only computed while subscribed; points_decimation, points_max_rate),
        pose (PoseStamped, with pose_refinement or odometry none), /diagnostics (DiagnosticArray)
-       with publish_tf: /tf_static (base_frame -> image frame, T_base_camera) and /tf (<image frame>_refined,
+       with publish_tf: /tf_static (base_frame -> image frame, T_base_camera; not when the mount comes from TF)
+       and /tf (<image frame>_refined,
        with the pose output), tf2_msgs/TFMessage (dpv_sensor.ros.tf_publisher)
 
 Threading: callbacks only store messages. The newest image waits in a one-slot mailbox ("newest wins": an image
@@ -63,6 +66,7 @@ from rclpy.signals import SignalHandlerOptions
 from dpv_sensor import params as P
 from dpv_sensor.ros import startup
 from dpv_sensor.ros.diagnostics import NodeDiagnostics
+from dpv_sensor.ros.extrinsic import pose_text
 from dpv_sensor.ros.inputs import NodeInputs
 from dpv_sensor.ros.node_params import NodeSettings, RuntimeParameters, declare_parameters
 from dpv_sensor.ros.node_support import FaultLog, LogBridge
@@ -111,11 +115,13 @@ class DepthCameraNode(Node):
         self._stats_lock = threading.Lock()
         self._log_bridge = LogBridge(log).attach()
         T_base_camera = pose7_to_matrix(self.settings.node.T_base_camera)
+        extrinsic_source = P.extrinsic_source(self.settings.node.extrinsic_source, self.settings.node.T_base_camera)
         self.qos_events = QosEvents(self.faults)
-        self.inputs = NodeInputs(self, self.faults, self.qos_events, self.drop, T_base_camera)
+        self.inputs = NodeInputs(self, self.faults, self.qos_events, self.drop, T_base_camera, extrinsic_source)
         if self.settings.node.input_reliability == 'auto':
             self.create_timer(1.0, self.inputs.adapt_qos)
-        self.outputs = NodeOutputs(self, self.faults, self.qos_events, T_base_camera)
+        self.outputs = NodeOutputs(self, self.faults, self.qos_events,
+                                   T_base_camera if extrinsic_source == 'parameter' else None)
         self.inputs.tf = self.outputs.tf
         self.diagnostics = NodeDiagnostics(self)
         self.worker = Worker(self, self.faults, self.inputs, self.outputs, self.drop)
@@ -136,7 +142,18 @@ class DepthCameraNode(Node):
                 f'input QoS={s.input_reliability}/{s.input_depth} image_transport={s.image_transport} '
                 f"image='{self.inputs.topic_name('image')}' "
                 f"camera_info='{self.inputs.topic_name('camera_info') or 'parameters'}' "
-                f"odom='{self.inputs.topic_name('odom') or 'none'}'")
+                f"odom='{self.inputs.topic_name('odom') or 'none'}' "
+                f'camera mount={self._mount_line()}')
+
+    def _mount_line(self) -> str:
+        """Where the camera mount comes from, for the starting line."""
+        ext = self.inputs.extrinsic
+        if self.settings.estimator.odometry != 'topic':
+            return 'unused (odometry none)'
+        if ext.source == 'parameter':
+            T = pose7_to_matrix(self.settings.node.T_base_camera)
+            return f'{ext.description()}: T_base_camera {pose_text(T)}'
+        return f'{ext.description()}: looked up on /tf_static and /tf (odometry child frame -> image frame)'
 
     @property
     def failed(self) -> threading.Event:

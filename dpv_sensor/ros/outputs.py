@@ -45,6 +45,7 @@ class NodeOutputs:
     """Publishers and the output counters. `node`: the rclpy node (its ``settings`` are read at use)."""
 
     def __init__(self, node, faults, qos_events: qos.QosEvents, T_base_camera_44):
+        """`T_base_camera_44`: the mount the TF output publishes (publish_tf); None when it comes from TF."""
         s = node.settings.node
         self.node = node
         self.faults = faults

@@ -5,7 +5,9 @@ Frames
            parameter, or else the odometry's child_frame_id; the image frame is the images' header.frame_id.
            Skipped while either is unknown and when the two are the same frame. Published when both names are
            first known and again when one changes, with the QoS of tf2's StaticTransformBroadcaster (reliable,
-           transient local, keep last 1), so a subscriber that starts later still receives it.
+           transient local, keep last 1), so a subscriber that starts later still receives it. Not published when
+           the mount comes from TF itself (extrinsic_source tf): the robot's tree has that frame already, and a
+           second publisher of it would duplicate the tree.
   refined  <odometry frame> -> <image frame>_refined: the camera pose the node estimated (pose_refinement window
            or odometry none), stamped with its image, with the QoS of tf2's TransformBroadcaster. A frame of its
            own because the image frame usually has a parent already (the driver's TF or a URDF) and tf2 allows a
@@ -65,11 +67,12 @@ class TfPublisher:
     """The node's TF output: call `frames()` as frame names arrive and `publish_refined()` per estimated pose."""
 
     def __init__(self, node, T_base_camera_44, base_frame: str | None = None):
+        """`T_base_camera_44` None: the mount comes from TF, no static transform is published."""
         from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
         from tf2_msgs.msg import TFMessage   # ImportError where tf2_msgs was not generated
 
         self._node = node
-        self._T_base_camera = np.asarray(T_base_camera_44, dtype=np.float64)
+        self._T_base_camera = None if T_base_camera_44 is None else np.asarray(T_base_camera_44, dtype=np.float64)
         self._base_param = base_frame or ''
         self._lock = threading.Lock()
         self._base = ''
@@ -90,6 +93,8 @@ class TfPublisher:
                 self._image = image_frame
             if odom_child_frame is not None:
                 self._base = odom_child_frame
+            if self._T_base_camera is None:
+                return
             pair = static_frames(self._base_param or self._base, self._image)
             if pair is None or pair == self.static_published:
                 return
@@ -105,7 +110,8 @@ class TfPublisher:
 
     def status(self) -> str:
         """One line for /diagnostics."""
-        static = (f'{self.static_published[0]} -> {self.static_published[1]}' if self.static_published else
+        static = ('static: none (the camera mount comes from TF)' if self._T_base_camera is None else
+                  f'{self.static_published[0]} -> {self.static_published[1]}' if self.static_published else
                   'static: waiting for the base and image frame names' if not self._image or
                   not (self._base_param or self._base) else 'static: skipped (image frame is the base frame)')
         return f'{static}; refined poses {self.refined_published}'

@@ -18,8 +18,9 @@ import traceback
 
 from dpv_sensor.ros import msgs as M
 from dpv_sensor.ros.fault_kinds import (CAMERA_INFO_MISMATCH, DUPLICATE_STAMP, ESTIMATOR_EXCEPTION, INTERNAL_ERROR,
-                                        NO_CAMERA_INFO, ODOM_GAP, ODOM_INVALID, ODOM_TIMEOUT, ODOM_TOO_OLD,
-                                        RECTIFY_SIZE, SIZE_CHANGE, TIME_BACKWARDS)
+                                        NO_CAMERA_INFO, NO_EXTRINSIC, ODOM_GAP, ODOM_INVALID, ODOM_TIMEOUT,
+                                        ODOM_TOO_OLD, RECTIFY_SIZE, SIZE_CHANGE, TIME_BACKWARDS)
+from dpv_sensor.ros.inputs import NO_MOUNT
 from dpv_sensor.ros.node_support import Incoming, camera_gap_ns, max_gap
 from dpv_sensor.ros.outputs import FrameMeta
 from dpv_sensor.ros.receipt import BAD_IMAGE, UNSUPPORTED_ENCODING
@@ -210,6 +211,9 @@ class Worker:
         (no camera_info yet, no odometry in time, an odometry gap ...). Resets on an odometry teleport."""
         K, info_size, pose, why = self.inputs.wait_for(item, stamp_ns, self.stop)
         if K is None:
+            if why is not None and why.reason == NO_MOUNT:
+                self._no_mount(item, stamp_ns, why.detail)
+                return None
             self._no_inputs(stamp_ns, why)
             return None
         if info_size != (0, 0) and info_size != size:
@@ -219,6 +223,14 @@ class Worker:
         if pose is not None and self._stream.pose_teleported():
             self._reset('odometry jumped')      # the pose comes from after an odometry teleport
         return K, pose
+
+    def _no_mount(self, item: Incoming, stamp_ns: int, detail: str) -> None:
+        """Count and report an image dropped for want of the camera mount on TF (extrinsic_source tf)."""
+        base, image = self.inputs.image_frames(item)
+        self._drop(NO_EXTRINSIC)
+        self.faults.report(NO_EXTRINSIC, f"dropping image at {stamp_ns / NS:.3f} s: no transform from '{base}' to "
+                           f"'{image}' on /tf_static or /tf yet ({detail}); set T_base_camera or publish the camera "
+                           'mount (robot_state_publisher)', key=f'{NO_EXTRINSIC}:{base}->{image}')
 
     def _no_inputs(self, stamp_ns: int, why) -> None:
         """Count and report an image dropped for want of camera_info (`why` None) or of an odometry pose."""

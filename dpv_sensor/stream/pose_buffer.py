@@ -267,11 +267,13 @@ class PoseBuffer:
             t = self._t[j0] + alpha * (self._t[j1] - self._t[j0])
             return PoseQuery(make_pose(t, q))
 
-    def pose_at(self, stamp_ns: int) -> PoseQuery:
-        """T_world_cam = T_world_base(stamp) @ T_base_camera, or None with the reason it cannot be given."""
+    def pose_at(self, stamp_ns: int, T_base_camera_44=None) -> PoseQuery:
+        """T_world_cam = T_world_base(stamp) @ T_base_camera, or None with the reason it cannot be given.
+        `T_base_camera_44`: the camera mount for this image (a mount from TF), instead of the buffer's own."""
         q = self.base_pose_at(stamp_ns)
         if q.ok:
-            q.T_world_cam_44 = q.T_world_cam_44 @ self.T_base_camera
+            mount = self.T_base_camera if T_base_camera_44 is None else np.asarray(T_base_camera_44, np.float64)
+            q.T_world_cam_44 = q.T_world_cam_44 @ mount
         return q
 
 

@@ -2,7 +2,9 @@
 
   bag write SEQUENCE_DIR OUT_BAG     a sequence folder (or --synthetic SEED) -> rosbag2 with image, camera_info and
                                      odometry (--rate, --odom-rate, --odom-noise, --odom-dropout, --format);
-                                     --compressed [jpeg|png]: image_transport's CompressedImage on /image/compressed
+                                     --compressed [jpeg|png]: image_transport's CompressedImage on /image/compressed;
+                                     with --T-base-camera the odometry is of the base frame, and --tf-static writes
+                                     that mount on /tf_static (--camera-link NAME: as a two-link chain)
   bag play BAG                       replay into the live ROS graph at real time (or --rate x), with the recorded
                                      QoS, after waiting for subscribers (--wait-for, --wait-timeout); topics are
                                      remapped the ROS way: bag play BAG --ros-args -r /image:=/cam/image
@@ -52,12 +54,15 @@ def _cmd_write(args) -> int:
         image_topic=args.image_topic, camera_info_topic=args.camera_info_topic, odom_topic=args.odom_topic,
         camera_frame=args.camera_frame, odom_frame=args.odom_frame, base_frame=args.base_frame,
         T_base_camera=T_base_camera, encoding=args.encoding, with_odometry=not args.no_odometry,
-        compressed=args.compressed, jpeg_quality=args.jpeg_quality, overwrite=args.overwrite,
-        progress=not args.no_progress)
+        compressed=args.compressed, jpeg_quality=args.jpeg_quality, tf_static=args.tf_static,
+        camera_link=args.camera_link, overwrite=args.overwrite, progress=not args.no_progress)
     what = f"CompressedImage '{summary.image_format}'" if args.compressed else f'Image {args.encoding}'
     print(f'wrote {summary.path} ({summary.storage}): {summary.frames} images ({what} on {summary.image_topic}), '
           f'{summary.odometry} odometry messages ({summary.odometry_dropped} dropped on purpose), '
           f'{summary.duration_s:.2f} s')
+    if args.tf_static:
+        chain = ' -> '.join(f for f in (args.base_frame, args.camera_link, args.camera_frame) if f)
+        print(f'camera mount on {R.TF_STATIC_TOPIC}: {chain}')
     return 0
 
 
@@ -199,7 +204,14 @@ def build_parser() -> argparse.ArgumentParser:
     w.add_argument('--odom-frame', default='odom')
     w.add_argument('--base-frame', default='base_link')
     w.add_argument('--T-base-camera', type=float, nargs=7, metavar='V',
-                   help='camera pose in the base frame: x y z qx qy qz qw (default identity)')
+                   help='camera pose in the base frame: x y z qx qy qz qw (default identity); the odometry is of '
+                        'the base frame: T_world_base = T_world_cam @ inv(T_base_camera)')
+    w.add_argument('--tf-static', action='store_true',
+                   help='also write the camera mount on /tf_static (latched), as a URDF publishes it: the node then '
+                        'needs no T_base_camera')
+    w.add_argument('--camera-link', default='',
+                   help='with --tf-static: write the mount as base frame -> CAMERA_LINK (translation) -> camera frame '
+                        '(rotation), e.g. camera_link'),
     w.add_argument('--overwrite', action='store_true')
     w.add_argument('--no-progress', action='store_true')
 

@@ -211,7 +211,8 @@ def bench_node(presets, sizes, device, out: pathlib.Path, *, hz: float, seconds:
             weights, what = _node_weights(preset, out)
             params = {'preset': preset, 'weights': weights, 'measurement': 'network', 'device': device,
                       'processing_width': w, 'processing_height': h, 'input_reliability': 'reliable',
-                      'diagnostics_period': 0.5}
+                      'diagnostics_period': 0.5,
+                      'extrinsic_source': 'parameter'}    # the bench's bags: odometry of the camera itself
             cmd = node_command(params, {'image': R.IMAGE_TOPIC, 'camera_info': R.CAMERA_INFO_TOPIC,
                                         'odom': R.ODOM_TOPIC})
             log_path = out / 'logs' / f'node_{preset}_{w}x{h}_{device.replace(":", "")}.log'

@@ -35,15 +35,17 @@ Steps (each prints a progress line and its time):
 8. summary what ran (measurement model, weights, preset, filter, frames, keyframes), the headline metrics, the
            fusion figures and where the pictures are; also OUT/summary.json.
 
-With --bag (a user's own recording): steps 1-2 are skipped; the image, camera_info and odometry topics are found by
-message type (the only sensor_msgs/Image, CameraInfo and nav_msgs/Odometry topic; the camera_info next to the image
-among several) and printed; --image-topic / --camera-info-topic / --odom-topic choose among several (all are remapped
-onto the node's `image`, `camera_info`, `odom`). A camera recorded as image_transport's compressed
-sensor_msgs/CompressedImage (JPEG or PNG; a bag holding raw Image too plays the raw one unless --image-topic names
-the compressed one) is remapped onto `image/compressed` and the node runs with image_transport=compressed. Camera
-settings and everything else go in as node parameters with --params (e.g. camera_info_source=parameters fx=...
-fy=... cx=... cy=..., odometry=none, T_base_camera=[x,y,z,qx,qy,qz,qw]). Without --gt there is nothing to score
-against: the outputs are still recorded, and OUT/montage.png shows image | depth | confidence for a few keyframes, with
+With --bag (a user's own recording): steps 1-2 are skipped; /tf_static and /tf are replayed too when the bag has
+them (the node then takes the camera mount from TF: no T_base_camera to type); the image, camera_info and odometry
+topics are found by message type (the only sensor_msgs/Image, CameraInfo and nav_msgs/Odometry topic; the
+camera_info next to the image among several) and printed; --image-topic / --camera-info-topic / --odom-topic
+choose among several (all are remapped onto the node's `image`, `camera_info`, `odom`). A camera recorded as
+image_transport's compressed sensor_msgs/CompressedImage (JPEG or PNG; a bag holding raw Image too plays the raw one
+unless --image-topic names the compressed one) is remapped onto `image/compressed` and the node runs with
+image_transport=compressed. Camera settings and everything else go in as node parameters with --params (e.g.
+camera_info_source=parameters fx=... fy=... cx=... cy=..., odometry=none, T_base_camera=[x,y,z,qx,qy,qz,qw]).
+Without --gt there is nothing to score against: the outputs are still recorded, and OUT/montage.png shows image |
+depth | confidence for a few keyframes, with
 coverage and confidence statistics in the summary. With --gt (a sequence folder whose stamps match the bag's, or
 whose frame 0 is the bag's first image) steps 6 and 7 run as for the synthetic scene.
 
@@ -354,6 +356,7 @@ def _node_summary(replay, values: Dict[str, Any], logs: pathlib.Path) -> Dict[st
         'faults': {k[7:]: v for k, v in d.items() if k.startswith('faults.')},
         'filter_resets': d.get('filter_resets'), 'output_resets': d.get('output_resets'),
         'pose_uncertainty': d.get('pose_uncertainty'),
+        'camera_mount': {'source': d.get('extrinsic_source'), 'mount': d.get('extrinsic')},
         'processing_ms_median_all_images': d.get('processing_ms_median'),
         'receipt_to_publish_ms_median': d.get('latency_ms_median'),
         'sent_to_recorded_ms': replay.e2e_ms,
@@ -583,6 +586,9 @@ def _print_node(nd: Dict[str, Any]) -> None:
           f"{nd['processing_size'][0]}x{nd['processing_size'][1]}; {nd.get('images_sent')} images replayed "
           f"({nd['pacing']}), {nd.get('keyframes')} keyframes, {nd.get('outputs_published')} depth outputs "
           f"({nd['recorded'].get('/depth/image', 0)} recorded), {nd.get('dropped_total')} images dropped")
+    mount = nd.get('camera_mount') or {}
+    if mount.get('source'):
+        print(f"           camera mount from {mount['source']}: {mount.get('mount')}")
     e2e = nd.get('sent_to_recorded_ms') or {}
     print(f"node       per depth output: image sent -> depth recorded {_fmt(e2e.get('median'), '{:.0f}')} ms "
           f"median (p95 {_fmt(e2e.get('p95'), '{:.0f}')}), node receipt -> publish "

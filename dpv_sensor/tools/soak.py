@@ -37,6 +37,7 @@ import numpy as np
 from dpv_sensor import params as P
 from dpv_sensor.cli import add_setting
 from dpv_sensor.client.node_process import ClientNode, node_command
+from dpv_sensor.client.replay import mount_params, tf_topics
 from dpv_sensor.client.ros_io import OutputCollector
 
 REPO = pathlib.Path(__file__).resolve().parents[2]
@@ -371,7 +372,9 @@ def run_soak(args) -> dict:
     work = pathlib.Path(args.work_dir or tempfile.mkdtemp(prefix='dpv_soak_'))
     work.mkdir(parents=True, exist_ok=True)
     bag, n_images = _soak_bag(args, work)
-    params = _soak_params(args)
+    # a bag with the camera mount on /tf_static: the node finds it there (the player plays every topic)
+    from dpv_sensor.data import rosbag_io as R
+    params = mount_params(_soak_params(args), tf_topics(R.bag_topics(bag)))
     log_path = work / 'node.log'
     soak = _Soak(args, bag, params, log_path)
     result: dict = {'bag': str(bag), 'images_in_bag': n_images, 'minutes': args.minutes, 'rate': args.rate,
