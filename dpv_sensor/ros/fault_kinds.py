@@ -10,6 +10,7 @@ NAN_ODOMETRY = 'nan_odometry'
 ODOM_JUMP = 'odometry_jump'
 ODOM_GAP = 'odometry_gap'
 ODOM_TIMEOUT = 'odometry_timeout'
+ODOM_LATE = 'odometry_late'                    # an image replaced in the mailbox while the worker waited for odometry
 ODOM_TOO_OLD = 'odometry_too_old'
 ODOM_INVALID = 'odometry_invalid_bracket'
 ODOM_CONFLICT = 'odometry_conflict'            # two messages at one stamp with different poses (the first is kept)

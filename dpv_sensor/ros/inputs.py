@@ -20,7 +20,7 @@ from dpv_sensor.core.rectify import RectifierCache, UnsupportedDistortion
 from dpv_sensor.ros import msgs as M
 from dpv_sensor.ros import qos
 from dpv_sensor.ros.fault_kinds import (BAD_CAMERA_INFO, BUSY, EMPTY_FRAME_ID, NAN_ODOMETRY, ODOM_CONFLICT, ODOM_JUMP,
-                                        TIME_BACKWARDS, UNSUPPORTED_DISTORTION)
+                                        ODOM_LATE, TIME_BACKWARDS, UNSUPPORTED_DISTORTION)
 from dpv_sensor.ros.node_support import Incoming, Mailbox, RateMeter, merge_incoming
 from dpv_sensor.ros.receipt import ImageReceipt, OdomFrameWatch
 from dpv_sensor.ros.stream_loss import StreamLoss
@@ -58,7 +58,7 @@ class NodeInputs:
         self._odom_frames = OdomFrameWatch(faults)
         self.mailbox = Mailbox(merge=merge_incoming)
         self._drop = drop
-        self._last_received_stamp_ns = None   # header stamp of the newest image received (callback thread only)
+        self.waiting_for_odometry = False     # the worker waits for odometry after an image's stamp (wait_for)
         self.in_rate = RateMeter()
         self.n_received = 0
         self.first_image_mono = None
@@ -118,10 +118,10 @@ class NodeInputs:
                 self.subscribe(topic, want)
 
     # ------------------------------------------------------------------------------------------ callbacks
-    def on_image(self, msg) -> None:
+    def on_image(self, msg, info) -> None:
+        """An image and its message info (rclpy passes it to a callback of two arguments: a dict with the
+        publication sequence number, where the middleware gives one)."""
         self.n_received += 1
-        if self.tf is not None:
-            self.tf.frames(image_frame=msg.header.frame_id or self.node.settings.node.frame_id)
         self.last_image_mono = time.monotonic()
         if self.first_image_mono is None:
             self.first_image_mono = self.last_image_mono
@@ -130,16 +130,32 @@ class NodeInputs:
             stamp_ns = M.stamp_to_ns(msg.header.stamp)
         except Exception:   # a malformed header is reported by the worker; no gap to measure here
             stamp_ns = None
-        last, self._last_received_stamp_ns = self._last_received_stamp_ns, stamp_ns
-        gap_ns = stamp_ns - last if stamp_ns is not None and last is not None and stamp_ns > last else None
         if not msg.header.frame_id:
             self._on_empty_frame_id(stamp_ns)
-        # lost images, stamp jumps and unusable images: judged here, before the mailbox (dpv_sensor.ros.receipt)
-        item = self._receipt.image(msg, stamp_ns, gap_ns, time.monotonic(), time.time_ns())
-        if item is not None and self.mailbox.put(item):
-            self._drop(BUSY)
-            self.faults.report(BUSY, 'estimator busy: dropping an older image that was still waiting (newest wins; '
-                               'the count is in /diagnostics)', level='info', count=False, period_s=60.0)
+        seq = info.get('publication_sequence_number') if isinstance(info, dict) else None
+        # a second camera, lost images, stamp jumps and unusable images: judged here, before the mailbox
+        # (dpv_sensor.ros.receipt)
+        item = self._receipt.image(msg, stamp_ns, time.monotonic(), time.time_ns(), seq=seq)
+        if item is None:
+            return
+        if self.tf is not None:
+            self.tf.frames(image_frame=msg.header.frame_id or self.node.settings.node.frame_id)
+        if self.mailbox.put(item):
+            self._on_replaced()
+
+    def _on_replaced(self) -> None:
+        """An image still waiting in the mailbox was replaced by a newer one: counted by why the worker could not
+        take it: it waited for late odometry (dropped.odometry_late), or it was computing (dropped.busy)."""
+        if self.waiting_for_odometry:
+            self._drop(ODOM_LATE)
+            self.faults.report(ODOM_LATE, 'odometry arrives later than the images: dropping an image that was waiting '
+                               'while the worker waited for odometry after the previous one (odom_wait_timeout '
+                               f'{self.node.settings.node.odom_wait_timeout:g} s; dropped.odometry_late counts them)',
+                               count=False, period_s=30.0)
+            return
+        self._drop(BUSY)
+        self.faults.report(BUSY, 'estimator busy: dropping an older image that was still waiting (newest wins; '
+                           'the count is in /diagnostics)', level='info', count=False, period_s=60.0)
 
     def _on_empty_frame_id(self, stamp_ns) -> None:
         """An image without header.frame_id: the outputs use the frame_id parameter (warned once, every one counted)."""
@@ -214,6 +230,12 @@ class NodeInputs:
         why is None when no camera_info has arrived, else the PoseQuery whose reason ('future' once the timeout
         passed, 'gap', 'too old', 'nan') and detail say why there is no pose.
         """
+        try:
+            return self._wait_for(item, stamp_ns, stop)
+        finally:
+            self.waiting_for_odometry = False
+
+    def _wait_for(self, item: Incoming, stamp_ns: int, stop: threading.Event):
         deadline = item.receipt_mono + self.node.settings.node.odom_wait_timeout
         need_pose = self.node.settings.estimator.odometry == 'topic'
         while True:
@@ -226,6 +248,8 @@ class NodeInputs:
                 return None, None, None, query          # waiting cannot help (gap, too old, invalid odometry)
             if time.monotonic() >= deadline or stop.is_set():
                 return None, None, None, (query if K is not None else None)
+            # what keeps the worker now (an image replaced meanwhile is counted by it): the odometry after the stamp
+            self.waiting_for_odometry = K is not None and need_pose
             with self.cv:
                 self.cv.wait(min(max(deadline - time.monotonic(), 0.0), 0.05))
 
