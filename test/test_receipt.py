@@ -38,7 +38,7 @@ def test_a_second_frame_id_is_dropped_counted_and_named_and_never_reaches_the_st
     rec, log, dropped = receipt()
     handed = []
     for i in range(30):                       # camera 'left' at 30 Hz, camera 'right' at 10 Hz on the same topic
-        t = 100 * NS + i * NS // 30
+        t = 100 * NS + i * NS // 30           # (two writers: each numbers its own samples)
         handed.append(rec.image(image('left', t), t, i / 30, t, seq=i + 1))
         if i % 3 == 0:
             assert rec.image(image('right', t + 1000), t + 1000, i / 30, t, seq=i // 3 + 1) is None
@@ -46,7 +46,22 @@ def test_a_second_frame_id_is_dropped_counted_and_named_and_never_reaches_the_st
     assert dropped['other_camera'] == 10 and rec.faults.counts['other_camera'] == 10
     warns = [m for level, m in log.lines if level == 'warn' and 'two cameras' in m]
     assert warns and "'right'" in warns[0] and "'left'" in warns[0] and 'Remap one of them' in warns[0]
-    assert rec.stream_loss.lost_total == 0 and rec.stream_loss.sequence.restarts == 0   # 'right' kept out
+    # the interleaved numbers go back: never trusted, and the stamps of 'left' alone show no loss
+    assert rec.stream_loss.lost_total == 0 and rec.stream_loss.sequence.restarts > 0
+
+
+def test_one_writer_sending_two_frame_ids_loses_nothing_and_its_numbers_still_count_losses():
+    rec, _, dropped = receipt()
+    seq = 0
+    for i in range(30):
+        t = 100 * NS + i * NS // 30
+        seq += 1
+        rec.image(image('left', t), t, i / 30, t, seq=seq)
+        if i % 3 == 0:
+            seq += 1 if i != 15 else 3        # at i = 15 two samples of the writer never arrived
+            rec.image(image('right', t + 1000), t + 1000, i / 30, t, seq=seq)
+    assert dropped['other_camera'] == 10
+    assert rec.stream_loss.lost_total == 2 and rec.stream_loss.lost_sequence_gap_only == 2
 
 
 def test_the_stream_follows_a_new_frame_id_once_the_old_one_stopped_for_good():

@@ -135,7 +135,7 @@ class NodeInputs:
         seq = info.get('publication_sequence_number') if isinstance(info, dict) else None
         # a second camera, lost images, stamp jumps and unusable images: judged here, before the mailbox
         # (dpv_sensor.ros.receipt)
-        item = self._receipt.image(msg, stamp_ns, time.monotonic(), time.time_ns(), seq=seq)
+        item = self._receipt.image(msg, stamp_ns, time.monotonic(), time.time_ns(), seq=seq, source='image')
         if item is None:
             return
         if self.tf is not None:

@@ -75,19 +75,20 @@ class ImageReceipt:
         self._last_stamp_ns: int | None = None  # header stamp of the stream's newest image
 
     def image(self, msg, stamp_ns: int | None, receipt_mono: float, receipt_ns: int,
-              seq: int | None = None) -> Incoming | None:
+              seq: int | None = None, source: str = '') -> Incoming | None:
         """The Incoming to hand to the worker, or None when the image is rejected (counted and logged here).
         `stamp_ns`: its header stamp (None: unreadable); `seq`: its publication sequence number (None or 0: the
-        middleware gives none)."""
+        middleware gives none); `source`: the subscription it came through (each has its own writers' numbers)."""
+        loss = self.stream_loss
         if not self.camera.accept(msg.header.frame_id, stamp_ns, receipt_mono):
+            loss.on_sample(seq, source)       # another camera's image: its number still shows what was lost
             return None
         last, self._last_stamp_ns = self._last_stamp_ns, stamp_ns
         gap_ns = stamp_ns - last if stamp_ns is not None and last is not None and stamp_ns > last else None
-        loss = self.stream_loss
         jumps, changes, restarts = loss.stamp_jumps, loss.rate_changes, loss.sequence.restarts
         # images missing before this one (lost in transport): counted; a gap the middleware reported as lost is
         # judged by the worker (camera_gap_ns), as the report may come after this image
-        lost = loss.on_image(stamp_ns, seq, msg.header.frame_id) if stamp_ns is not None else None
+        lost = loss.on_image(stamp_ns, seq, source) if stamp_ns is not None else None
         if loss.sequence.restarts != restarts:
             _source, before, now = loss.sequence.last_restart
             self.faults.report(SEQUENCE_RESTART, f'image publication sequence numbers went back ({before} -> {now}): '

@@ -5,8 +5,9 @@ A DDS writer numbers its samples 1, 2, 3, ...; the middleware hands the number o
 callback (rclpy's message info, 'publication_sequence_number'). A step from n to n + k means k - 1 samples of that
 writer were lost before the callback, whatever dropped them (the writer's history overflowing under a reliable
 reader, the reader's history overflowing before the callback took the samples, the network under best effort) and
-whatever their stamps say. The numbers are followed per *source* (the caller's key: the image frame_id, as rclpy
-does not say which writer sent a sample). The numbers say nothing (None):
+whatever their stamps say. The numbers are followed per *source* (the caller's key: the subscription, as rclpy
+does not say which writer sent a sample; one writer numbers every sample it sends, whatever its frame_id). Two
+writers on one topic interleave their numbers, which then go back again and again. The numbers say nothing (None):
 
 - where the middleware gives none (0, or the 'unsupported' value: all ones),
 - for the first sample of a source,

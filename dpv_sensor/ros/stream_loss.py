@@ -189,9 +189,17 @@ class StreamLoss:
         self._slow_run = []
         self._intervals.clear()
 
+    def on_sample(self, seq: int | None, source: str = '') -> None:
+        """A sample that is not part of the stream arrived on its topic (an image of another camera, dropped): its
+        publication sequence number still counts the samples lost before it (sequence numbers are the writer's,
+        whatever the frame_id of each sample)."""
+        missing = self.sequence.step(source, seq)
+        if missing:
+            self._sequence_gap(missing, 0, 0)
+
     def on_image(self, stamp_ns: int, seq: int | None = None, source: str = '') -> Gap | None:
         """An image with header stamp `stamp_ns` arrived, `seq` its publication sequence number (None, 0: unknown)
-        from publisher `source` (the caller's key, e.g. the frame_id); returns the Gap it ends (a stamp gap is
+        on `source` (the caller's key for the writers it comes from: the subscription's topic); returns the Gap it ends (a stamp gap is
         pending until the stream around it confirms it), or None (no image missing, the first image, a period not
         known yet, a stamp jump, or time going backwards, which restarts the estimate)."""
         missing = self.sequence.step(source, seq)
