@@ -199,9 +199,9 @@ class StreamLoss:
 
     def on_image(self, stamp_ns: int, seq: int | None = None, source: str = '') -> Gap | None:
         """An image with header stamp `stamp_ns` arrived, `seq` its publication sequence number (None, 0: unknown)
-        on `source` (the caller's key for the writers it comes from: the subscription's topic); returns the Gap it ends (a stamp gap is
-        pending until the stream around it confirms it), or None (no image missing, the first image, a period not
-        known yet, a stamp jump, or time going backwards, which restarts the estimate)."""
+        on `source` (the caller's key for the writers it comes from: the subscription's topic); returns the Gap it
+        ends (a stamp gap is pending until the stream around it confirms it), or None (no image missing, the first
+        image, a period not known yet, a stamp jump, or time going backwards, which restarts the estimate)."""
         missing = self.sequence.step(source, seq)
         last, self._last_stamp_ns = self._last_stamp_ns, stamp_ns
         if last is None or stamp_ns <= last:
