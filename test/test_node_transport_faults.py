@@ -126,3 +126,50 @@ def test_odometry_later_than_the_wait_timeout_drops_images_under_the_odometry_no
     assert timeout + held_up >= n - 3 and held_up > timeout, diag      # nearly all held up by the odometry ...
     assert busy <= 2, diag                                             # ... and not a busy estimator
     assert 'odometry arrives later than the images' in log, log
+
+
+def test_odometry_with_a_nan_covariance_or_a_zero_stamp_is_a_fault_of_its_own():
+    drv = StreamDriver(params_args(PARAMS, REMAPS), topics=REMAPS, frames=20, name='odometry_faults')
+    try:
+        drv.wait_ready()
+        for i in range(12):
+            stamp = drv.stamp_ns(i)
+            if i == 4:                       # its odometry first, with NaN in the pose covariance
+                odom = M.matrix_to_odometry(drv.seq.pose(i), stamp, 'base_link', 'odom', position_sigma=0.01,
+                                            rotation_sigma=0.01)
+                cov = list(odom.pose.covariance)
+                cov[7] = float('nan')
+                odom.pose.covariance = cov
+                drv.pubs['odom'].publish(odom)
+            if i == 7:                       # an unstamped odometry message
+                drv.pubs['odom'].publish(M.matrix_to_odometry(drv.seq.pose(i), 0, 'base_link', 'odom'))
+            drv.send(i, stamp)
+            assert drv.wait_accounted(i + 1), drv.outputs.diagnostics
+        diag = drv.wait_diagnostics()
+    finally:
+        log = drv.stop()
+    assert drv.code == 0, log
+    assert int(diag['faults.odometry_covariance_nan']) == 1, diag
+    assert int(diag['faults.odometry_zero_stamp']) == 1, diag
+    assert 'faults.time_backwards' not in diag and 'faults.odometry_conflict' not in diag, diag
+    assert 'NaN or infinity in its pose covariance: the covariance is ignored' in log, log
+    assert 'odometry header.stamp is zero: the driver does not stamp its messages' in log, log
+    assert 'bag restarted' not in log and 'two odometry sources' not in log, log
+
+
+def test_under_sim_time_without_clock_the_inputs_follow_their_publishers_and_no_stamp_age_is_made_up():
+    # no /clock is published: ROS time stays 0; the stamps are a simulator's (100 s on)
+    drv = StreamDriver(params_args({**PARAMS, 'use_sim_time': True}, REMAPS), topics=REMAPS, frames=20,
+                       name='sim_time')
+    try:
+        drv.wait_ready()                     # input_reliability auto re-subscribed reliable without /clock
+        for i in range(8):
+            drv.send(i, 100 * NS + i * P30)
+            assert drv.wait_accounted(i + 1), drv.outputs.diagnostics
+        assert wait_for(lambda: drv.outputs.depth_count > 0, timeout=30.0, spin=drv.spin)
+        diag = drv.wait_diagnostics()
+    finally:
+        log = drv.stop()
+    assert drv.code == 0, log
+    assert diag['stamp_age_ms_median'] == 'n/a' and diag['stamp_age_clock'] == 'sim time', diag
+    assert int(diag['stamp_age_implausible']) == int(diag['outputs_published']) >= 1, diag

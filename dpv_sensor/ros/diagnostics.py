@@ -78,6 +78,12 @@ class NodeDiagnostics:
         self._bad_total = 0.0              # images lost or rejected as faulty, all told, at the latest growth
         self._received_at_bad = 0          # images received when that count last grew
 
+    def _sim_time(self) -> bool:
+        try:
+            return bool(self.node.get_parameter('use_sim_time').value)
+        except Exception:   # not declared (a node without the parameter)
+            return False
+
     def _estimator(self) -> dict:
         worker = self.node.worker
         try:
@@ -104,8 +110,9 @@ class NodeDiagnostics:
             'point_clouds_published': outputs.n_points,
             'latency_ms_median': _median(lat),
             'latency_ms_p95': round(float(np.percentile(lat, 95)), 1) if lat else 'n/a',
-            # on the node's clock, for stamps within an hour of it
+            # on the node's clock (ROS time under use_sim_time), for stamps within an hour of it and not ahead of it
             'stamp_age_ms_median': _median(age),
+            'stamp_age_clock': 'sim time' if self._sim_time() else 'system time',
             'stamp_age_implausible': outputs.n_age_implausible,
             'depth_rate_hz': round(outputs.rate.mean_rate(first_image), 3),
             'expected_depth_rate_hz': s.expected_depth_rate,

@@ -20,7 +20,8 @@ from dpv_sensor.core.rectify import RectifierCache, UnsupportedDistortion
 from dpv_sensor.ros import msgs as M
 from dpv_sensor.ros import qos
 from dpv_sensor.ros.fault_kinds import (BAD_CAMERA_INFO, BUSY, EMPTY_FRAME_ID, NAN_ODOMETRY, ODOM_CONFLICT, ODOM_JUMP,
-                                        ODOM_LATE, TIME_BACKWARDS, UNSUPPORTED_DISTORTION)
+                                        ODOM_COVARIANCE_NAN, ODOM_LATE, ODOM_ZERO_STAMP, TIME_BACKWARDS,
+                                        UNSUPPORTED_DISTORTION)
 from dpv_sensor.ros.node_support import Incoming, Mailbox, RateMeter, merge_incoming
 from dpv_sensor.ros.receipt import ImageReceipt, OdomFrameWatch
 from dpv_sensor.ros.stream_loss import StreamLoss
@@ -191,6 +192,11 @@ class NodeInputs:
 
     def on_odom(self, msg) -> None:
         stamp_ns = M.stamp_to_ns(msg.header.stamp)
+        if stamp_ns == 0:
+            self.faults.report(ODOM_ZERO_STAMP, 'odometry header.stamp is zero: the driver does not stamp its '
+                               'messages; ignoring them (images are paired with odometry by stamp; '
+                               'faults.odometry_zero_stamp counts them)', period_s=30.0)
+            return
         try:
             T = M.odometry_to_matrix(msg)
         except M.BadOdometry as exc:
@@ -204,6 +210,8 @@ class NodeInputs:
         jumps, conflicts = buffer.jumps, buffer.conflicts
         cleared = buffer.add(stamp_ns, T)
         self.pose_covariance.add(stamp_ns, M.odometry_covariance(msg))
+        if M.covariance_not_finite(msg):
+            self._on_bad_covariance(stamp_ns)
         if buffer.conflicts != conflicts:
             self.faults.report(ODOM_CONFLICT, f'{buffer.last_conflict}; keeping the first (two odometry '
                                'sources publishing on one topic?)')
@@ -215,6 +223,16 @@ class NodeInputs:
                                key='time_backwards:odometry')
         with self.cv:
             self.cv.notify_all()
+
+    def _on_bad_covariance(self, stamp_ns: int) -> None:
+        """Odometry whose pose covariance holds NaN or infinity: counted, and what is done instead said."""
+        mode = self.node.settings.estimator.pose_uncertainty
+        instead = {'covariance': 'its poses count as exact (pose_uncertainty auto would use the drift figures)',
+                   'auto': 'the drift figures (odom_drift_*) are used for its poses'}.get(
+                       mode, f'pose_uncertainty {mode} does not read it')
+        self.faults.report(ODOM_COVARIANCE_NAN, f'odometry at {stamp_ns / NS:.3f} s has NaN or infinity in its pose '
+                           f'covariance: the covariance is ignored and {instead} '
+                           '(faults.odometry_covariance_nan counts them)', period_s=30.0)
 
     # ------------------------------------------------------------------------------------------ the worker's side
     @property

@@ -111,7 +111,9 @@ class DepthCameraNode(Node):
         self.qos_events = QosEvents(self.faults)
         self.inputs = NodeInputs(self, self.faults, self.qos_events, self.drop, T_base_camera)
         if self.settings.node.input_reliability == 'auto':
-            self.create_timer(1.0, self.inputs.adapt_qos)
+            # on the steady clock: under use_sim_time a ROS-time timer would wait for /clock, and the inputs would
+            # never follow their publishers' QoS until it comes
+            self.create_timer(1.0, self.inputs.adapt_qos, clock=Clock(clock_type=ClockType.STEADY_TIME))
         self.outputs = NodeOutputs(self, self.faults, self.qos_events, T_base_camera)
         self.inputs.tf = self.outputs.tf
         self.diagnostics = NodeDiagnostics(self)

@@ -207,11 +207,15 @@ def camera_gap_ns(gap_ns: int | None, loss_gaps) -> int | None:
 
 
 PLAUSIBLE_AGE_NS = 3600 * 1_000_000_000
+PLAUSIBLE_FUTURE_NS = 1_000_000_000
 
 
 def plausible_age_ms(now_ns: int, stamp_ns: int) -> float | None:
-    """The age (ms) of a header stamp on the node's clock, or None when it is more than an hour off either way: the
-    stamps are then not on this clock (a bag written from stamp 0, a replay without use_sim_time) and their age says
-    nothing about latency."""
+    """The age (ms) of a header stamp on the node's clock, or None when it says nothing about latency: the clock
+    reads zero (use_sim_time before /clock arrives), the stamp is more than an hour older (not on this clock: a bag
+    written from stamp 0, a replay without use_sim_time) or more than a second in the future of the clock (a
+    simulator's /clock behind its stamps or paused)."""
+    if now_ns <= 0:
+        return None
     age = now_ns - stamp_ns
-    return age / 1e6 if abs(age) <= PLAUSIBLE_AGE_NS else None
+    return age / 1e6 if -PLAUSIBLE_FUTURE_NS <= age <= PLAUSIBLE_AGE_NS else None
