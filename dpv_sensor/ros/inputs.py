@@ -22,7 +22,7 @@ from dpv_sensor.ros import qos
 from dpv_sensor.ros.fault_kinds import (BAD_CAMERA_INFO, BUSY, EMPTY_FRAME_ID, NAN_ODOMETRY, ODOM_CONFLICT, ODOM_JUMP,
                                         ODOM_COVARIANCE_NAN, ODOM_LATE, ODOM_ZERO_STAMP, TIME_BACKWARDS,
                                         UNSUPPORTED_DISTORTION)
-from dpv_sensor.ros.node_support import Incoming, Mailbox, RateMeter, merge_incoming
+from dpv_sensor.ros.node_support import Incoming, Mailbox, OdometryWait, RateMeter, merge_incoming
 from dpv_sensor.ros.receipt import ImageReceipt, OdomFrameWatch
 from dpv_sensor.ros.stream_loss import StreamLoss
 from dpv_sensor.ros.transport import choose_reliability
@@ -59,7 +59,7 @@ class NodeInputs:
         self._odom_frames = OdomFrameWatch(faults)
         self.mailbox = Mailbox(merge=merge_incoming)
         self._drop = drop
-        self.waiting_for_odometry = False     # the worker waits for odometry after an image's stamp (wait_for)
+        self.odometry_wait = OdometryWait()   # the worker waits for odometry after an image's stamp (wait_for)
         self.in_rate = RateMeter()
         self.n_received = 0
         self.first_image_mono = None
@@ -141,22 +141,24 @@ class NodeInputs:
             return
         if self.tf is not None:
             self.tf.frames(image_frame=msg.header.frame_id or self.node.settings.node.frame_id)
-        if self.mailbox.put(item):
-            self._on_replaced()
+        if self.mailbox.put(item) and self.odometry_wait.replaced():
+            self._count_replaced(1, odometry_late=False)
 
-    def _on_replaced(self) -> None:
-        """An image still waiting in the mailbox was replaced by a newer one: counted by why the worker could not
-        take it: it waited for late odometry (dropped.odometry_late), or it was computing (dropped.busy)."""
-        if self.waiting_for_odometry:
-            self._drop(ODOM_LATE)
-            self.faults.report(ODOM_LATE, 'odometry arrives later than the images: dropping an image that was waiting '
-                               'while the worker waited for odometry after the previous one (odom_wait_timeout '
-                               f'{self.node.settings.node.odom_wait_timeout:g} s; dropped.odometry_late counts them)',
-                               count=False, period_s=30.0)
+    def _count_replaced(self, n: int, odometry_late: bool) -> None:
+        """`n` images replaced in the mailbox by newer ones, counted by why the worker could not take them: it
+        waited for odometry that did not come in time (dropped.odometry_late), or it was busy (dropped.busy)."""
+        if n <= 0:
             return
-        self._drop(BUSY)
-        self.faults.report(BUSY, 'estimator busy: dropping an older image that was still waiting (newest wins; '
-                           'the count is in /diagnostics)', level='info', count=False, period_s=60.0)
+        for _ in range(n):
+            self._drop(ODOM_LATE if odometry_late else BUSY)
+        if odometry_late:
+            self.faults.report(ODOM_LATE, f'odometry arrives later than the images: {n} image(s) dropped while the '
+                               'worker waited for the odometry of the one before, which did not come within '
+                               f'odom_wait_timeout {self.node.settings.node.odom_wait_timeout:g} s '
+                               '(dropped.odometry_late counts them)', count=False, period_s=30.0)
+        else:
+            self.faults.report(BUSY, 'estimator busy: dropping an older image that was still waiting (newest wins; '
+                               'the count is in /diagnostics)', level='info', count=False, period_s=60.0)
 
     def _on_empty_frame_id(self, stamp_ns) -> None:
         """An image without header.frame_id: the outputs use the frame_id parameter (warned once, every one counted)."""
@@ -248,10 +250,13 @@ class NodeInputs:
         why is None when no camera_info has arrived, else the PoseQuery whose reason ('future' once the timeout
         passed, 'gap', 'too old', 'nan') and detail say why there is no pose.
         """
+        result = None
         try:
-            return self._wait_for(item, stamp_ns, stop)
+            result = self._wait_for(item, stamp_ns, stop)
+            return result
         finally:
-            self.waiting_for_odometry = False
+            why = None if result is None else result[3]
+            self._count_replaced(self.odometry_wait.end(), odometry_late=why is not None and why.reason == 'future')
 
     def _wait_for(self, item: Incoming, stamp_ns: int, stop: threading.Event):
         deadline = item.receipt_mono + self.node.settings.node.odom_wait_timeout
@@ -266,8 +271,8 @@ class NodeInputs:
                 return None, None, None, query          # waiting cannot help (gap, too old, invalid odometry)
             if time.monotonic() >= deadline or stop.is_set():
                 return None, None, None, (query if K is not None else None)
-            # what keeps the worker now (an image replaced meanwhile is counted by it): the odometry after the stamp
-            self.waiting_for_odometry = K is not None and need_pose
+            if K is not None and need_pose:     # the odometry after the stamp keeps the worker (OdometryWait)
+                self.odometry_wait.start()
             with self.cv:
                 self.cv.wait(min(max(deadline - time.monotonic(), 0.0), 0.05))
 
