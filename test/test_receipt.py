@@ -82,3 +82,14 @@ def test_sequence_numbers_that_go_back_are_logged_once_and_the_stamps_take_over(
         rec.image(image('cam', t), t, i / 30, t, seq=50 + i if i < 10 else i - 9)
     assert rec.stream_loss.sequence.restarts == 1
     assert sum('sequence numbers went back (59 -> 1)' in m for _, m in log.lines) == 1
+
+
+def test_sequence_numbers_that_keep_going_back_are_two_publishers_of_one_frame_id():
+    rec, log, _ = receipt()
+    for i in range(20):                      # two writers, both 'cam', numbering 1, 2, ... each
+        t = 100 * NS + i * NS // 60
+        rec.image(image('cam', t), t, i / 60, t, seq=i // 2 + 1)
+    assert rec.faults.counts['image_two_publishers'] >= 1
+    warn = [m for level, m in log.lines if level == 'warn' and 'two publishers' in m]
+    assert warn and "frame_id 'cam'" in warn[0] and 'Remap one of them' in warn[0]
+    assert rec.stream_loss.lost_sequence_gap_only == 0

@@ -26,6 +26,9 @@ ODOM_FRAME_CHANGE = 'odometry_frame_change'
 OTHER_CAMERA = 'other_camera'                 # an image of a second frame_id on the image topic (dropped)
 CAMERA_FRAME_CHANGE = 'camera_frame_change'   # the stream's frame_id changed for good
 SEQUENCE_RESTART = 'image_sequence_restart'   # the image publisher's sequence numbers went back
+TWO_PUBLISHERS = 'image_two_publishers'       # ... again and again: two publishers of one frame_id
+TWO_PUBLISHERS_RESTARTS = 3     # sequence numbers going back this often within TWO_PUBLISHERS_S: two publishers
+TWO_PUBLISHERS_S = 10.0
 FRAME_SWITCH_S = 2.0    # the stream follows another frame_id once its own has not arrived for this long
 
 
@@ -73,6 +76,7 @@ class ImageReceipt:
         self.camera = CameraFrame(faults, drop)
         self._carry: Incoming | None = None     # what a rejected image knew about the stream, for the next one
         self._last_stamp_ns: int | None = None  # header stamp of the stream's newest image
+        self._restarts_mono: list[float] = []   # receipt times of recent sequence restarts
 
     def image(self, msg, stamp_ns: int | None, receipt_mono: float, receipt_ns: int,
               seq: int | None = None, source: str = '') -> Incoming | None:
@@ -90,11 +94,7 @@ class ImageReceipt:
         # judged by the worker (camera_gap_ns), as the report may come after this image
         lost = loss.on_image(stamp_ns, seq, source) if stamp_ns is not None else None
         if loss.sequence.restarts != restarts:
-            _source, before, now = loss.sequence.last_restart
-            self.faults.report(SEQUENCE_RESTART, f'image publication sequence numbers went back ({before} -> {now}): '
-                               'the camera driver restarted, or two publishers send images with one frame_id (then '
-                               'remap one of them); lost images are judged from the stamps meanwhile',
-                               level='info', period_s=30.0)
+            self._on_sequence_restart(msg.header.frame_id, receipt_mono)
         if loss.stamp_jumps != jumps:
             self.faults.report(STAMP_JUMP, f'image stamps jumped {loss.last_jump_ns / NS:.3f} s forward at '
                                f'{stamp_ns / NS:.3f} s: a discontinuity (camera stalled, or its clock or /clock '
@@ -114,6 +114,22 @@ class ImageReceipt:
             return self._reject(item, BAD_IMAGE, exc, stamp_ns)
         self._carry = None
         return item
+
+    def _on_sequence_restart(self, frame_id: str, receipt_mono: float) -> None:
+        """The image publisher's sequence numbers went back: a restarted driver (info), or, when they go back again
+        and again, two publishers of one frame_id on the topic (a warning: their images cannot be told apart)."""
+        _source, before, now = self.stream_loss.sequence.last_restart
+        recent = [t for t in self._restarts_mono if receipt_mono - t <= TWO_PUBLISHERS_S] + [receipt_mono]
+        self._restarts_mono = recent
+        if len(recent) >= TWO_PUBLISHERS_RESTARTS:
+            self.faults.report(TWO_PUBLISHERS, f"two publishers send images of frame_id '{frame_id}' on one topic: "
+                               f'their sequence numbers interleave ({len(recent)} restarts in {TWO_PUBLISHERS_S:g} s) '
+                               'and their images are taken as one camera. Remap one of them to its own topic; lost '
+                               'images are judged from the stamps', period_s=30.0)
+            return
+        self.faults.report(SEQUENCE_RESTART, f'image publication sequence numbers went back ({before} -> {now}): '
+                           'the camera driver restarted (or a second publisher appeared); lost images are judged '
+                           'from the stamps until they run forward again', level='info', period_s=30.0)
 
     def _reject(self, item: Incoming, kind: str, exc: Exception, stamp_ns: int | None) -> None:
         self._carry = item
