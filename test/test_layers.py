@@ -16,7 +16,8 @@ RANK = {'core': 1, 'stream': 2, 'ros': 3, 'data': 4, 'evaluation': 5, 'client': 
 # Packages that never import ROS, and the ROS adapter's modules that must stay importable without it.
 NO_ROS_PACKAGES = ('core', 'stream', 'data', 'evaluation', 'training')
 NO_ROS_ADAPTER = ('entry.py', 'startup.py', 'msgs.py', 'cloud_msgs.py', 'compressed_depth.py', 'compressed_image.py',
-                  'fault_kinds.py', 'node_support.py', 'process_memory.py', 'receipt.py', 'stream_loss.py',
+                  'fault_kinds.py', 'node_support.py', 'process_memory.py', 'receipt.py', 'sequence_numbers.py',
+                  'stream_loss.py',
                   'topic_names.py', 'transport.py', 'worker.py')
 SHARED_TOOL_MODULES = {'dpv_sensor.tools'}
 

@@ -223,6 +223,18 @@ def test_odometry_covariance_filled_or_not():
     assert M.odometry_covariance(M.matrix_to_odometry(np.eye(4), header(frame_id='odom'), 'base_link')) is None
 
 
+def test_odometry_covariance_with_nan_anywhere_is_not_used_and_is_told_apart_from_an_unfilled_one():
+    odom = M.matrix_to_odometry(np.eye(4), header(frame_id='odom'), 'base_link', position_sigma=0.1,
+                                rotation_sigma=0.02)
+    assert not M.covariance_not_finite(odom)
+    cov = list(odom.pose.covariance)
+    cov[1] = float('nan')                      # off the diagonal: the diagonal alone looks filled
+    odom.pose.covariance = cov
+    assert M.odometry_covariance(odom) is None and M.covariance_not_finite(odom)
+    unfilled = M.matrix_to_odometry(np.eye(4), header(frame_id='odom'), 'base_link')
+    assert not M.covariance_not_finite(unfilled)
+
+
 def test_pose_stamped_round_trip():
     T = make_pose([0.1, 0.2, 0.3], [0.5, 0.5, 0.5, 0.5])
     msg = M.matrix_to_pose_stamped(T, header(frame_id='odom'))

@@ -101,8 +101,9 @@ def test_time_going_backwards_restarts_the_estimate():
 
 def test_counts_and_arguments():
     loss = StreamLoss()
-    assert loss.counts() == {'lost.transport': 0, 'lost.rmw': 0, 'lost.stamp_gaps_only': 0, 'lost.gaps': 0,
-                             'lost.unexplained_gaps': 0, 'input_rate_changes': 0, 'input_stamp_jumps': 0,
+    assert loss.counts() == {'lost.transport': 0, 'lost.rmw': 0, 'lost.stamp_gaps_only': 0,
+                             'lost.sequence_gaps_only': 0, 'lost.gaps': 0, 'lost.unexplained_gaps': 0,
+                             'input_rate_changes': 0, 'input_stamp_jumps': 0, 'input_sequence_restarts': 0,
                              'input_period_ms': 'n/a'}
     loss.on_rmw_lost(0)
     loss.on_rmw_lost(-3)

@@ -16,6 +16,10 @@ from dpv_sensor.ros.fault_kinds import BUSY, ESTIMATOR_EXCEPTION
 from dpv_sensor.stream.estimator import EstimatorStatus
 
 
+# a share of lost or rejected images is over once this many images in a row arrived clean
+CLEAN_IMAGES_OVER = 10
+
+
 def _median(values, digits: int = 1):
     return round(float(np.median(values)), digits) if values else 'n/a'
 
@@ -71,6 +75,14 @@ class NodeDiagnostics:
         self._share_history: collections.deque = collections.deque([(time.monotonic(), 0, 0.0, 0.0)])
         self._last_fault_total = 0
         self._last_exception_count = 0
+        self._bad_total = 0.0              # images lost or rejected as faulty, all told, at the latest growth
+        self._received_at_bad = 0          # images received when that count last grew
+
+    def _sim_time(self) -> bool:
+        try:
+            return bool(self.node.get_parameter('use_sim_time').value)
+        except Exception:   # not declared (a node without the parameter)
+            return False
 
     def _estimator(self) -> dict:
         worker = self.node.worker
@@ -98,8 +110,9 @@ class NodeDiagnostics:
             'point_clouds_published': outputs.n_points,
             'latency_ms_median': _median(lat),
             'latency_ms_p95': round(float(np.percentile(lat, 95)), 1) if lat else 'n/a',
-            # on the node's clock, for stamps within an hour of it
+            # on the node's clock (ROS time under use_sim_time), for stamps within an hour of it and not ahead of it
             'stamp_age_ms_median': _median(age),
+            'stamp_age_clock': 'sim time' if self._sim_time() else 'system time',
             'stamp_age_implausible': outputs.n_age_implausible,
             'depth_rate_hz': round(outputs.rate.mean_rate(first_image), 3),
             'expected_depth_rate_hz': s.expected_depth_rate,
@@ -154,7 +167,8 @@ class NodeDiagnostics:
         """(level, problem or '') from the share of the images of the last rate_window that were lost in transport
         (lost.transport) or rejected as faulty (dropped.* other than busy: images replaced while the estimator
         was busy are the normal regime of a slow machine, reported but not warned about). Judged from 5 images
-        on. Adds drop_share_window to `values`."""
+        on. A fault that is over (the last CLEAN_IMAGES_OVER images received all clean) is no WARN or ERROR any
+        more: the share is still said, as over. Adds drop_share_window to `values`."""
         s = self.node.settings.node
         received = self.node.inputs.n_received
         now = time.monotonic()
@@ -175,8 +189,14 @@ class NodeDiagnostics:
         bad = (faulty - faulty0) + (lost - lost0)
         share = bad / seen if seen > 0 else 0.0
         values['drop_share_window'] = round(share, 3)
+        if faulty + lost > self._bad_total:
+            self._bad_total, self._received_at_bad = faulty + lost, received
         if seen < 5 or bad <= 0:
             return DiagnosticStatus.OK, ''
+        clean = received - self._received_at_bad
+        if clean >= CLEAN_IMAGES_OVER:
+            return DiagnosticStatus.OK, (f'{share:.0%} of the last {int(seen)} images were lost in transport or '
+                                         f'rejected as faulty, none of the {clean} since: over')
         text = (f'{share:.0%} of the last {int(seen)} images lost in transport or rejected as faulty '
                 '(see lost.*, dropped.*)')
         if share > s.drop_error_share:

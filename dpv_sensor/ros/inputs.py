@@ -28,8 +28,9 @@ from dpv_sensor.ros import qos
 from dpv_sensor.ros.compressed_image import decode_message
 from dpv_sensor.ros.extrinsic import CameraExtrinsic
 from dpv_sensor.ros.fault_kinds import (BAD_CAMERA_INFO, BUSY, EMPTY_FRAME_ID, NAN_ODOMETRY, ODOM_CONFLICT, ODOM_JUMP,
-                                        TIME_BACKWARDS, UNSUPPORTED_DISTORTION)
-from dpv_sensor.ros.node_support import Incoming, Mailbox, RateMeter, merge_incoming
+                                        ODOM_COVARIANCE_NAN, ODOM_LATE, ODOM_ZERO_STAMP, TIME_BACKWARDS,
+                                        UNSUPPORTED_DISTORTION)
+from dpv_sensor.ros.node_support import Incoming, Mailbox, OdometryWait, RateMeter, merge_incoming
 from dpv_sensor.ros.receipt import ImageReceipt, OdomFrameWatch
 from dpv_sensor.ros.stream_loss import StreamLoss
 from dpv_sensor.ros.transport import choose_reliability
@@ -71,7 +72,7 @@ class NodeInputs:
         self._odom_frames = OdomFrameWatch(faults)
         self.mailbox = Mailbox(merge=merge_incoming)
         self._drop = drop
-        self._last_received_stamp_ns = None   # header stamp of the newest image received (callback thread only)
+        self.odometry_wait = OdometryWait()   # the worker waits for odometry after an image's stamp (wait_for)
         self.in_rate = RateMeter()
         self.n_received = 0
         self.first_image_mono = None
@@ -136,10 +137,10 @@ class NodeInputs:
                 self.subscribe(topic, want)
 
     # ------------------------------------------------------------------------------------------ callbacks
-    def on_image(self, msg) -> None:
+    def on_image(self, msg, info) -> None:
+        """An image and its message info (rclpy passes it to a callback of two arguments: a dict with the
+        publication sequence number, where the middleware gives one)."""
         self.n_received += 1
-        if self.tf is not None:
-            self.tf.frames(image_frame=msg.header.frame_id or self.node.settings.node.frame_id)
         self.last_image_mono = time.monotonic()
         if self.first_image_mono is None:
             self.first_image_mono = self.last_image_mono
@@ -148,24 +149,43 @@ class NodeInputs:
             stamp_ns = M.stamp_to_ns(msg.header.stamp)
         except Exception:   # a malformed header is reported by the worker; no gap to measure here
             stamp_ns = None
-        last, self._last_received_stamp_ns = self._last_received_stamp_ns, stamp_ns
-        gap_ns = stamp_ns - last if stamp_ns is not None and last is not None and stamp_ns > last else None
         if not msg.header.frame_id:
             self._on_empty_frame_id(stamp_ns)
-        # lost images, stamp jumps and unusable images: judged here, before the mailbox (dpv_sensor.ros.receipt)
-        item = self._receipt.image(msg, stamp_ns, gap_ns, time.monotonic(), time.time_ns())
-        if item is not None and self.mailbox.put(item):
-            self._drop(BUSY)
+        seq = info.get('publication_sequence_number') if isinstance(info, dict) else None
+        # a second camera, lost images, stamp jumps and unusable images: judged here, before the mailbox
+        # (dpv_sensor.ros.receipt)
+        item = self._receipt.image(msg, stamp_ns, time.monotonic(), time.time_ns(), seq=seq, source='image')
+        if item is None:
+            return
+        if self.tf is not None:
+            self.tf.frames(image_frame=msg.header.frame_id or self.node.settings.node.frame_id)
+        if self.mailbox.put(item) and self.odometry_wait.replaced():
+            self._count_replaced(1, odometry_late=False)
+
+    def _count_replaced(self, n: int, odometry_late: bool) -> None:
+        """`n` images replaced in the mailbox by newer ones, counted by why the worker could not take them: it
+        waited for odometry that did not come in time (dropped.odometry_late), or it was busy (dropped.busy)."""
+        if n <= 0:
+            return
+        for _ in range(n):
+            self._drop(ODOM_LATE if odometry_late else BUSY)
+        if odometry_late:
+            self.faults.report(ODOM_LATE, f'odometry arrives later than the images: {n} image(s) dropped while the '
+                               'worker waited for the odometry of the one before, which did not come within '
+                               f'odom_wait_timeout {self.node.settings.node.odom_wait_timeout:g} s '
+                               '(dropped.odometry_late counts them)', count=False, period_s=30.0)
+        else:
             self.faults.report(BUSY, 'estimator busy: dropping an older image that was still waiting (newest wins; '
                                'the count is in /diagnostics)', level='info', count=False, period_s=60.0)
 
-    def on_compressed_image(self, msg) -> None:
-        """image_transport compressed: decode (JPEG / PNG), then the raw image's path; a payload that cannot be
-        decoded goes that path too, to be counted (stream loss, received) and refused by the receipt."""
+    def on_compressed_image(self, msg, info) -> None:
+        """image_transport compressed: decode (JPEG / PNG), then the raw image's path with the same message info
+        (two arguments, so rclpy passes it); a payload that cannot be decoded goes that path too, to be counted
+        (stream loss, received) and refused by the receipt."""
         t0 = time.perf_counter()
         decoded = decode_message(msg)
         self.decode_ms.append((time.perf_counter() - t0) * 1000.0)
-        self.on_image(decoded)
+        self.on_image(decoded, info)
 
     def _on_empty_frame_id(self, stamp_ns) -> None:
         """An image without header.frame_id: the outputs use the frame_id parameter (warned once, every one counted)."""
@@ -201,6 +221,11 @@ class NodeInputs:
 
     def on_odom(self, msg) -> None:
         stamp_ns = M.stamp_to_ns(msg.header.stamp)
+        if stamp_ns == 0:
+            self.faults.report(ODOM_ZERO_STAMP, 'odometry header.stamp is zero: the driver does not stamp its '
+                               'messages; ignoring them (images are paired with odometry by stamp; '
+                               'faults.odometry_zero_stamp counts them)', period_s=30.0)
+            return
         try:
             T = M.odometry_to_matrix(msg)
         except M.BadOdometry as exc:
@@ -215,6 +240,8 @@ class NodeInputs:
         jumps, conflicts = buffer.jumps, buffer.conflicts
         cleared = buffer.add(stamp_ns, T)
         self.pose_covariance.add(stamp_ns, M.odometry_covariance(msg))
+        if M.covariance_not_finite(msg):
+            self._on_bad_covariance(stamp_ns)
         if buffer.conflicts != conflicts:
             self.faults.report(ODOM_CONFLICT, f'{buffer.last_conflict}; keeping the first (two odometry '
                                'sources publishing on one topic?)')
@@ -226,6 +253,16 @@ class NodeInputs:
                                key='time_backwards:odometry')
         with self.cv:
             self.cv.notify_all()
+
+    def _on_bad_covariance(self, stamp_ns: int) -> None:
+        """Odometry whose pose covariance holds NaN or infinity: counted, and what is done instead said."""
+        mode = self.node.settings.estimator.pose_uncertainty
+        instead = {'covariance': 'its poses count as exact (pose_uncertainty auto would use the drift figures)',
+                   'auto': 'the drift figures (odom_drift_*) are used for its poses'}.get(
+                       mode, f'pose_uncertainty {mode} does not read it')
+        self.faults.report(ODOM_COVARIANCE_NAN, f'odometry at {stamp_ns / NS:.3f} s has NaN or infinity in its pose '
+                           f'covariance: the covariance is ignored and {instead} '
+                           '(faults.odometry_covariance_nan counts them)', period_s=30.0)
 
     # ------------------------------------------------------------------------------------------ the worker's side
     @property
@@ -242,6 +279,15 @@ class NodeInputs:
         why is None when no camera_info has arrived, else the PoseQuery whose reason ('future' once the timeout
         passed, 'gap', 'too old', 'nan', or NO_MOUNT: no camera mount from TF) and detail say why there is no pose.
         """
+        result = None
+        try:
+            result = self._wait_for(item, stamp_ns, stop)
+            return result
+        finally:
+            why = None if result is None else result[3]
+            self._count_replaced(self.odometry_wait.end(), odometry_late=why is not None and why.reason == 'future')
+
+    def _wait_for(self, item: Incoming, stamp_ns: int, stop: threading.Event):
         deadline = item.receipt_mono + self.node.settings.node.odom_wait_timeout
         need_pose = self.node.settings.estimator.odometry == 'topic'
         while True:
@@ -254,6 +300,8 @@ class NodeInputs:
                 return None, None, None, query          # waiting cannot help (gap, too old, invalid odometry)
             if time.monotonic() >= deadline or stop.is_set():
                 return None, None, None, (query if K is not None else None)
+            if K is not None and need_pose:     # the odometry after the stamp keeps the worker (OdometryWait)
+                self.odometry_wait.start()
             with self.cv:
                 self.cv.wait(min(max(deadline - time.monotonic(), 0.0), 0.05))
 

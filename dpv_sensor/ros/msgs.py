@@ -354,13 +354,19 @@ def odometry_to_matrix(msg) -> np.ndarray:
 
 def odometry_covariance(msg) -> np.ndarray | None:
     """The pose covariance of a nav_msgs/Odometry as 6x6 (x, y, z, rotation about x, y, z), or None when the
-    publisher did not fill it (a diagonal that is not all finite and positive: zeros, or -1 for unknown)."""
+    publisher did not fill it (a diagonal that is not all positive: zeros, or -1 for unknown) or filled it with
+    NaN or infinity anywhere (``covariance_not_finite`` tells that apart)."""
     cov = np.asarray(msg.pose.covariance, dtype=np.float64)
-    if cov.size != 36:
+    if cov.size != 36 or not bool(np.all(np.isfinite(cov))):
         return None
     cov = cov.reshape(6, 6)
-    d = np.diag(cov)
-    return cov if bool(np.all(np.isfinite(d)) and np.all(d > 0)) else None
+    return cov if bool(np.all(np.diag(cov) > 0)) else None
+
+
+def covariance_not_finite(msg) -> bool:
+    """True when a nav_msgs/Odometry's pose covariance holds NaN or infinity (a fault, not an unfilled one)."""
+    cov = np.asarray(msg.pose.covariance, dtype=np.float64)
+    return not bool(np.all(np.isfinite(cov)))
 
 
 def pose_msg_to_matrix(pose) -> np.ndarray:

@@ -38,14 +38,17 @@ Distorted input (camera_info with non-zero D, plumb_bob / rational_polynomial / 
 (dpv_sensor.core.rectify) before the estimator; every output then carries the rectified K with D zero.
 
 Bad input never stops the node: each kind of fault (``fault_kinds``: unsupported encoding, inconsistent image, a
-compressed image that cannot be decoded, size
-change, missing or zero camera_info, NaN odometry, odometry gap or timeout, conflicting odometry at one stamp, time
-going backwards, an empty image frame_id, a degenerate image, an exception inside the estimator) is counted, reported
-in /diagnostics and logged with a specific, rate-limited message. No image is lost uncounted: images lost before the
-callback (transport) are counted from the stamps and the middleware's reports (lost.*), images the node skips or
-refuses in dropped.*. A loss is counted only on evidence (a middleware report, or a stamp gap the stream around it
-confirms): a camera that lowers its rate loses nothing (input_rate_changes) and a stamp jump is a discontinuity
-(input_stamp_jumps, faults.stamp_jump).
+compressed image that cannot be decoded, size change, missing or zero camera_info, NaN odometry or NaN in its
+covariance, odometry stamped 0, odometry gap or timeout, conflicting odometry at one stamp, time going backwards, an
+empty image frame_id, no camera mount on TF yet, a second camera (another frame_id) on the image topic, a degenerate
+image, an exception inside the estimator) is counted, reported in /diagnostics and logged with a specific,
+rate-limited message. No image is lost uncounted: images lost before the callback (transport) are counted from the
+publisher's sequence numbers (the image callback takes the message info), the middleware's reports and the stamps
+(lost.*), images the node skips or refuses in dropped.* (an image replaced in the mailbox while the worker waited for
+odometry that then came too late: odometry_late, else busy). A loss is counted only on evidence (a sequence gap, a
+middleware report, or a stamp gap the stream around it confirms): a camera that lowers its rate loses nothing
+(input_rate_changes) and a stamp jump is a discontinuity (input_stamp_jumps,
+faults.stamp_jump).
 """
 from __future__ import annotations
 
@@ -119,7 +122,9 @@ class DepthCameraNode(Node):
         self.qos_events = QosEvents(self.faults)
         self.inputs = NodeInputs(self, self.faults, self.qos_events, self.drop, T_base_camera, extrinsic_source)
         if self.settings.node.input_reliability == 'auto':
-            self.create_timer(1.0, self.inputs.adapt_qos)
+            # on the steady clock: under use_sim_time a ROS-time timer would wait for /clock, and the inputs would
+            # never follow their publishers' QoS until it comes
+            self.create_timer(1.0, self.inputs.adapt_qos, clock=Clock(clock_type=ClockType.STEADY_TIME))
         self.outputs = NodeOutputs(self, self.faults, self.qos_events,
                                    T_base_camera if extrinsic_source == 'parameter' else None)
         self.inputs.tf = self.outputs.tf

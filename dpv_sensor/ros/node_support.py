@@ -1,6 +1,7 @@
-"""Small plumbing pieces of the node, without ROS: the one-slot mailbox between the callback thread and the
-worker, a rate meter, the fault log (per-kind counters and rate-limited messages), the one logging bridge from
-Python logging to the node's logger, and the record of a received image."""
+"""Small plumbing pieces of the node, without ROS: the one-slot mailbox between the callback thread and the worker (and
+what its replaced images are counted as while the worker waits for odometry), a rate meter, the fault log (per-kind
+counters and rate-limited messages), the one logging bridge from Python logging to the node's logger, and the record
+of a received image."""
 from __future__ import annotations
 
 import collections
@@ -9,8 +10,8 @@ import threading
 import time
 from dataclasses import dataclass, field
 
-__all__ = ['Mailbox', 'RateMeter', 'FaultLog', 'LogBridge', 'Incoming', 'merge_incoming', 'max_gap', 'camera_gap_ns',
-           'plausible_age_ms']
+__all__ = ['Mailbox', 'OdometryWait', 'RateMeter', 'FaultLog', 'LogBridge', 'Incoming', 'merge_incoming', 'max_gap',
+           'camera_gap_ns', 'plausible_age_ms']
 
 
 class Mailbox:
@@ -50,6 +51,39 @@ class Mailbox:
         with self._cv:
             self.closed = True
             self._cv.notify_all()
+
+
+class OdometryWait:
+    """Whether the worker is waiting for odometry after an image's stamp, and the images replaced in the mailbox
+    meanwhile: the worker could not take them because the odometry was late, which the end of the wait tells (it
+    timed out: the odometry cause; the odometry came in time: the usual busy worker). Images replaced while the worker
+    computes are busy at once. Thread-safe (the callback thread replaces, the worker waits)."""
+
+    def __init__(self):
+        self._lock = threading.Lock()
+        self._waiting = False
+        self._held = 0           # images replaced during the current wait
+
+    @property
+    def waiting(self) -> bool:
+        return self._waiting
+
+    def replaced(self) -> bool:
+        """An image was replaced: True when it is counted now (busy), False when it is held for the wait's end."""
+        with self._lock:
+            if self._waiting:
+                self._held += 1
+            return not self._waiting
+
+    def start(self) -> None:
+        with self._lock:
+            self._waiting = True
+
+    def end(self) -> int:
+        """The wait ended: the images replaced during it (to count by how it ended)."""
+        with self._lock:
+            n, self._held, self._waiting = self._held, 0, False
+            return n
 
 
 class RateMeter:
@@ -207,11 +241,15 @@ def camera_gap_ns(gap_ns: int | None, loss_gaps) -> int | None:
 
 
 PLAUSIBLE_AGE_NS = 3600 * 1_000_000_000
+PLAUSIBLE_FUTURE_NS = 1_000_000_000
 
 
 def plausible_age_ms(now_ns: int, stamp_ns: int) -> float | None:
-    """The age (ms) of a header stamp on the node's clock, or None when it is more than an hour off either way: the
-    stamps are then not on this clock (a bag written from stamp 0, a replay without use_sim_time) and their age says
-    nothing about latency."""
+    """The age (ms) of a header stamp on the node's clock, or None when it says nothing about latency: the clock
+    reads zero (use_sim_time before /clock arrives), the stamp is more than an hour older (not on this clock: a bag
+    written from stamp 0, a replay without use_sim_time) or more than a second in the future of the clock (a
+    simulator's /clock behind its stamps or paused)."""
+    if now_ns <= 0:
+        return None
     age = now_ns - stamp_ns
-    return age / 1e6 if abs(age) <= PLAUSIBLE_AGE_NS else None
+    return age / 1e6 if -PLAUSIBLE_FUTURE_NS <= age <= PLAUSIBLE_AGE_NS else None

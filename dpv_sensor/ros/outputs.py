@@ -87,7 +87,7 @@ class NodeOutputs:
         self.latency_ms: collections.deque[float] = collections.deque(maxlen=200)   # receipt -> published
         self.age_ms: collections.deque[float] = collections.deque(maxlen=200)       # header stamp -> published
         self.n_published = self.n_keyframes_published = self.n_points = 0
-        self.n_age_implausible = 0            # outputs whose stamp is more than an hour off the node's clock
+        self.n_age_implausible = 0            # outputs whose stamp age says nothing (node_support.plausible_age_ms)
         # published outputs whose filter restarted (estimator, filter or pose-refinement restart; the first output of
         # the stream, whose filter starts by definition, is not counted) and the reason of the latest one
         self.n_output_resets = 0

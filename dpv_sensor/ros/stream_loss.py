@@ -1,13 +1,18 @@
 """Images lost between the camera and the node: counted only where there is evidence of a loss, each lost image
 once. Pure Python (no rclpy).
 
-Evidence of a loss is either
+Evidence of a loss is
 
+- the publisher's sequence numbers where the middleware passes them (``sequence_numbers``: a step from n to n + k
+  means k - 1 samples of that publisher were lost before the callback, whatever dropped them and whatever their
+  stamps say): the first evidence, and while they are known the stamp gaps below are not judged (a stamp gap with
+  no sequence gap is a slower camera or a stall, never a loss), or
 - the middleware's report (rclpy's message-lost event, where the middleware gives it: Fast DDS does for best-effort
   readers, from the writer's sequence numbers), which says *how many* samples were lost, or
 - a gap in the header stamps against the camera's frame period, confirmed by the stream around it: an interval of
   `n` periods (n >= 2, rounded; 1.5 periods and more) means `n - 1` images are missing once a later interval of one
-  period shows the camera still runs at that rate.
+  period shows the camera still runs at that rate. This is the rule where the numbers say nothing (no numbers,
+  the first sample, a publisher that restarted: its numbers went back).
 
 The frame period is estimated from the stamps of the images that arrive: a low quantile of the recent intervals
 picks an interval of one period even when many images are lost (a median would pick two or more), and the period is
@@ -21,20 +26,26 @@ periods) that no report explains is a discontinuity (the camera stalled, or its 
 Each missing image in a stamp gap is matched with a reported loss when one is unmatched (in either order: the event
 may be handled before or after the image that ends the gap), so
 
-    lost_total = lost_rmw + lost_stamp_gap_only
+    lost_total = lost_rmw + lost_stamp_gap_only + lost_sequence_gap_only
 
-where ``lost_stamp_gap_only`` are confirmed missing images no report accounts for (a reliable reader, a middleware
-that does not report) and ``lost_rmw`` includes reports no gap shows (irregular stamps, or the stream ended).
+where ``lost_stamp_gap_only`` and ``lost_sequence_gap_only`` are missing images no report accounts for (a reliable
+reader, a middleware that does not report, a reliable writer whose history overflowed) and ``lost_rmw`` includes
+reports no gap shows (irregular stamps, or the stream ended). A sequence gap is transport loss by its nature (the
+camera ran: its stamp interval is explained by the missing images); a stamp jump beyond what the missing images
+explain is still a discontinuity.
 
-A gap counts as *transport loss* (:attr:`Gap.explained`) once every image missing in it is matched with a reported
-loss: the camera kept running, so the camera stream's own gap is one period (:attr:`Gap.camera_gap_ns`), and a
-consumer that restarts on stream interruptions should not restart for it. Other gaps keep their stamp interval.
+A gap counts as *transport loss* (:attr:`Gap.explained`) when the sequence numbers show it, or once every image
+missing in it is matched with a reported loss: the camera kept running, so the camera stream's own gap is one period
+(:attr:`Gap.camera_gap_ns`), and a consumer that restarts on stream interruptions should not restart for it. Other
+gaps keep their stamp interval.
 """
 from __future__ import annotations
 
 import collections
 import statistics
 from dataclasses import dataclass
+
+from dpv_sensor.ros.sequence_numbers import PublicationSequence
 
 PENDING, CONFIRMED, WITHDRAWN = 'pending', 'confirmed', 'withdrawn'
 
@@ -47,11 +58,17 @@ class Gap:
     missing: int         # images missing in it (>= 1)
     matched: int = 0     # of them, matched with losses the RMW reported
     state: str = CONFIRMED   # pending (waiting for the next interval), confirmed, or withdrawn (a rate change)
+    by_sequence: bool = False   # counted from the publisher's sequence numbers (transport loss by its nature)
+
+    @property
+    def reported(self) -> bool:
+        """Every missing image is matched with a loss the middleware reported."""
+        return self.matched >= self.missing
 
     @property
     def explained(self) -> bool:
-        """Every missing image is a loss the middleware reported (the camera did not stall)."""
-        return self.matched >= self.missing
+        """Every missing image is a transport loss (sequence numbers, or reports): the camera did not stall."""
+        return self.by_sequence or self.reported
 
     @property
     def settled(self) -> bool:
@@ -60,7 +77,10 @@ class Gap:
 
     @property
     def camera_gap_ns(self) -> int:
-        """The gap of the camera stream itself: one period when the loss is explained, else the stamp interval."""
+        """The gap of the camera stream itself: one period when the loss is explained, else the stamp interval (a
+        sequence gap: the stamp interval less the missing images' periods, at least one period)."""
+        if self.by_sequence:
+            return max(self.period_ns, self.interval_ns - self.missing * self.period_ns)
         return self.period_ns if self.explained else self.interval_ns
 
 
@@ -94,8 +114,11 @@ class StreamLoss:
         self._pending: list[Gap] = []      # consecutive gaps waiting for the next interval
         self._early: list[int] = []        # intervals seen before the period was known (judged once it is)
         self._unmatched_reports = 0
+        self._slow_run: list[int] = []     # consecutive long intervals without a sequence gap (a rate change?)
+        self.sequence = PublicationSequence()
         self.lost_rmw = 0              # images the RMW reported lost
         self.lost_stamp_gap_only = 0   # confirmed missing images that no report accounts for
+        self.lost_sequence_gap_only = 0   # images missing in the sequence numbers that no report accounts for
         self.gaps = 0                  # intervals with images counted missing
         self.unexplained_gaps = 0      # of them, not (yet) explained by reported losses
         self.rate_changes = 0          # times the frame period was re-estimated from a run of equal gaps
@@ -114,7 +137,7 @@ class StreamLoss:
 
     @property
     def lost_total(self) -> int:
-        return self.lost_rmw + self.lost_stamp_gap_only
+        return self.lost_rmw + self.lost_stamp_gap_only + self.lost_sequence_gap_only
 
     # ------------------------------------------------------------------------------------------------ inputs
     def on_rmw_lost(self, count: int) -> None:
@@ -131,14 +154,16 @@ class StreamLoss:
                 continue
             n = min(gap.missing - gap.matched, self._unmatched_reports)
             self._match(gap, n)
-            if gap.explained:
+            if gap.reported:
                 self._open_gaps.popleft()
 
     def _match(self, gap: Gap, n: int) -> None:
         was_explained = gap.explained
         gap.matched += n
         self._unmatched_reports -= n
-        if gap.state == CONFIRMED:
+        if gap.by_sequence:
+            self.lost_sequence_gap_only -= n
+        elif gap.state == CONFIRMED:
             self.lost_stamp_gap_only -= n
             if gap.explained and not was_explained:
                 self.unexplained_gaps -= 1
@@ -164,6 +189,7 @@ class StreamLoss:
             gap.state = WITHDRAWN
         self._pending = []
         self._early = []
+        self._slow_run = []
         self._intervals.clear()
 
     def _is_jump(self, interval_ns: int, period_ns: int) -> bool:
@@ -171,18 +197,30 @@ class StreamLoss:
         the stamps, not images lost in transport."""
         return interval_ns > max(self.max_loss_gap_ns, JUMP_PERIODS * period_ns)
 
-    def on_image(self, stamp_ns: int) -> Gap | None:
-        """An image with header stamp `stamp_ns` arrived; returns the Gap it ends (pending until the stream around
-        it confirms it), or None (no image missing, the first image, a period not known yet, a stamp jump, or time
-        going backwards, which restarts the estimate)."""
+    def on_sample(self, seq: int | None, source: str = '') -> None:
+        """A sample that is not part of the stream arrived on its topic (an image of another camera, dropped): its
+        publication sequence number still counts the samples lost before it (sequence numbers are the writer's,
+        whatever the frame_id of each sample)."""
+        missing = self.sequence.step(source, seq)
+        if missing:
+            self._sequence_gap(missing, 0, 0)
+
+    def on_image(self, stamp_ns: int, seq: int | None = None, source: str = '') -> Gap | None:
+        """An image with header stamp `stamp_ns` arrived, `seq` its publication sequence number (None, 0: unknown)
+        on `source` (the caller's key for the writers it comes from: the subscription's topic); returns the Gap it
+        ends (a stamp gap is pending until the stream around it confirms it), or None (no image missing, the first
+        image, a period not known yet, a stamp jump, or time going backwards, which restarts the estimate)."""
+        missing = self.sequence.step(source, seq)
         last, self._last_stamp_ns = self._last_stamp_ns, stamp_ns
-        if last is None:
-            return None
-        if stamp_ns <= last:
-            if stamp_ns < last:     # a restarted bag or simulator: a new stream
+        if last is None or stamp_ns <= last:
+            if last is not None and stamp_ns < last:     # a restarted bag or simulator: a new stream
                 self._restart()
+            if missing:          # the numbers still count what was lost
+                self._sequence_gap(missing, 0, 0)
             return None
         interval = stamp_ns - last
+        if missing is not None:
+            return self._on_sequenced(interval, missing)
         period = self.period_ns
         if period is not None and period > 0 and self._is_jump(interval, period) \
                 and self._unmatched_reports < round(interval / period) - 1:
@@ -213,6 +251,46 @@ class StreamLoss:
         self._judge_pending()
         return gap
 
+    def _on_sequenced(self, interval: int, missing: int) -> Gap | None:
+        """An interval whose images the sequence numbers account for (`missing` lost in it): a sequence gap, or
+        none; the stamps still say whether the camera jumped (beyond what the missing images explain) or changed
+        its rate (equal long intervals without a loss)."""
+        period = self.period_ns
+        if period and self._is_jump(interval - missing * period, period):     # beyond the missing images' time
+            self.stamp_jumps += 1
+            self.last_jump_ns = interval
+            self._confirm_pending()
+            self._restart()
+            return self._sequence_gap(missing, interval, period) if missing else None
+        self._intervals.append(interval // (missing + 1))
+        if period and not missing and interval >= 1.5 * period:
+            self._slow_run.append(interval)
+            run = self._slow_run[-self.rate_change_intervals:]
+            mid = statistics.median(run)
+            if len(run) == self.rate_change_intervals and all(abs(i - mid) <= 0.15 * mid for i in run):
+                self._intervals.clear()
+                self._intervals.extend([int(mid)] * self.min_intervals)
+                self.rate_changes += 1
+                self._slow_run = []
+        else:
+            self._slow_run = []
+            self._confirm_pending()     # stamp gaps from before the numbers were known: the camera runs at its rate
+        return self._sequence_gap(missing, interval, period) if missing else None
+
+    def _sequence_gap(self, missing: int, interval: int, period: int | None) -> Gap:
+        """`missing` images lost in an interval of `interval` ns (0: not measurable), counted now and matched
+        with the middleware's reports (earlier ones now, later ones as they come)."""
+        period = period or (interval // (missing + 1))
+        gap = Gap(interval_ns=interval, period_ns=period, missing=missing, by_sequence=True)
+        n = min(missing, self._unmatched_reports)
+        gap.matched = n
+        self._unmatched_reports -= n
+        self.gaps += 1
+        self.lost_sequence_gap_only += missing - n
+        if not gap.reported:
+            self._open_gaps.append(gap)
+        return gap
+
     def _judge_early(self) -> None:
         """The period just became known: the intervals before it are judged against it. The stream that gave the
         period runs at that rate, so their gaps are losses (confirmed, matched with reports where there are any);
@@ -227,7 +305,7 @@ class StreamLoss:
             gap.matched = n
             self._unmatched_reports -= n
             self._confirm(gap)
-            if not gap.explained:
+            if not gap.reported:
                 self._open_gaps.append(gap)
         self._early = []
 
@@ -255,7 +333,8 @@ class StreamLoss:
         """The counters for /diagnostics (period in ms, 'n/a' until known)."""
         period = self.period_ns
         return {'lost.transport': self.lost_total, 'lost.rmw': self.lost_rmw,
-                'lost.stamp_gaps_only': self.lost_stamp_gap_only, 'lost.gaps': self.gaps,
+                'lost.stamp_gaps_only': self.lost_stamp_gap_only,
+                'lost.sequence_gaps_only': self.lost_sequence_gap_only, 'lost.gaps': self.gaps,
                 'lost.unexplained_gaps': self.unexplained_gaps, 'input_rate_changes': self.rate_changes,
-                'input_stamp_jumps': self.stamp_jumps,
+                'input_stamp_jumps': self.stamp_jumps, **self.sequence.counts(),
                 'input_period_ms': round(period / 1e6, 3) if period else 'n/a'}
