@@ -61,6 +61,7 @@ class NodeInputs:
         self._rectifiers = RectifierCache()           # distorted camera_info: undistortion maps of the latest one
         self._rectifier = None                        # the Rectifier of the current camera_info (None: as-is)
         self.odom_frame = 'odom'
+        self._odom_seen = False                       # any odometry received yet (a first stamp 0 is a clock at 0)
         self.odom_child_frame = ''                    # child_frame_id of the latest odometry: the mount's parent
         # the camera mount (T_base_camera): the parameter, or looked up on /tf_static and /tf per image
         self.extrinsic = CameraExtrinsic(node, faults, extrinsic_source, s.extrinsic_source, T_base_camera_44,
@@ -221,7 +222,10 @@ class NodeInputs:
 
     def on_odom(self, msg) -> None:
         stamp_ns = M.stamp_to_ns(msg.header.stamp)
-        if stamp_ns == 0:
+        # a clock that starts at 0 (a simulator, a bag written from stamps 0 on) stamps its first message 0; a zero
+        # stamp after any other odometry is a driver that does not stamp its messages
+        first, self._odom_seen = not self._odom_seen, True
+        if stamp_ns == 0 and not first:
             self.faults.report(ODOM_ZERO_STAMP, 'odometry header.stamp is zero: the driver does not stamp its '
                                'messages; ignoring them (images are paired with odometry by stamp; '
                                'faults.odometry_zero_stamp counts them)', period_s=30.0)
