@@ -18,8 +18,8 @@ import threading
 
 import numpy as np
 
-from dpv_sensor.core.geometry import make_pose
 from dpv_sensor.ros.fault_kinds import BAD_TRANSFORM
+from dpv_sensor.ros.msgs import transform_to_matrix
 from dpv_sensor.stream.pose_buffer import matrix_to_pose7
 from dpv_sensor.stream.transform_tree import TransformTree, frame_name
 
@@ -28,19 +28,6 @@ DYNAMIC_TOPIC = '/tf'
 TF_DEPTH = 100
 SAME_MOUNT_M = 1e-6         # a mount that moves less than this (and turns less than SAME_MOUNT_ROT) has not changed
 SAME_MOUNT_ROT = 1e-6       # largest element of R_old^T R_new - I
-
-
-def transform_to_matrix(tf) -> np.ndarray:
-    """geometry_msgs/Transform -> 4x4; ValueError for NaN / inf or a quaternion that is not unit length."""
-    t, q = tf.translation, tf.rotation
-    xyz = np.array([t.x, t.y, t.z], dtype=np.float64)
-    quat = np.array([q.x, q.y, q.z, q.w], dtype=np.float64)
-    if not (np.all(np.isfinite(xyz)) and np.all(np.isfinite(quat))):
-        raise ValueError(f'NaN/inf: translation {xyz.tolist()}, rotation {quat.tolist()}')
-    n = float(np.linalg.norm(quat))
-    if abs(n - 1.0) > 1e-3:
-        raise ValueError(f'rotation is not a unit quaternion (norm {n:.6g})')
-    return make_pose(xyz, quat / n)
 
 
 def pose_text(T_44) -> str:

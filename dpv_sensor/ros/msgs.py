@@ -60,6 +60,10 @@ class BadOdometry(MessageError):
     """Odometry with NaN/inf values or a non-unit quaternion."""
 
 
+class BadTransform(MessageError):
+    """A TF transform with NaN / inf or a quaternion that is not unit length."""
+
+
 # --------------------------------------------------------------------------------------------------------------
 # message flavours
 # --------------------------------------------------------------------------------------------------------------
@@ -335,16 +339,26 @@ def K_to_camera_info(K_33, width: int, height: int, header, frame_id: str | None
 # --------------------------------------------------------------------------------------------------------------
 # poses
 # --------------------------------------------------------------------------------------------------------------
-def _pose_fields_to_matrix(pose, what: str) -> np.ndarray:
-    p, o = pose.position, pose.orientation
-    t = np.array([p.x, p.y, p.z], dtype=np.float64)
-    q = np.array([o.x, o.y, o.z, o.w], dtype=np.float64)
+def _checked_pose(xyz, q_xyzw, what: str, names: tuple[str, str], error: type) -> np.ndarray:
+    """4x4 from a translation and a quaternion (x, y, z, w) of a message; `error` (naming `what` and the two fields
+    `names`) for NaN / inf or a quaternion whose norm is off 1 by more than 1e-3."""
+    t = np.array([xyz.x, xyz.y, xyz.z], dtype=np.float64)
+    q = np.array([q_xyzw.x, q_xyzw.y, q_xyzw.z, q_xyzw.w], dtype=np.float64)
     if not (np.all(np.isfinite(t)) and np.all(np.isfinite(q))):
-        raise BadOdometry(f'{what} has NaN/inf: position {t.tolist()}, orientation {q.tolist()}')
+        raise error(f'{what} has NaN/inf: {names[0]} {t.tolist()}, {names[1]} {q.tolist()}')
     n = float(np.linalg.norm(q))
     if abs(n - 1.0) > 1e-3:
-        raise BadOdometry(f'{what} orientation is not a unit quaternion (norm {n:.6g})')
-    return make_pose(t, q)
+        raise error(f'{what} {names[1]} is not a unit quaternion (norm {n:.6g})')
+    return make_pose(t, q)           # make_pose normalises the quaternion
+
+
+def _pose_fields_to_matrix(pose, what: str) -> np.ndarray:
+    return _checked_pose(pose.position, pose.orientation, what, ('position', 'orientation'), BadOdometry)
+
+
+def transform_to_matrix(tf) -> np.ndarray:
+    """geometry_msgs/Transform -> 4x4; BadTransform for NaN / inf or a quaternion that is not unit length."""
+    return _checked_pose(tf.translation, tf.rotation, 'transform', ('translation', 'rotation'), BadTransform)
 
 
 def odometry_to_matrix(msg) -> np.ndarray:
