@@ -181,6 +181,7 @@ def _write_output_bag(path, seq, frames, scale, start_ns):
 
 def test_bag_and_export_are_matched_by_stamp(tmp_path):
     from dpv_sensor.data import rosbag_io as R
+    from dpv_sensor.data.bag_export import export_depth_bag
     seq = _gt_sequence(6, stamp0=10.0)
     bag = tmp_path / 'out_bag'
     _write_output_bag(bag, seq, frames={1, 3, 4}, scale=1.1, start_ns=1_700_000_000 * R.NS)
@@ -199,7 +200,7 @@ def test_bag_and_export_are_matched_by_stamp(tmp_path):
 
     # the same outputs exported to a folder (depth in mm) give the same numbers up to mm rounding
     out = tmp_path / 'export'
-    R.export_depth_bag(bag, out, progress=False)
+    export_depth_bag(bag, out, progress=False)
     recs_e, info_e = E.records_from_export(out, seq, stamp_offset=1_700_000_000 - 10.0)
     assert [r.index for r in recs_e] == [1, 3, 4] and info_e['unmatched'] == 1
     s_e = E.evaluate_records(recs_e, None, E.EvalOptions(progress=False))

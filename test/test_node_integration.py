@@ -23,6 +23,7 @@ from dpv_sensor.ros import msgs as M
 from dpv_sensor.ros import cloud_msgs as C
 from dpv_sensor import params as P
 from dpv_sensor.data import rosbag_io as R
+from dpv_sensor.data.bag_export import export_depth_bag
 from dpv_sensor.stream.pose_buffer import NS
 from dpv_sensor.client.ros_io import BagPlayer, BagRecorder, OutputCollector
 
@@ -175,7 +176,7 @@ def test_replayed_bag_gives_depth_for_every_keyframe_with_exact_headers(scene, o
 
     # ---------------- `bag record` of node A's outputs, exported to PNG (mm)
     assert recorder.counts == {t: len(outs_a) for t in ('/depth/image', '/confidence/image', '/depth/camera_info')}
-    exported = R.export_depth_bag(tmp_path / 'recorded', tmp_path / 'export', progress=False)
+    exported = export_depth_bag(tmp_path / 'recorded', tmp_path / 'export', progress=False)
     assert exported['frames'] == len(outs_a) and exported['without_confidence'] == 0
     import cv2
     for k, rec in enumerate(outs_a):

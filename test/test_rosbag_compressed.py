@@ -6,6 +6,9 @@ import numpy as np
 import pytest
 
 from dpv_sensor.data import rosbag_io as R
+from dpv_sensor.data.bag_export import export_depth_bag
+from dpv_sensor.data.topic_detection import (detect_image_topic, detect_input_topics, image_topic_line,
+                                             image_transport_of)
 from dpv_sensor.stream.pose_buffer import NS
 
 W, H, N = 64, 48, 5
@@ -79,37 +82,37 @@ ROBOT = {'/cam/color/image_raw/compressed': (R.COMPRESSED_IMAGE, 30), '/cam/colo
 
 
 def test_a_compressed_camera_topic_is_found_by_type_with_its_camera_info():
-    chosen, how = R.detect_input_topics(ROBOT)
+    chosen, how = detect_input_topics(ROBOT)
     assert chosen == {'image': '/cam/color/image_raw/compressed', 'camera_info': '/cam/color/camera_info',
                       'odom': '/odom'}
     assert how['image'] == 'the only sensor_msgs/msg/CompressedImage topic'       # compressedDepth left out
     assert how['camera_info'] == 'the only sensor_msgs/msg/CameraInfo topic next to /cam/color/image_raw'
-    assert R.image_transport_of(ROBOT, chosen['image']) == 'compressed'
+    assert image_transport_of(ROBOT, chosen['image']) == 'compressed'
 
 
 def test_a_raw_topic_is_preferred_to_compressed_ones_unless_named():
     topics = dict(ROBOT, **{'/cam/color/image_raw': (R.IMAGE, 30)})
-    chosen, how = R.detect_input_topics(topics)
-    assert chosen['image'] == '/cam/color/image_raw' and R.image_transport_of(topics, chosen['image']) == 'raw'
+    chosen, how = detect_input_topics(topics)
+    assert chosen['image'] == '/cam/color/image_raw' and image_transport_of(topics, chosen['image']) == 'raw'
     assert 'preferred to 1 sensor_msgs/msg/CompressedImage topic(s)' in how['image']
-    chosen, how = R.detect_input_topics(topics, image='/cam/color/image_raw/compressed')
+    chosen, how = detect_input_topics(topics, image='/cam/color/image_raw/compressed')
     assert chosen['image'] == '/cam/color/image_raw/compressed' and how['image'] == 'named'
 
 
 def test_several_compressed_topics_need_a_name_and_no_image_is_a_clear_error():
     topics = dict(ROBOT, **{'/cam2/image_raw/compressed': (R.COMPRESSED_IMAGE, 30)})
     with pytest.raises(R.BagError, match='2 sensor_msgs/msg/CompressedImage topics could be the image'):
-        R.detect_input_topics(topics)
+        detect_input_topics(topics)
     no_image = {'/cam/depth/image_raw/compressedDepth': (R.COMPRESSED_IMAGE, 3), '/odom': (R.ODOMETRY, 3)}
     with pytest.raises(R.BagError, match='no sensor_msgs/msg/Image or sensor_msgs/msg/CompressedImage topic'):
-        R.detect_input_topics(no_image)
-    assert R.detect_image_topic(no_image, required=False) == (None, 'absent')
+        detect_input_topics(no_image)
+    assert detect_image_topic(no_image, required=False) == (None, 'absent')
 
 
 def test_the_image_topic_line_names_type_codec_and_transport(tmp_path):
     R.write_sequence_bag(tmp_path / 'bag', make_seq(n=2), compressed='jpeg', progress=False)
     topics = R.bag_topics(tmp_path / 'bag')
-    assert R.image_topic_line(tmp_path / 'bag', topics, '/image/compressed') == (
+    assert image_topic_line(tmp_path / 'bag', topics, '/image/compressed') == (
         "image topic: /image/compressed (sensor_msgs/CompressedImage, JPEG 'rgb8; jpeg compressed bgr8') -> node "
         'image_transport=compressed')
 
@@ -128,7 +131,7 @@ def test_export_and_evaluate_take_a_compressed_camera_topic(tmp_path):
             t = 5 * NS + i * NS // 10
             bag.write('/depth/image', R.IMAGE, M.depth_to_image(np.full((H, W), 2.0, np.float32), t, 'cam',
                                                                  types=R.ROSBAGS), t)
-    summary = R.export_depth_bag(tmp_path / 'out', tmp_path / 'export', progress=False)
+    summary = export_depth_bag(tmp_path / 'out', tmp_path / 'export', progress=False)
     assert summary['image_topic'] == '/image/compressed' and summary['without_image'] == 0
     assert len(list((tmp_path / 'export' / 'images').glob('*.png'))) == N - 1
     records, info = records_from_bag(tmp_path / 'out', tmp_path / 'gt')

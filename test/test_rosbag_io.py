@@ -1,4 +1,5 @@
-"""data/rosbag_io: sequences -> rosbag2 (MCAP and sqlite3) -> numpy, odometry rates/noise/dropouts, export."""
+"""data/rosbag_io: sequences -> rosbag2 (MCAP and sqlite3) -> numpy, odometry rates/noise/dropouts; and
+data/bag_export: a recorded bag of the node's outputs -> files."""
 import math
 
 import cv2
@@ -7,6 +8,7 @@ import pytest
 
 from dpv_sensor.ros import msgs as M
 from dpv_sensor.data import rosbag_io as R
+from dpv_sensor.data.bag_export import export_depth_bag
 from dpv_sensor.stream.pose_buffer import NS, PoseBuffer, make_pose, pose7_to_matrix
 
 W, H, N = 32, 24, 6
@@ -167,7 +169,7 @@ def test_export_writes_depth_and_confidence_pngs(tmp_path):
             Kd = M.scale_K(K, (W, H), (W // 2, H // 2))
             bag.write('/ns/depth/camera_info', R.CAMERA_INFO,
                       M.K_to_camera_info(Kd, W // 2, H // 2, t, 'cam', types=R.ROSBAGS), t)
-    summary = R.export_depth_bag(tmp_path / 'out', tmp_path / 'export', T_base_camera=T_BASE_CAM, progress=False)
+    summary = export_depth_bag(tmp_path / 'out', tmp_path / 'export', T_base_camera=T_BASE_CAM, progress=False)
     assert summary['frames'] == 3 and summary['depth_topic'] == '/ns/depth/image'
     assert summary['without_confidence'] == summary['without_image'] == summary['without_pose'] == 0
     for i in range(3):
@@ -217,63 +219,6 @@ def test_bag_command_line_write_and_export(tmp_path, capsys):
     assert (tmp_path / 'out' / 'stamps_ns.txt').read_text().split() == [str(s.stamp_ns) for s in images]
 
 
-# ---- which topic is which, by message type ----------------------------------------------------------------------
-USER_BAG = {'/robot/front/img': (R.IMAGE, 30), '/robot/front/calib': (R.CAMERA_INFO, 30),
-            '/wheel/odometry': (R.ODOMETRY, 300), '/tf': ('tf2_msgs/msg/TFMessage', 99)}
-
-
-def test_input_topics_found_by_type_under_any_names():
-    chosen, how = R.detect_input_topics(USER_BAG)
-    assert chosen == {'image': '/robot/front/img', 'camera_info': '/robot/front/calib', 'odom': '/wheel/odometry'}
-    assert how['image'] == 'the only sensor_msgs/msg/Image topic'
-    assert how['odom'] == 'the only nav_msgs/msg/Odometry topic'
-    line = R.describe_choice(chosen, how)
-    assert line.startswith('image /robot/front/img (the only sensor_msgs/msg/Image topic), '
-                           'camera_info /robot/front/calib')
-
-
-def test_two_image_topics_need_a_name_and_the_error_lists_both():
-    topics = dict(USER_BAG, **{'/robot/rear/img': (R.IMAGE, 12)})
-    with pytest.raises(R.BagError) as err:
-        R.detect_input_topics(topics, options={'image': 'IMAGE_TOPIC='})
-    msg = str(err.value)
-    assert msg.startswith('2 sensor_msgs/msg/Image topics could be the image: ')
-    assert '/robot/front/img [sensor_msgs/msg/Image, 30 messages]' in msg
-    assert '/robot/rear/img [sensor_msgs/msg/Image, 12 messages]' in msg and msg.endswith('choose with IMAGE_TOPIC=')
-    chosen, how = R.detect_input_topics(topics, image='/robot/rear/img')
-    assert chosen['image'] == '/robot/rear/img' and how['image'] == 'named'
-
-
-def test_camera_info_next_to_the_chosen_image_wins_among_several():
-    topics = {'/cam/color/image_raw': (R.IMAGE, 5), '/cam/color/camera_info': (R.CAMERA_INFO, 5),
-              '/cam/depth/camera_info': (R.CAMERA_INFO, 5), '/odom': (R.ODOMETRY, 5)}
-    chosen, how = R.detect_input_topics(topics)
-    assert chosen['camera_info'] == '/cam/color/camera_info'
-    assert how['camera_info'] == 'the only sensor_msgs/msg/CameraInfo topic next to /cam/color/image_raw'
-    with pytest.raises(R.BagError, match='2 sensor_msgs/msg/CameraInfo topics could be the camera_info'):
-        R.detect_input_topics(dict(topics, **{'/cam/color/image_raw': (R.IMAGE, 5), '/other/image': (R.IMAGE, 5)}),
-                              image='/other/image')
-
-
-def test_node_outputs_are_never_taken_for_the_camera_and_unneeded_roles_may_be_missing():
-    topics = {'/cam/image': (R.IMAGE, 5), '/ns/depth/image': (R.IMAGE, 2), '/ns/confidence/image': (R.IMAGE, 2),
-              '/ns/rgb/image': (R.IMAGE, 2), '/ns/depth/camera_info': (R.CAMERA_INFO, 2),
-              '/cam/camera_info': (R.CAMERA_INFO, 5)}
-    chosen, how = R.detect_input_topics(topics, need=('image', 'camera_info'))
-    assert chosen == {'image': '/cam/image', 'camera_info': '/cam/camera_info', 'odom': None}
-    assert how['odom'] == 'absent'
-    with pytest.raises(R.BagError, match=r'no nav_msgs/msg/Odometry topic for odom in the bag; choose with --odom'):
-        R.detect_input_topics(topics, options={'odom': '--odom'})
-
-
-def test_a_wrong_name_or_type_is_a_clear_error():
-    with pytest.raises(R.BagError, match=r"no topic '/nope' for image in the bag; sensor_msgs/msg/Image topics: "
-                                         r"/robot/front/img \[sensor_msgs/msg/Image, 30 messages\]"):
-        R.detect_input_topics(USER_BAG, image='/nope')
-    with pytest.raises(R.BagError, match='/wheel/odometry carries nav_msgs/msg/Odometry, image needs sensor_msgs'):
-        R.detect_input_topics(USER_BAG, image='/wheel/odometry')
-
-
 def test_export_finds_image_and_odometry_by_type(tmp_path):
     seq = make_seq(n=3)
     R.write_sequence_bag(tmp_path / 'in', seq, progress=False, image_topic='/a/rgb', camera_info_topic='/a/info',
@@ -285,7 +230,7 @@ def test_export_finds_image_and_odometry_by_type(tmp_path):
             t = int(round(seq.stamp(i) * NS))
             bag.write('/depth/image', R.IMAGE, M.depth_to_image(np.ones((H, W), np.float32), t, 'cam',
                                                                  types=R.ROSBAGS), t)
-    summary = R.export_depth_bag(tmp_path / 'out', tmp_path / 'export', progress=False)
+    summary = export_depth_bag(tmp_path / 'out', tmp_path / 'export', progress=False)
     assert summary['image_topic'] == '/a/rgb' and summary['odom_topic'] == '/b/odometry'
     assert summary['chosen_by'] == {'image': 'the only sensor_msgs/msg/Image topic',
                                     'odom': 'the only nav_msgs/msg/Odometry topic'}

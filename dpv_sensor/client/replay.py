@@ -343,12 +343,13 @@ class _NodeReplay:
     def __init__(self, steps: Steps, input_bag: pathlib.Path, output_bag: pathlib.Path, params: Dict[str, Any],
                  log_dir: pathlib.Path, opts: ReplayOptions):
         from dpv_sensor.data import rosbag_io as R
+        from dpv_sensor.data.topic_detection import image_transport_of
         self.steps, self.input_bag, self.output_bag, self.opts = steps, input_bag, output_bag, opts
         self.res = ReplayResult(lockstep=opts.lockstep, rate=opts.rate)
         bag_topics = R.bag_topics(input_bag)
         self.res.images_in_bag = bag_topics[opts.topics['image']][1]
         # the bag's image type decides the node's image_transport: a CompressedImage topic goes to image/compressed
-        transport = self.res.image_transport = R.image_transport_of(bag_topics, opts.topics['image'])
+        transport = self.res.image_transport = image_transport_of(bag_topics, opts.topics['image'])
         params = {**params, 'image_transport': transport}
         remaps = {('image/compressed' if name == 'image' and transport == 'compressed' else name): t
                   for name, t in opts.topics.items() if t}

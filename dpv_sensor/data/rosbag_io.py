@@ -9,18 +9,14 @@
 - `BagWriter`: a generic writer (rosbags messages or raw CDR bytes) — what `bag record` uses for a live graph.
 - Readers: `bag_topics`, `read_messages`, `read_images`, `read_depth_images`, `read_camera_infos`,
   `read_odometry` return numpy arrays with the exact header stamps (ns) and frame ids.
-- `detect_input_topics` / `detect_topic` / `detect_image_topic`: which topic is the image, camera_info, odometry -
-  by message type, names needed only to choose among several (shared by the demo, `bag` and `evaluate`); a camera
-  image is a sensor_msgs/Image or an image_transport compressed CompressedImage topic (raw preferred when a bag
-  holds both: lossless and nothing to decode), replayed to the node with ``image_transport: compressed``.
-- `export_depth_bag`: a recorded depth/confidence bag -> a sequence-folder-like directory (depth PNG mm,
-  confidence PNG, K.txt, stamps.txt, images and poses when the bag has them).
+
+Which bag topic is the camera image, camera_info, odometry (by message type) is `dpv_sensor.data.topic_detection`;
+a recorded depth bag exported to files is `dpv_sensor.data.bag_export`.
 
 Messages are built with the same code as the node's (dpv_sensor.ros.msgs) in the `rosbags` flavour (`ROSBAGS`).
 """
 from __future__ import annotations
 
-import json
 import os
 import pathlib
 from dataclasses import dataclass, field
@@ -30,8 +26,7 @@ import numpy as np
 
 from dpv_sensor.ros import msgs as M
 from dpv_sensor.ros.tf_publisher import tf_message, transform_stamped
-from dpv_sensor import params as P
-from dpv_sensor.stream.pose_buffer import PoseBuffer, interpolate_pose, make_pose, pose7_to_matrix
+from dpv_sensor.stream.pose_buffer import interpolate_pose, make_pose, pose7_to_matrix
 
 NS = 1_000_000_000
 
@@ -208,7 +203,8 @@ class BagSummary:
         return (self.end_ns - self.start_ns) / NS
 
 
-def _as_T_base_camera(T_base_camera) -> np.ndarray:
+def as_T_base_camera(T_base_camera) -> np.ndarray:
+    """The camera mount as a 4x4 T_base_camera: identity for None, a 4x4 as is, [x,y,z,qx,qy,qz,qw] made a matrix."""
     if T_base_camera is None:
         return np.eye(4)
     a = np.asarray(T_base_camera, dtype=np.float64)
@@ -329,7 +325,7 @@ def write_sequence_bag(path: str | os.PathLike, seq, *, storage: str = 'mcap', r
         img_ns = raw if start_ns is None else raw - raw[0] + int(start_ns)
     if np.any(np.diff(img_ns) <= 0):
         raise BagError('image stamps must increase strictly')
-    T_bc = _as_T_base_camera(T_base_camera)
+    T_bc = as_T_base_camera(T_base_camera)
     T_cb = np.linalg.inv(T_bc)
     poses = np.stack([np.asarray(seq.pose(i), dtype=np.float64) for i in idx])
     K = np.asarray(seq.K, dtype=np.float64)
@@ -522,362 +518,8 @@ def read_poses(path, topic: str) -> list[Stamped]:
     return _read(path, topic, POSE_STAMPED, lambda m: (M.pose_msg_to_matrix(m), {}))
 
 
-# --------------------------------------------------------------------------------------------------------------
-# which topic is which: by message type
-# --------------------------------------------------------------------------------------------------------------
-#: The node's inputs: role -> message type.
-INPUT_TYPES = {'image': IMAGE, 'camera_info': CAMERA_INFO, 'odom': ODOMETRY}
-#: Image topics the node itself publishes (never a camera input; matched as name endings).
-OUTPUT_IMAGE_SUFFIXES = ('depth/image', 'confidence/image', 'rgb/image')
-#: CompressedImage topics that are never a camera's colour input: depth (compressedDepth) and the node's outputs.
-NOT_COLOUR_COMPRESSED_SUFFIXES = ('compressedDepth',) + tuple(f'{s}{COMPRESSED_SUFFIX}' for s in OUTPUT_IMAGE_SUFFIXES)
-
-
-def _not_an_input(topic: str, msgtype: str) -> bool:
-    """A topic of the camera image's types that is no camera input (a node output, compressed depth)."""
-    if msgtype == IMAGE:
-        return topic.endswith(OUTPUT_IMAGE_SUFFIXES)
-    return msgtype == COMPRESSED_IMAGE and topic.endswith(NOT_COLOUR_COMPRESSED_SUFFIXES)
-
-
-def _namespace(topic: str) -> str:
-    return topic.rsplit('/', 1)[0]
-
-
-def _listing(topics: dict, names) -> str:
-    return ', '.join(f'{t} [{topics[t][0]}, {topics[t][1]} messages]' for t in sorted(names)) or 'none'
-
-
-def detect_topic(topics: dict, role: str, msgtype: str, *, wanted: str | None = None, option: str = '',
-                 exclude: Iterable[str] = (), near: str | None = None, required: bool = True
-                 ) -> tuple[str | None, str]:
-    """Choose the bag topic for one input ``role`` by message type; returns (topic, how it was chosen).
-
-    topics: ``bag_topics()`` output. ``wanted``: a name the user gave - used when the bag has it with type
-    ``msgtype``, else BagError. Without one: the only topic of ``msgtype`` (topics in ``exclude`` and node outputs
-    ending in ``OUTPUT_IMAGE_SUFFIXES`` left out); among several, the only one in the namespace of ``near`` (a
-    camera_info next to its image, as image_transport names them); else BagError listing the candidates and
-    naming ``option``, the setting that chooses. None topics: (None, 'absent') when not ``required``, else BagError.
-    """
-    hint = f'; choose with {option}' if option else ''
-    if wanted:
-        if wanted not in topics:
-            of_type = [t for t, (ty, _n) in topics.items() if ty == msgtype]
-            raise BagError(f'no topic {wanted!r} for {role} in the bag; {msgtype} topics: {_listing(topics, of_type)}'
-                           f' (all topics: {_listing(topics, topics)})')
-        if topics[wanted][0] != msgtype:
-            raise BagError(f'{wanted} carries {topics[wanted][0]}, {role} needs {msgtype}')
-        return wanted, 'named'
-    skip = set(exclude)
-    cands = sorted(t for t, (ty, _n) in topics.items() if ty == msgtype and t not in skip and not _not_an_input(t, ty))
-    if len(cands) == 1:
-        return cands[0], f'the only {msgtype} topic'
-    if not cands:
-        if not required:
-            return None, 'absent'
-        raise BagError(f'no {msgtype} topic for {role} in the bag{hint} (topics: {_listing(topics, topics)})')
-    if near is not None:
-        close = [t for t in cands if _namespace(t) == _namespace(near)]
-        if len(close) == 1:
-            return close[0], f'the only {msgtype} topic next to {near}'
-    raise BagError(f'{len(cands)} {msgtype} topics could be the {role}: {_listing(topics, cands)}{hint}')
-
-
-def detect_image_topic(topics: dict, role: str = 'image', *, wanted: str | None = None, option: str = '',
-                       exclude: Iterable[str] = (), required: bool = True) -> tuple[str | None, str]:
-    """The camera image topic (``detect_topic`` for a colour image): a sensor_msgs/Image topic, or an image_transport
-    compressed sensor_msgs/CompressedImage one (compressedDepth and the node's outputs left out). ``wanted``: a name
-    of either type. Without one, a raw Image topic wins over compressed ones (lossless, nothing to decode; the
-    reason says so); a CompressedImage topic is taken when the bag has no raw one."""
-    if wanted:
-        msgtype = COMPRESSED_IMAGE if topics.get(wanted, ('',))[0] == COMPRESSED_IMAGE else IMAGE
-        return detect_topic(topics, role, msgtype, wanted=wanted, option=option)
-    skip = set(exclude)
-    compressed = [t for t, (ty, _n) in topics.items()
-                  if ty == COMPRESSED_IMAGE and t not in skip and not _not_an_input(t, ty)]
-    topic, how = detect_topic(topics, role, IMAGE, option=option, exclude=exclude, required=False)
-    if topic is not None:
-        return topic, how + (f' (preferred to {len(compressed)} {COMPRESSED_IMAGE} topic(s): raw is lossless)'
-                             if compressed else '')
-    if not compressed and not required:
-        return None, 'absent'
-    if not compressed:
-        hint = f'; choose with {option}' if option else ''
-        raise BagError(f'no {IMAGE} or {COMPRESSED_IMAGE} topic for {role} in the bag{hint} '
-                       f'(topics: {_listing(topics, topics)})')
-    return detect_topic(topics, role, COMPRESSED_IMAGE, option=option, exclude=exclude, required=required)
-
-
-def image_transport_of(topics: dict, topic: str) -> str:
-    """The node's image_transport for a bag's camera image topic: 'compressed' for CompressedImage, else 'raw'."""
-    return 'compressed' if topics.get(topic, ('',))[0] == COMPRESSED_IMAGE else 'raw'
-
-
-def image_topic_line(path, topics: dict, topic: str) -> str:
-    """One line for the user: which image topic a tool reads and how the node is fed it, e.g. 'image topic:
-    /cam/image_raw/compressed (sensor_msgs/CompressedImage, JPEG 'rgb8; jpeg compressed bgr8') -> node
-    image_transport=compressed'."""
-    msgtype = topics[topic][0]
-    transport = image_transport_of(topics, topic)
-    what = msgtype.replace('/msg/', '/')
-    if transport == 'compressed':
-        messages = read_messages(path, [topic])
-        try:
-            fmt = str(next(messages)[3].format)
-        except StopIteration:
-            fmt = ''
-        finally:
-            messages.close()            # closes the bag reader
-        codec = 'PNG' if 'png' in fmt.lower() else 'JPEG' if 'jp' in fmt.lower() else 'unknown codec'
-        what += f", {codec} '{fmt}'"
-    return f'image topic: {topic} ({what}) -> node image_transport={transport}'
-
-
-def detect_input_topics(path_or_topics, *, image: str | None = None, camera_info: str | None = None,
-                        odom: str | None = None, need: Iterable[str] = ('image', 'camera_info', 'odom'),
-                        options: dict | None = None) -> tuple[dict, dict]:
-    """The node's input topics in a bag (a path or ``bag_topics()`` output), found by message type.
-
-    image / camera_info / odom: names given by the user (checked; needed only to choose among several topics of
-    one type). need: the roles that must be found (others: found when present, else None); options: role -> the
-    setting that names it, quoted in errors. Returns ({role: topic or None}, {role: how it was chosen}).
-    The camera_info next to the chosen image wins among several.
-    """
-    topics = path_or_topics if isinstance(path_or_topics, dict) else bag_topics(path_or_topics)
-    given = {'image': image, 'camera_info': camera_info, 'odom': odom}
-    options = options or {}
-    need = set(need)
-    chosen: dict = {}
-    how: dict = {}
-    for role, msgtype in INPUT_TYPES.items():
-        try:
-            if role == 'image':
-                chosen[role], how[role] = detect_image_topic(topics, role, wanted=given[role],
-                                                             option=options.get(role, ''), required=role in need)
-                continue
-            chosen[role], how[role] = detect_topic(
-                topics, role, msgtype, wanted=given[role], option=options.get(role, ''),
-                near=image_base_topic(topics, chosen.get('image')) if role == 'camera_info' else None,
-                required=role in need)
-        except BagError:
-            if role in need or given[role]:
-                raise
-            chosen[role], how[role] = None, 'several, none needed'
-    return chosen, how
-
-
-def image_base_topic(topics: dict, topic: str | None) -> str | None:
-    """The image topic a transport topic belongs to (``/cam/image_raw/compressed`` -> ``/cam/image_raw``), where its
-    camera_info is the sibling; a raw image topic itself."""
-    if topic and image_transport_of(topics, topic) == 'compressed' and topic.endswith(COMPRESSED_SUFFIX):
-        return topic[:-len(COMPRESSED_SUFFIX)]
-    return topic
-
-
-def describe_choice(chosen: dict, how: dict) -> str:
-    """One line: 'image /a (the only sensor_msgs/msg/Image topic), camera_info /b (named), ...'."""
-    return ', '.join(f'{role} {t} ({how[role]})' for role, t in chosen.items() if t is not None)
-
-
-# --------------------------------------------------------------------------------------------------------------
-# export
-# --------------------------------------------------------------------------------------------------------------
-def find_topic(topics: dict, wanted: str, suffix: str, msgtype: str) -> str | None:
-    """`wanted` when the bag has it, else the only topic of `msgtype` ending in `suffix` (a namespaced node)."""
-    if wanted in topics:
-        return wanted
-    cands = [t for t, (ty, _n) in topics.items() if ty == msgtype and t.endswith(suffix)]
-    return cands[0] if len(cands) == 1 else None
-
-
-@dataclass
-class _ExportTopics:
-    """The topics an export reads (None: not in the bag / not wanted) and how the image and odometry topics were
-    chosen."""
-    depth: str
-    confidence: str | None
-    camera_info: str | None
-    image: str | None
-    odom: str | None
-    how: dict
-
-
-@dataclass
-class _ExportInputs:
-    """What an export reads from the bag: the depth images in order, and by header stamp the confidence images,
-    depth camera infos and colour images; poses by stamp (a pose topic) or a PoseBuffer (odometry), or None."""
-    depth: list
-    confidence: dict
-    camera_infos: dict
-    images: dict
-    poses: dict | PoseBuffer | None
-
-
-@dataclass
-class _ExportFrames:
-    """What the frame loop of an export collects for the files written after it."""
-    K_33: np.ndarray | None = None
-    stamps_ns: list = field(default_factory=list)
-    poses: list = field(default_factory=list)
-
-
-def _export_topics(path, topics: dict, depth_topic: str, confidence_topic: str, info_topic: str,
-                   image_topic: str | None, odom_topic: str | None) -> _ExportTopics:
-    """The export's topics: the node's outputs by name or namespaced suffix, the colour image and odometry by
-    ``detect_topic`` ('auto'), a name, or None."""
-    depth_topic_found = find_topic(topics, depth_topic, 'depth/image', IMAGE)
-    if depth_topic_found is None:
-        raise BagError(f'{path}: no depth topic {depth_topic!r} (topics: {sorted(topics)})')
-    conf_topic = find_topic(topics, confidence_topic, 'confidence/image', IMAGE)
-    info_t = find_topic(topics, info_topic, 'depth/camera_info', CAMERA_INFO)
-    how = {}
-    if image_topic is not None:
-        image_topic, how['image'] = detect_image_topic(
-            topics, 'colour image', wanted=None if image_topic == 'auto' else image_topic,
-            option='--image-topic', exclude=(depth_topic_found, conf_topic), required=False)
-    if odom_topic is not None:
-        odom_topic, how['odom'] = detect_topic(topics, 'odometry', ODOMETRY,
-                                               wanted=None if odom_topic == 'auto' else odom_topic,
-                                               option='--odom-topic', required=False)
-    return _ExportTopics(depth=depth_topic_found, confidence=conf_topic, camera_info=info_t, image=image_topic,
-                         odom=odom_topic, how=how)
-
-
-def _export_pose_source(path, topics: dict, pose_topic: str | None, odom_topic: str | None, T_base_camera,
-                        max_odom_gap: float) -> dict | PoseBuffer | None:
-    """T_world_cam by stamp from `pose_topic`, else a PoseBuffer of the odometry (NaN poses as gaps), else None."""
-    if pose_topic and pose_topic in topics:
-        return {s.stamp_ns: s.data for s in read_poses(path, pose_topic)}
-    if odom_topic and odom_topic in topics:
-        buf = PoseBuffer(max_gap_s=max_odom_gap, history_s=1e9, T_base_camera_44=_as_T_base_camera(T_base_camera),
-                         backwards_tolerance_s=1e9)
-        for s in read_odometry(path, odom_topic):
-            buf.add(s.stamp_ns, None if np.isnan(s.data).any() else s.data)
-        return buf
-    return None
-
-
-def _export_inputs(path, topics: dict, chosen: _ExportTopics, pose_topic: str | None, T_base_camera,
-                   max_odom_gap: float) -> _ExportInputs:
-    """Read the export's messages from the bag."""
-    depth = read_depth_images(path, chosen.depth)
-    conf = {s.stamp_ns: s for s in read_depth_images(path, chosen.confidence)} if chosen.confidence else {}
-    infos = {s.stamp_ns: s for s in read_camera_infos(path, chosen.camera_info)} if chosen.camera_info else {}
-    images = {}
-    if chosen.image and chosen.image in topics:
-        images = {s.stamp_ns: s for s in read_images(path, chosen.image)}
-    poses = _export_pose_source(path, topics, pose_topic, chosen.odom, T_base_camera, max_odom_gap)
-    return _ExportInputs(depth=depth, confidence=conf, camera_infos=infos, images=images, poses=poses)
-
-
-def _export_frame(out: pathlib.Path, i: int, s: Stamped, inputs: _ExportInputs, frames: _ExportFrames,
-                  summary: dict) -> None:
-    """Write frame i (depth, and confidence and colour image with its stamp) and collect its K, stamp and pose."""
-    import cv2
-    from dpv_sensor.data.sequence import depth_to_png_mm
-    stem = f'{i:06d}'
-    d = s.data
-    cv2.imwrite(str(out / 'depth' / f'{stem}.png'), depth_to_png_mm(np.nan_to_num(d, nan=0.0)))
-    c = inputs.confidence.get(s.stamp_ns)
-    if c is not None:
-        cu16 = np.round(np.clip(np.nan_to_num(c.data, nan=0.0), 0, 1) * 65535).astype(np.uint16)
-        cv2.imwrite(str(out / 'confidence' / f'{stem}.png'), cu16)
-    elif inputs.confidence:
-        summary['without_confidence'] += 1
-    info = inputs.camera_infos.get(s.stamp_ns)
-    if info is not None:
-        if frames.K_33 is None:
-            frames.K_33 = info.data
-        elif not np.allclose(frames.K_33, info.data):
-            summary['K_changed'] = True
-    im = inputs.images.get(s.stamp_ns)
-    if im is not None:
-        rgb = im.data
-        if rgb.shape[:2] != d.shape:
-            rgb = cv2.resize(rgb, (d.shape[1], d.shape[0]), interpolation=cv2.INTER_AREA)
-        cv2.imwrite(str(out / 'images' / f'{stem}.png'), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
-    elif inputs.images:
-        summary['without_image'] += 1
-    if inputs.poses is not None:
-        frames.poses.append(_export_pose(inputs.poses, s.stamp_ns, summary))
-    frames.stamps_ns.append(s.stamp_ns)
-    summary['frames'] += 1
-
-
-def _export_pose(poses: dict | PoseBuffer, stamp_ns: int, summary: dict) -> np.ndarray:
-    """T_world_cam at `stamp_ns` (the pose topic's message with that stamp, or interpolated odometry); NaN (counted
-    in the summary) when there is none."""
-    T = poses.get(stamp_ns) if isinstance(poses, dict) else poses.pose_at(stamp_ns).T_world_cam_44
-    if T is None:
-        summary['without_pose'] += 1
-        T = np.full((4, 4), np.nan)
-    return T
-
-
-def _write_export_files(out: pathlib.Path, frames: _ExportFrames, summary: dict) -> None:
-    """K.txt (the first frame's), stamps.txt, stamps_ns.txt, poses.txt (when every frame has a pose), export.json."""
-    from dpv_sensor.data.sequence import write_intrinsics, write_poses
-    if frames.K_33 is not None:
-        write_intrinsics(out / 'K.txt', frames.K_33)
-    with open(out / 'stamps.txt', 'w') as f:
-        f.writelines(f'{repr(t / NS)}\n' for t in frames.stamps_ns)
-    with open(out / 'stamps_ns.txt', 'w') as f:
-        f.writelines(f'{t}\n' for t in frames.stamps_ns)
-    if frames.poses and summary['without_pose'] == 0:
-        write_poses(out / 'poses.txt', np.stack(frames.poses))
-    with open(out / 'export.json', 'w') as f:
-        json.dump(summary, f, indent=1)
-
-
-def export_depth_bag(path, out_dir, *, depth_topic: str = DEPTH_TOPIC, confidence_topic: str = CONFIDENCE_TOPIC,
-                     info_topic: str = DEPTH_INFO_TOPIC, image_topic: str | None = 'auto',
-                     odom_topic: str | None = 'auto', pose_topic: str | None = None, T_base_camera=None,
-                     max_odom_gap: float = P.default('max_odom_gap'), progress: bool = True) -> dict:
-    """A recorded bag of the node's outputs -> a sequence-folder-like directory.
-
-    Writes depth/NNNNNN.png (uint16 mm, 0 = none), confidence/NNNNNN.png (uint16, confidence * 65535),
-    stamps.txt (s, the depth header stamps), stamps_ns.txt (exact), K.txt (from depth/camera_info; written for the
-    first frame, with a warning in the summary when it changes), and, when the bag has them, images/NNNNNN.png (the
-    colour image with the same stamp, resized to the depth size) and poses.txt (T_world_cam from `pose_topic`, or
-    interpolated from odometry composed with T_base_camera). image_topic / odom_topic: 'auto' (default) = the only
-    camera Image / Odometry topic when the bag has one (``detect_topic``; several: BagError listing them), a name,
-    or None for none. Returns a summary dict (also written as export.json).
-    """
-    topics = bag_topics(path)
-    chosen = _export_topics(path, topics, depth_topic, confidence_topic, info_topic, image_topic, odom_topic)
-    out = pathlib.Path(out_dir)
-    (out / 'depth').mkdir(parents=True, exist_ok=True)
-    inputs = _export_inputs(path, topics, chosen, pose_topic, T_base_camera, max_odom_gap)
-    if inputs.confidence:
-        (out / 'confidence').mkdir(exist_ok=True)
-    if inputs.images:
-        (out / 'images').mkdir(exist_ok=True)
-    summary = {'bag': str(path), 'depth_topic': chosen.depth, 'confidence_topic': chosen.confidence,
-               'camera_info_topic': chosen.camera_info, 'image_topic': chosen.image, 'odom_topic': chosen.odom,
-               'pose_topic': pose_topic if inputs.poses is not None and pose_topic else None, 'chosen_by': chosen.how,
-               'frames': 0, 'without_confidence': 0, 'without_image': 0, 'without_pose': 0, 'K_changed': False}
-    frames = _ExportFrames()
-    iterator: Iterable = inputs.depth
-    if progress:
-        from tqdm import tqdm
-        iterator = tqdm(inputs.depth, desc='exporting', unit='frame', leave=False)
-    for i, s in enumerate(iterator):
-        _export_frame(out, i, s, inputs, frames, summary)
-    _write_export_files(out, frames, summary)
-    return summary
-
-
 __all__ = ['BagError', 'BagSummary', 'BagWriter', 'ArraySequence', 'Stamped', 'ROSBAGS', 'typestore', 'qos_profile',
-           'write_sequence_bag', 'odometry_stamps', 'bag_topics', 'bag_qos', 'read_messages', 'read_images',
-           'read_depth_images', 'read_camera_infos', 'read_odometry', 'read_poses', 'export_depth_bag', 'find_topic',
-           'detect_topic', 'detect_input_topics', 'detect_image_topic', 'image_transport_of', 'image_topic_line',
-           'image_base_topic', 'describe_choice', 'INPUT_TYPES', 'OUTPUT_IMAGE_SUFFIXES', 'COMPRESSED_IMAGE',
-           'IMAGE_TOPIC', 'CAMERA_INFO_TOPIC', 'ODOM_TOPIC', 'DEPTH_TOPIC', 'CONFIDENCE_TOPIC', 'DEPTH_INFO_TOPIC']
-
-
-def export_topics_line(info) -> str:
-    """Which bag topics an export read (and how the camera image topic was chosen), for the user."""
-    image = (f"{info['image_topic']} ({info['image_topic_chosen_by']})" if info.get('image_topic')
-             else info.get('image_topic_chosen_by'))
-    return (f"topics: depth {info['depth_topic']}, confidence {info['confidence_topic']}, camera_info "
-            f"{info['info_topic']}, camera image {image}; stamp offset {info['stamp_offset']:.6f} s")
+           'write_sequence_bag', 'odometry_stamps', 'mount_links', 'as_T_base_camera', 'bag_topics', 'bag_qos',
+           'read_messages', 'read_images', 'read_depth_images', 'read_camera_infos', 'read_odometry', 'read_poses',
+           'COMPRESSED_IMAGE', 'IMAGE_TOPIC', 'CAMERA_INFO_TOPIC', 'ODOM_TOPIC', 'DEPTH_TOPIC', 'CONFIDENCE_TOPIC',
+           'DEPTH_INFO_TOPIC']

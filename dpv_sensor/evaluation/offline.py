@@ -11,7 +11,7 @@ Two ways in, one way out:
    and kept as a :class:`KeyframeRecord` (prediction, confidence, K, poses, GT depth, image).
    :func:`evaluate_sequence` runs, scores and reports one configuration, :func:`compare` several.
 2. **Score recorded outputs** (:mod:`dpv_sensor.evaluation.recorded`): a rosbag2 of the node's outputs or a
-   folder written by ``rosbag_io.export_depth_bag``, each depth image matched by stamp to a GT frame;
+   folder written by ``bag_export.export_depth_bag``, each depth image matched by stamp to a GT frame;
    :func:`evaluate_records` scores and reports them.
 
 Scoring is :func:`dpv_sensor.evaluation.scoring.score_records` (metrics of :mod:`dpv_sensor.evaluation.metrics`),

@@ -1,6 +1,6 @@
 """Records read back from recorded outputs: a rosbag2 of the node's ``depth/image`` (+ ``confidence/image``,
 ``depth/camera_info``) read with :mod:`dpv_sensor.data.rosbag_io`, or a folder written by
-``rosbag_io.export_depth_bag``; each depth image is matched to the GT sequence frame with the same stamp.
+``bag_export.export_depth_bag``; each depth image is matched to the GT sequence frame with the same stamp.
 """
 from __future__ import annotations
 
@@ -80,24 +80,25 @@ def records_from_bag(bag, gt, *, depth_topic: Optional[str] = None, confidence_t
     stamps before matching; ``'auto'``: when the bag also holds the camera images, the first image stamp is
     taken to be GT frame 0 (a bag written by ``bag`` / ``write_sequence_bag`` from the sequence), else 0. The camera
     image topic is ``image_topic``, or the only sensor_msgs/Image topic besides the node's outputs, else the only
-    image_transport compressed CompressedImage topic (``rosbag_io.detect_image_topic``; several: BagError listing
+    image_transport compressed CompressedImage topic (``topic_detection.detect_image_topic``; several: BagError listing
     them).
     A depth image matches a GT frame within ``tolerance`` seconds; unmatched ones are counted and skipped.
     Returns (records, info).
     """
     from dpv_sensor.data import rosbag_io as R
+    from dpv_sensor.data.topic_detection import detect_image_topic, find_topic
     topics = R.bag_topics(bag)
-    d_topic = R.find_topic(topics, depth_topic or R.DEPTH_TOPIC, 'depth/image', R.IMAGE)
+    d_topic = find_topic(topics, depth_topic or R.DEPTH_TOPIC, 'depth/image', R.IMAGE)
     if d_topic is None:
         raise R.BagError(f'{bag}: no depth topic (topics: {sorted(topics)})')
-    c_topic = R.find_topic(topics, confidence_topic or R.CONFIDENCE_TOPIC, 'confidence/image', R.IMAGE)
-    i_topic = R.find_topic(topics, info_topic or R.DEPTH_INFO_TOPIC, 'depth/camera_info', R.CAMERA_INFO)
+    c_topic = find_topic(topics, confidence_topic or R.CONFIDENCE_TOPIC, 'confidence/image', R.IMAGE)
+    i_topic = find_topic(topics, info_topic or R.DEPTH_INFO_TOPIC, 'depth/camera_info', R.CAMERA_INFO)
     depth = R.read_depth_images(bag, d_topic)
     conf = {s.stamp_ns: s.data for s in R.read_depth_images(bag, c_topic)} if c_topic else {}
     infos = {s.stamp_ns: s.data for s in R.read_camera_infos(bag, i_topic)} if i_topic else {}
     if stamp_offset == 'auto':
         gt_seq = load_sequence(gt)
-        img_topic, img_how = R.detect_image_topic(topics, 'camera image', wanted=image_topic,
+        img_topic, img_how = detect_image_topic(topics, 'camera image', wanted=image_topic,
                                                   option='--image-topic, or --stamp-offset', exclude=(d_topic, c_topic),
                                                   required=False)
         offset = 0.0
@@ -117,7 +118,7 @@ def records_from_bag(bag, gt, *, depth_topic: Optional[str] = None, confidence_t
 
 def records_from_export(folder, gt, *, stamp_offset: float = 0.0, tolerance: float = 1e-3
                         ) -> Tuple[List[KeyframeRecord], Dict[str, Any]]:
-    """A folder written by ``rosbag_io.export_depth_bag`` (depth/*.png mm, confidence/*.png uint16 scaled by
+    """A folder written by ``bag_export.export_depth_bag`` (depth/*.png mm, confidence/*.png uint16 scaled by
     65535, stamps_ns.txt or stamps.txt, K.txt) matched by stamp to the GT sequence ``gt``."""
     from dpv_sensor.data.sequence import read_intrinsics
     folder = pathlib.Path(folder)

@@ -11,9 +11,10 @@
   bag record OUT_BAG [TOPIC ...]     subscribe and write a bag until Ctrl-C or --duration
   bag export BAG OUT_DIR             a recorded depth/confidence bag -> depth PNG (mm) + confidence PNG folder
 
-The file side (reading, writing, export) is dpv_sensor.data.rosbag_io (rosbags library, no rclpy); playing and
-recording need a live graph and use rclpy here. `BagPlayer` and `BagRecorder` (dpv_sensor.client.ros_io) can be
-used in-process (tests, the soak tool) with a node of the caller's own context.
+The file side is dpv_sensor.data.rosbag_io (reading, writing) and dpv_sensor.data.bag_export (export), with the
+rosbags library and no rclpy; playing and recording need a live graph and use rclpy here. `BagPlayer` and
+`BagRecorder` (dpv_sensor.client.ros_io) can be used in-process (tests, the soak tool) with a node of the caller's
+own context.
 """
 from __future__ import annotations
 
@@ -22,6 +23,7 @@ import sys
 import time
 
 from dpv_sensor.data import rosbag_io as R
+from dpv_sensor.data.bag_export import export_depth_bag
 from dpv_sensor.client.ros_io import BagPlayer, BagRecorder
 from dpv_sensor.ros.compressed_image import CODECS
 
@@ -147,7 +149,7 @@ def _cmd_record(args, ros_args) -> int:
 
 
 def _cmd_export(args) -> int:
-    summary = R.export_depth_bag(args.bag, args.out, depth_topic=args.depth_topic,
+    summary = export_depth_bag(args.bag, args.out, depth_topic=args.depth_topic,
                                  confidence_topic=args.confidence_topic, info_topic=args.camera_info_topic,
                                  image_topic=args.image_topic, odom_topic=args.odom_topic, pose_topic=args.pose_topic,
                                  T_base_camera=args.T_base_camera, progress=not args.no_progress)

@@ -107,10 +107,11 @@ def montage_without_gt(input_bag, output_bag, image_topic: str, path: pathlib.Pa
     from dpv_sensor.ros import msgs as M
     from dpv_sensor.ros.compressed_image import image_message_to_rgb
     from dpv_sensor.data import rosbag_io as R
+    from dpv_sensor.data.topic_detection import find_topic
     from dpv_sensor.evaluation.plots import _plt, depth_range
     topics = R.bag_topics(output_bag)
-    d_topic = R.find_topic(topics, R.DEPTH_TOPIC, 'depth/image', R.IMAGE)
-    c_topic = R.find_topic(topics, R.CONFIDENCE_TOPIC, 'confidence/image', R.IMAGE)
+    d_topic = find_topic(topics, R.DEPTH_TOPIC, 'depth/image', R.IMAGE)
+    c_topic = find_topic(topics, R.CONFIDENCE_TOPIC, 'confidence/image', R.IMAGE)
     if d_topic is None:
         raise DemoError(f'{output_bag} holds no depth images')
     depth = R.read_depth_images(output_bag, d_topic)
@@ -203,6 +204,7 @@ def _fmt(v, f='{:.4f}'):
 def _bag_inputs(a, values: Dict[str, Any], input_bag: pathlib.Path):
     """(topics, how they were chosen, bag topics) of the user's bag; DemoError naming what is missing."""
     from dpv_sensor.data import rosbag_io as R
+    from dpv_sensor.data.topic_detection import detect_input_topics
     if not input_bag.exists():
         raise DemoError(f'{input_bag}: no such bag')
     bt = R.bag_topics(input_bag)
@@ -213,7 +215,7 @@ def _bag_inputs(a, values: Dict[str, Any], input_bag: pathlib.Path):
                             'camera_info_source=parameters fx=.. fy=.. cx=.. cy=..)',
              'odom': '--odom-topic (ODOM_TOPIC= with make; or --params odometry=none for visual odometry)'}
     try:
-        topics, how = R.detect_input_topics(bt, image=a.image_topic, camera_info=a.camera_info_topic,
+        topics, how = detect_input_topics(bt, image=a.image_topic, camera_info=a.camera_info_topic,
                                             odom=a.odom_topic, need=need, options=hints)
     except R.BagError as exc:
         raise DemoError(f'{input_bag}: {exc}') from None
@@ -396,6 +398,7 @@ def _input_steps(steps: Steps, a, seq_dir: pathlib.Path, input_bag: pathlib.Path
     """Steps 1 and 2: render the synthetic scene and write its bag, or (``bag_inputs``: the user's bag's topics,
     as :func:`_bag_inputs` chose them) take the user's bag; returns the topics."""
     from dpv_sensor.data import rosbag_io as R
+    from dpv_sensor.data.topic_detection import describe_choice, image_topic_line, image_transport_of
     if bag_inputs is None:
         frames = a.frames or DEFAULT_FRAMES
         topics = {'image': R.IMAGE_TOPIC, 'camera_info': R.CAMERA_INFO_TOPIC, 'odom': R.ODOM_TOPIC}
@@ -411,12 +414,12 @@ def _input_steps(steps: Steps, a, seq_dir: pathlib.Path, input_bag: pathlib.Path
         del seq
     else:
         topics, how, bt = bag_inputs
-        print(f'demo: input topics: {R.describe_choice(topics, how)}', flush=True)
-        print(f"demo: {R.image_topic_line(input_bag, bt, topics['image'])}", flush=True)
+        print(f'demo: input topics: {describe_choice(topics, how)}', flush=True)
+        print(f"demo: {image_topic_line(input_bag, bt, topics['image'])}", flush=True)
         steps.skip('render', f'using your bag {_rel(input_bag)}')
         steps.skip('bag', f"{bt[topics['image']][1]} images on {topics['image']}")
         summary['input'] = {'kind': 'bag', 'bag': str(input_bag), 'topics': topics, 'topics_chosen_by': how,
-                            'image_transport': R.image_transport_of(bt, topics['image']),
+                            'image_transport': image_transport_of(bt, topics['image']),
                             'gt': str(gt_dir) if gt_dir else None}
     return topics
 

@@ -117,7 +117,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     a = build_parser().parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format='%(name)s: %(message)s')
     from dpv_sensor.evaluation import offline as E
-    from dpv_sensor.data import rosbag_io as R
+    from dpv_sensor.data.bag_export import export_topics_line
     out = pathlib.Path(a.out)
     try:
         if a.command == 'sequence':
@@ -157,7 +157,7 @@ def main(argv: Optional[List[str]] = None) -> int:
                                                    image_topic=a.image_topic, stamp_offset=offset,
                                                    tolerance=a.tolerance)
                 source = a.bag
-                print(R.export_topics_line(info), flush=True)
+                print(export_topics_line(info), flush=True)
             else:
                 records, info = E.records_from_export(a.folder, a.gt, stamp_offset=a.stamp_offset,
                                                       tolerance=a.tolerance)

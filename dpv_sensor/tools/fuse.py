@@ -88,7 +88,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     a = build_parser().parse_args(argv)
     from dpv_sensor.evaluation import offline as E
     from dpv_sensor.evaluation import fusion as F
-    from dpv_sensor.data import rosbag_io as R
+    from dpv_sensor.data.bag_export import export_topics_line
     from dpv_sensor.data.rosbag_io import BagError
     out = pathlib.Path(a.out)
     try:
@@ -107,7 +107,7 @@ def main(argv: Optional[List[str]] = None) -> int:
         elif a.command == 'bag':
             offset = a.stamp_offset if a.stamp_offset == 'auto' else float(a.stamp_offset)
             records, info = E.records_from_bag(a.bag, a.gt, image_topic=a.image_topic, stamp_offset=offset)
-            print(R.export_topics_line(info), flush=True)
+            print(export_topics_line(info), flush=True)
         else:
             records, info = E.records_from_export(a.folder, a.gt, stamp_offset=a.stamp_offset)
         if not records:
