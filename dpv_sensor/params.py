@@ -160,6 +160,21 @@ SPECS: tuple[ParamSpec, ...] = (
               'constant part (m).', min_value=1e-6, max_value=10.0),
     ParamSpec('odom_sigma_trans_rel', 0.03, 'Pose refinement: translation std of the odometry between two keyframes, '
               'part proportional to the distance travelled (0.03 = 3 %).', min_value=0.0, max_value=10.0),
+    ParamSpec('refine_odom_covariance', 'fixed', "Pose refinement: the odometry between factors' covariance. fixed: "
+              'the odom_sigma_* above; odometry: what the odometry says about itself, the growth of the published '
+              'pose covariance between two keyframes where it is filled, else the odom_drift_* figures.',
+              choices=('fixed', 'odometry')),
+    ParamSpec('refine_keypoints', False, 'Pose refinement: add relative-pose factors from matched keypoints between '
+              'the reference and its two nearest sources (rotation and direction from the images, the length from '
+              'the odometry; robust), evidence that does not depend on the depth being estimated.'),
+    ParamSpec('refine_marginals', False, "Pose refinement: after a refined window, each source's pose covariance "
+              "relative to the reference (gtsam marginals) widens the measurement and the confidence in place of "
+              "the odometry's covariance and drift figures."),
+    ParamSpec('refine_gate_chi2', 0.0, "Pose refinement: keep the odometry when a keypoint rotation differs from the "
+              "odometry's by more than this chi-square under both covariances (3 dof; 16.27 = 99.9 %). 0 disables.",
+              min_value=0.0, max_value=1e6),
+    ParamSpec('refine_gate_min_inliers', 0, 'Pose refinement with refine_keypoints: keep the odometry when no '
+              'keypoint pair has this many inliers (a textureless window). 0 disables.', min_value=0, max_value=100000),
     # --- camera -------------------------------------------------------------------------------------------
     ParamSpec('camera_info_source', 'topic', 'Intrinsics from the camera_info topic or from the fx/fy/cx/cy '
               'parameters.', choices=('topic', 'parameters'), scope='node'),

@@ -60,6 +60,20 @@ def test_pose_refiner_sigmas_come_from_the_parameters():
     np.testing.assert_allclose(sig[3:], 0.01 + 0.1 * 0.5)
 
 
+def test_pose_error_model_comes_from_the_parameters():
+    from dpv_sensor.stream.window_refiner import PoseRefinerConfig
+    values = dict(P.defaults(), refine_odom_covariance='odometry', refine_keypoints=True, refine_marginals=True,
+                  refine_gate_chi2=16.27, refine_gate_min_inliers=30, odom_drift_trans=0.05,
+                  odom_drift_rot_deg_per_m=2.0, odom_drift_rot=0.01)
+    cfg = PoseRefinerConfig.from_params(P.validate(values))
+    assert (cfg.odom_covariance, cfg.keypoint_factors, cfg.marginals) == ('odometry', True, True)
+    assert (cfg.gate_chi2, cfg.gate_min_inliers) == (16.27, 30)
+    assert (cfg.drift.trans_per_m, cfg.drift.rot_deg_per_m, cfg.drift.rot_per_deg) == (0.05, 2.0, 0.01)
+    assert cfg.drift.sync_s == 0.0          # the window's steps carry no time-offset term
+    with pytest.raises(ValueError, match='refine_odom_covariance'):
+        P.validate(dict(P.defaults(), refine_odom_covariance='exact'))
+
+
 # ------------------------------------------------------------------------------------------------------
 # a value of the wrong type: one message naming the setting, its type and the value, wherever it comes in
 # ------------------------------------------------------------------------------------------------------

@@ -162,13 +162,23 @@ class PoseRefinerConfig:
     #     d^T (S_odom + S_kp)^-1 d above this (3 dof; 16.27 = 99.9 %). gate_min_inliers > 0 (with keypoint
     #     factors): keep the odometry when no keypoint pair has this many inliers (e.g. a textureless window).
 
-    #: node parameters (dpv_sensor.params) that set fields of this class, same names
-    PARAMS = ('odom_sigma_rot_deg', 'odom_sigma_trans_m', 'odom_sigma_trans_rel')
+    #: node parameters (dpv_sensor.params) that set fields of this class: parameter name -> field name
+    PARAMS = {'odom_sigma_rot_deg': 'odom_sigma_rot_deg', 'odom_sigma_trans_m': 'odom_sigma_trans_m',
+              'odom_sigma_trans_rel': 'odom_sigma_trans_rel', 'refine_odom_covariance': 'odom_covariance',
+              'refine_keypoints': 'keypoint_factors', 'refine_marginals': 'marginals',
+              'refine_gate_chi2': 'gate_chi2', 'refine_gate_min_inliers': 'gate_min_inliers'}
 
     @classmethod
     def from_params(cls, values) -> 'PoseRefinerConfig':
-        """The defaults, with the fields named in :attr:`PARAMS` taken from the node's parameter values."""
-        return cls(**{k: type(getattr(cls, k))(values[k]) for k in cls.PARAMS if k in values})
+        """The defaults, with the fields named in :attr:`PARAMS` taken from the node's parameter values; the drift
+        figures (for ``odom_covariance='odometry'`` steps without a published covariance) from the odom_drift_*
+        parameters."""
+        kw = {f: type(getattr(cls, f))(values[k]) for k, f in cls.PARAMS.items() if k in values}
+        if all(k in values for k in ('odom_drift_trans', 'odom_drift_rot_deg_per_m', 'odom_drift_rot')):
+            kw['drift'] = pose_uncertainty.DriftModel(trans_per_m=float(values['odom_drift_trans']),
+                                                      rot_deg_per_m=float(values['odom_drift_rot_deg_per_m']),
+                                                      rot_per_deg=float(values['odom_drift_rot']), sync_s=0.0)
+        return cls(**kw)
 
 
 @dataclass
