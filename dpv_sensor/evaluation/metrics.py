@@ -47,7 +47,7 @@ __all__ = [
     'ERROR_METRICS', 'DEFAULT_FRACTIONS', 'gt_valid_mask', 'pred_valid_mask', 'evaluation_mask',
     'median_scale', 'error_sums', 'metrics_from_sums', 'depth_metrics', 'frame_metrics',
     'temporal_consistency', 'sparsification', 'ause', 'aurg', 'confident_half_ratio', 'MetricAccumulator',
-    'CALIBRATION_BINS', 'KEPT_THRESHOLDS', 'DELTA1_RATIO', 'within_ratio', 'reliability_bins',
+    'CALIBRATION_BINS', 'KEPT_THRESHOLDS', 'DELTA1_RATIO', 'within_ratio', 'confidence_events', 'reliability_bins',
     'expected_calibration_error', 'kept_at_thresholds', 'calibration_summary',
     'dpv_nll', 'EDGE_JUMP', 'EDGE_RADIUS', 'NORMAL_WINDOW', 'normal_window', 'PLANAR_CONSISTENCY', 'depth_edge_band',
     'depth_normals', 'planar_mask', 'edge_planarity_metrics',
@@ -508,6 +508,19 @@ def within_ratio(pred_n: np.ndarray, gt_n: np.ndarray, ratio: float = DELTA1_RAT
     return np.maximum(p / g, g / p) < ratio
 
 
+def confidence_events(pred: np.ndarray, gt: np.ndarray, conf: np.ndarray, min_depth: Optional[float] = None,
+                      max_depth: Optional[float] = None) -> Tuple[np.ndarray, np.ndarray]:
+    """(confidence, hit) of the evaluated pixels of one frame (:func:`evaluation_mask`), the pairs calibration is
+    measured and fitted on: the confidence (NaN read as 0) and whether the true depth lies within x1.25 of the
+    prediction (clipped to [min_depth, max_depth] as scored, :func:`within_ratio`). 1-D float64 and bool."""
+    conf = np.asarray(conf, np.float64)
+    if conf.shape != np.shape(gt):
+        raise ValueError(f'confidence shape {conf.shape} differs from GT shape {np.shape(gt)}')
+    m = evaluation_mask(pred, gt, min_depth, max_depth)
+    p = _clip(np.asarray(pred, np.float64)[m], min_depth, max_depth)
+    return np.nan_to_num(conf[m], nan=0.0), within_ratio(p, np.asarray(gt, np.float64)[m])
+
+
 def reliability_bins(conf_n: np.ndarray, hit_n: np.ndarray, bins: int = CALIBRATION_BINS) -> Dict[str, np.ndarray]:
     """Reliability diagram data: ``bins`` equal-width confidence bins on [0, 1] (the last one closed); per bin
     the pixel count, the mean confidence and the share of pixels whose event happened (``hit_n``).
@@ -653,12 +666,9 @@ class MetricAccumulator:
         row['num_pixels'] = int(m.sum())
         row.update(edge_planarity_metrics(pred, gt, K, min_depth=self.min_depth, max_depth=self.max_depth))
         if confidence is not None:
-            conf = np.asarray(confidence, np.float64)
-            if conf.shape != np.shape(gt):
-                raise ValueError(f'confidence shape {conf.shape} differs from GT shape {np.shape(gt)}')
+            c, hit = confidence_events(pred, gt, confidence, self.min_depth, self.max_depth)
             pc = _clip(p, self.min_depth, self.max_depth)
             err = np.abs(pc - g) / g
-            c = np.nan_to_num(conf[m], nan=0.0)
             row['mean_confidence'] = float(c.mean()) if c.size else float('nan')
             if err.size:
                 curves = sparsification(err, c, self.fractions)
@@ -667,7 +677,7 @@ class MetricAccumulator:
                 row['confident_half_ratio'] = confident_half_ratio(err, c)
                 self._pooled.append((err[::self.pool_stride].astype(np.float32),
                                      c[::self.pool_stride].astype(np.float32)))
-                self._pooled_hit.append(within_ratio(pc[::self.pool_stride], g[::self.pool_stride]))
+                self._pooled_hit.append(hit[::self.pool_stride])
             else:
                 row['ause'] = float('nan')
                 row['confident_half_ratio'] = float('nan')

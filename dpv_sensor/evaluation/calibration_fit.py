@@ -1,0 +1,125 @@
+"""Fitting a confidence calibration map (``dpv_sensor.core.confidence_calibration``) from (confidence, hit) pairs,
+and how calibrated a confidence is before and after it.
+
+The fit, in three steps:
+
+1. **Equal-count bins**: the pairs sorted by confidence and cut into ``bins`` (default :data:`FIT_BINS`) bins of
+   (nearly) the same number of pixels; per bin its mean confidence, its share of hits and its pixel count. Bins
+   whose mean confidences are equal (a value shared by many pixels, e.g. 0 where the parallax rule leaves no
+   support) are merged, so the knots' confidences increase strictly.
+2. **Pool adjacent violators**, weighted by the pixel counts: wherever a bin's share of hits is below the one
+   before it, the two (and any neighbours that then violate) are pooled into their weighted mean. The result is the
+   non-decreasing sequence closest to the bins' shares in weighted least squares (isotonic regression).
+3. **Knots**: one per bin at its mean confidence with its pooled share, the inner knots of a flat run dropped,
+   and flat ends added at confidence 0 and 1; the map is linear between them (:meth:`ConfidenceCalibration.apply`).
+
+A monotone map keeps the order of the pixels (it can only tie them), so it changes calibration (ECE, the share
+kept at a threshold and their delta1) but not how well the confidence ranks errors (AUSE, confident-half ratio).
+The figures come from :mod:`dpv_sensor.evaluation.metrics` (:func:`~dpv_sensor.evaluation.metrics.calibration_summary`,
+ECE over its 10 equal-width bins).
+"""
+from __future__ import annotations
+
+import datetime
+from typing import Any, Dict, Optional, Tuple
+
+import numpy as np
+
+from dpv_sensor.core.confidence_calibration import ConfidenceCalibration
+from dpv_sensor.evaluation import metrics as M
+
+__all__ = ['FIT_BINS', 'equal_count_bins', 'pool_adjacent_violators', 'fit_calibration', 'calibration_report']
+
+# equal-count bins of the fit: enough to follow the curve, each with thousands of pixels on a real run
+FIT_BINS = 24
+_SAME_CONFIDENCE = 1e-9
+
+
+def equal_count_bins(conf_n: np.ndarray, hit_n: np.ndarray, bins: int = FIT_BINS
+                     ) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(mean confidence, share of hits, pixel count) of ``bins`` equal-count bins of the pairs sorted by
+    confidence (at most one bin per pixel), bins of equal mean confidence merged. ValueError without pairs."""
+    c = np.asarray(conf_n, np.float64).ravel()
+    h = np.asarray(hit_n, np.float64).ravel()
+    if c.size != h.size:
+        raise ValueError(f'{c.size} confidences but {h.size} hits')
+    if c.size == 0:
+        raise ValueError('no (confidence, hit) pairs to fit on')
+    if not np.all(np.isfinite(c)):
+        raise ValueError('the confidences hold NaN or infinity')
+    order = np.argsort(c, kind='stable')
+    c, h = c[order], h[order]
+    k = max(1, min(int(bins), c.size))
+    cuts = np.linspace(0, c.size, k + 1).round().astype(np.int64)
+    xs, ys, ws = [], [], []
+    for a, b in zip(cuts[:-1], cuts[1:]):
+        if b <= a:
+            continue
+        x, y, w = float(c[a:b].mean()), float(h[a:b].mean()), float(b - a)
+        if xs and x - xs[-1] <= _SAME_CONFIDENCE:          # same confidence as the bin before: one bin
+            tot = ws[-1] + w
+            xs[-1] = (xs[-1] * ws[-1] + x * w) / tot
+            ys[-1] = (ys[-1] * ws[-1] + y * w) / tot
+            ws[-1] = tot
+        else:
+            xs.append(x)
+            ys.append(y)
+            ws.append(w)
+    return np.asarray(xs), np.asarray(ys), np.asarray(ws)
+
+
+def pool_adjacent_violators(y: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """The non-decreasing sequence closest to ``y`` in least squares weighted by ``w`` (> 0): adjacent values
+    that decrease are pooled into their weighted mean until none does. Same length as ``y``."""
+    y = np.asarray(y, np.float64)
+    w = np.asarray(w, np.float64)
+    if y.shape != w.shape or y.ndim != 1:
+        raise ValueError('y and w must be 1-D arrays of one length')
+    if np.any(w <= 0):
+        raise ValueError('weights must be positive')
+    means, weights, sizes = [], [], []
+    for yi, wi in zip(y, w):
+        means.append(yi)
+        weights.append(wi)
+        sizes.append(1)
+        while len(means) > 1 and means[-2] > means[-1]:
+            wt = weights[-2] + weights[-1]
+            means[-2] = (means[-2] * weights[-2] + means[-1] * weights[-1]) / wt
+            weights[-2] = wt
+            sizes[-2] += sizes[-1]
+            del means[-1], weights[-1], sizes[-1]
+    return np.repeat(np.asarray(means), sizes)
+
+
+def _knots(x: np.ndarray, y: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+    """Knots of the map through (x, y) (x strictly increasing, y non-decreasing): the inner points of a flat run
+    dropped, flat ends added at 0 and 1."""
+    keep = np.ones(x.size, bool)
+    keep[1:-1] = ~((y[1:-1] == y[:-2]) & (y[1:-1] == y[2:]))
+    x, y = x[keep], y[keep]
+    if x[0] > 0.0:
+        x, y = np.concatenate([[0.0], x]), np.concatenate([[y[0]], y])
+    if x[-1] < 1.0:
+        x, y = np.concatenate([x, [1.0]]), np.concatenate([y, [y[-1]]])
+    return np.clip(x, 0.0, 1.0), np.clip(y, 0.0, 1.0)
+
+
+def fit_calibration(conf_n: np.ndarray, hit_n: np.ndarray, estimator: Dict[str, Any], *, bins: int = FIT_BINS,
+                    fitted_on: Optional[Dict[str, Any]] = None) -> ConfidenceCalibration:
+    """The monotone map from the confidence to the share of hits (see the module docstring). ``estimator``: the
+    signature of the estimator that produced the confidences (``stream.estimator_config.calibration_signature``);
+    ``fitted_on``: metadata, completed with the number of pixels, the bins and the date."""
+    x, y, w = equal_count_bins(conf_n, hit_n, bins)
+    kx, ky = _knots(x, pool_adjacent_violators(y, w))
+    meta = dict(fitted_on or {})
+    meta.setdefault('pixels', int(np.asarray(conf_n).size))
+    meta.setdefault('bins', int(x.size))
+    meta.setdefault('date', datetime.datetime.now(datetime.timezone.utc).isoformat(timespec='seconds'))
+    return ConfidenceCalibration(tuple(float(v) for v in kx), tuple(float(v) for v in ky), dict(estimator), meta)
+
+
+def calibration_report(conf_n: np.ndarray, hit_n: np.ndarray, calibration: ConfidenceCalibration) -> Dict[str, Any]:
+    """``raw`` and ``calibrated``: :func:`~dpv_sensor.evaluation.metrics.calibration_summary` of the confidence
+    and of the map applied to it, on the same pixels."""
+    c = np.asarray(conf_n, np.float64).ravel()
+    return {'raw': M.calibration_summary(c, hit_n), 'calibrated': M.calibration_summary(calibration.apply(c), hit_n)}
