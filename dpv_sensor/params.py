@@ -229,6 +229,11 @@ SPECS: tuple[ParamSpec, ...] = (
               'the window size): the latest keyframes.', min_value=0, max_value=32),
     ParamSpec('reject_degenerate_frames', True, 'Drop frames that carry no depth information (all black, '
               'saturated, flat or random noise): they neither update the filter nor produce an output.'),
+    ParamSpec('confidence_calibration', '', 'A confidence calibration file (JSON, written by the calibrate tool from '
+              'a recording with depth ground truth): maps the confidence to the probability, measured there, that '
+              'the true depth is within x1.25 of the published one; applied before min_confidence, the depth is '
+              'unchanged. It must have been fitted with the same weights, processing size and depth planes; a '
+              'malformed or mismatched file stops the node at start. Empty: off.'),
     ParamSpec('min_confidence', 0.0, 'Depth with lower confidence is published as no estimate.',
               min_value=0.0, max_value=1.0),
     # --- transport ----------------------------------------------------------------------------------------

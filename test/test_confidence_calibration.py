@@ -9,9 +9,14 @@ import numpy as np
 import pytest
 import torch
 
+from dpv_sensor import params as P
 from dpv_sensor.core import confidence_calibration as CC
 from dpv_sensor.evaluation import calibration_fit as F
 from dpv_sensor.evaluation import metrics as M
+from dpv_sensor.stream.estimator import Estimator
+from dpv_sensor.stream.estimator_config import calibration_signature
+
+from test_estimator import push_all, sideways, small_config
 
 SIG = CC.signature('classical', None, (64, 48), (0.5, 8.0), 16, 'ratio 1.25')
 
@@ -214,3 +219,40 @@ def test_signature_mismatch_names_each_setting():
     assert 'processing_size 64x48 (the estimator: 320x256)' in text
     assert 'depth_planes 16 planes 0.5-8 m (the estimator: 64 planes 0.5-8 m)' in text
     assert 'confidence' not in text.split('the estimator: 64 planes')[1]
+
+
+# ----------------------------------------------------------------------------------------------------
+# the estimator
+# ----------------------------------------------------------------------------------------------------
+
+def test_estimator_applies_the_map_before_min_confidence_and_keeps_the_depth(tmp_path):
+    est = Estimator(small_config())
+    sig = calibration_signature(est.status)
+    assert sig == SIG
+    raw = push_all(est, sideways(5))[-1]
+    cal = _map([0.0, 0.3, 1.0], [0.1, 0.6, 0.95], sig)
+    path = CC.save(cal, tmp_path / 'cal.json')
+    est_cal = Estimator(small_config(confidence_calibration=str(path)))
+    assert est_cal.status.confidence_calibration == str(path)
+    out = push_all(est_cal, sideways(5))[-1]
+    np.testing.assert_array_equal(out.depth_hw, raw.depth_hw)            # bit-identical depth
+    ok = np.isfinite(raw.depth_hw)
+    assert ok.mean() > 0.5
+    np.testing.assert_allclose(out.confidence_hw[ok], cal.apply(raw.confidence_hw[ok]), atol=1e-6)
+    assert (out.confidence_hw[~ok] == 0).all()                            # no estimate: confidence 0, as before
+    # min_confidence acts on the calibrated confidence
+    thr = 0.6
+    cut = push_all(Estimator(small_config(confidence_calibration=str(path), min_confidence=thr)), sideways(5))[-1]
+    np.testing.assert_array_equal(np.isfinite(cut.depth_hw), ok & (out.confidence_hw >= thr))
+
+
+def test_estimator_refuses_a_malformed_or_mismatched_file_naming_the_parameter(tmp_path):
+    bad = _file(tmp_path, _with(['knots', 'probability'], [0.2, 0.6, 0.5]))
+    with pytest.raises(P.ParameterError, match=r"parameter 'confidence_calibration' = .*cal.json' refused: "
+                                                r'knots.probability decreases'):
+        Estimator(small_config(confidence_calibration=str(bad)))
+    other = CC.save(_map([0.0, 1.0], [0.0, 1.0], CC.signature('classical', None, (320, 256), (0.5, 8.0), 16,
+                                                                'ratio 1.25')), tmp_path / 'other.json')
+    with pytest.raises(P.ParameterError, match=r'confidence_calibration.*processing_size 320x256 \(the estimator: '
+                                                r'64x48\)'):
+        Estimator(small_config(confidence_calibration=str(other)))

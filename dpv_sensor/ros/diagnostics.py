@@ -7,6 +7,7 @@ sent and frames_processed + dropped_total = frames_received (but for the one or 
 from __future__ import annotations
 
 import collections
+import pathlib
 import time
 
 import numpy as np
@@ -34,6 +35,11 @@ def pose_uncertainty_text(last: dict | None, setting: str) -> str:
             f"(largest source, per axis), median {last['median_planes']:.2f} planes")
 
 
+def calibration_text(path: str | None) -> str:
+    """The confidence calibration in use, as /diagnostics shows it: the file's name, or 'off'."""
+    return pathlib.PurePath(path).name if path else 'off'
+
+
 def estimator_values(st: EstimatorStatus | None, settings, starting: bool, resets: int) -> dict:
     """The estimator's part of /diagnostics from its status; without one (`starting`: the pipeline is being built,
     else its status failed) the settings' values."""
@@ -45,13 +51,15 @@ def estimator_values(st: EstimatorStatus | None, settings, starting: bool, reset
                 'tracking': 'building the estimator' if starting else '',
                 'pose_uncertainty': pose_uncertainty_text(None, est.pose_uncertainty),
                 'estimator_keyframes': '', 'estimator_outputs': '', 'estimator_dropped': '',
-                'estimator_last_drop_reason': ''}
+                'estimator_last_drop_reason': '',
+                'confidence_calibration': calibration_text(est.confidence_calibration or None)}
     values = {'filter_resets': st.resets, 'last_reset_reason': st.last_reset_reason or '',
               'measurement_model': st.measurement, 'measurement_reason': st.measurement_reason,
               'device': st.device, 'precision': st.precision, 'filter_mode': st.filter_mode, 'tracking': st.tracking,
               'pose_uncertainty': pose_uncertainty_text(st.pose_uncertainty, est.pose_uncertainty),
               'estimator_keyframes': st.keyframes, 'estimator_outputs': st.outputs,
-              'estimator_dropped': st.frames_dropped, 'estimator_last_drop_reason': st.last_drop_reason or ''}
+              'estimator_dropped': st.frames_dropped, 'estimator_last_drop_reason': st.last_drop_reason or '',
+              'confidence_calibration': calibration_text(st.confidence_calibration)}
     if st.notes:
         values['estimator_notes'] = ' | '.join(st.notes)
     if st.pose_refinement_tracking is not None:

@@ -16,6 +16,7 @@ import threading
 import time
 import traceback
 
+from dpv_sensor import params as P
 from dpv_sensor.ros import msgs as M
 from dpv_sensor.ros.fault_kinds import (CAMERA_INFO_MISMATCH, DUPLICATE_STAMP, ESTIMATOR_EXCEPTION, INTERNAL_ERROR,
                                         NO_CAMERA_INFO, NO_EXTRINSIC, ODOM_GAP, ODOM_INVALID, ODOM_TIMEOUT,
@@ -96,6 +97,8 @@ class Worker:
         try:
             # a config of its own: the pipeline changes its runtime settings in place
             return Pipeline(EstimatorConfig.from_params(self.node.settings.estimator.as_dict()))
+        except P.ParameterError as exc:     # a setting the estimator refuses once built (confidence_calibration)
+            raise StartupError(f'invalid parameter: {exc}') from exc
         except Exception as exc:
             raise StartupError(f'cannot build the estimator: {type(exc).__name__}: {exc}') from exc
 

@@ -23,13 +23,18 @@ def volume_maps_to_processing(depth_bhw, conf_bhw, valid_bhw, K_vol_33, K_proc_3
 
 
 def compose_output(config, depth_bhw, conf_bhw, valid_bhw, input_size, K_in_33, stamp, T_world_cam, is_keyframe,
-                   reset_reason) -> DepthOutput:
-    """Mask, resize to the output size (nearest) and convert to numpy float32.
+                   reset_reason, calibration=None) -> DepthOutput:
+    """Mask, calibrate the confidence, resize to the output size (nearest) and convert to numpy float32.
 
-    Pixels without an estimate get NaN depth and confidence 0; with ``config.min_confidence`` > 0, depth whose
-    confidence is below it is NaN too (no estimate), while its confidence is kept."""
+    Pixels without an estimate get NaN depth and confidence 0. ``calibration`` (a
+    ``core.confidence_calibration.ConfidenceCalibration``, the ``confidence_calibration`` setting) maps the confidence
+    of the pixels with an estimate; the depth does not depend on it. With ``config.min_confidence`` > 0, depth whose
+    (calibrated) confidence is below it is NaN too (no estimate), while its confidence is kept."""
     valid = valid_bhw & torch.isfinite(depth_bhw) & (depth_bhw > 0)
-    conf = torch.where(valid, conf_bhw.clamp(0.0, 1.0), torch.zeros_like(conf_bhw))
+    conf = conf_bhw.clamp(0.0, 1.0)
+    if calibration is not None:
+        conf = calibration.apply(conf)
+    conf = torch.where(valid, conf, torch.zeros_like(conf_bhw))
     if config.min_confidence > 0.0:
         valid = valid & (conf >= config.min_confidence)
     depth = torch.where(valid, depth_bhw, torch.full_like(depth_bhw, float('nan')))

@@ -18,7 +18,8 @@ import numpy as np
 import torch
 
 from dpv_sensor import params as P
-from dpv_sensor.core import dpv as dpv_ops, geometry, image_quality, parallax, pose_uncertainty
+from dpv_sensor.core import confidence_calibration, dpv as dpv_ops, geometry, image_quality, parallax, pose_uncertainty
+from dpv_sensor.core.confidence_calibration import ConfidenceCalibration
 from dpv_sensor.core.edge_filter import joint_weighted_median
 from dpv_sensor.core.geometry import resample_to_camera, scale_intrinsics_np
 from dpv_sensor.core.nets.model import cpu_bf16_fast
@@ -26,8 +27,8 @@ from dpv_sensor.stream.continuity import DUPLICATE, stream_break, time_order
 from dpv_sensor.stream.frame import DepthOutput, Frame
 from dpv_sensor.stream.depth_output import compose_output, volume_maps_to_processing
 from dpv_sensor.stream.estimator_config import (EstimatorConfig, EstimatorStatus, PoseRefinementRequest,  # noqa: F401
-                                                PoseRefiner, _Measurement, _Posterior, default_weights_path,
-                                                output_size)
+                                                PoseRefiner, _Measurement, _Posterior, calibration_signature,
+                                                default_weights_path, output_size)
 from dpv_sensor.stream.keyframes import Keyframe, KeyframeSelector, KeyframeWindow
 from dpv_sensor.stream import window_pose_uncertainty
 
@@ -124,6 +125,8 @@ class Estimator:
         self._last_parallax: Dict[str, float] = {}
         self._last_pose_sigma: Dict[str, float] = {}
         self._twist: Optional[np.ndarray] = None
+        self.calibration: Optional[ConfidenceCalibration] = None
+        self.calibration = self._load_calibration()
 
     # ------------------------------------------------------------------ construction helpers
     @staticmethod
@@ -170,6 +173,22 @@ class Estimator:
         self._weights_path = str(path)
         self._measurement_reason = f'network weights loaded from {path}'
         self._use_network()
+
+    def _load_calibration(self) -> Optional[ConfidenceCalibration]:
+        """The confidence calibration map of the ``confidence_calibration`` setting (None when empty), checked
+        against this estimator (weights, processing size, depth planes, confidence); a file that is malformed or was
+        fitted for other settings raises ParameterError naming the setting."""
+        path = self.config.confidence_calibration
+        if not path:
+            return None
+        try:
+            calibration = confidence_calibration.load(path)
+            calibration.check_signature(calibration_signature(self.status))
+        except confidence_calibration.CalibrationError as exc:
+            raise P.ParameterError(f"parameter 'confidence_calibration' = {path!r} refused: {exc}") from None
+        self.log.info(f'confidence calibration {path}: {len(calibration.confidence)} knots, fitted on '
+                      f"{calibration.fitted_on.get('source', 'an unnamed source')}")
+        return calibration
 
     def _load_network(self, path: pathlib.Path):
         """DPVNet from a checkpoint; raises CheckpointError (file missing, corrupt, other preset ...)."""
@@ -299,6 +318,7 @@ class Estimator:
             notes=list(self._notes),
             pose_refinement_gate=dict(getattr(self.pose_refiner, 'gate_counts', None) or {}),
             pose_refinement_correction=tuple(getattr(self._refinement_result(), 'correction', (0.0, 0.0))),
+            confidence_calibration=None if self.calibration is None else self.calibration.path,
         )
 
     def _refinement_result(self):
@@ -527,7 +547,7 @@ class Estimator:
         t = time.perf_counter()
         reason = self._take_reset_reason(step.reset_reason)
         out = compose_output(self.config, depth, conf, valid, ref.input_size, ref.input_K_33, ref.stamp,
-                             ref.T_world_cam_44, True, reason)
+                             ref.T_world_cam_44, True, reason, self.calibration)
         timings['output'] = self._ms(t)
         timings['total'] = self._ms(t0)
         out.timings_ms = timings
@@ -766,7 +786,8 @@ class Estimator:
         K_proc = torch.as_tensor(scale_intrinsics_np(K_in, W / size[0], H / size[1]), dtype=torch.float32,
                                  device=self.device)
         depth, conf, valid = volume_maps_to_processing(depth_v, conf_v, valid_v, p.K_vol_b33[0], K_proc, (H, W))
-        out = compose_output(self.config, depth, conf, valid, size, K_in, float(frame.stamp), T, False, None)
+        out = compose_output(self.config, depth, conf, valid, size, K_in, float(frame.stamp), T, False, None,
+                             self.calibration)
         out.timings_ms = {'between': self._ms(t), 'total': self._ms(t0)}
         self._last_timings = dict(out.timings_ms)
         return out

@@ -15,7 +15,7 @@ from dpv_sensor import params as P
 from dpv_sensor.stream.keyframes import Keyframe
 
 __all__ = ['EstimatorConfig', 'EstimatorStatus', 'PoseRefinementRequest', 'PoseRefiner', 'default_weights_path',
-           'output_size']
+           'output_size', 'calibration_signature']
 
 
 def default_weights_path(preset: str) -> pathlib.Path:
@@ -102,6 +102,8 @@ class EstimatorStatus:
     # and the last window's largest step correction (m, deg); empty / zeros without a refiner that reports them
     pose_refinement_gate: Dict[str, int] = dataclasses.field(default_factory=dict)
     pose_refinement_correction: Tuple[float, float] = (0.0, 0.0)
+    # the confidence calibration file in use (the confidence_calibration setting), None without one
+    confidence_calibration: Optional[str] = None
 
     def as_dict(self) -> Dict[str, Any]:
         """The fields by name (``dataclasses.asdict``); ``pose_refinement_tracking`` only when there is one."""
@@ -109,6 +111,14 @@ class EstimatorStatus:
         if out['pose_refinement_tracking'] is None:
             del out['pose_refinement_tracking']
         return out
+
+
+def calibration_signature(status: EstimatorStatus) -> Dict[str, Any]:
+    """The estimator settings a confidence calibration map depends on (``core.confidence_calibration.signature``),
+    from a status: what the calibrate tool writes into a map and what the estimator checks a map against."""
+    from dpv_sensor.core.confidence_calibration import signature
+    return signature(status.measurement, status.weights, status.processing_size, status.depth_range,
+                     status.num_planes, status.confidence)
 
 
 @dataclass
