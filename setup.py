@@ -15,6 +15,7 @@ TOOLS = {
     'soak': 'dpv_sensor.tools.soak:main',
     'demo': 'dpv_sensor.tools.demo:main',
     'bench': 'dpv_sensor.tools.bench:main',
+    'calibrate': 'dpv_sensor.tools.calibrate:main',
 }
 
 setup(

@@ -256,3 +256,59 @@ def test_estimator_refuses_a_malformed_or_mismatched_file_naming_the_parameter(t
     with pytest.raises(P.ParameterError, match=r'confidence_calibration.*processing_size 320x256 \(the estimator: '
                                                 r'64x48\)'):
         Estimator(small_config(confidence_calibration=str(other)))
+
+
+# ----------------------------------------------------------------------------------------------------
+# the calibrate tool
+# ----------------------------------------------------------------------------------------------------
+
+TOOL_CONFIG = ['measurement=classical', 'processing_width=64', 'processing_height=48', 'num_planes=16',
+               'keyframe_max_interval=2']
+
+
+def test_calibrate_tool_on_a_small_rendered_scene(tmp_path, capsys):
+    from dpv_sensor.tools import calibrate as tool
+    out = tmp_path / 'cal'
+    rc = tool.main(['synthetic:5:24', '--width', '80', '--height', '60', '--config', *TOOL_CONFIG, '--out', str(out),
+                    '--quiet'])
+    text = capsys.readouterr().out
+    assert rc == 0, text
+    assert '| fit |' in text and '| held-out |' in text and 'confidence_calibration:=' in text
+    cal = CC.load(out / 'calibration.json')
+    report = json.loads((out / 'report.json').read_text())
+    assert (out / 'reliability.png').stat().st_size > 10_000
+    assert cal.estimator == CC.signature('classical', None, (64, 48), (0.3, 8.0), 16, 'ratio 1.25')
+    assert cal.fitted_on['source'] == 'synthetic:5:24' and cal.fitted_on['parameters']['num_planes'] == 16
+    fit, held = report['fit'], report['held_out']
+    # the first half of the keyframes in time to fit on, the rest to score on
+    assert fit['frames'][1] < held['frames'][0] and abs(fit['keyframes'] - held['keyframes']) <= 1
+    assert cal.fitted_on['pixels'] == fit['pixels'] > 1000
+    # on the pixels it was fitted on, the map is calibrated up to the 10 equal-width bins' share of mixing
+    assert fit['calibrated']['ece'] < min(0.05, fit['raw']['ece'])
+    assert held['calibrated']['ece'] == pytest.approx(cal.fitted_on['held_out_ece_calibrated'])
+    # the estimator with the same settings takes the file
+    config = {k: v for k, v in (item.split('=') for item in TOOL_CONFIG)}
+    est = Estimator(small_config(**{k: (v if k == 'measurement' else int(v)) for k, v in config.items()},
+                                 d_min=0.3, confidence_calibration=str(out / 'calibration.json')))
+    assert est.calibration is not None and est.calibration.probability == cal.probability
+
+
+@pytest.mark.parametrize('args,message', [
+    (['synthetic:5:24', '--fit-fraction', '1.5'], 'fit fraction must lie strictly between 0 and 1'),
+    (['synthetic:5:24', '--config', 'confidence_calibration=x.json'], 'leave it unset'),
+    (['synthetic:5:24', '--config', 'damping=3'], "parameter 'damping' = 3.0 is above its maximum 1.0"),
+    (['/nonexistent/folder'], 'is not a sequence folder'),
+])
+def test_calibrate_tool_refuses_bad_arguments(tmp_path, capsys, args, message):
+    from dpv_sensor.tools import calibrate as tool
+    config = [] if '--config' in args else ['--config', *TOOL_CONFIG]
+    assert tool.main(args + config + ['--out', str(tmp_path / 'x'), '--quiet']) == 2
+    assert message in capsys.readouterr().err
+
+
+def test_calibrate_tool_needs_one_source():
+    from dpv_sensor.tools import calibrate as tool
+    for args in ([], ['synthetic:1', '--bag', 'x.mcap', '--gt', 'y'], ['--bag', 'x.mcap']):
+        with pytest.raises(SystemExit) as info:
+            tool.main(args)
+        assert info.value.code == 2

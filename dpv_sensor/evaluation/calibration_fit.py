@@ -21,17 +21,23 @@ ECE over its 10 equal-width bins).
 from __future__ import annotations
 
 import datetime
-from typing import Any, Dict, Optional, Tuple
+import json
+import pathlib
+from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
-from dpv_sensor.core.confidence_calibration import ConfidenceCalibration
+from dpv_sensor.common import to_jsonable
+from dpv_sensor.core.confidence_calibration import ConfidenceCalibration, save
 from dpv_sensor.evaluation import metrics as M
 
-__all__ = ['FIT_BINS', 'equal_count_bins', 'pool_adjacent_violators', 'fit_calibration', 'calibration_report']
+__all__ = ['FIT_BINS', 'FIT_FRACTION', 'equal_count_bins', 'pool_adjacent_violators', 'fit_calibration',
+           'calibration_report', 'record_events', 'split_records', 'calibrate_records', 'write_calibration']
 
 # equal-count bins of the fit: enough to follow the curve, each with thousands of pixels on a real run
 FIT_BINS = 24
+# the share of a run's keyframes (the first ones) the map is fitted on; it is scored on the rest
+FIT_FRACTION = 0.5
 _SAME_CONFIDENCE = 1e-9
 
 
@@ -123,3 +129,87 @@ def calibration_report(conf_n: np.ndarray, hit_n: np.ndarray, calibration: Confi
     and of the map applied to it, on the same pixels."""
     c = np.asarray(conf_n, np.float64).ravel()
     return {'raw': M.calibration_summary(c, hit_n), 'calibrated': M.calibration_summary(calibration.apply(c), hit_n)}
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# a run's keyframe records (evaluation.runner.KeyframeRecord): fit on the first part, score on the rest
+# ----------------------------------------------------------------------------------------------------------------
+
+def record_events(records: Sequence, min_depth: Optional[float], max_depth: Optional[float]
+                  ) -> Tuple[np.ndarray, np.ndarray]:
+    """(confidence float32, hit bool) of every scored pixel of the records (:func:`metrics.confidence_events`,
+    GT in [min_depth, max_depth] as ``evaluate`` scores it), concatenated."""
+    conf: List[np.ndarray] = [np.zeros(0, np.float32)]
+    hit: List[np.ndarray] = [np.zeros(0, bool)]
+    for r in records:
+        if r.confidence_hw is None:
+            raise ValueError(f'keyframe {r.index} has no confidence image')
+        c, h = M.confidence_events(r.depth_hw, r.gt_depth_hw, r.confidence_hw, min_depth, max_depth)
+        conf.append(c.astype(np.float32))
+        hit.append(h)
+    return np.concatenate(conf), np.concatenate(hit)
+
+
+def split_records(records: Sequence, fit_fraction: float = FIT_FRACTION) -> Tuple[list, list]:
+    """(the first ``fit_fraction`` of the records in time, the rest), at least one in each part; ValueError with
+    fewer than two records or a fraction outside (0, 1)."""
+    if not 0.0 < float(fit_fraction) < 1.0:
+        raise ValueError(f'the fit fraction must lie strictly between 0 and 1, got {fit_fraction}')
+    ordered = sorted(records, key=lambda r: r.stamp)
+    if len(ordered) < 2:
+        raise ValueError(f'{len(ordered)} keyframe output(s): at least two are needed, one to fit on and one to '
+                         'score on (a longer recording, or more camera motion)')
+    n_fit = min(len(ordered) - 1, max(1, int(round(fit_fraction * len(ordered)))))
+    return ordered[:n_fit], ordered[n_fit:]
+
+
+def _part(records: Sequence, conf: np.ndarray, hit: np.ndarray, calibration: ConfidenceCalibration
+          ) -> Dict[str, Any]:
+    frames = [int(r.index) for r in records]
+    return {'keyframes': len(records), 'frames': [min(frames), max(frames)], 'pixels': int(conf.size),
+            **calibration_report(conf, hit, calibration)}
+
+
+def calibrate_records(records: Sequence, estimator: Dict[str, Any], *, min_depth: Optional[float],
+                      max_depth: Optional[float], fit_fraction: float = FIT_FRACTION, bins: int = FIT_BINS,
+                      source: str = '', extra: Optional[Dict[str, Any]] = None
+                      ) -> Tuple[ConfidenceCalibration, Dict[str, Any]]:
+    """Fit a map on the first ``fit_fraction`` of a run's keyframe records and score it on the rest.
+
+    ``estimator``: the signature of the estimator that produced them (``calibration_signature``); ``extra``: more
+    metadata for the map's ``fitted_on`` (e.g. the parameters). Returns (the map, the report: ``fit`` and
+    ``held_out`` parts, each with its keyframes, frame range, pixels and the ``raw`` / ``calibrated``
+    :func:`metrics.calibration_summary`)."""
+    fit, held = split_records(records, fit_fraction)
+    c_fit, h_fit = record_events(fit, min_depth, max_depth)
+    c_held, h_held = record_events(held, min_depth, max_depth)
+    frames = [int(r.index) for r in fit]
+    meta = {'source': source, 'frames': [min(frames), max(frames)], 'keyframes': len(fit),
+            'pixels': int(c_fit.size), 'fit_fraction': float(fit_fraction), 'depth_limits': [min_depth, max_depth],
+            **(extra or {})}
+    calibration = fit_calibration(c_fit, h_fit, estimator, bins=bins, fitted_on=meta)
+    report = {'source': source, 'estimator': estimator, 'fit_fraction': float(fit_fraction),
+              'depth_limits': [min_depth, max_depth], 'event': 'true depth within x1.25 of the published depth',
+              'fit': _part(fit, c_fit, h_fit, calibration), 'held_out': _part(held, c_held, h_held, calibration),
+              'knots': {'confidence': list(calibration.confidence), 'probability': list(calibration.probability)}}
+    held_cal = report['held_out']['calibrated']
+    calibration.fitted_on.update({'held_out_frames': report['held_out']['frames'],
+                                  'held_out_ece_raw': report['held_out']['raw']['ece'],
+                                  'held_out_ece_calibrated': held_cal['ece']})
+    return calibration, report
+
+
+def write_calibration(out, calibration: ConfidenceCalibration, report: Dict[str, Any],
+                      title: Optional[str] = None) -> Dict[str, pathlib.Path]:
+    """``out``/calibration.json (the map), report.json and reliability.png (the held-out keyframes' reliability
+    diagram, raw and calibrated); returns {name: path}."""
+    from dpv_sensor.evaluation import plots
+    out = pathlib.Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    files = {'calibration': save(calibration, out / 'calibration.json'), 'report': out / 'report.json'}
+    files['report'].write_text(json.dumps(to_jsonable(report), indent=1) + '\n')
+    held = report['held_out']
+    files['reliability'] = plots.reliability_plot(
+        {'raw': held['raw'], 'calibrated': held['calibrated']}, out / 'reliability.png',
+        title=(title or 'confidence calibration') + f": held-out frames {held['frames'][0]}-{held['frames'][1]}")
+    return files
