@@ -64,3 +64,16 @@ def test_textureless_images_give_no_estimate():
     res = keypoint_relative_pose(flat, flat, K)
     assert not res.ok and 'too few keypoints' in res.reason
     assert res.inliers == 0 and math.isinf(res.sigma_rot_rad)
+
+
+def test_features_detected_once_give_the_same_pose_as_the_images(pair):
+    from dpv_sensor.core.keypoint_pose import detect_features
+    img_a, img_b, K, _ = pair
+    cfg = KeypointConfig(max_features=2000, ratio=0.75)
+    from_images = keypoint_relative_pose(img_a, img_b, K, cfg)
+    from_features = keypoint_relative_pose(detect_features(img_a, cfg), detect_features(img_b, cfg), K, cfg)
+    assert from_images.ok and from_features.ok
+    assert from_features.inliers == from_images.inliers
+    assert np.array_equal(from_features.R_b_a, from_images.R_b_a)
+    with pytest.raises(ValueError, match='orb'):
+        keypoint_relative_pose(detect_features(img_a, cfg), img_b, K, KeypointConfig(detector='orb'))

@@ -26,7 +26,8 @@ from typing import Optional, Tuple
 import cv2
 import numpy as np
 
-__all__ = ['KeypointConfig', 'KeypointPose', 'keypoint_relative_pose', 'keypoint_covariance', 'to_gray_u8']
+__all__ = ['KeypointConfig', 'KeypointPose', 'Features', 'detect_features', 'keypoint_relative_pose',
+           'keypoint_covariance', 'to_gray_u8']
 
 
 @dataclass
@@ -122,14 +123,34 @@ def to_gray_u8(image) -> np.ndarray:
     return np.ascontiguousarray(a)
 
 
-def _detect(gray: np.ndarray, cfg: KeypointConfig):
+@dataclass
+class Features:
+    """The keypoints and descriptors of one image (``detect_features``), to match it against several others without
+    detecting again (a window keyframe is matched as the reference and later as a source)."""
+    keypoints: tuple
+    descriptors: Optional[np.ndarray]
+    detector: str
+
+
+def detect_features(image, config: Optional[KeypointConfig] = None) -> Features:
+    """Keypoints and descriptors of an image (any form :func:`to_gray_u8` takes) with the configured detector."""
+    cfg = config or KeypointConfig()
     if cfg.detector == 'sift':
         det = cv2.SIFT_create(nfeatures=cfg.max_features)
     elif cfg.detector == 'orb':
         det = cv2.ORB_create(nfeatures=cfg.max_features)
     else:
         raise ValueError(f"detector must be 'sift' or 'orb', not {cfg.detector!r}")
-    return det.detectAndCompute(gray, None)
+    kp, desc = det.detectAndCompute(to_gray_u8(image), None)
+    return Features(tuple(kp or ()), desc, cfg.detector)
+
+
+def _features(image_or_features, cfg: KeypointConfig) -> Features:
+    if isinstance(image_or_features, Features):
+        if image_or_features.detector != cfg.detector:
+            raise ValueError(f'features from {image_or_features.detector!r}, matching with {cfg.detector!r}')
+        return image_or_features
+    return detect_features(image_or_features, cfg)
 
 
 def _match(desc_a, desc_b, cfg: KeypointConfig):
@@ -140,7 +161,8 @@ def _match(desc_a, desc_b, cfg: KeypointConfig):
 
 def keypoint_relative_pose(image_a, image_b, K_33: np.ndarray, config: Optional[KeypointConfig] = None,
                            T_b_a_prior_44: Optional[np.ndarray] = None, prior_gate_px: float = 0.0) -> KeypointPose:
-    """``T_b_a`` from matched keypoints of two views with the same intrinsics ``K_33`` (module doc).
+    """``T_b_a`` from matched keypoints of two views with the same intrinsics ``K_33`` (module doc). Each view is
+    an image or its :class:`Features` (detected once, matched many times).
 
     ``T_b_a_prior_44`` with ``prior_gate_px > 0``: before RANSAC, drop matches whose Sampson distance under the
     prior (e.g. the odometry) exceeds the gate. Repetitive texture (tiles, checkers) gives ratio-test matches one
@@ -148,10 +170,10 @@ def keypoint_relative_pose(image_a, image_b, K_33: np.ndarray, config: Optional[
     to the prior (it should be several times the shift the prior's error can cause)."""
     cfg = config or KeypointConfig()
     K = np.asarray(K_33, np.float64)
-    kp_a, d_a = _detect(to_gray_u8(image_a), cfg)
-    kp_b, d_b = _detect(to_gray_u8(image_b), cfg)
+    fa, fb = _features(image_a, cfg), _features(image_b, cfg)
+    kp_a, d_a, kp_b, d_b = fa.keypoints, fa.descriptors, fb.keypoints, fb.descriptors
     if d_a is None or d_b is None or len(kp_a) < cfg.min_inliers or len(kp_b) < cfg.min_inliers:
-        n = min(len(kp_a or ()), len(kp_b or ()))
+        n = min(len(kp_a), len(kp_b))
         return KeypointPose(False, f'too few keypoints ({n} < {cfg.min_inliers})')
     good = _match(d_a, d_b, cfg)
     if len(good) < cfg.min_inliers:

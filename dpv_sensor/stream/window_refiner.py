@@ -53,7 +53,8 @@ import numpy as np
 
 from dpv_sensor import params as _params
 from dpv_sensor.core import pose_uncertainty
-from dpv_sensor.core.keypoint_pose import KeypointConfig, KeypointPose, keypoint_relative_pose
+from dpv_sensor.core.keypoint_pose import (Features, KeypointConfig, KeypointPose, detect_features,
+                                           keypoint_relative_pose)
 from dpv_sensor.core.geometry import rotation_angle_np
 from dpv_sensor.core.photometric import (AlignmentConfig, AlignmentResult, Aligner, ImagePyramid,
                                    inverse_depth_std_from_confidence, pose_error)
@@ -332,6 +333,7 @@ class WindowPoseRefiner:
         self._est: Dict[Hashable, np.ndarray] = {}        # current refined pose per key
         self._factors: List[Tuple[Hashable, Hashable, np.ndarray, np.ndarray]] = []  # (ref, src, T_ref_src, cov)
         self._pyramids: Dict[Hashable, ImagePyramid] = {}   # per keyframe, reused while it stays in the window
+        self._features: Dict[Hashable, Features] = {}       # keypoints per keyframe, likewise
         self._depth_refs = 0                                 # references with a predicted depth since the start
         self._cov: Dict[Hashable, Optional[np.ndarray]] = {}   # first odometry pose covariance seen per key
         self._graph = None                                   # (graph, result, index) of the last solve
@@ -485,7 +487,7 @@ class WindowPoseRefiner:
             if f.key not in self._odom:
                 self._odom[f.key] = np.asarray(f.T_world_cam_odom_44, dtype=np.float64).copy()
                 self._cov[f.key] = None if f.pose_cov_66 is None else np.asarray(f.pose_cov_66, np.float64)
-        for store in (self._est, self._odom, self._pyramids, self._cov):
+        for store in (self._est, self._odom, self._pyramids, self._features, self._cov):
             for k in list(store):
                 if k not in keys:
                     del store[k]
@@ -512,6 +514,8 @@ class WindowPoseRefiner:
         if cfg.max_sources is not None:
             order = order[:cfg.max_sources]
         out.order = order
+        if not order:                                   # max_sources 0: no photometric factors
+            return out
         aligner = Aligner(self._pyramid(ref), depth.depth_hw, ref.K_33, conf_ref=depth.conf_hw,
                           K_depth_33=depth.K_depth_33, inv_depth_std_ref=depth.inv_depth_std_hw,
                           config=cfg.alignment)
@@ -563,7 +567,8 @@ class WindowPoseRefiner:
         for i in order[:cfg.keypoint_sources]:
             s = sources[i]
             T0 = relative_pose(init[s.key], init[ref.key])                # T_src_ref from the odometry
-            kp = keypoint_relative_pose(ref.image, s.image, ref.K_33, cfg.keypoint, T0, cfg.keypoint_prior_gate_px)
+            kp = keypoint_relative_pose(self._keypoints(ref), self._keypoints(s), ref.K_33, cfg.keypoint, T0,
+                                        cfg.keypoint_prior_gate_px)
             kps.append(kp)
             if not kp.ok or kp.t_dir_b is None:
                 continue
@@ -662,6 +667,11 @@ class WindowPoseRefiner:
             return (f'turning in place: {math.degrees(angle):.1f} deg to the nearest keyframe against a baseline of '
                     f'{parallax:.4f} x the median depth (ratio {angle / max(parallax, 1e-12):.1f} > {limit:g})')
         return None
+
+    def _keypoints(self, f: WindowKeyframe) -> Features:
+        if f.key not in self._features:
+            self._features[f.key] = detect_features(f.image, self.config.keypoint)
+        return self._features[f.key]
 
     def _pyramid(self, f: WindowKeyframe) -> ImagePyramid:
         if f.key not in self._pyramids:
