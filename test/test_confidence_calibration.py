@@ -312,3 +312,26 @@ def test_calibrate_tool_needs_one_source():
         with pytest.raises(SystemExit) as info:
             tool.main(args)
         assert info.value.code == 2
+
+
+def test_calibrate_tool_replays_a_bag_through_the_node(tmp_path, capsys, monkeypatch):
+    """--bag BAG --gt GT: the recording goes through the node process (lockstep replay), its depth images are
+    matched to the GT frames; the map carries the settings the node ran with."""
+    import os
+    from dpv_sensor.data import rosbag_io as R
+    from dpv_sensor.data.sequence import write_sequence
+    from dpv_sensor.data.synthetic import render_sequence
+    from dpv_sensor.tools import calibrate as tool
+    for name in ('ROS_DOMAIN_ID', 'ROS_LOG_DIR'):       # the replay sets them for its node: restored afterwards
+        monkeypatch.setenv(name, os.environ.get(name, ''))
+    seq = render_sequence(5, 24, width=80, height=60)
+    write_sequence(tmp_path / 'seq', seq, lossless=True)
+    R.write_sequence_bag(tmp_path / 'bag', seq, odom_rate=100.0)
+    rc = tool.main(['--bag', str(tmp_path / 'bag'), '--gt', str(tmp_path / 'seq'), '--config', *TOOL_CONFIG,
+                    '--out', str(tmp_path / 'cal'), '--domain-id', os.environ['ROS_DOMAIN_ID'], '--quiet'])
+    text = capsys.readouterr().out
+    assert rc == 0, text
+    assert '| held-out |' in text
+    cal = CC.load(tmp_path / 'cal' / 'calibration.json')
+    assert cal.estimator == CC.signature('classical', None, (64, 48), (0.3, 8.0), 16, 'ratio 1.25')
+    assert str(tmp_path / 'bag') in cal.fitted_on['source'] and cal.fitted_on['pixels'] > 1000
