@@ -210,3 +210,21 @@ def test_the_honest_odometry_source_has_the_noisy_poses_and_a_covariance():
     table = ST._Table(out=pathlib.Path('.'), params={}, folders={'a': None}, noise_seeds=[0, 1],
                       single_sources=('gt',), command='', covariance=True)
     assert table.sources == ['gt', 'noisy0', 'noisy1', 'noisy0cov', 'noisy1cov']
+
+
+def test_offline_runs_agree_with_the_node_and_carry_the_covariance(table_run):
+    """--offline: the same pose source through the pipeline in this process gives the node run's depth; the honest
+    source's covariance reaches the estimator (it widens the measurement: lower confidence, same poses)."""
+    out, proc = table_run
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    node_run, _ = _run_json(out)
+    folder = out / 'sequences' / 'synthetic_seed50'
+    params = parse_params(NODE)
+    plain = ST.run_one_offline('synthetic_seed50', folder, 'noisy0', params, out, progress=False)
+    honest = ST.run_one_offline('synthetic_seed50', folder, 'noisy0cov', params, out, progress=False)
+    assert plain['keyframes_scored'] == node_run['keyframes_scored']
+    assert plain['abs_rel'] == pytest.approx(node_run['abs_rel'], abs=0.005)
+    assert honest['calibration']['mean_confidence'] < plain['calibration']['mean_confidence']
+    table = ST._Table(out=out, params=params, folders={'synthetic_seed50': folder}, noise_seeds=[0],
+                      single_sources=(), command='', offline=True)
+    assert 'offline=True' in table.run_file('synthetic_seed50', 'noisy0').name

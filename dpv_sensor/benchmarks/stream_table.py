@@ -10,6 +10,11 @@ odometry at 100 Hz), the node is started as its own process at its defaults plus
 dropped) while the outputs are recorded, and the recorded bag is scored with ``evaluate bag``'s code
 (dpv_sensor.evaluation.offline.records_from_bag / evaluate_records).
 
+``--offline`` runs the same sequences, pose sources and parameters through the node's pipeline in this process
+(``evaluation.runner.run_sequence``: no bag, DDS or node process; the honest source's covariance handed to the frames
+as the bag would carry it) and scores them the same way, without consumer odometry: a quick ablation that gives the
+node's depth (cached and tabled apart, ``offline=True`` in the names). The table of record is the node's.
+
 Pose sources: ``gt`` (the sequence's poses as odometry), ``offset<t>ms`` (``--offset-ms``, default 10: the GT pose
 t ms after each image's stamp, a camera-odometry time offset), ``noisy<k>`` for each noise seed k (odometry-like
 drift: 2 % of each step's translation in a random direction and a 0.1 deg rotation about a random axis per frame,
@@ -384,6 +389,48 @@ def run_one(seq_name: str, seq_dir: pathlib.Path, pose_source: str, user_params:
     return E.to_jsonable(result)
 
 
+def run_one_offline(seq_name: str, seq_dir: pathlib.Path, pose_source: str, user_params: Dict[str, Any],
+                    out: pathlib.Path, *, min_depth=None, max_depth=None, progress: bool = True) -> Dict[str, Any]:
+    """``--offline``: the same sequence, pose source and parameters through the node's pipeline in this process
+    (evaluation.runner.run_sequence: no bag, no DDS, no node), scored the same way; the run's JSON dict with the
+    columns the table shows (no consumer odometry). Quick ablations; the table of record is the node's."""
+    from dpv_sensor.evaluation import offline as E
+    from dpv_sensor.evaluation import runner as RN
+    from dpv_sensor.data.sequence import Sequence
+    key = run_key(seq_name, pose_source, user_params)
+    t_all = time.perf_counter()
+    seq = Sequence(seq_dir)
+    config, values = RN.build_config(user_params)
+    records, _ = RN.run_sequence(seq, config, E.EvalOptions(progress=progress), keep_images=False,
+                                 poses=odometry_poses(seq, pose_source),
+                                 pose_variance=odometry_variance(seq, pose_source))
+    if not records:
+        raise RuntimeError('the pipeline published no keyframe depth')
+    options = E.EvalOptions(min_depth=min_depth, max_depth=max_depth, progress=progress,
+                            consumer_odometry=False).validate()
+    summary = E.evaluate_records(records, None, options, source='offline')
+    times = [r.time_ms for r in records if math.isfinite(r.time_ms)]
+    resets = [r.reset_reason for r in records[1:] if r.reset_reason]
+    return E.to_jsonable({
+        'version': RUN_VERSION, 'key': key, 'sequence': seq_name, 'sequence_folder': str(seq_dir),
+        'pose_source': pose_source, 'params': user_params, 'node_parameters': values, 'offline': True,
+        'noise': noise_description(pose_source), 'frames': len(seq), 'keyframes_scored': len(records),
+        'abs_rel': summary['metric']['frame_mean']['abs_rel'], 'delta1': summary['metric']['frame_mean']['delta1'],
+        'rmse': summary['metric']['frame_mean']['rmse'],
+        'ms_abs_rel': summary['median_scaled']['frame_mean']['abs_rel'],
+        'coverage': summary['coverage']['frame_mean'],
+        'confident_half_ratio': _get(summary, 'confidence', 'confident_half_ratio_frame_mean'),
+        'mean_confidence': _get(summary, 'confidence', 'mean_confidence'),
+        'calibration': summary.get('calibration'),
+        'output_resets': len(resets), 'output_reset_reasons': resets,
+        'keyframe_ms_median': float(np.median(times)) if times else None,
+        'constant': constant_on_same_pixels(records, oracle_constant(seq, min_depth, max_depth), min_depth,
+                                            max_depth),
+        'min_depth': min_depth, 'max_depth': max_depth,
+        'timing': {'total_s': round(time.perf_counter() - t_all, 1)}, 'finished': time.strftime('%Y-%m-%d %H:%M:%S'),
+    })
+
+
 # --------------------------------------------------------------------------------------------------------------
 # the table
 # --------------------------------------------------------------------------------------------------------------
@@ -562,6 +609,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help='skip the consumer check (Open3D RGB-D odometry on predicted vs GT depth: the odo/col '
                         'columns), most of the scoring time on long sequences')
     p.add_argument('--table-only', action='store_true', help='run nothing, rebuild the table from the cache')
+    p.add_argument('--offline', action='store_true',
+                   help="the node's pipeline in this process (no bag, DDS or node; no consumer odometry): quick "
+                        "ablations, cached and tabled apart (offline=True in the names)")
     p.add_argument('--quiet', action='store_true', help='no progress bars')
     return p
 
@@ -586,6 +636,12 @@ class _Table:
     single_sources: Tuple[str, ...]      # pose sources with one run per sequence (gt, offset<t>ms)
     command: str
     covariance: bool = False             # also the noisy<k>cov sources (the noise model's variance published)
+    offline: bool = False                # the pipeline in this process instead of the node (run_one_offline)
+
+    @property
+    def tag_params(self) -> Dict[str, Any]:
+        """The parameters as run files and table names carry them (offline runs are told apart)."""
+        return dict(self.params, offline=True) if self.offline else self.params
 
     @property
     def sequences(self) -> List[str]:
@@ -597,7 +653,7 @@ class _Table:
         return list(self.single_sources) + [f'noisy{k}{x}' for x in suffixes for k in self.noise_seeds]
 
     def run_file(self, seq_name: str, pose_source: str) -> pathlib.Path:
-        return self.out / 'runs' / f'{run_key(seq_name, pose_source, self.params)}.json'
+        return self.out / 'runs' / f'{run_key(seq_name, pose_source, self.tag_params)}.json'
 
     def cached_runs(self) -> List[Dict[str, Any]]:
         """The cached runs of this table (of the current RUN_VERSION), sequence by sequence."""
@@ -613,7 +669,7 @@ class _Table:
 
     def write(self, failures: Dict[str, str]) -> str:
         """Write the table of the cached runs; its text."""
-        text, _ = write_table(self.out, self.cached_runs(), self.sequences, self.noise_seeds, self.params,
+        text, _ = write_table(self.out, self.cached_runs(), self.sequences, self.noise_seeds, self.tag_params,
                               self.command, failures, self.single_sources, self.covariance)
         return text
 
@@ -679,16 +735,20 @@ def _run_missing(table: _Table, a, render_size: Tuple[int, int], failures: Dict[
     print(f'stream table: {len(table.sequences) * len(table.sources) - len(todo)} runs cached, {len(todo)} to run '
           f'(parameters: {params_tag(table.params)}) -> {table.out}', flush=True)
     for n, (s, src) in enumerate(todo, 1):
-        key = run_key(s, src, table.params)
+        key = run_key(s, src, table.tag_params)
         print(f'\n=== run {n}/{len(todo)}: {s}, poses {src}, {params_tag(table.params)} '
               f'({time.strftime("%H:%M:%S")}) ===', flush=True)
         try:
             if table.folders[s] is None:
                 table.folders[s] = rendered_sequence(table.out, int(s[len('synthetic_seed'):]), a.frames, progress,
                                                      render_size)
-            res = run_one(s, table.folders[s], src, table.params, table.out, min_depth=a.min_depth,
-                          max_depth=a.max_depth, keep_bags=a.keep_bags, progress=progress,
-                          consumer_odometry=not a.no_consumer_odometry)
+            if table.offline:
+                res = run_one_offline(s, table.folders[s], src, table.params, table.out, min_depth=a.min_depth,
+                                      max_depth=a.max_depth, progress=progress)
+            else:
+                res = run_one(s, table.folders[s], src, table.params, table.out, min_depth=a.min_depth,
+                              max_depth=a.max_depth, keep_bags=a.keep_bags, progress=progress,
+                              consumer_odometry=not a.no_consumer_odometry)
         except KeyboardInterrupt:
             print('\ninterrupted; finished runs are cached, run the same command again to go on', flush=True)
             return False
@@ -724,7 +784,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     single = tuple(([] if a.no_gt else ['gt']) + ([f'offset{a.offset_ms:g}ms'] if a.offset_ms > 0 else []))
     table = _Table(out=out, params=opts.params, folders=folders, noise_seeds=opts.noise_seeds, single_sources=single,
                    command='python -m dpv_sensor.benchmarks.stream_table ' +
-                   ' '.join(x for x in argv if x != '--table-only'), covariance=a.covariance)
+                   ' '.join(x for x in argv if x != '--table-only'), covariance=a.covariance, offline=a.offline)
     failures: Dict[str, str] = {}
     if not a.table_only:
         _prepare_to_run(out, a.domain_id)

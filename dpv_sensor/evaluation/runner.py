@@ -190,21 +190,26 @@ def input_poses(seq, options: EvalOptions) -> List[np.ndarray]:
 # ----------------------------------------------------------------------------------------------
 
 def run_sequence(seq, config, options: Optional[EvalOptions] = None, *, model=None, pose_refiner=None,
-                 keep_images: bool = True) -> Tuple[List[KeyframeRecord], EstimatorStatus]:
+                 keep_images: bool = True, poses: Optional[List[np.ndarray]] = None,
+                 pose_variance: Optional[np.ndarray] = None) -> Tuple[List[KeyframeRecord], EstimatorStatus]:
     """Push the sequence (prepared as ``options`` say) frame by frame through a :class:`Pipeline`, the node's code
     path; return (keyframe records, the pipeline's :class:`EstimatorStatus`). The one offline runner.
 
     config: an ``EstimatorConfig``; the pose source comes from it (``pipeline.PoseSource``): with
     ``pose_refinement='window'`` and no ``pose_refiner`` given, a WindowPoseRefiner with the config's sigmas,
     with ``odometry='none'`` visual odometry instead of the sequence's poses. ``model``: a DPVNet to use
-    instead of loading weights (see ``Estimator``).
+    instead of loading weights (see ``Estimator``). ``poses``: the odometry pose of every frame in place of the
+    options' pose source; ``pose_variance``: one row per frame (position, rotation variance per axis) published as
+    the frames' pose covariance, as ``data.rosbag_io.write_sequence_bag`` writes it into a bag's odometry.
     """
+    from dpv_sensor.data.rosbag_io import COVARIANCE_FLOOR_SIGMA
     from dpv_sensor.stream.frame import Frame
     from dpv_sensor.stream.pipeline import Pipeline
     options = (options or EvalOptions()).validate()
     seq = prepare_sequence(seq, options)
     pipe = Pipeline(config, model=model, pose_refiner=pose_refiner)
-    poses_in = input_poses(seq, options)
+    poses_in = input_poses(seq, options) if poses is None else poses
+    floor = COVARIANCE_FLOOR_SIGMA ** 2
     K = np.asarray(seq.K, np.float64)
     index_of: Dict[float, int] = {}
     records: List[KeyframeRecord] = []
@@ -215,8 +220,10 @@ def run_sequence(seq, config, options: Optional[EvalOptions] = None, *, model=No
     for i in iterator:
         stamp = float(seq.stamp(i))
         index_of[stamp] = i
+        cov = None if pose_variance is None else np.diag([max(float(pose_variance[i][0]), floor)] * 3
+                                                         + [max(float(pose_variance[i][1]), floor)] * 3)
         out = pipe.push(Frame(stamp=stamp, image=seq.image(i), K_33=K, T_world_cam_44=poses_in[i],
-                              frame_id='camera')).output
+                              frame_id='camera', pose_covariance_66=cov)).output
         if out is None or not out.is_keyframe:
             continue
         j = index_of[out.stamp]
