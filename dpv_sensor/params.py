@@ -214,7 +214,9 @@ SPECS: tuple[ParamSpec, ...] = (
               '(+0.004 to +0.016) and some depth on SUN3D frag2 (+0.002 abs_rel).',
               choices=('covariance', 'auto', 'drift', 'off')),
     ParamSpec('odom_drift_trans', 0.02, 'Pose uncertainty: translation error of the odometry per metre travelled '
-              '(0.02 = 2 %: wheel and visual-inertial odometry drift 0.5-3 % of the distance).',
+              '(0.02 = 2 %: wheel and visual-inertial odometry drift 0.5-3 % of the distance). Also caps the '
+              "translation a published covariance's growth between two views is taken to mean (its growth holds the "
+              'earlier heading error, which does not enter their relative motion).',
               min_value=0.0, max_value=1.0),
     ParamSpec('odom_drift_rot_deg_per_m', 1.0, 'Pose uncertainty: rotation error of the odometry (deg) per metre '
               'travelled.', min_value=0.0, max_value=90.0),

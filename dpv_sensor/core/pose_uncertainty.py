@@ -17,7 +17,11 @@ default drift figures, is in docs/pose_uncertainty.md.
      ``m`` in a random direction has per-axis std ``m / sqrt(3)``);
    * the odometry's own covariance where the publisher fills it (the growth of the pose covariance between the two
      views, which for integrated odometry is the covariance of the relative motion), used instead of the drift
-     terms;
+     terms. Its translation growth also holds the heading error accumulated before the first view, levered by the
+     step (with its cross-covariance to the position), which does not enter the relative motion: on a long path it
+     overstates the relative translation by up to ten times. So the translation variance taken from it is capped at
+     what ``cov_trans_per_m`` of the path (the relative motion's own translation error) plus the rotation growth's
+     lever within the segment give: ``(cov_trans_per_m L)^2 / 3 + var_rot L^2 / 3``;
    * a camera-odometry time offset of std ``sync_s``: with body velocities ``v``, ``w`` the pose at ``t + tau`` is
      off by ``tau * (v, w)``, and the relative pose of two views by ``tau`` times the *difference* of their
      velocities (a constant offset cancels for constant motion).
@@ -66,12 +70,15 @@ class DriftModel:
 
     trans_per_m: translation error per metre travelled (0.02 = 2 % of the path). rot_deg_per_m: rotation error (deg)
     per metre travelled. rot_per_deg: rotation error per degree turned (0.02 = 2 %). sync_s: std of the camera-odometry
-    time offset (s). All error figures are magnitudes of an error vector in a random direction.
+    time offset (s). cov_trans_per_m: the relative motion's own translation error per metre that caps a published
+    covariance's translation growth (module doc, item 1; also with the drift terms off). All error figures are
+    magnitudes of an error vector in a random direction.
     """
     trans_per_m: float = 0.02
     rot_deg_per_m: float = 1.0
     rot_per_deg: float = 0.02
     sync_s: float = 0.005
+    cov_trans_per_m: float = 0.02
 
 
 @dataclass(frozen=True)
@@ -130,10 +137,11 @@ def relative_pose_sigma(model: DriftModel, chain_44: Sequence[np.ndarray], *,
     path the drift accumulates over). cov_*_66: the odometry covariances of the two views (used instead of the drift
     terms when both are filled). twist_*_6: world-frame velocities of the two views (the time-offset term)."""
     cov = covariance_sigma(cov_ref_66, cov_src_66)
+    L, A = path_between(list(chain_44))
     if cov is not None:
-        var_r, var_t = cov.rot_rad ** 2, cov.trans_m ** 2
+        var_r = cov.rot_rad ** 2
+        var_t = min(cov.trans_m ** 2, (model.cov_trans_per_m * L) ** 2 / 3.0 + var_r * L ** 2 / 3.0)
     else:
-        L, A = path_between(list(chain_44))
         rot = math.radians(model.rot_deg_per_m * L + model.rot_per_deg * A) / SQRT3
         tr = model.trans_per_m * L / SQRT3
         var_r, var_t = rot ** 2, tr ** 2

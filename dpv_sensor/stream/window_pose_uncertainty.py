@@ -28,11 +28,12 @@ def frame_covariance(cfg, frame) -> Optional[np.ndarray]:
 
 def drift_model(cfg) -> pose_uncertainty.DriftModel:
     """The drift figures of the settings (all zero with ``pose_uncertainty: covariance``: only the odometry's
-    covariance)."""
+    covariance, its translation capped by ``odom_drift_trans`` per metre either way)."""
     if cfg.pose_uncertainty == 'covariance':
-        return pose_uncertainty.DriftModel(0.0, 0.0, 0.0, 0.0)
+        return pose_uncertainty.DriftModel(0.0, 0.0, 0.0, 0.0, cov_trans_per_m=cfg.odom_drift_trans)
     return pose_uncertainty.DriftModel(trans_per_m=cfg.odom_drift_trans, rot_deg_per_m=cfg.odom_drift_rot_deg_per_m,
-                                       rot_per_deg=cfg.odom_drift_rot, sync_s=cfg.odom_time_sync_ms / 1000.0)
+                                       rot_per_deg=cfg.odom_drift_rot, sync_s=cfg.odom_time_sync_ms / 1000.0,
+                                       cov_trans_per_m=cfg.odom_drift_trans)
 
 
 def window_sigma_planes(cfg, geom, ref, sources: List, K_vol_b33: torch.Tensor, plane_step_rho: float,

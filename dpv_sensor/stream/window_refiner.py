@@ -178,7 +178,8 @@ class PoseRefinerConfig:
         if all(k in values for k in ('odom_drift_trans', 'odom_drift_rot_deg_per_m', 'odom_drift_rot')):
             kw['drift'] = pose_uncertainty.DriftModel(trans_per_m=float(values['odom_drift_trans']),
                                                       rot_deg_per_m=float(values['odom_drift_rot_deg_per_m']),
-                                                      rot_per_deg=float(values['odom_drift_rot']), sync_s=0.0)
+                                                      rot_per_deg=float(values['odom_drift_rot']), sync_s=0.0,
+                                                      cov_trans_per_m=float(values['odom_drift_trans']))
         return cls(**kw)
 
 
