@@ -47,7 +47,8 @@ def test_ints_are_accepted_for_floats():
 
 
 def test_pose_refiner_sigmas_come_from_the_parameters():
-    from dpv_sensor.stream.window_refiner import PoseRefinerConfig, odometry_between_sigmas
+    from dpv_sensor.stream.window_graph import odometry_between_sigmas
+    from dpv_sensor.stream.window_refiner import PoseRefinerConfig
     import numpy as np
     defaults = P.defaults()
     assert PoseRefinerConfig.from_params(defaults) == PoseRefinerConfig()   # one set of defaults

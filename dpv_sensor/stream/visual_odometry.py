@@ -27,7 +27,7 @@ import gtsam
 import numpy as np
 
 from dpv_sensor.core.photometric import AlignmentConfig, AlignmentResult, Aligner, pose_error
-from dpv_sensor.stream.window_refiner import pose3_from_matrix, relative_pose
+from dpv_sensor.stream.window_graph import pose3_from_matrix, relative_pose
 
 __all__ = ['VisualOdometryConfig', 'VOResult', 'VisualOdometry']
 

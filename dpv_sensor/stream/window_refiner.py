@@ -6,7 +6,8 @@ reference by minimising the confidence-weighted robust photometric error. Here t
 (:mod:`dpv_sensor.core.photometric`) become ``BetweenFactorPose3`` factors with the alignment's covariance (robustified
 with a Huber norm) in a gtsam factor graph over the keyframes of the sliding window, next to odometry between
 factors with configurable sigmas and a prior that fixes the gauge on the oldest keyframe; Levenberg-Marquardt
-solves it at every keyframe.
+solves it at every keyframe. The graph and its solve are :mod:`dpv_sensor.stream.window_graph`; the keypoint
+relative poses :mod:`dpv_sensor.core.keypoint_pose`; this module decides what enters the graph and keeps the window.
 
 The refiner, :class:`WindowPoseRefiner` (``pose_refinement: window``): the estimator calls
 :meth:`WindowPoseRefiner.refine` once per keyframe with the window's keyframes (their images and odometry poses) and
@@ -58,6 +59,8 @@ from dpv_sensor.core.keypoint_pose import (Features, KeypointConfig, KeypointPos
 from dpv_sensor.core.geometry import rotation_angle_np
 from dpv_sensor.core.photometric import (AlignmentConfig, AlignmentResult, Aligner, ImagePyramid,
                                    inverse_depth_std_from_confidence, pose_error)
+from dpv_sensor.stream.window_graph import (odometry_between_sigmas, odometry_step_covariance, pose3_from_matrix,
+                                            relative_marginal_sigmas, relative_pose, solve_window)
 
 __all__ = ['PoseRefinerConfig', 'WindowKeyframe', 'RefinementResult', 'WindowPoseRefiner',
            'odometry_between_sigmas', 'odometry_step_covariance', 'relative_pose_errors', 'pose3_from_matrix',
@@ -230,30 +233,6 @@ class RefinementResult:
     keypoints: List[KeypointPose] = field(default_factory=list)
 
 
-def odometry_between_sigmas(T_a_b_44: np.ndarray, cfg: PoseRefinerConfig) -> np.ndarray:
-    """gtsam-ordered (rot, rot, rot, trans, trans, trans) sigmas of an odometry between factor for step T_a_b."""
-    rot = math.radians(cfg.odom_sigma_rot_deg)
-    tr = cfg.odom_sigma_trans_m + cfg.odom_sigma_trans_rel * float(np.linalg.norm(np.asarray(T_a_b_44)[:3, 3]))
-    return np.array([rot, rot, rot, tr, tr, tr])
-
-
-def odometry_step_covariance(T_odom_a: np.ndarray, T_odom_b: np.ndarray, cov_a_66, cov_b_66,
-                             cfg: PoseRefinerConfig) -> np.ndarray:
-    """gtsam-ordered 6x6 covariance of the odometry's motion from keyframe a to b: ``odom_covariance='fixed'``
-    the configured sigmas; 'odometry' the growth of the published covariance where both are filled, else the drift
-    figures of the step (never below 1e-3 deg / 0.1 mm per axis: odometry is never exact)."""
-    T_ab = relative_pose(T_odom_a, T_odom_b)
-    if cfg.odom_covariance == 'fixed':
-        return np.diag(odometry_between_sigmas(T_ab, cfg) ** 2)
-    if cfg.odom_covariance != 'odometry':
-        raise ValueError(f"odom_covariance must be 'fixed' or 'odometry', not {cfg.odom_covariance!r}")
-    sig = pose_uncertainty.relative_pose_sigma(cfg.drift, [T_odom_a, T_odom_b], cov_ref_66=cov_a_66,
-                                               cov_src_66=cov_b_66)
-    rot = max(sig.rot_rad, math.radians(1e-3))
-    tr = max(sig.trans_m, 1e-4)
-    return np.diag([rot ** 2] * 3 + [tr ** 2] * 3)
-
-
 def relative_pose_errors(T_world_est: Sequence[np.ndarray], T_world_gt: Sequence[np.ndarray]
                          ) -> Tuple[np.ndarray, np.ndarray]:
     """Relative pose errors between consecutive poses: (translation m, rotation deg) arrays of length n-1."""
@@ -265,22 +244,6 @@ def relative_pose_errors(T_world_est: Sequence[np.ndarray], T_world_gt: Sequence
         t_err.append(te)
         r_err.append(re)
     return np.asarray(t_err), np.asarray(r_err)
-
-
-def pose3_from_matrix(T_44: np.ndarray) -> gtsam.Pose3:
-    """A gtsam Pose3 from a 4x4 matrix, its rotation re-orthonormalised."""
-    T = np.asarray(T_44, dtype=np.float64)
-    # Re-orthonormalise the rotation (odometry poses arrive with float rounding).
-    U, _, Vt = np.linalg.svd(T[:3, :3])
-    R = U @ Vt
-    if np.linalg.det(R) < 0:
-        R = U @ np.diag([1.0, 1.0, -1.0]) @ Vt
-    return gtsam.Pose3(gtsam.Rot3(R), gtsam.Point3(*T[:3, 3]))
-
-
-def relative_pose(T_world_a: np.ndarray, T_world_b: np.ndarray) -> np.ndarray:
-    """T_a_b = T_world_a^-1 T_world_b."""
-    return np.linalg.inv(T_world_a) @ T_world_b
 
 
 # ------------------------------------------------------------------------------------------------------------------
@@ -611,22 +574,7 @@ class WindowPoseRefiner:
         """Per source, per-axis stds of its pose relative to the reference from the solved graph's marginals."""
         if self._graph is None:
             return {}
-        graph, result, idx = self._graph
-        try:
-            marg = gtsam.Marginals(graph, result)
-        except RuntimeError:
-            return {}
-        out = {}
-        r = idx[ref.key]
-        for s in sources:
-            j = idx[s.key]
-            C = marg.jointMarginalCovariance([r, j]).fullMatrix()
-            T_rs = result.atPose3(r).between(result.atPose3(j))
-            J = np.hstack([-T_rs.inverse().AdjointMap(), np.eye(6)])   # d(T_r^-1 T_s) = -Ad(T_rs^-1) d_r + d_s
-            Crel = J @ C @ J.T
-            out[s.key] = pose_uncertainty.PoseSigma(rot_rad=math.sqrt(max(np.trace(Crel[:3, :3]) / 3, 0.0)),
-                                                    trans_m=math.sqrt(max(np.trace(Crel[3:, 3:]) / 3, 0.0)))
-        return out
+        return relative_marginal_sigmas(self._graph, ref.key, [s.key for s in sources])
 
     def _solve(self, window: List[Hashable], init: Dict[Hashable, np.ndarray], factors: list,
                reason: Optional[str], kp_factors: Sequence = ()) -> Tuple[Dict[Hashable, np.ndarray], bool,
@@ -690,47 +638,11 @@ class WindowPoseRefiner:
         return init
 
     def _optimize(self, window, init, factors, kp_factors=()) -> Dict[Hashable, np.ndarray]:
-        cfg = self.config
-        idx = {k: i for i, k in enumerate(window)}
-        graph = gtsam.NonlinearFactorGraph()
-        values = gtsam.Values()
-        for k in window:
-            values.insert(idx[k], pose3_from_matrix(init[k]))
         # Gauge: the oldest keyframe that already has a refined pose (else the oldest) stays where it is.
         anchor = next((k for k in window if k in self._est), window[0])
-        prior_sigmas = np.array([math.radians(cfg.prior_sigma_rot_deg)] * 3 + [cfg.prior_sigma_trans_m] * 3)
-        graph.add(gtsam.PriorFactorPose3(idx[anchor], pose3_from_matrix(init[anchor]),
-                                         gtsam.noiseModel.Diagonal.Sigmas(prior_sigmas)))
-        # Odometry between consecutive keyframes.
-        for a, b in zip(window[:-1], window[1:]):
-            T_ab = relative_pose(self._odom[a], self._odom[b])
-            if cfg.odom_covariance == 'fixed':
-                noise = gtsam.noiseModel.Diagonal.Sigmas(odometry_between_sigmas(T_ab, cfg))
-            else:
-                noise = gtsam.noiseModel.Gaussian.Covariance(odometry_step_covariance(
-                    self._odom[a], self._odom[b], self._cov.get(a), self._cov.get(b), cfg))
-            graph.add(gtsam.BetweenFactorPose3(idx[a], idx[b], pose3_from_matrix(T_ab), noise))
-        # Photometric alignments with their covariance, robustified.
-        huber = gtsam.noiseModel.mEstimator.Huber.Create(cfg.photometric_huber_k)
-        for r, s, T_ref_src, cov in factors:
-            if r not in idx or s not in idx:
-                continue
-            noise = gtsam.noiseModel.Robust.Create(huber, gtsam.noiseModel.Gaussian.Covariance(cov))
-            graph.add(gtsam.BetweenFactorPose3(idx[r], idx[s], pose3_from_matrix(T_ref_src), noise))
-        # Keypoint relative poses (rotation and direction; length from the odometry), robustified.
-        kp_huber = gtsam.noiseModel.mEstimator.Huber.Create(cfg.keypoint_huber_k)
-        for s, r, T_src_ref, cov in kp_factors:
-            noise = gtsam.noiseModel.Robust.Create(kp_huber, gtsam.noiseModel.Gaussian.Covariance(cov))
-            graph.add(gtsam.BetweenFactorPose3(idx[s], idx[r], pose3_from_matrix(T_src_ref), noise))
-        params = gtsam.LevenbergMarquardtParams()
-        params.setMaxIterations(cfg.lm_max_iterations)
-        result = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
-        self._graph = (graph, result, idx)
-        out = {k: result.atPose3(idx[k]).matrix() for k in window}
-        for k, T in out.items():
-            if not np.all(np.isfinite(T)):
-                raise RuntimeError(f'non-finite pose for keyframe {k}')
-        return out
+        poses, self._graph = solve_window(window, init, self._odom, self._cov, anchor, factors, kp_factors,
+                                          self.config)
+        return poses
 
     def _jump_check(self, window, poses) -> Optional[str]:
         cfg = self.config

@@ -1,0 +1,134 @@
+"""The sliding window's factor graph (gtsam), as :class:`~dpv_sensor.stream.window_refiner.WindowPoseRefiner`
+solves it at every keyframe: a prior that fixes the gauge on one keyframe, odometry between factors from each
+keyframe to the next (the configured sigmas, or what the odometry says about itself: ``odom_covariance``), the
+photometric alignments and the keypoint relative poses as robust (Huber) between factors, Levenberg-Marquardt, and
+each source's pose covariance relative to the reference from the solved graph's marginals.
+
+``cfg`` is a :class:`~dpv_sensor.stream.window_refiner.PoseRefinerConfig` (its sigma, Huber and iteration fields).
+Poses are float64 numpy 4x4 ``T_world_cam``; factors are ``(key_i, key_j, T_i_j, cov_66)`` with gtsam's tangent
+order (rotation, translation). No ROS import.
+"""
+from __future__ import annotations
+
+import math
+from typing import Dict, Hashable, Mapping, Optional, Sequence, Tuple
+
+import gtsam
+import numpy as np
+
+from dpv_sensor.core import pose_uncertainty
+
+__all__ = ['odometry_between_sigmas', 'odometry_step_covariance', 'pose3_from_matrix', 'relative_pose',
+           'solve_window', 'relative_marginal_sigmas']
+
+
+def odometry_between_sigmas(T_a_b_44: np.ndarray, cfg) -> np.ndarray:
+    """gtsam-ordered (rot, rot, rot, trans, trans, trans) sigmas of an odometry between factor for step T_a_b."""
+    rot = math.radians(cfg.odom_sigma_rot_deg)
+    tr = cfg.odom_sigma_trans_m + cfg.odom_sigma_trans_rel * float(np.linalg.norm(np.asarray(T_a_b_44)[:3, 3]))
+    return np.array([rot, rot, rot, tr, tr, tr])
+
+
+def odometry_step_covariance(T_odom_a: np.ndarray, T_odom_b: np.ndarray, cov_a_66, cov_b_66,
+                             cfg) -> np.ndarray:
+    """gtsam-ordered 6x6 covariance of the odometry's motion from keyframe a to b: ``odom_covariance='fixed'``
+    the configured sigmas; 'odometry' the growth of the published covariance where both are filled, else the drift
+    figures of the step (never below 1e-3 deg / 0.1 mm per axis: odometry is never exact)."""
+    T_ab = relative_pose(T_odom_a, T_odom_b)
+    if cfg.odom_covariance == 'fixed':
+        return np.diag(odometry_between_sigmas(T_ab, cfg) ** 2)
+    if cfg.odom_covariance != 'odometry':
+        raise ValueError(f"odom_covariance must be 'fixed' or 'odometry', not {cfg.odom_covariance!r}")
+    sig = pose_uncertainty.relative_pose_sigma(cfg.drift, [T_odom_a, T_odom_b], cov_ref_66=cov_a_66,
+                                               cov_src_66=cov_b_66)
+    rot = max(sig.rot_rad, math.radians(1e-3))
+    tr = max(sig.trans_m, 1e-4)
+    return np.diag([rot ** 2] * 3 + [tr ** 2] * 3)
+
+
+
+
+def pose3_from_matrix(T_44: np.ndarray) -> gtsam.Pose3:
+    """A gtsam Pose3 from a 4x4 matrix, its rotation re-orthonormalised."""
+    T = np.asarray(T_44, dtype=np.float64)
+    # Re-orthonormalise the rotation (odometry poses arrive with float rounding).
+    U, _, Vt = np.linalg.svd(T[:3, :3])
+    R = U @ Vt
+    if np.linalg.det(R) < 0:
+        R = U @ np.diag([1.0, 1.0, -1.0]) @ Vt
+    return gtsam.Pose3(gtsam.Rot3(R), gtsam.Point3(*T[:3, 3]))
+
+
+def relative_pose(T_world_a: np.ndarray, T_world_b: np.ndarray) -> np.ndarray:
+    """T_a_b = T_world_a^-1 T_world_b."""
+    return np.linalg.inv(T_world_a) @ T_world_b
+
+
+def solve_window(window: Sequence[Hashable], init: Mapping[Hashable, np.ndarray], odom: Mapping[Hashable, np.ndarray],
+                 cov: Mapping[Hashable, Optional[np.ndarray]], anchor: Hashable, factors: Sequence = (),
+                 kp_factors: Sequence = (), cfg=None) -> Tuple[Dict[Hashable, np.ndarray], tuple]:
+    """Optimise the window's poses: returns (``T_world_cam`` by key, (graph, result, index) for the marginals).
+
+    window: the keys in time order; init: the starting poses; odom / cov: each keyframe's odometry pose and
+    published covariance (or None); anchor: the keyframe the gauge prior holds at its starting pose; factors:
+    photometric ``(ref, src, T_ref_src, cov)``; kp_factors: keypoint ``(src, ref, T_src_ref, cov)``. Raises
+    RuntimeError for a non-finite solution (gtsam raises it for an indeterminate system)."""
+    idx = {k: i for i, k in enumerate(window)}
+    graph = gtsam.NonlinearFactorGraph()
+    values = gtsam.Values()
+    for k in window:
+        values.insert(idx[k], pose3_from_matrix(init[k]))
+    prior_sigmas = np.array([math.radians(cfg.prior_sigma_rot_deg)] * 3 + [cfg.prior_sigma_trans_m] * 3)
+    graph.add(gtsam.PriorFactorPose3(idx[anchor], pose3_from_matrix(init[anchor]),
+                                     gtsam.noiseModel.Diagonal.Sigmas(prior_sigmas)))
+    # Odometry between consecutive keyframes.
+    for a, b in zip(window[:-1], window[1:]):
+        T_ab = relative_pose(odom[a], odom[b])
+        if cfg.odom_covariance == 'fixed':
+            noise = gtsam.noiseModel.Diagonal.Sigmas(odometry_between_sigmas(T_ab, cfg))
+        else:
+            noise = gtsam.noiseModel.Gaussian.Covariance(odometry_step_covariance(
+                odom[a], odom[b], cov.get(a), cov.get(b), cfg))
+        graph.add(gtsam.BetweenFactorPose3(idx[a], idx[b], pose3_from_matrix(T_ab), noise))
+    # Photometric alignments with their covariance, robustified.
+    huber = gtsam.noiseModel.mEstimator.Huber.Create(cfg.photometric_huber_k)
+    for r, s, T_ref_src, c in factors:
+        if r not in idx or s not in idx:
+            continue
+        noise = gtsam.noiseModel.Robust.Create(huber, gtsam.noiseModel.Gaussian.Covariance(c))
+        graph.add(gtsam.BetweenFactorPose3(idx[r], idx[s], pose3_from_matrix(T_ref_src), noise))
+    # Keypoint relative poses (rotation and direction; length from the odometry), robustified.
+    kp_huber = gtsam.noiseModel.mEstimator.Huber.Create(cfg.keypoint_huber_k)
+    for s, r, T_src_ref, c in kp_factors:
+        noise = gtsam.noiseModel.Robust.Create(kp_huber, gtsam.noiseModel.Gaussian.Covariance(c))
+        graph.add(gtsam.BetweenFactorPose3(idx[s], idx[r], pose3_from_matrix(T_src_ref), noise))
+    params = gtsam.LevenbergMarquardtParams()
+    params.setMaxIterations(cfg.lm_max_iterations)
+    result = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
+    out = {k: result.atPose3(idx[k]).matrix() for k in window}
+    for k, T in out.items():
+        if not np.all(np.isfinite(T)):
+            raise RuntimeError(f'non-finite pose for keyframe {k}')
+    return out, (graph, result, idx)
+
+
+def relative_marginal_sigmas(solved: tuple, ref_key: Hashable, source_keys: Sequence[Hashable]
+                             ) -> Dict[Hashable, pose_uncertainty.PoseSigma]:
+    """Per source, per-axis stds of its pose relative to the reference from a solved graph's marginals
+    (``solve_window``'s second value); {} when gtsam cannot compute them."""
+    graph, result, idx = solved
+    try:
+        marg = gtsam.Marginals(graph, result)
+    except RuntimeError:
+        return {}
+    out = {}
+    r = idx[ref_key]
+    for key in source_keys:
+        j = idx[key]
+        C = marg.jointMarginalCovariance([r, j]).fullMatrix()
+        T_rs = result.atPose3(r).between(result.atPose3(j))
+        J = np.hstack([-T_rs.inverse().AdjointMap(), np.eye(6)])   # d(T_r^-1 T_s) = -Ad(T_rs^-1) d_r + d_s
+        Crel = J @ C @ J.T
+        out[key] = pose_uncertainty.PoseSigma(rot_rad=math.sqrt(max(np.trace(Crel[:3, :3]) / 3, 0.0)),
+                                              trans_m=math.sqrt(max(np.trace(Crel[3:, 3:]) / 3, 0.0)))
+    return out
