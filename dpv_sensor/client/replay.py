@@ -80,6 +80,22 @@ def mount_params(params: Dict[str, Any], tf: List[str]) -> Dict[str, Any]:
     return {**params, 'extrinsic_source': 'parameter'}
 
 
+def bag_input_topics(bag_topics: Dict[str, Any], values: Dict[str, Any], *, image: Optional[str] = None,
+                     camera_info: Optional[str] = None, odom: Optional[str] = None,
+                     hints: Optional[Dict[str, str]] = None):
+    """(topics, how each was chosen) of a recording to replay into the node with the settings ``values``: the image
+    always, camera_info and odometry only where the node reads them from topics (None otherwise); found by message
+    type unless named (``data.topic_detection.detect_input_topics``, whose BagError names what is missing, with
+    ``hints`` on how to choose)."""
+    from dpv_sensor.data.topic_detection import detect_input_topics
+    need = ['image'] + (['camera_info'] if values['camera_info_source'] == 'topic' else []) + \
+        (['odom'] if values['odometry'] == 'topic' else [])
+    topics, how = detect_input_topics(bag_topics, image=image, camera_info=camera_info, odom=odom, need=need,
+                                      options=hints)
+    topics = {role: (t if role in need else None) for role, t in topics.items()}
+    return topics, {role: h for role, h in how.items() if topics[role] is not None}
+
+
 def parse_params(items: List[str]) -> Dict[str, Any]:
     """['preset=lite', 'fx=525', 'T_base_camera=[0,0,0,0,0,0,1]'] -> typed node parameters (params.SPECS).
 

@@ -93,7 +93,6 @@ def _bag_records(a, overrides: Dict[str, Any], out: pathlib.Path, progress: bool
     from dpv_sensor.client import replay as D
     from dpv_sensor.client.ros_io import private_ros_env
     from dpv_sensor.data import rosbag_io as R
-    from dpv_sensor.data.topic_detection import detect_input_topics
     from dpv_sensor.evaluation import offline as E
     from dpv_sensor.stream.estimator import Estimator
     bag, gt = pathlib.Path(a.bag), pathlib.Path(a.gt)
@@ -103,11 +102,8 @@ def _bag_records(a, overrides: Dict[str, Any], out: pathlib.Path, progress: bool
         raise ValueError(f'{gt} is not a sequence folder')
     config, values = E.build_config(overrides)
     status = Estimator(config).status           # what the node builds from the same settings
-    need = ['image'] + (['camera_info'] if values['camera_info_source'] == 'topic' else []) + \
-        (['odom'] if values['odometry'] == 'topic' else [])
-    topics, _how = detect_input_topics(R.bag_topics(bag), image=a.image_topic, camera_info=a.camera_info_topic,
-                                       odom=a.odom_topic, need=need)
-    topics = {role: (t if role in need else None) for role, t in topics.items()}
+    topics, _how = D.bag_input_topics(R.bag_topics(bag), values, image=a.image_topic,
+                                      camera_info=a.camera_info_topic, odom=a.odom_topic)
     private_ros_env(out, a.domain_id)
     work = out / 'replay'
     (work / 'logs').mkdir(parents=True, exist_ok=True)

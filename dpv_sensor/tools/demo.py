@@ -203,24 +203,20 @@ def _fmt(v, f='{:.4f}'):
 # --------------------------------------------------------------------------------------------------------------
 def _bag_inputs(a, values: Dict[str, Any], input_bag: pathlib.Path):
     """(topics, how they were chosen, bag topics) of the user's bag; DemoError naming what is missing."""
+    from dpv_sensor.client.replay import bag_input_topics
     from dpv_sensor.data import rosbag_io as R
-    from dpv_sensor.data.topic_detection import detect_input_topics
     if not input_bag.exists():
         raise DemoError(f'{input_bag}: no such bag')
     bt = R.bag_topics(input_bag)
-    need = ['image'] + (['camera_info'] if values['camera_info_source'] == 'topic' else []) + \
-        (['odom'] if values['odometry'] == 'topic' else [])
     hints = {'image': '--image-topic (IMAGE_TOPIC= with make)',
              'camera_info': '--camera-info-topic (CAMERA_INFO_TOPIC= with make; or --params '
                             'camera_info_source=parameters fx=.. fy=.. cx=.. cy=..)',
              'odom': '--odom-topic (ODOM_TOPIC= with make; or --params odometry=none for visual odometry)'}
     try:
-        topics, how = detect_input_topics(bt, image=a.image_topic, camera_info=a.camera_info_topic,
-                                            odom=a.odom_topic, need=need, options=hints)
+        topics, how = bag_input_topics(bt, values, image=a.image_topic, camera_info=a.camera_info_topic,
+                                       odom=a.odom_topic, hints=hints)
     except R.BagError as exc:
         raise DemoError(f'{input_bag}: {exc}') from None
-    topics = {role: (t if role in need else None) for role, t in topics.items()}
-    how = {role: h for role, h in how.items() if topics[role] is not None}
     return topics, how, bt
 
 
