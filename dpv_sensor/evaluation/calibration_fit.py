@@ -110,16 +110,24 @@ def _knots(x: np.ndarray, y: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
     return np.clip(x, 0.0, 1.0), np.clip(y, 0.0, 1.0)
 
 
+def isotonic_knots(conf_n: np.ndarray, hit_n: np.ndarray, bins: int = FIT_BINS
+                   ) -> Tuple[np.ndarray, np.ndarray, int]:
+    """(confidence knots, probability knots, bins used) of the monotone map: equal-count bins,
+    pool-adjacent-violators, flat runs and ends as :func:`_knots` leaves them."""
+    x, y, w = equal_count_bins(conf_n, hit_n, bins)
+    kx, ky = _knots(x, pool_adjacent_violators(y, w))
+    return kx, ky, int(x.size)
+
+
 def fit_calibration(conf_n: np.ndarray, hit_n: np.ndarray, estimator: Dict[str, Any], *, bins: int = FIT_BINS,
                     fitted_on: Optional[Dict[str, Any]] = None) -> ConfidenceCalibration:
     """The monotone map from the confidence to the share of hits (see the module docstring). ``estimator``: the
     signature of the estimator that produced the confidences (``stream.estimator_config.calibration_signature``);
     ``fitted_on``: metadata, completed with the number of pixels, the bins and the date."""
-    x, y, w = equal_count_bins(conf_n, hit_n, bins)
-    kx, ky = _knots(x, pool_adjacent_violators(y, w))
+    kx, ky, used = isotonic_knots(conf_n, hit_n, bins)
     meta = dict(fitted_on or {})
     meta.setdefault('pixels', int(np.asarray(conf_n).size))
-    meta.setdefault('bins', int(x.size))
+    meta.setdefault('bins', used)
     meta.setdefault('date', datetime.datetime.now(datetime.timezone.utc).isoformat(timespec='seconds'))
     return ConfidenceCalibration(tuple(float(v) for v in kx), tuple(float(v) for v in ky), dict(estimator), meta)
 
@@ -213,3 +221,45 @@ def write_calibration(out, calibration: ConfidenceCalibration, report: Dict[str,
         {'raw': held['raw'], 'calibrated': held['calibrated']}, out / 'reliability.png',
         title=(title or 'confidence calibration') + f": held-out frames {held['frames'][0]}-{held['frames'][1]}")
     return files
+
+
+def fit_logistic(cues: Dict[str, np.ndarray], hit_n: np.ndarray, inputs: Sequence[str], *, l2: float = 1.0,
+                 iterations: int = 50):
+    """A :class:`~dpv_sensor.core.confidence_map.ConfidenceMap` on ``inputs`` fitted by maximum likelihood (Newton's
+    method on standardised inputs, an L2 penalty ``l2`` on their weights, not on the intercept). A negative weight
+    of the confidence's logit is held at 0 (the map stays non-decreasing in the confidence)."""
+    from dpv_sensor.core import confidence_map as CM
+    X = CM.design_matrix(cues, inputs)
+    y = np.asarray(hit_n, np.float64).ravel()
+    mu, sd = X.mean(0), X.std(0)
+    sd = np.where(sd > 1e-12, sd, 1.0)
+    Z = (X - mu) / sd
+    free = np.ones(len(inputs), bool)
+    for _ in range(2):
+        w, b = _newton_logistic(Z[:, free], y, l2, iterations)
+        full = np.zeros(len(inputs))
+        full[free] = w
+        if CM.CONFIDENCE_INPUT in inputs and full[list(inputs).index(CM.CONFIDENCE_INPUT)] < 0:
+            free[list(inputs).index(CM.CONFIDENCE_INPUT)] = False
+            continue
+        break
+    weights = full / sd
+    return CM.ConfidenceMap(tuple(inputs), tuple(float(v) for v in weights), float(b - np.sum(weights * mu)))
+
+
+def _newton_logistic(Z: np.ndarray, y: np.ndarray, l2: float, iterations: int) -> Tuple[np.ndarray, float]:
+    n, k = Z.shape
+    A = np.hstack([np.ones((n, 1)), Z])
+    theta = np.zeros(k + 1)
+    theta[0] = np.log(max(y.mean(), 1e-6) / max(1 - y.mean(), 1e-6))
+    reg = np.full(k + 1, float(l2))
+    reg[0] = 0.0
+    for _ in range(iterations):
+        p = 1.0 / (1.0 + np.exp(-(A @ theta)))
+        g = A.T @ (p - y) + reg * theta
+        H = (A * (p * (1 - p))[:, None]).T @ A + np.diag(reg + 1e-9)
+        step = np.linalg.solve(H, g)
+        theta -= step
+        if np.max(np.abs(step)) < 1e-8:
+            break
+    return theta[1:], float(theta[0])

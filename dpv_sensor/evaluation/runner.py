@@ -88,6 +88,7 @@ class KeyframeRecord:
     image_hw3: Optional[np.ndarray] = None
     reset_reason: Optional[str] = None
     time_ms: float = float('nan')
+    features: Optional[Dict[str, np.ndarray]] = None
 
 
 # ----------------------------------------------------------------------------------------------
@@ -191,7 +192,8 @@ def input_poses(seq, options: EvalOptions) -> List[np.ndarray]:
 
 def run_sequence(seq, config, options: Optional[EvalOptions] = None, *, model=None, pose_refiner=None,
                  keep_images: bool = True, poses: Optional[List[np.ndarray]] = None,
-                 pose_variance: Optional[np.ndarray] = None) -> Tuple[List[KeyframeRecord], EstimatorStatus]:
+                 pose_variance: Optional[np.ndarray] = None, features: bool = False
+                 ) -> Tuple[List[KeyframeRecord], EstimatorStatus]:
     """Push the sequence (prepared as ``options`` say) frame by frame through a :class:`Pipeline`, the node's code
     path; return (keyframe records, the pipeline's :class:`EstimatorStatus`). The one offline runner.
 
@@ -201,6 +203,8 @@ def run_sequence(seq, config, options: Optional[EvalOptions] = None, *, model=No
     instead of loading weights (see ``Estimator``). ``poses``: the odometry pose of every frame in place of the
     options' pose source; ``pose_variance``: one row per frame (position, rotation variance per axis) published as
     the frames' pose covariance, as ``data.rosbag_io.write_sequence_bag`` writes it into a bag's odometry.
+    ``features``: the records carry each keyframe's confidence cues (``stream.confidence_features``) at the depth
+    map's size.
     """
     from dpv_sensor.data.rosbag_io import COVARIANCE_FLOOR_SIGMA
     from dpv_sensor.stream.frame import Frame
@@ -208,6 +212,7 @@ def run_sequence(seq, config, options: Optional[EvalOptions] = None, *, model=No
     options = (options or EvalOptions()).validate()
     seq = prepare_sequence(seq, options)
     pipe = Pipeline(config, model=model, pose_refiner=pose_refiner)
+    pipe.estimator.collect_features = features
     poses_in = input_poses(seq, options) if poses is None else poses
     floor = COVARIANCE_FLOOR_SIGMA ** 2
     K = np.asarray(seq.K, np.float64)
@@ -235,7 +240,8 @@ def run_sequence(seq, config, options: Optional[EvalOptions] = None, *, model=No
             K_33=np.asarray(out.K_33, np.float64), gt_depth_hw=gt, gt_T_world_cam_44=np.asarray(seq.pose(j)),
             T_world_cam_44=None if out.T_world_cam_44 is None else np.asarray(out.T_world_cam_44),
             image_hw3=image, reset_reason=out.reset_reason,
-            time_ms=float(out.timings_ms.get('total', float('nan')))))
+            time_ms=float(out.timings_ms.get('total', float('nan'))),
+            features=None if out.features is None else {k: resize_nearest(v, hw) for k, v in out.features.items()}))
     return records, pipe.status
 
 

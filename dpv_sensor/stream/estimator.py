@@ -30,7 +30,7 @@ from dpv_sensor.stream.estimator_config import (EstimatorConfig, EstimatorStatus
                                                 PoseRefiner, _Measurement, _Posterior, calibration_signature,
                                                 default_weights_path, output_size)
 from dpv_sensor.stream.keyframes import Keyframe, KeyframeSelector, KeyframeWindow
-from dpv_sensor.stream import window_pose_uncertainty
+from dpv_sensor.stream import confidence_features, window_pose_uncertainty
 
 __all__ = ['EstimatorConfig', 'EstimatorStatus', 'Estimator', 'PoseRefinementRequest', 'default_weights_path',
            'MEASUREMENTS', 'FILTER_MODES']
@@ -127,6 +127,8 @@ class Estimator:
         self._twist: Optional[np.ndarray] = None
         self.calibration: Optional[ConfidenceCalibration] = None
         self.calibration = self._load_calibration()
+        # keyframe outputs carry their confidence cues (stream.confidence_features) when set; off for the node
+        self.collect_features = False
 
     # ------------------------------------------------------------------ construction helpers
     @staticmethod
@@ -526,6 +528,7 @@ class Estimator:
                 full = self.model.refine(post, meas.feats, ref.image_b3hw)
             full = full.float()
             depth, conf = self._readout(full, ref.image_b3hw)
+            band_mass = conf
             if sigma_planes is not None:
                 factor = window_pose_uncertainty.confidence_factor(self.config, post, sigma_planes, self.depths_d,
                                                                    self.readout)
@@ -549,6 +552,14 @@ class Estimator:
         out = compose_output(self.config, depth, conf, valid, ref.input_size, ref.input_K_33, ref.stamp,
                              ref.T_world_cam_44, True, reason, self.calibration)
         timings['output'] = self._ms(t)
+        if self.collect_features and self.measurement == 'network':
+            out.features = confidence_features.keyframe_features(
+                full_logp_bdhw=full, depth_bhw=depth, band_mass_bhw=band_mass, conf_bhw=conf, depths_d=self.depths_d,
+                ratio=self.config.confidence_ratio, readout=self.readout, ref_image_b3hw=ref.image_b3hw,
+                src_images=[s.image_b3hw for s in sources], K_proc_b33=ref.K_b33, T_src_ref_n44=T_src_ref_t[0],
+                K_vol_33=meas.K_vol_b33[0], measured_logp_bdhw=meas.logp_bdhw,
+                predicted_logp_bdhw=step.predicted_logp_bdhw, spans_n1hw=None if geom is None else geom[1],
+                weight_bhw=weight, support_bhw=support, sigma_planes_bhw=sigma_planes)
         timings['total'] = self._ms(t0)
         out.timings_ms = timings
         self._last_timings = dict(timings)

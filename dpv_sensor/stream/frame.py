@@ -49,3 +49,4 @@ class DepthOutput:
     T_world_cam_44: np.ndarray | None = None   # the pose used (refined when pose refinement is on)
     reset_reason: str | None = None            # why the filter restarted at this frame, if it did
     timings_ms: dict = field(default_factory=dict)
+    features: dict | None = None               # keyframe confidence cues by name (Estimator.collect_features)
