@@ -276,3 +276,11 @@ def test_processing_resolution_and_noisy_poses_and_compare(tmp_path):
     assert md.count('\n| filter_mode=') == 2
     assert json.loads((tmp_path / 'compare.json').read_text())['rows'][0]['name'] == 'filter_mode=none'
     assert (tmp_path / 'compare_sparsification.png').is_file()
+
+
+def test_window_graph_plot_draws_every_factor_kind(tmp_path):
+    from dpv_sensor.evaluation.plots import window_graph_plot
+    factors = {'prior': [(0.0, 0.0)], 'odometry': [(0.0, 0.1), (0.1, 0.2)],
+               'photometric': [(0.2, 0.0), (0.2, 0.1), (0.1, 0.0), (0.1, 0.0)], 'keypoint': [(0.1, 0.2)]}
+    out = window_graph_plot([0.0, 0.1, 0.2], factors, tmp_path / 'g.png', reference=0.2, title='t')
+    assert out.is_file() and out.stat().st_size > 5000

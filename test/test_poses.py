@@ -313,8 +313,18 @@ def test_window_refinement_halves_relative_pose_error(sequence):
     t_ref, r_ref = relative_pose_errors(est, gt)
     assert t_ref.mean() <= 0.5 * t_noisy.mean()
     assert r_ref.mean() <= 0.5 * r_noisy.mean()
-    # the relative poses handed to the plane sweep are consistent with the refined world poses
+    # the solved graph's factors: the gauge on one keyframe, odometry between neighbours, an alignment of the
+    # reference to each of its max_sources nearest sources; no factor names a keyframe outside the window
     last = results[-1]
+    window = sorted(last.T_world_cam)
+    assert last.factors['odometry'] == list(zip(window[:-1], window[1:]))
+    assert len(last.factors['prior']) == 1 and last.factors['prior'][0][0] in window
+    ref = len(gt) - 1
+    nearest = sorted(set(window) - {ref}, key=lambda k: abs(k - ref))[:refiner.config.max_sources]
+    assert {s for r, s in last.factors['photometric'] if r == ref} == set(nearest)
+    assert all(a in window and b in window for k in last.factors for a, b in last.factors[k])
+    assert results[0].factors == {}                       # nothing solved without a depth
+    # the relative poses handed to the plane sweep are consistent with the refined world poses
     assert np.allclose(last.T_src_ref[0], np.linalg.inv(last.T_world_cam[0 + len(gt) - 5]) @ last.T_world_ref_44)
 
 

@@ -201,3 +201,58 @@ def bar_table(values: Dict[str, float], path, *, ylabel: str = 'abs_rel', title:
     if title:
         ax.set_title(title, fontsize=10)
     return _save(fig, path, dpi)
+
+
+def window_graph_plot(window: Sequence, factors: Dict[str, List], path, *, reference=None,
+                      title: Optional[str] = None, dpi: int = 110) -> pathlib.Path:
+    """The factor graph of one pose-refinement window (``RefinementResult.factors``): keyframes as circles in
+    time order (the reference filled), each factor a small square joined to the keyframes it ties - the gauge
+    prior above its keyframe, odometry between neighbours on the line, photometric alignments as arcs above,
+    keypoint poses as arcs below."""
+    plt = _plt()
+    keys = list(window)
+    x = {k: float(i) for i, k in enumerate(keys)}
+    fig, ax = plt.subplots(figsize=(1.6 * len(keys) + 1.5, 3.6))
+    styles = {'odometry': ('black', 0.0), 'photometric': ('tab:blue', 1.0), 'keypoint': ('tab:orange', -1.0)}
+    shown = set()
+
+    def factor(xm, ym, colour, label):
+        ax.plot([xm], [ym], marker='s', ms=7, color=colour, zorder=4,
+                label=None if label in shown else label)
+        shown.add(label)
+
+    for kind, (colour, side) in styles.items():
+        seen: Dict[tuple, int] = {}
+        for a, b in factors.get(kind, []):
+            if a not in x or b not in x:
+                continue
+            xa, xb = x[a], x[b]
+            # a second factor between the same keyframes (an alignment kept from an earlier window) arcs higher
+            pair = (min(xa, xb), max(xa, xb))
+            extra = 0.3 * seen.get(pair, 0)
+            seen[pair] = seen.get(pair, 0) + 1
+            if side == 0.0:
+                ax.plot([xa, xb], [0, 0], color=colour, lw=1.5, zorder=1)
+                factor((xa + xb) / 2, 0.0, colour, 'odometry between')
+                continue
+            t = np.linspace(0, 1, 40)
+            h = side * (0.35 + 0.25 * abs(xb - xa) + extra)
+            xs = xa + (xb - xa) * t
+            ax.plot(xs, h * np.sin(np.pi * t), color=colour, lw=1.3, zorder=1)
+            factor((xa + xb) / 2, h, colour, f'{kind} between')
+    for a, _ in factors.get('prior', []):
+        if a in x:
+            ax.plot([x[a], x[a]], [0, 0.45], color='grey', lw=1.2, zorder=1)
+            factor(x[a], 0.45, 'grey', 'gauge prior')
+    for k in keys:
+        ref = k == reference
+        ax.plot([x[k]], [0], marker='o', ms=22, mfc='tab:green' if ref else 'white', mec='black', zorder=5)
+        ax.annotate('ref' if ref else f'{x[k] - x.get(reference, 0):+.0f}', (x[k], 0), ha='center',
+                    va='center', fontsize=8, zorder=6)
+    ax.set_xlim(-0.7, len(keys) - 0.3)
+    ax.set_ylim(-2.2, 2.2)
+    ax.axis('off')
+    ax.legend(loc='upper center', bbox_to_anchor=(0.5, -0.02), ncol=4, fontsize=8, frameon=False)
+    if title:
+        ax.set_title(title, fontsize=10)
+    return _save(fig, path, dpi)

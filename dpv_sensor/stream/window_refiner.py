@@ -231,6 +231,9 @@ class RefinementResult:
     gate: str = 'none'
     correction: Tuple[float, float] = (0.0, 0.0)
     keypoints: List[KeypointPose] = field(default_factory=list)
+    # the solved graph's factors by kind, as key pairs: 'prior' (the gauge, (anchor, anchor)), 'odometry' (a, b),
+    # 'photometric' (reference, source), 'keypoint' (source, reference); empty when nothing was solved
+    factors: Dict[str, List[Tuple[Hashable, Hashable]]] = field(default_factory=dict)
 
 
 def relative_pose_errors(T_world_est: Sequence[np.ndarray], T_world_gt: Sequence[np.ndarray]
@@ -438,7 +441,8 @@ class WindowPoseRefiner:
             tracking_ok=tracking_ok, reason=reason, refined=refined, alignments=aligned.alignments,
             timings_ms={'align': 1e3 * (t_opt - t_align), 'optimize': 1e3 * (t1 - t_opt),
                         'total': 1e3 * (t1 - t0), 'cpu': 1e3 * (time.process_time() - c0)}, skipped=skipped,
-            source_sigma=sigmas, gate=gate, correction=correction, keypoints=kps)
+            source_sigma=sigmas, gate=gate, correction=correction, keypoints=kps,
+            factors=self._factor_pairs(window, factors, kp_factors) if refined else {})
         return self.last_result
 
     def _admit_window(self, frames: List[WindowKeyframe]) -> List[Hashable]:
@@ -637,9 +641,20 @@ class WindowPoseRefiner:
             init[k] = self.initial_pose(k, self._odom[k])
         return init
 
+    def _anchor(self, window) -> Hashable:
+        """The gauge: the oldest keyframe that already has a refined pose (else the oldest) stays where it is."""
+        return next((k for k in window if k in self._est), window[0])
+
+    def _factor_pairs(self, window, factors, kp_factors) -> Dict[str, List[Tuple[Hashable, Hashable]]]:
+        """The factors :func:`solve_window` put in the graph, as key pairs by kind (``RefinementResult.factors``)."""
+        keys = set(window)
+        return {'prior': [(self._anchor_key, self._anchor_key)],
+                'odometry': list(zip(window[:-1], window[1:])),
+                'photometric': [(r, s) for r, s, _T, _c in factors if r in keys and s in keys],
+                'keypoint': [(s, r) for s, r, _T, _c in kp_factors]}
+
     def _optimize(self, window, init, factors, kp_factors=()) -> Dict[Hashable, np.ndarray]:
-        # Gauge: the oldest keyframe that already has a refined pose (else the oldest) stays where it is.
-        anchor = next((k for k in window if k in self._est), window[0])
+        anchor = self._anchor_key = self._anchor(window)
         poses, self._graph = solve_window(window, init, self._odom, self._cov, anchor, factors, kp_factors,
                                           self.config)
         return poses
