@@ -39,3 +39,34 @@ def test_odometry_covariance_reaches_the_estimator(tmp_path, sequence, odom_nois
     assert res.node_exit_code == 0
     assert int(res.diagnostics['estimator_keyframes']) >= 3
     assert res.diagnostics['pose_uncertainty'].startswith(expected), res.diagnostics['pose_uncertainty']
+
+
+@pytest.mark.parametrize('with_covariance', [False, True])
+def test_a_published_covariance_reaches_the_window_refiner_and_the_widening(tmp_path, sequence, with_covariance):
+    """The same odometry with and without its accumulated covariance (the stream table's honest odometry), replayed
+    through a node refining its poses with ``refine_odom_covariance: odometry``: the refiner's odometry factors and
+    the measurement's widening both come from the published covariance where it is filled, else from the drift
+    figures and nothing (poses exact), as the diagnostics say."""
+    from dpv_sensor.data.trajectory import corruption_variance
+    bag = tmp_path / 'input'
+    gt = [sequence.pose(i) for i in range(len(sequence))]
+    variance = corruption_variance(gt, trans_noise_rel=0.02, rot_noise_deg=0.1) if with_covariance else None
+    R.write_sequence_bag(bag, sequence, pose_variance=variance, progress=False)
+    params = dict(D.DEMO_NODE_PARAMS)
+    params.update(NODE, pose_refinement='window', refine_odom_covariance='odometry')
+    topics = {'image': R.IMAGE_TOPIC, 'camera_info': R.CAMERA_INFO_TOPIC, 'odom': R.ODOM_TOPIC}
+    (tmp_path / 'logs').mkdir()
+    res = D.run_node_replay(D.Steps(3), bag, tmp_path / 'output', topics=topics, params=params,
+                            log_dir=tmp_path / 'logs', lockstep=True, rate=1.0, start_timeout=120.0,
+                            frame_timeout=120.0, max_images=0, progress=False)
+    assert res.node_exit_code == 0
+    diag = res.diagnostics
+    assert int(diag['estimator_keyframes']) >= 3
+    odometry = diag.get('pose_refinement_odometry', '')
+    if with_covariance:
+        assert odometry.endswith('(published covariance)'), odometry
+        assert diag['pose_uncertainty'].startswith('covariance'), diag['pose_uncertainty']
+        assert not diag['pose_uncertainty'].startswith('covariance: rotation 0.000 deg'), diag['pose_uncertainty']
+    else:
+        assert odometry.endswith('(drift figures)'), odometry
+        assert diag['pose_uncertainty'].startswith('none'), diag['pose_uncertainty']

@@ -534,3 +534,26 @@ def test_turning_in_place_keeps_the_odometry(yaw, x, skipped):
         assert all(a is None for a in res.alignments)
     assert WindowPoseRefiner(PoseRefinerConfig(max_rotation_parallax=0.0))._turning_in_place(
         ref, [src], init, np.full((12, 16), 2.0)) is None
+
+
+def test_the_window_reports_where_its_odometry_covariance_comes_from():
+    from dpv_sensor.stream.window_graph import DRIFT, FIXED, PUBLISHED, odometry_steps
+    from dpv_sensor.core import pose_uncertainty
+    cfg = PoseRefinerConfig(odom_covariance='odometry',
+                            drift=pose_uncertainty.DriftModel(0.02, 1.0, 0.02, 0.0, cov_trans_per_m=0.02))
+    odom = {k: np.eye(4) + np.pad(np.array([[0.1 * k], [0.0], [0.0]]), ((0, 1), (3, 0))) for k in range(3)}  # 10 cm
+    keys = [0, 1, 2]
+    drift = odometry_steps(keys, odom, {k: None for k in keys}, cfg)
+    assert drift.source == DRIFT
+    assert math.degrees(drift.rot_rad) == pytest.approx(0.1 / math.sqrt(3), rel=1e-6)     # 1 deg/m over 0.1 m
+    assert drift.trans_m == pytest.approx(0.002 / math.sqrt(3), rel=1e-6)                  # 2 % of 0.1 m
+    # a covariance that grows by (1 mm)^2 and (0.05 deg)^2 per axis per step
+    cov = {k: np.diag([(1e-3) ** 2 * (k + 1)] * 3 + [math.radians(0.05) ** 2 * (k + 1)] * 3) for k in keys}
+    published = odometry_steps(keys, odom, cov, cfg)
+    assert published.source == PUBLISHED
+    assert math.degrees(published.rot_rad) == pytest.approx(0.05, rel=1e-6)
+    assert published.trans_m == pytest.approx(1e-3, rel=1e-6)
+    fixed = odometry_steps(keys, odom, cov, PoseRefinerConfig())
+    assert fixed.source == FIXED
+    assert math.degrees(fixed.rot_rad) == pytest.approx(PoseRefinerConfig().odom_sigma_rot_deg)
+    assert odometry_steps([0], odom, cov, cfg) is None

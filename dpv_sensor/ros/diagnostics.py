@@ -7,6 +7,7 @@ sent and frames_processed + dropped_total = frames_received (but for the one or 
 from __future__ import annotations
 
 import collections
+import math
 import pathlib
 import time
 
@@ -70,6 +71,10 @@ def estimator_values(st: EstimatorStatus | None, settings, starting: bool, reset
         values['pose_refinement_gate'] = ', '.join(f'{k} {v}' for k, v in sorted(st.pose_refinement_gate.items()))
         values['pose_refinement_correction'] = (f'{1000 * st.pose_refinement_correction[0]:.1f} mm / '
                                                 f'{st.pose_refinement_correction[1]:.3f} deg')
+    if st.pose_refinement_odometry is not None:
+        rot, trans, source = st.pose_refinement_odometry
+        values['pose_refinement_odometry'] = (f'{math.degrees(rot):.3f} deg / {1000 * trans:.2f} mm per keyframe '
+                                              f'step ({source})')
     return values
 
 

@@ -49,6 +49,12 @@ COVERAGE_PLANES = 16
 # small helpers
 # ------------------------------------------------------------------------------------------------------
 
+def _odometry_steps(result) -> Optional[Tuple[float, float, str]]:
+    """A refiner result's odometry factors (``RefinementResult.odometry``) as the status holds them."""
+    steps = getattr(result, 'odometry', None)
+    return None if steps is None else (float(steps[0]), float(steps[1]), str(steps[2]))
+
+
 def _is_rigid(T_44: np.ndarray, tol: float = 1e-3) -> bool:
     R = T_44[:3, :3]
     return (np.allclose(R.T @ R, np.eye(3), atol=tol) and abs(np.linalg.det(R) - 1.0) < tol
@@ -320,6 +326,7 @@ class Estimator:
             notes=list(self._notes),
             pose_refinement_gate=dict(getattr(self.pose_refiner, 'gate_counts', None) or {}),
             pose_refinement_correction=tuple(getattr(self._refinement_result(), 'correction', (0.0, 0.0))),
+            pose_refinement_odometry=_odometry_steps(self._refinement_result()),
             confidence_calibration=None if self.calibration is None else self.calibration.path,
         )
 

@@ -11,15 +11,27 @@ order (rotation, translation). No ROS import.
 from __future__ import annotations
 
 import math
-from typing import Dict, Hashable, Mapping, Optional, Sequence, Tuple
+from collections import Counter
+from typing import Dict, Hashable, Mapping, NamedTuple, Optional, Sequence, Tuple
 
 import gtsam
 import numpy as np
 
 from dpv_sensor.core import pose_uncertainty
 
-__all__ = ['odometry_between_sigmas', 'odometry_step_covariance', 'pose3_from_matrix', 'relative_pose',
-           'solve_window', 'relative_marginal_sigmas']
+__all__ = ['odometry_between_sigmas', 'odometry_step_covariance', 'odometry_step_source', 'OdometrySteps',
+           'odometry_steps', 'pose3_from_matrix', 'relative_pose', 'solve_window', 'relative_marginal_sigmas']
+
+# where an odometry step's covariance comes from (odometry_step_source)
+FIXED, PUBLISHED, DRIFT = 'fixed sigmas', 'published covariance', 'drift figures'
+
+
+class OdometrySteps(NamedTuple):
+    """The odometry factors of a window: the median per-axis std of its steps (rotation rad, translation m) and
+    where their covariance came from (the source of most steps: ``FIXED``, ``PUBLISHED`` or ``DRIFT``)."""
+    rot_rad: float
+    trans_m: float
+    source: str
 
 
 def odometry_between_sigmas(T_a_b_44: np.ndarray, cfg) -> np.ndarray:
@@ -46,6 +58,29 @@ def odometry_step_covariance(T_odom_a: np.ndarray, T_odom_b: np.ndarray, cov_a_6
     return np.diag([rot ** 2] * 3 + [tr ** 2] * 3)
 
 
+
+
+def odometry_step_source(cov_a_66, cov_b_66, cfg) -> str:
+    """Where the covariance of an odometry step between two keyframes comes from (``odometry_step_covariance``):
+    the fixed sigmas, the growth of the published covariance (both filled), or the drift figures."""
+    if cfg.odom_covariance == 'fixed':
+        return FIXED
+    return PUBLISHED if pose_uncertainty.covariance_sigma(cov_a_66, cov_b_66) is not None else DRIFT
+
+
+def odometry_steps(window: Sequence[Hashable], odom: Mapping[Hashable, np.ndarray],
+                   cov: Mapping[Hashable, Optional[np.ndarray]], cfg) -> Optional[OdometrySteps]:
+    """The window's odometry factors as :func:`solve_window` builds them, summarised (:class:`OdometrySteps`);
+    None for a window of one keyframe."""
+    if len(window) < 2:
+        return None
+    rot, tr, sources = [], [], []
+    for a, b in zip(window[:-1], window[1:]):
+        C = odometry_step_covariance(odom[a], odom[b], cov.get(a), cov.get(b), cfg)
+        rot.append(math.sqrt(np.trace(C[:3, :3]) / 3.0))
+        tr.append(math.sqrt(np.trace(C[3:, 3:]) / 3.0))
+        sources.append(odometry_step_source(cov.get(a), cov.get(b), cfg))
+    return OdometrySteps(float(np.median(rot)), float(np.median(tr)), Counter(sources).most_common(1)[0][0])
 
 
 def pose3_from_matrix(T_44: np.ndarray) -> gtsam.Pose3:

@@ -59,8 +59,9 @@ from dpv_sensor.core.keypoint_pose import (Features, KeypointConfig, KeypointPos
 from dpv_sensor.core.geometry import rotation_angle_np
 from dpv_sensor.core.photometric import (AlignmentConfig, AlignmentResult, Aligner, ImagePyramid,
                                    inverse_depth_std_from_confidence, pose_error)
-from dpv_sensor.stream.window_graph import (odometry_between_sigmas, odometry_step_covariance, pose3_from_matrix,
-                                            relative_marginal_sigmas, relative_pose, solve_window)
+from dpv_sensor.stream.window_graph import (OdometrySteps, odometry_between_sigmas, odometry_step_covariance,
+                                            odometry_steps, pose3_from_matrix, relative_marginal_sigmas,
+                                            relative_pose, solve_window)
 
 __all__ = ['PoseRefinerConfig', 'WindowKeyframe', 'RefinementResult', 'WindowPoseRefiner',
            'odometry_between_sigmas', 'odometry_step_covariance', 'relative_pose_errors', 'pose3_from_matrix',
@@ -234,6 +235,8 @@ class RefinementResult:
     # the solved graph's factors by kind, as key pairs: 'prior' (the gauge, (anchor, anchor)), 'odometry' (a, b),
     # 'photometric' (reference, source), 'keypoint' (source, reference); empty when nothing was solved
     factors: Dict[str, List[Tuple[Hashable, Hashable]]] = field(default_factory=dict)
+    # the window's odometry factors: median per-axis std of a step and where its covariance came from
+    odometry: Optional[OdometrySteps] = None
 
 
 def relative_pose_errors(T_world_est: Sequence[np.ndarray], T_world_gt: Sequence[np.ndarray]
@@ -442,7 +445,8 @@ class WindowPoseRefiner:
             timings_ms={'align': 1e3 * (t_opt - t_align), 'optimize': 1e3 * (t1 - t_opt),
                         'total': 1e3 * (t1 - t0), 'cpu': 1e3 * (time.process_time() - c0)}, skipped=skipped,
             source_sigma=sigmas, gate=gate, correction=correction, keypoints=kps,
-            factors=self._factor_pairs(window, factors, kp_factors) if refined else {})
+            factors=self._factor_pairs(window, factors, kp_factors) if refined else {},
+            odometry=odometry_steps(window, self._odom, self._cov, self.config))
         return self.last_result
 
     def _admit_window(self, frames: List[WindowKeyframe]) -> List[Hashable]:
