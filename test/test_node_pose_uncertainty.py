@@ -18,6 +18,17 @@ NODE = {'measurement': 'classical', 'processing_width': 96, 'processing_height':
         'window_mode': 'causal'}
 
 
+def _replay(tmp_path, bag, **params):
+    """Replay ``bag`` in lockstep through a node with the demo's parameters, NODE and ``params``."""
+    node = dict(D.DEMO_NODE_PARAMS)
+    node.update(NODE, **params)
+    topics = {'image': R.IMAGE_TOPIC, 'camera_info': R.CAMERA_INFO_TOPIC, 'odom': R.ODOM_TOPIC}
+    (tmp_path / 'logs').mkdir()
+    return D.run_node_replay(D.Steps(3), bag, tmp_path / 'output', topics=topics, params=node,
+                             log_dir=tmp_path / 'logs', lockstep=True, rate=1.0, start_timeout=120.0,
+                             frame_timeout=120.0, max_images=0, progress=False)
+
+
 @pytest.fixture(scope='module')
 def sequence():
     return render_sequence(50, 12, width=96, height=72)
@@ -29,13 +40,7 @@ def test_odometry_covariance_reaches_the_estimator(tmp_path, sequence, odom_nois
     bag = tmp_path / 'input'
     # odom_noise sets the sigmas of the published covariance (and perturbs the poses by as much: white noise)
     R.write_sequence_bag(bag, sequence, odom_rate=60.0, odom_noise=odom_noise, progress=False)
-    params = dict(D.DEMO_NODE_PARAMS)
-    params.update(NODE)
-    topics = {'image': R.IMAGE_TOPIC, 'camera_info': R.CAMERA_INFO_TOPIC, 'odom': R.ODOM_TOPIC}
-    (tmp_path / 'logs').mkdir()
-    res = D.run_node_replay(D.Steps(3), bag, tmp_path / 'output', topics=topics, params=params,
-                            log_dir=tmp_path / 'logs', lockstep=True, rate=1.0, start_timeout=120.0,
-                            frame_timeout=120.0, max_images=0, progress=False)
+    res = _replay(tmp_path, bag)
     assert res.node_exit_code == 0
     assert int(res.diagnostics['estimator_keyframes']) >= 3
     assert res.diagnostics['pose_uncertainty'].startswith(expected), res.diagnostics['pose_uncertainty']
@@ -52,13 +57,7 @@ def test_a_published_covariance_reaches_the_window_refiner_and_the_widening(tmp_
     gt = [sequence.pose(i) for i in range(len(sequence))]
     variance = corruption_variance(gt, trans_noise_rel=0.02, rot_noise_deg=0.1) if with_covariance else None
     R.write_sequence_bag(bag, sequence, pose_variance=variance, progress=False)
-    params = dict(D.DEMO_NODE_PARAMS)
-    params.update(NODE, pose_refinement='window', refine_odom_covariance='odometry')
-    topics = {'image': R.IMAGE_TOPIC, 'camera_info': R.CAMERA_INFO_TOPIC, 'odom': R.ODOM_TOPIC}
-    (tmp_path / 'logs').mkdir()
-    res = D.run_node_replay(D.Steps(3), bag, tmp_path / 'output', topics=topics, params=params,
-                            log_dir=tmp_path / 'logs', lockstep=True, rate=1.0, start_timeout=120.0,
-                            frame_timeout=120.0, max_images=0, progress=False)
+    res = _replay(tmp_path, bag, pose_refinement='window', refine_odom_covariance='odometry')
     assert res.node_exit_code == 0
     diag = res.diagnostics
     assert int(diag['estimator_keyframes']) >= 3
