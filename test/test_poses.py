@@ -557,3 +557,14 @@ def test_the_window_reports_where_its_odometry_covariance_comes_from():
     assert fixed.source == FIXED
     assert math.degrees(fixed.rot_rad) == pytest.approx(PoseRefinerConfig().odom_sigma_rot_deg)
     assert odometry_steps([0], odom, cov, cfg) is None
+
+
+def test_alignment_depth_perturbations():
+    from dpv_sensor.benchmarks.alignment_depth import perturbed_depth
+    rng = np.random.default_rng(0)
+    d = np.full((64, 80), 2.0, np.float32) + np.linspace(0, 1, 80, dtype=np.float32)
+    assert np.array_equal(perturbed_depth(d, 'gt', 0.3, rng), d)
+    smooth = perturbed_depth(d, 'smooth', 0.3, rng)
+    assert smooth.shape == d.shape and np.all(smooth > 0)
+    ratio = np.log(perturbed_depth(d, 'structured', 0.3, rng) / d)
+    assert 0.1 < ratio.std() < 0.45 and abs(ratio.mean()) < 0.3
