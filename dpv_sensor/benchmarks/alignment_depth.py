@@ -4,11 +4,12 @@
         [--error 0.3]
 
 Pairs of frames ``gap`` apart of a sequence folder (every 10th frame as reference) are aligned
-(``core.photometric.align_photometric``, the window refiner's defaults) from the GT relative pose perturbed by
-0.2 deg per axis and 2 mm, against three reference depths: the GT depth, the GT depth at a quarter of the size
-scaled by a random 10 % (smooth, biased), and the GT depth times ``exp(error * f)`` with ``f`` a smooth random field
-of unit std (structured errors of the size a plane sweep leaves: ``--error 0.3`` is about abs_rel 0.25). Prints the
-median rotation error of the converged alignments against the GT relative pose.
+(``core.photometric.align_photometric`` with the window refiner's alignment settings) from the GT relative pose
+perturbed by 0.2 deg per axis and 2 mm (the same perturbations for every depth), against three reference depths:
+the GT depth, the GT depth at a quarter of the size scaled by a random 10 % (smooth, biased), and the GT depth times
+``exp(error * f)`` with ``f`` a smooth random field scaled to unit std (structured errors of the size a plane sweep
+leaves: ``--error 0.3`` is about abs_rel 0.25). Prints the median rotation error of the converged alignments
+against the GT relative pose.
 """
 from __future__ import annotations
 
@@ -31,7 +32,7 @@ def perturbed_depth(d: np.ndarray, mode: str, error: float, rng: np.random.Gener
         small = cv2.resize(d, (w // 4, h // 4), interpolation=cv2.INTER_NEAREST)
         return cv2.resize(small, (w, h), interpolation=cv2.INTER_LINEAR) * float(1.0 + 0.1 * rng.standard_normal())
     field = cv2.resize(rng.standard_normal((4, 5)).astype(np.float32), (w, h), interpolation=cv2.INTER_CUBIC)
-    return d * np.exp(error * field)
+    return d * np.exp(error * field / max(float(field.std()), 1e-6))
 
 
 def main(argv: Optional[List[str]] = None) -> int:
@@ -49,7 +50,9 @@ def main(argv: Optional[List[str]] = None) -> int:
     from scipy.spatial.transform import Rotation
     from dpv_sensor.core.photometric import align_photometric
     from dpv_sensor.data.sequence import Sequence
+    from dpv_sensor.stream.window_refiner import PoseRefinerConfig
     torch.set_num_threads(a.threads)
+    config = PoseRefinerConfig().alignment
     w, h = (int(v) for v in a.size.lower().split('x'))
     seq = Sequence(a.sequence)
     H0, W0 = seq.image(0).shape[:2]
@@ -58,7 +61,8 @@ def main(argv: Optional[List[str]] = None) -> int:
     K[1] *= h / H0
     starts = list(range(0, len(seq) - a.gap, 10))[:a.pairs]
     for mode in DEPTHS:
-        rng = np.random.default_rng(0)
+        rng = np.random.default_rng(0)               # the depth errors
+        pose_rng = np.random.default_rng(1)          # the starting poses: the same for every depth
         errors = []
         for i in starts:
             grey = [torch.from_numpy(cv2.cvtColor(cv2.resize(seq.image(j), (w, h), interpolation=cv2.INTER_AREA),
@@ -68,9 +72,10 @@ def main(argv: Optional[List[str]] = None) -> int:
             d = perturbed_depth(d, mode, a.error, rng)
             T_gt = np.linalg.inv(np.asarray(seq.pose(i + a.gap))) @ np.asarray(seq.pose(i))     # T_src_ref
             P = np.eye(4)
-            P[:3, :3] = Rotation.from_rotvec(rng.normal(0.0, np.radians(0.2), 3)).as_matrix()
-            P[:3, 3] = rng.normal(0.0, 0.002, 3)
-            res = align_photometric(grey[0], grey[1], torch.from_numpy(d.astype(np.float32)), K, P @ T_gt)
+            P[:3, :3] = Rotation.from_rotvec(pose_rng.normal(0.0, np.radians(0.2), 3)).as_matrix()
+            P[:3, 3] = pose_rng.normal(0.0, 0.002, 3)
+            res = align_photometric(grey[0], grey[1], torch.from_numpy(d.astype(np.float32)), K, P @ T_gt,
+                                    config=config)
             if res.converged:
                 D = res.T_src_ref_44 @ np.linalg.inv(T_gt)
                 errors.append(np.degrees(np.linalg.norm(Rotation.from_matrix(D[:3, :3]).as_rotvec())))

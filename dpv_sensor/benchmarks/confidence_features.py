@@ -38,6 +38,9 @@ def sample_keyframe(record, rng: np.random.Generator, pixels: int, min_depth: fl
     """Up to ``pixels`` scored pixels of one keyframe record (with features): each cue, the frame medians
     (``frame_<cue>``), ``hit`` (within x1.25) and ``rel_err`` (|d - gt| / gt); None when no pixel is scored."""
     from dpv_sensor.evaluation import metrics as M
+    if record.features is None:
+        raise RuntimeError('the keyframe has no confidence cues: the estimator gathers them with the network '
+                           'measurement only (measurement: network or auto with weights)')
     pred, gt = record.depth_hw, record.gt_depth_hw
     m = M.evaluation_mask(pred, gt, min_depth, max_depth)
     idx = np.flatnonzero(m)

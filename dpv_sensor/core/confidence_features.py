@@ -7,7 +7,8 @@ Every function returns (B, H, W) maps on the grid of its input. Conventions:
 
 - ``entropy_share``: the DPV's entropy over log D (0 = one plane, 1 = uniform).
 - ``second_mode_mass``: the largest mass of three adjacent planes outside the x``ratio`` band around the published
-  depth (0 = one mode; near the band mass = an ambiguous ray).
+  depth (after the edge filter, where the band mass is taken around the depth before it; 0 = one mode; near the band
+  mass = an ambiguous ray).
 - ``image_texture``: the grey image's gradient magnitude (intensity per pixel, Sobel / 8) averaged over a box.
 - ``photometric_residual``: the mean absolute colour difference between the reference and each source warped into
   it with the published depth, over the sources that see the pixel; with ``views`` (how many do).
@@ -39,20 +40,19 @@ def entropy_share(logp_bdhw: torch.Tensor) -> torch.Tensor:
 
 def second_mode_mass(logp_bdhw: torch.Tensor, depths_d: torch.Tensor, depth_bhw: torch.Tensor,
                      ratio: float) -> torch.Tensor:
-    """The largest mass of three adjacent planes wholly outside the band [d / ratio, d * ratio] around
-    ``depth_bhw`` (planes nearer than d / ratio or farther than d * ratio)."""
+    """The largest mass of three adjacent planes outside the band [d / ratio, d * ratio] around ``depth_bhw``: each
+    plane counts with the share of its index interval [k - 0.5, k + 0.5] that lies outside the band (the bin model
+    of ``dpv.ratio_confidence``, so band mass + outside mass = 1 on the planes)."""
     p = torch.exp(logp_bdhw.float())
     D = p.shape[1]
     d = depths_d.to(p)
-    lo = inverse_depth_index(depth_bhw / ratio, d[0], d[-1], D)[:, None]
-    hi = inverse_depth_index(depth_bhw * ratio, d[0], d[-1], D)[:, None]
+    a = inverse_depth_index(depth_bhw / ratio, d[0], d[-1], D)[:, None]
+    b = inverse_depth_index(depth_bhw * ratio, d[0], d[-1], D)[:, None]
+    lo, hi = torch.minimum(a, b), torch.maximum(a, b)
     k = torch.arange(D, dtype=p.dtype, device=p.device)[None, :, None, None]
-    # plane k stands for the index interval [k - 0.5, k + 0.5]; it is outside the band when that interval lies wholly
-    # beyond the band's ends
-    outside = ((k + 0.5) <= torch.minimum(lo, hi)) | ((k - 0.5) >= torch.maximum(lo, hi))
-    q = p * outside
+    inside = (torch.minimum(k + 0.5, hi) - torch.maximum(k - 0.5, lo)).clamp(0.0, 1.0)
+    q = p * (1.0 - inside)
     triple = F.avg_pool3d(q[:, None], kernel_size=(3, 1, 1), stride=1, padding=(1, 0, 0))[:, 0] * 3.0
-    # a triple that reaches into the band counts only its outside planes (q is 0 there)
     return triple.amax(1)
 
 

@@ -66,7 +66,9 @@ def design_matrix(cues: Mapping[str, np.ndarray], inputs: Sequence[str]) -> np.n
     unknown = [k for k in inputs if k not in INPUTS]
     if unknown:
         raise KeyError(f'unknown map inputs {unknown}; known: {sorted(INPUTS)}')
-    return np.stack([INPUTS[k](cues).ravel() for k in inputs], 1) if inputs else np.zeros((0, 0))
+    if not inputs:
+        return np.zeros((np.size(cues['confidence']), 0))
+    return np.stack([INPUTS[k](cues).ravel() for k in inputs], 1)
 
 
 @dataclass(frozen=True)

@@ -17,6 +17,9 @@ A monotone map keeps the order of the pixels (it can only tie them), so it chang
 kept at a threshold and their delta1) but not how well the confidence ranks errors (AUSE, confident-half ratio).
 The figures come from :mod:`dpv_sensor.evaluation.metrics` (:func:`~dpv_sensor.evaluation.metrics.calibration_summary`,
 ECE over its 10 equal-width bins).
+
+:func:`isotonic_knots` is steps 1-3 on their own; :func:`fit_logistic` fits a map on several cues instead
+(``dpv_sensor.core.confidence_map``, the confidence study's maps).
 """
 from __future__ import annotations
 
@@ -31,8 +34,9 @@ from dpv_sensor.common import to_jsonable
 from dpv_sensor.core.confidence_calibration import ConfidenceCalibration, save
 from dpv_sensor.evaluation import metrics as M
 
-__all__ = ['FIT_BINS', 'FIT_FRACTION', 'equal_count_bins', 'pool_adjacent_violators', 'fit_calibration',
-           'calibration_report', 'record_events', 'split_records', 'calibrate_records', 'write_calibration']
+__all__ = ['FIT_BINS', 'FIT_FRACTION', 'equal_count_bins', 'pool_adjacent_violators', 'isotonic_knots',
+           'fit_calibration', 'calibration_report', 'record_events', 'split_records', 'calibrate_records',
+           'write_calibration', 'fit_logistic']
 
 # equal-count bins of the fit: enough to follow the curve, each with thousands of pixels on a real run
 FIT_BINS = 24

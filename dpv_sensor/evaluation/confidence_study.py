@@ -26,7 +26,8 @@ __all__ = ['load_samples', 'auroc', 'frame_conf_half', 'run_study']
 
 # cues ranked in the study (the per-pixel ones and the frame medians)
 RANKED = FEATURES + ('depth', 'frame_confidence', 'frame_parallax_px', 'frame_texture', 'frame_photometric')
-# pixels per (sequence, source) group a map is fitted on (each group weighs the same)
+# pixels per (sequence, source) group a map is fitted on (drawn with replacement where a group has fewer, so each
+# group weighs the same)
 FIT_PIXELS = 40000
 # renders used only to fit (never scored); the other rendered seeds are held out
 FIT_RENDERS = ('synthetic_seed60', 'synthetic_seed61')
@@ -84,7 +85,7 @@ def _balanced(groups: List[Dict[str, np.ndarray]], pixels: int, seed: int = 0) -
     parts = []
     for g in groups:
         n = g['hit'].size
-        idx = rng.choice(n, min(n, pixels), replace=False)
+        idx = rng.choice(n, pixels, replace=n < pixels)       # every group the same weight
         parts.append({k: v[idx] for k, v in g.items()})
     return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
 

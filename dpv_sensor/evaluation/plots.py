@@ -6,6 +6,7 @@
 - :func:`sparsification_plot`: sparsification curves against the oracle and random removal (one
   configuration or several overlaid), AUSE in the legend.
 - :func:`bar_table`: a simple bar chart of one metric across configurations.
+- :func:`window_graph_plot`: the factor graph of one pose-refinement window.
 """
 from __future__ import annotations
 
@@ -14,7 +15,7 @@ from typing import Dict, List, Optional, Sequence
 
 import numpy as np
 
-__all__ = ['montage', 'sparsification_plot', 'bar_table', 'depth_range']
+__all__ = ['montage', 'sparsification_plot', 'bar_table', 'depth_range', 'window_graph_plot']
 
 
 

@@ -133,7 +133,8 @@ class Estimator:
         self._twist: Optional[np.ndarray] = None
         self.calibration: Optional[ConfidenceCalibration] = None
         self.calibration = self._load_calibration()
-        # keyframe outputs carry their confidence cues (stream.confidence_features) when set; off for the node
+        # keyframe outputs carry their confidence cues (stream.confidence_features) when set, with the network
+        # measurement only; off for the node
         self.collect_features = False
 
     # ------------------------------------------------------------------ construction helpers

@@ -58,8 +58,6 @@ def odometry_step_covariance(T_odom_a: np.ndarray, T_odom_b: np.ndarray, cov_a_6
     return np.diag([rot ** 2] * 3 + [tr ** 2] * 3)
 
 
-
-
 def odometry_step_source(cov_a_66, cov_b_66, cfg) -> str:
     """Where the covariance of an odometry step between two keyframes comes from (``odometry_step_covariance``):
     the fixed sigmas, the growth of the published covariance (both filled), or the drift figures."""

@@ -307,6 +307,7 @@ class WindowPoseRefiner:
         self._depth_refs = 0                                 # references with a predicted depth since the start
         self._cov: Dict[Hashable, Optional[np.ndarray]] = {}   # first odometry pose covariance seen per key
         self._graph = None                                   # (graph, result, index) of the last solve
+        self._anchor_key: Optional[Hashable] = None          # the gauge keyframe of the last solve
         self.last_result: Optional[RefinementResult] = None
         self.losses = 0
         if not hasattr(self, 'gate_counts'):
