@@ -30,7 +30,7 @@ from dpv_sensor.stream.estimator_config import (EstimatorConfig, EstimatorStatus
                                                 PoseRefiner, _Measurement, _Posterior, calibration_signature,
                                                 default_weights_path, output_size)
 from dpv_sensor.stream.keyframes import Keyframe, KeyframeSelector, KeyframeWindow
-from dpv_sensor.stream import confidence_features, window_pose_uncertainty
+from dpv_sensor.stream import confidence_features, keyframe_geometry, window_pose_uncertainty
 
 __all__ = ['EstimatorConfig', 'EstimatorStatus', 'Estimator', 'PoseRefinementRequest', 'default_weights_path',
            'MEASUREMENTS', 'FILTER_MODES']
@@ -41,8 +41,6 @@ MEASUREMENTS = P.choices('measurement')
 FILTER_MODES = P.choices('filter_mode')
 OUTPUT_RESOLUTIONS = P.choices('output_resolution')
 CPU_PRECISIONS = P.choices('cpu_precision')
-# planes sampled per ray for the "seen by some source view" mask (see Estimator._coverage)
-COVERAGE_PLANES = 16
 
 
 # ------------------------------------------------------------------------------------------------------
@@ -506,9 +504,10 @@ class Estimator:
 
         t = time.perf_counter()
         vol_hw = tuple(meas.logp_bdhw.shape[-2:])
-        coverage = self._coverage(meas.K_vol_b33, vol_hw, T_src_ref_t[0])
-        geom = self._sweep_geometry(meas, ref, T_src_ref_t, vol_hw)
-        weight = self._parallax_weight(geom, ref, T_src_ref_t)
+        coverage = keyframe_geometry.coverage(self.config, meas.K_vol_b33, vol_hw, T_src_ref_t[0], self.depths_d)
+        geom = keyframe_geometry.sweep_geometry(self.config, meas.logp_bdhw, meas.K_vol_b33, ref.K_b33, T_src_ref_t,
+                                                vol_hw, self.depths_d, self.readout)
+        weight, self._last_parallax = keyframe_geometry.parallax_weight(self.config, geom, ref.K_b33, T_src_ref_t)
         t_pose = time.perf_counter()
         # the window refiner's marginals (relative to the reference), where it solved this window, replace the
         # odometry's uncertainty of those sources
@@ -522,7 +521,8 @@ class Estimator:
         step = self.filter.step(meas.logp_bdhw.float(), meas.K_vol_b33, self._filter_pose(ref.T_world_cam_44),
                                 ref.stamp, self.depths_d, image_b3hw=ref.image_b3hw, update_weight_bhw=weight)
         post = step.logp_bdhw
-        support = self._carry_support(step, weight, ref, meas.K_vol_b33)
+        support = keyframe_geometry.carry_support(step.predicted_logp_bdhw, weight, self._posterior,
+                                                  ref.T_world_cam_44, meas.K_vol_b33, self.depths_d, self.readout)
         self._posterior = _Posterior(post, ref.T_world_cam_44.copy(), meas.K_vol_b33, coverage, ref.stamp,
                                      support)
         # the stages add up to the total: the pose-uncertainty step ran inside this one and is its own stage
@@ -677,43 +677,6 @@ class Estimator:
         return _Measurement(logp.float(), K_vol.float())
 
     # ------------------------------------------------------------------ parallax
-    def _sweep_geometry(self, meas: _Measurement, ref: Keyframe, T_src_ref_t: torch.Tensor,
-                        vol_hw) -> Optional[Tuple[torch.Tensor, torch.Tensor]]:
-        """(depth (1, h, w), spans (N, 1, h, w)) at the volume resolution: the measurement's own depth estimate
-        ``d``, but no nearer than its median, and per source the disparity span (processing-size pixels) of the band
-        [d / 1.25, d * 1.25] (``parallax.BAND_RATIO``) around it; None when neither the parallax rule nor the pose
-        uncertainty needs them."""
-        if self.config.parallax_full_px <= 0 and self.config.pose_uncertainty == 'off':
-            return None
-        depth = dpv_ops.depth_estimate(meas.logp_bdhw.float(), self.depths_d, self.readout)
-        # a wrong, too-near estimate would claim parallax it does not have: depths are taken no nearer
-        # than the frame's median estimate
-        depth = depth.clamp_min(float(depth.median()))
-        spans = parallax.disparity_span(depth, meas.K_vol_b33, T_src_ref_t, parallax.BAND_RATIO, src_hw=vol_hw,
-                                        per_source=True)                       # N, 1, h, w
-        spans = spans * float(ref.K_b33[0, 0, 0] / meas.K_vol_b33[0, 0, 0])  # volume -> processing pixels
-        return depth, spans
-
-    def _parallax_weight(self, geom, ref: Keyframe, T_src_ref_t: torch.Tensor) -> Optional[torch.Tensor]:
-        """(1, h, w) weight in [0, 1] of this measurement per pixel (``parallax.parallax_support`` of the
-        disparity span, in processing-size pixels, of the band around the measurement's depth over the window's
-        sources: :meth:`_sweep_geometry`); None when the parallax rule is off (``parallax_full_px`` = 0)."""
-        full = float(self.config.parallax_full_px)
-        if full <= 0 or geom is None:
-            self._last_parallax = {}
-            return None
-        _depth, spans = geom
-        span = spans.amax(0)
-        if self.config.parallax_rotation_noise > 0:
-            # each source's span counts against full_px plus the pose error its rotation brings
-            noise = parallax.rotation_noise_px(T_src_ref_t, float(ref.K_b33[0, 0, 0]),
-                                               self.config.parallax_rotation_noise)[0]          # N
-            weight = (spans / (full + noise[:, None, None, None])).clamp(0.0, 1.0).amax(0)
-        else:
-            weight = parallax.parallax_support(span, full)
-        self._last_parallax = {'median_span_px': float(span.median()), 'mean_weight': float(weight.mean())}
-        return weight
-
     def _source_scoring(self) -> Dict[str, Any]:
         """Keyword arguments of ``KeyframeWindow.select`` for choosing sources from the pool (``source_pool``):
         ``parallax.pose_parallax_score`` at a nominal depth (the median depth of the last posterior, else the
@@ -741,41 +704,6 @@ class Estimator:
             if p.median_depth is not None and math.isfinite(p.median_depth):
                 return p.median_depth
         return 2.0 / (1.0 / self.d_min + 1.0 / self.d_max)
-
-    def _carry_support(self, step, weight: Optional[torch.Tensor], ref: Keyframe,
-                       K_vol_b33: torch.Tensor) -> Optional[torch.Tensor]:
-        """Parallax support of the new posterior, (1, h, w) in [0, 1]: ``w + (1 - w) * s_pred``, where
-        ``s_pred`` is the previous posterior's support carried into the reference with the predicted depth
-        (0 where the previous keyframe did not see the pixel, and after a filter restart). It mirrors the
-        filter's per-pixel blend of update and prediction, so a pixel keeps the support of the belief it
-        carries; it multiplies the published confidence."""
-        if weight is None:
-            return None
-        prev = self._posterior
-        pred = step.predicted_logp_bdhw
-        if pred is None or prev is None or prev.support_bhw is None:
-            return weight
-        depth = dpv_ops.depth_estimate(pred, self.depths_d, self.readout)
-        T_prev_ref = np.linalg.inv(prev.T_world_cam_44) @ ref.T_world_cam_44
-        T_t = torch.as_tensor(T_prev_ref, dtype=torch.float32, device=self.device)[None]
-        s, ok = geometry.warp_image_with_depth(prev.support_bhw[:, None], depth, prev.K_vol_b33, K_vol_b33, T_t)
-        s_pred = torch.where(ok, s[:, 0], torch.zeros_like(s[:, 0]))
-        return weight + (1.0 - weight) * s_pred
-
-    def _coverage(self, K_vol_b33: torch.Tensor, vol_hw, T_src_ref_n44: torch.Tensor) -> torch.Tensor:
-        """(1, h, w) bool: at least ``min_coverage`` of the ray's plane samples lie inside some source view.
-
-        Evaluated on at most ``COVERAGE_PLANES`` planes spread evenly over the D planes (visibility changes
-        smoothly along a ray, and all D planes would cost as much as the filter step)."""
-        N = T_src_ref_n44.shape[0]
-        h, w = int(vol_hw[0]), int(vol_hw[1])
-        D = self.depths_d.shape[0]
-        idx = torch.linspace(0, D - 1, min(D, COVERAGE_PLANES), device=self.device).round().long()
-        ones = torch.ones(N, 1, h, w, dtype=torch.float32, device=self.device)
-        K = K_vol_b33.float().expand(N, 3, 3)
-        _, valid = geometry.plane_sweep_warp(ones, K, K, T_src_ref_n44.float(), self.depths_d[idx], ref_hw=(h, w))
-        seen = valid.any(0).float().mean(0)                                          # h, w
-        return (seen >= self.config.min_coverage)[None]
 
     # ------------------------------------------------------------------ outputs
     def _between_output(self, frame: Frame, T, size, K_in, t0) -> Optional[DepthOutput]:
