@@ -164,6 +164,9 @@ SPECS: tuple[ParamSpec, ...] = (
               'the odom_sigma_* above; odometry: what the odometry says about itself, the growth of the published '
               'pose covariance between two keyframes where it is filled, else the odom_drift_* figures.',
               choices=('fixed', 'odometry')),
+    ParamSpec('refine_photometric_sources', 2, 'Pose refinement: align the reference photometrically (against its '
+              "predicted depth) to this many of its nearest sources, each a between factor; 0: no photometric "
+              'factors (keypoints and odometry only, about half the time).', min_value=0, max_value=64),
     ParamSpec('refine_keypoints', False, 'Pose refinement: add relative-pose factors from matched keypoints between '
               'the reference and its two nearest sources (rotation and direction from the images, the length from '
               'the odometry; robust), evidence that does not depend on the depth being estimated.'),

@@ -93,3 +93,22 @@ def test_gate_rejects_a_correction_the_odometry_covariance_rules_out(pair):
     res = refiner.refine(ref, [src])
     assert res.gate == 'refined' and _rot_err(res.T_world_cam[1], pair[4]) < 0.5
     assert refiner.gate_counts == {'refined': 1}
+
+
+@pytest.mark.parametrize('sources', [0, 1])
+def test_photometric_sources_parameter_sets_the_photometric_factors(pair, sources):
+    """refine_photometric_sources: 0 leaves keypoints and odometry (no alignment is run), 1 aligns the nearest."""
+    from dpv_sensor import params as P
+    from dpv_sensor.data.synthetic import render_sequence
+    depth = render_sequence(seed=7, num_frames=1, width=320, height=240, plain_wall_prob=0.0).depth(0)
+    values = P.validate(dict(P.defaults(), refine_odom_covariance='odometry', refine_keypoints=True,
+                             refine_photometric_sources=sources))
+    config = PoseRefinerConfig.from_params(values)
+    config.keypoint = KeypointConfig(max_features=2000, ratio=0.75)
+    assert config.max_sources == sources
+    ref, src = _window(pair, 2.0)
+    res = WindowPoseRefiner(config).refine(ref, [src], depth_ref=np.asarray(depth, np.float32))
+    assert res.refined and res.factors['keypoint'] == [(1, 0)]
+    assert res.factors.get('photometric', []) == ([(0, 1)] if sources else [])
+    assert (res.alignments[0] is not None) == bool(sources)
+    assert _rot_err(res.T_world_cam[1], pair[4]) < 0.5

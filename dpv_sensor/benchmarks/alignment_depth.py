@@ -44,6 +44,11 @@ def main(argv: Optional[List[str]] = None) -> int:
     p.add_argument('--pairs', type=int, default=20)
     p.add_argument('--error', type=float, default=0.3, help='std of the structured log-depth error')
     p.add_argument('--threads', type=int, default=2)
+    p.add_argument('--finest-level', type=int, default=None, help="the alignment's finest pyramid level "
+                   "(default: the refiner's)")
+    p.add_argument('--max-pixels', type=int, default=None, help="pixels per level (default: the refiner's)")
+    p.add_argument('--step-tolerance', type=float, default=None, help="the alignment's convergence step "
+                   "(default: the refiner's)")
     a = p.parse_args(argv)
     import cv2
     import torch
@@ -53,6 +58,12 @@ def main(argv: Optional[List[str]] = None) -> int:
     from dpv_sensor.stream.window_refiner import PoseRefinerConfig
     torch.set_num_threads(a.threads)
     config = PoseRefinerConfig().alignment
+    if a.finest_level is not None:
+        config.finest_level = a.finest_level
+    if a.max_pixels is not None:
+        config.max_pixels = a.max_pixels
+    if a.step_tolerance is not None:
+        config.step_tolerance = a.step_tolerance
     w, h = (int(v) for v in a.size.lower().split('x'))
     seq = Sequence(a.sequence)
     H0, W0 = seq.image(0).shape[:2]

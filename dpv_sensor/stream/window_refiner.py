@@ -170,7 +170,8 @@ class PoseRefinerConfig:
     #: node parameters (dpv_sensor.params) that set fields of this class: parameter name -> field name
     PARAMS = {'odom_sigma_rot_deg': 'odom_sigma_rot_deg', 'odom_sigma_trans_m': 'odom_sigma_trans_m',
               'odom_sigma_trans_rel': 'odom_sigma_trans_rel', 'refine_odom_covariance': 'odom_covariance',
-              'refine_keypoints': 'keypoint_factors', 'refine_marginals': 'marginals',
+              'refine_photometric_sources': 'max_sources', 'refine_keypoints': 'keypoint_factors',
+              'refine_marginals': 'marginals',
               'refine_gate_chi2': 'gate_chi2', 'refine_gate_min_inliers': 'gate_min_inliers'}
 
     @classmethod
