@@ -148,11 +148,11 @@ SPECS: tuple[ParamSpec, ...] = (
               scope='node'),
     ParamSpec('base_frame', '', 'Parent frame of the static TF: the frame T_base_camera is given in. Empty: the '
               "odometry's child_frame_id.", scope='node'),
-    ParamSpec('pose_refinement', 'off', 'Sliding-window pose refinement with gtsam: off or window. Off by default: '
-              'with odometry-like noise it halved the rotation error between keyframes on rendered scenes but did '
-              'not improve their depth, and on a real sequence that turns in place it made both worse. A window that '
-              'does not converge, moves a pose implausibly far from the odometry or turns in place keeps the '
-              'odometry poses (counted in the pose_refinement_fallbacks diagnostic).',
+    ParamSpec('pose_refinement', 'window', 'Sliding-window pose refinement with gtsam: window or off. With the '
+              'refine_* defaults the window holds the odometry as its covariance (else the odom_drift_* figures) '
+              'says and corrects rotation and direction from matched keypoints; a window without enough matches, '
+              'one that does not converge, moves a pose implausibly far from the odometry or turns in place keeps '
+              'the odometry poses (counted in the pose_refinement_fallbacks diagnostic).',
               choices=('off', 'window')),
     ParamSpec('odom_sigma_rot_deg', 0.5, 'Pose refinement: rotation std of the odometry between two keyframes '
               '(deg); lower trusts odometry more.', min_value=1e-4, max_value=90.0),
@@ -160,14 +160,15 @@ SPECS: tuple[ParamSpec, ...] = (
               'constant part (m).', min_value=1e-6, max_value=10.0),
     ParamSpec('odom_sigma_trans_rel', 0.03, 'Pose refinement: translation std of the odometry between two keyframes, '
               'part proportional to the distance travelled (0.03 = 3 %).', min_value=0.0, max_value=10.0),
-    ParamSpec('refine_odom_covariance', 'fixed', "Pose refinement: the odometry between factors' covariance. fixed: "
+    ParamSpec('refine_odom_covariance', 'odometry', "Pose refinement: the odometry between factors' covariance. fixed: "
               'the odom_sigma_* above; odometry: what the odometry says about itself, the growth of the published '
               'pose covariance between two keyframes where it is filled, else the odom_drift_* figures.',
               choices=('fixed', 'odometry')),
-    ParamSpec('refine_photometric_sources', 2, 'Pose refinement: align the reference photometrically (against its '
-              "predicted depth) to this many of its nearest sources, each a between factor; 0: no photometric "
-              'factors (keypoints and odometry only, about half the time).', min_value=0, max_value=64),
-    ParamSpec('refine_keypoints', False, 'Pose refinement: add relative-pose factors from matched keypoints between '
+    ParamSpec('refine_photometric_sources', 0, 'Pose refinement: align the reference photometrically (against its '
+              'predicted depth, paper eq. 11) to this many of its nearest sources, each a between factor. 0 (the '
+              'default): keypoints and odometry only, half the time; the alignments follow the depth being '
+              'estimated, which made the confidence over-confident under drift.', min_value=0, max_value=64),
+    ParamSpec('refine_keypoints', True, 'Pose refinement: add relative-pose factors from matched keypoints between '
               'the reference and its two nearest sources (rotation and direction from the images, the length from '
               'the odometry; robust), evidence that does not depend on the depth being estimated.'),
     ParamSpec('refine_marginals', False, "Pose refinement: after a refined window, each source's pose covariance "

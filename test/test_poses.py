@@ -304,8 +304,9 @@ def test_window_refinement_halves_relative_pose_error(sequence):
     gt, imgs, depths = sequence
     noisy = corrupt_trajectory(gt, trans_noise_rel=0.03, rot_noise_deg=0.5, seed=3)
     # exact depth here: no widening of the photometric translation for depth errors
-    refiner = WindowPoseRefiner(PoseRefinerConfig(alignment=AlignmentConfig(finest_level=0), depth_scale_sigma=0.0,
-                                                  translation_sigma_rel=0.0, inv_depth_offset_sigma=0.0))
+    refiner = WindowPoseRefiner(PoseRefinerConfig.photometric(
+        alignment=AlignmentConfig(finest_level=0), depth_scale_sigma=0.0, translation_sigma_rel=0.0,
+        inv_depth_offset_sigma=0.0))
     est, results = run_window(refiner, gt, noisy, imgs, depths)
     assert all(r.tracking_ok for r in results), [r.reason for r in results]
     assert not results[0].refined and all(r.refined for r in results[1:])
@@ -355,7 +356,7 @@ def test_depth_error_sensitivities_match_realigning_with_a_wrong_depth(pair):
 
 def test_window_without_depth_keeps_odometry(sequence):
     gt, imgs, depths = sequence
-    refiner = WindowPoseRefiner()
+    refiner = WindowPoseRefiner(PoseRefinerConfig.photometric())
     kfs = [WindowKeyframe(j, imgs[j], K_NP, gt[j]) for j in range(3)]
     res = refiner.refine(kfs[-1], kfs[:-1], None)
     assert res.tracking_ok and not res.refined and res.reason is None
@@ -365,7 +366,7 @@ def test_window_without_depth_keeps_odometry(sequence):
 
 def test_nonconverging_alignment_flags_tracking_loss(sequence):
     gt, imgs, depths = sequence
-    refiner = WindowPoseRefiner()
+    refiner = WindowPoseRefiner(PoseRefinerConfig.photometric())
     g = torch.Generator().manual_seed(2)
     noise = [torch.rand(H, W, generator=g) for _ in range(3)]
     kfs = [WindowKeyframe(j, noise[j], K_NP, gt[j]) for j in range(3)]
@@ -382,7 +383,7 @@ def test_pose_jump_flags_tracking_loss(sequence):
     """Odometry that claims the camera stood still while it moved 10 cm: the (good) alignment pulls the pose
     further from the odometry than the jump limit allows."""
     gt, imgs, depths = sequence
-    cfg = PoseRefinerConfig(max_jump_translation_m=0.03, alignment=AlignmentConfig(finest_level=0))
+    cfg = PoseRefinerConfig.photometric(max_jump_translation_m=0.03, alignment=AlignmentConfig(finest_level=0))
     refiner = WindowPoseRefiner(cfg)
     odom = [gt[0], gt[0].copy()]
     kfs = [WindowKeyframe(0, imgs[0], K_NP, odom[0]), WindowKeyframe(2, imgs[2], K_NP, odom[1])]
@@ -396,7 +397,7 @@ def test_estimator_hook_interface(sequence):
     """The refiner is callable with the estimator's PoseRefinementRequest (duck-typed here)."""
     gt, imgs, depths = sequence
     noisy = corrupt_trajectory(gt, trans_noise_rel=0.03, rot_noise_deg=0.5, seed=4)
-    refiner = WindowPoseRefiner()
+    refiner = WindowPoseRefiner(PoseRefinerConfig.photometric())
 
     def kf(j):
         return SimpleNamespace(stamp=0.1 * j, index=j, image_b3hw=imgs[j].expand(3, H, W)[None],
@@ -522,7 +523,7 @@ def test_turning_in_place_keeps_the_odometry(yaw, x, skipped):
     img = rng.random((48, 64, 3)).astype(np.float32)
     ref = WindowKeyframe(1.0, img, K, _rot_pose(yaw, x))
     src = WindowKeyframe(0.0, img, K, _rot_pose())
-    refiner = WindowPoseRefiner(PoseRefinerConfig(max_sources=1))
+    refiner = WindowPoseRefiner(PoseRefinerConfig.photometric(max_sources=1))
     init = {0.0: src.T_world_cam_odom_44, 1.0: ref.T_world_cam_odom_44}
     why = refiner._turning_in_place(ref, [src], init, np.full((12, 16), 2.0))
     assert (why is not None) == skipped
@@ -553,7 +554,7 @@ def test_the_window_reports_where_its_odometry_covariance_comes_from():
     assert published.source == PUBLISHED
     assert math.degrees(published.rot_rad) == pytest.approx(0.05, rel=1e-6)
     assert published.trans_m == pytest.approx(1e-3, rel=1e-6)
-    fixed = odometry_steps(keys, odom, cov, PoseRefinerConfig())
+    fixed = odometry_steps(keys, odom, cov, PoseRefinerConfig.photometric())
     assert fixed.source == FIXED
     assert math.degrees(fixed.rot_rad) == pytest.approx(PoseRefinerConfig().odom_sigma_rot_deg)
     assert odometry_steps([0], odom, cov, cfg) is None

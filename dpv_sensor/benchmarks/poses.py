@@ -396,13 +396,13 @@ def timing_experiment(seq, args) -> Dict:
 
 def refiner_config(args, vo_mode: bool = False) -> PoseRefinerConfig:
     al = dataclasses.replace(PoseRefinerConfig().alignment, finest_level=args.finest_level)
-    cfg = PoseRefinerConfig(alignment=al, odom_sigma_rot_deg=args.rot_noise if not vo_mode else 1.0,
-                            odom_sigma_trans_m=5e-4,
-                            odom_sigma_trans_rel=max(args.trans_noise, 1e-3) if not vo_mode else 0.1,
-                            max_sources=args.max_sources or None, depth_scale_sigma=args.depth_scale_sigma,
-                            translation_sigma_rel=args.translation_sigma_rel,
-                            use_depth_uncertainty=args.depth_uncertainty, warmup_keyframes=args.warmup,
-                            inv_depth_offset_sigma=args.offset_sigma)
+    cfg = PoseRefinerConfig.photometric(alignment=al, odom_sigma_rot_deg=args.rot_noise if not vo_mode else 1.0,
+                                        odom_sigma_trans_m=5e-4,
+                                        odom_sigma_trans_rel=max(args.trans_noise, 1e-3) if not vo_mode else 0.1,
+                                        max_sources=args.max_sources or None, depth_scale_sigma=args.depth_scale_sigma,
+                                        translation_sigma_rel=args.translation_sigma_rel,
+                                        use_depth_uncertainty=args.depth_uncertainty, warmup_keyframes=args.warmup,
+                                        inv_depth_offset_sigma=args.offset_sigma)
     return cfg
 
 

@@ -133,7 +133,7 @@ class PoseRefinerConfig:
     inv_depth_offset_sigma: Optional[float] = None
     translation_sigma_rel: float = 0.1
     use_depth_uncertainty: bool = True
-    max_sources: Optional[int] = 2
+    max_sources: Optional[int] = _params.default('refine_photometric_sources')
     keep_old_factors: bool = True
     min_converged_fraction: float = 0.5
     require_nearest: bool = True
@@ -142,19 +142,21 @@ class PoseRefinerConfig:
     lm_max_iterations: int = 30
     warmup_keyframes: int = 0
     max_rotation_parallax: float = 8.0
-    odom_covariance: str = 'fixed'
+    odom_covariance: str = _params.default('refine_odom_covariance')
     drift: pose_uncertainty.DriftModel = field(default_factory=lambda: pose_uncertainty.DriftModel(sync_s=0.0))
-    keypoint_factors: bool = False
+    keypoint_factors: bool = _params.default('refine_keypoints')
     keypoint: KeypointConfig = field(default_factory=KeypointConfig)
     keypoint_sources: int = 2
     keypoint_prior_gate_px: float = 0.0
     keypoint_huber_k: float = 1.345
     keypoint_scale_sigma_rel: float = 0.5
-    marginals: bool = False
-    gate_chi2: float = 0.0
-    gate_min_inliers: int = 0
+    marginals: bool = _params.default('refine_marginals')
+    gate_chi2: float = _params.default('refine_gate_chi2')
+    gate_min_inliers: int = _params.default('refine_gate_min_inliers')
 
-    # Pose-error model of the window (all off by default; see :meth:`WindowPoseRefiner._optimize`):
+    # Pose-error model of the window (defaults from the parameter table: odometry covariance and keypoints on,
+    # no photometric factors; the plain photometric window of paper eq. 11 is odom_covariance='fixed',
+    # keypoint_factors=False, max_sources=2; see :meth:`WindowPoseRefiner._optimize`):
     # odom_covariance: 'fixed' (the odom_sigma_* above) or 'odometry' (each step's covariance: the growth of the
     #     keyframes' published pose covariance where both are filled, else the ``drift`` figures of the step).
     # keypoint_factors: add keypoint relative-pose factors (core.keypoint_pose) between the reference and its
@@ -173,6 +175,12 @@ class PoseRefinerConfig:
               'refine_photometric_sources': 'max_sources', 'refine_keypoints': 'keypoint_factors',
               'refine_marginals': 'marginals',
               'refine_gate_chi2': 'gate_chi2', 'refine_gate_min_inliers': 'gate_min_inliers'}
+
+    @classmethod
+    def photometric(cls, **kw) -> 'PoseRefinerConfig':
+        """The plain photometric window (paper eq. 11): alignments to the two nearest sources and odometry factors
+        with the fixed ``odom_sigma_*``, no keypoints; ``kw`` sets other fields."""
+        return cls(**dict(dict(odom_covariance='fixed', keypoint_factors=False, max_sources=2), **kw))
 
     @classmethod
     def from_params(cls, values) -> 'PoseRefinerConfig':
