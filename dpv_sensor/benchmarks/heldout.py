@@ -2,7 +2,8 @@
 
 Runs dpv_sensor.evaluation.runner.run_sequence (the product's streaming path: keyframe selection, causal
 5-keyframe windows, filter, 320x256 processing, output at the input size) with GT poses on the given
-sequences (or, with ``--pose-noise``, odometry-like poses), for filter modes none / global / knet, and
+sequences (or, with ``--pose-noise``, odometry-like poses; the networks on those poses: no refinement window),
+for filter modes none / global / knet, and
 scores keyframe outputs with
 dpv_sensor.evaluation.metrics (metric, frame means). Constant depth = the median GT depth of the sequence (an
 oracle constant, i.e. a strong constant baseline), scored on the same keyframes.
@@ -131,7 +132,7 @@ def main():
             t0 = time.time()
             cfg = EstimatorConfig(preset=model.preset.name, measurement='network', filter_mode=mode,
                                   num_planes=D, window_mode=a.window_mode, depth_readout=a.readout,
-                                  confidence=a.confidence)
+                                  confidence=a.confidence, pose_refinement='off')
             res = evaluate(seq, cfg, options, model=model)
             r[f'net_{mode}'] = summarize(res)
             kf_idx = [row['index'] for row in res['rows']]
@@ -139,7 +140,7 @@ def main():
         if not a.no_classical:
             for mode in [m for m in a.modes if m != 'knet']:
                 cfg = EstimatorConfig(measurement='classical', filter_mode=mode, window_mode=a.window_mode,
-                                      depth_readout=a.readout, confidence=a.confidence)
+                                      depth_readout=a.readout, confidence=a.confidence, pose_refinement='off')
                 res = evaluate(seq, cfg, options)
                 r[f'classical_{mode}'] = summarize(res)
                 print(name, 'classical', mode, json.dumps(r[f'classical_{mode}']), flush=True)

@@ -17,7 +17,9 @@ validation). It returns one entry per (pose source, filter mode):
 
 ``abs_rel``, ``delta1`` and ``ms_abs_rel`` (median-scaled) are means over the seeds of each sequence's
 frame mean; ``per_seed`` lists the abs_rel of each seed. It reads and writes no files and never touches
-ROS; the estimator runs with the node's defaults, on the caller's device.
+ROS; the estimator runs with the node's defaults but without the pose-refinement window
+(``pose_refinement: off``), on the caller's device: it scores the networks on the poses given, and a training
+machine needs no gtsam.
 """
 from __future__ import annotations
 
@@ -120,7 +122,8 @@ class StreamValidator:
                     for seed, seq in zip(self.spec.seeds, self.sequences()):
                         opts = EvalOptions(seed=seed, progress=False, pose_noise=tuple(self.spec.pose_noise))
                         summ = evaluate_sequence(seq, {'filter_mode': mode, 'pose_source': src,
-                                                       'device': str(device)}, options=opts, model=model)
+                                                       'device': str(device), 'pose_refinement': 'off'},
+                                                 options=opts, model=model)
                         rows.append(_summary_row(summ))
                     key = stream_metric_key(mode, noisy=src == 'noisy')
                     out[key] = _mean_rows(rows)
