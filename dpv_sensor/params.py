@@ -383,6 +383,9 @@ def check_value(s: ParamSpec, value: Any) -> Any:
     kind = s.kind
     if kind is float and isinstance(value, int) and not isinstance(value, bool):
         value = float(value)
+    if kind is str and isinstance(value, bool) and s.choices is not None and ('on' if value else 'off') in s.choices:
+        # YAML 1.1 and the ROS 2 command line (-p pose_refinement:=off) read the words on / off as booleans
+        value = 'on' if value else 'off'
     if kind is list:
         if not isinstance(value, (list, tuple)) or (s.length and len(value) != s.length):
             raise type_error(s.name, expected_type(s.default, s.length), value)

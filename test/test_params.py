@@ -129,3 +129,14 @@ def test_evaluate_refuses_a_wrong_type_naming_the_setting(assignment, message, t
     assert rc == 2
     assert capsys.readouterr().err.strip() == f'evaluate: {message}'
     assert not (tmp_path / 'out').exists()
+
+
+def test_off_read_as_a_boolean_means_the_choice_off():
+    """YAML 1.1 and `--ros-args -p pose_refinement:=off` deliver False for the word off."""
+    spec = {s.name: s for s in P.SPECS}
+    assert P.check_value(spec['pose_refinement'], False) == 'off'
+    assert P.check_value(spec['pose_uncertainty'], False) == 'off'
+    with pytest.raises(P.ParameterError, match="'pose_refinement' must be str, got True"):
+        P.check_value(spec['pose_refinement'], True)          # no choice 'on'
+    with pytest.raises(P.ParameterError, match="'frame_id' must be str"):
+        P.check_value(spec['frame_id'], False)                # a free string takes no boolean
