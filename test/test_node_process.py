@@ -30,6 +30,26 @@ def test_node_joins_graph_and_stops_cleanly(observer, sig):
     assert gone, 'node still listed in the graph after it stopped'
 
 
+def test_off_on_the_command_line_turns_a_setting_off(observer):
+    """`-p pose_refinement:=off` reaches rclpy as the boolean False (YAML); the node takes it as the choice 'off'."""
+    from rcl_interfaces.srv import GetParameters
+    node, executor = observer
+    proc = start_node(['--ros-args', '-p', 'pose_refinement:=off'])
+    try:
+        spin = lambda t: executor.spin_once(timeout_sec=t)  # noqa: E731
+        client = node.create_client(GetParameters, f'/{NODE_NAME}/get_parameters')
+        assert wait_for(client.service_is_ready, timeout=20.0, spin=spin), \
+            'no parameter service:\n' + stop_process(proc)[1]
+        future = client.call_async(GetParameters.Request(names=['pose_refinement']))
+        assert wait_for(future.done, timeout=10.0, spin=spin)
+        assert future.result().values[0].string_value == 'off'
+        node.destroy_client(client)
+    finally:
+        code, out = stop_process(proc)
+    assert code == 0, out
+    assert 'invalid parameter' not in out and 'Traceback' not in out, out
+
+
 REFUSED = [
     ('damping:=3.0', "parameter 'damping' = 3.0 is above its maximum 1.0"),
     ('filter_mode:=kalman', "parameter 'filter_mode' = 'kalman' is not one of"),

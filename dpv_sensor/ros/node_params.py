@@ -8,6 +8,7 @@ from dataclasses import dataclass
 
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, SetParametersResult
 from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
+from rclpy.parameter import Parameter
 
 from dpv_sensor import params as P
 from dpv_sensor.stream.estimator import EstimatorConfig
@@ -58,9 +59,16 @@ def declare_parameters(node) -> dict:
         try:
             node.declare_parameter(spec.name, spec.default, descriptor(spec))
         except (InvalidParameterTypeException, InvalidParameterValueException) as exc:
-            override = getattr(node, '_parameter_overrides', {}).get(spec.name)
-            if override is not None:
-                P.check_value(spec, override.value)         # raises the table's message
+            overrides = getattr(node, '_parameter_overrides', {})
+            override = overrides.get(spec.name)
+            if override is None:
+                raise P.ParameterError(f"parameter '{spec.name}' rejected: {exc}") from None
+            value = P.check_value(spec, override.value)     # raises the table's message
+            if isinstance(override.value, bool) and isinstance(value, str):
+                # `-p pose_refinement:=off` arrives as False: the table reads it as the choice 'off'
+                overrides[spec.name] = Parameter(spec.name, Parameter.Type.STRING, value)
+                node.declare_parameter(spec.name, spec.default, descriptor(spec))
+                continue
             raise P.ParameterError(f"parameter '{spec.name}' rejected: {exc}") from None
     values = {spec.name: node.get_parameter(spec.name).value for spec in P.SPECS}
     return P.validate(values)
