@@ -35,7 +35,9 @@ class KeypointConfig:
     """detector: 'sift' or 'orb'; max_features: keypoints per image; ratio: Lowe's ratio test; ransac_px: the
     essential matrix's RANSAC threshold (pixels); ransac_confidence: its confidence; min_inliers: fewer inliers than
     this is no estimate (``ok`` False); pixel_sigma: the std of a keypoint's position (pixels) for the covariance;
-    min_parallax_px: a median parallax below this gives no translation direction (``t_dir_b`` None)."""
+    min_parallax_px: a median parallax below this gives no translation direction (``t_dir_b`` None);
+    rotation_floor_deg, direction_floor_deg: added in quadrature to each axis of the inliers' covariance (module doc:
+    what the Sampson spread does not see; measured by ``benchmarks.keypoint_accuracy``)."""
     detector: str = 'sift'
     max_features: int = 1000
     ratio: float = 0.8
@@ -44,6 +46,8 @@ class KeypointConfig:
     min_inliers: int = 20
     pixel_sigma: float = 1.0
     min_parallax_px: float = 1.0
+    rotation_floor_deg: float = 0.0
+    direction_floor_deg: float = 0.0
 
 
 @dataclass
@@ -207,7 +211,9 @@ def keypoint_relative_pose(image_a, image_b, K_33: np.ndarray, config: Optional[
     xa = _normalised(pa[sel], K)
     xb = _normalised(pb[sel], K)
     R, t_dir, cov, B, rms = _refine(xa, xb, R, t_dir, f, cfg.pixel_sigma)
+    cov = cov + np.diag(np.radians([cfg.rotation_floor_deg] * 3 + [cfg.direction_floor_deg] * 2)) ** 2
     if parallax < cfg.min_parallax_px:
+        s_rot = math.hypot(s_rot, math.radians(cfg.rotation_floor_deg))
         return KeypointPose(True, None, R, None, n_in, len(good), parallax, s_rot, math.inf, residual_px=rms)
     s_rot = math.sqrt(max(np.linalg.eigvalsh(cov[:3, :3])[-1], s_rot ** 2))
     s_dir = math.sqrt(max(np.linalg.eigvalsh(cov[3:, 3:])[-1], s_dir ** 2))
