@@ -77,3 +77,16 @@ def test_features_detected_once_give_the_same_pose_as_the_images(pair):
     assert np.array_equal(from_features.R_b_a, from_images.R_b_a)
     with pytest.raises(ValueError, match='orb'):
         keypoint_relative_pose(detect_features(img_a, cfg), img_b, K, KeypointConfig(detector='orb'))
+
+
+def test_floors_add_to_the_inliers_covariance_in_quadrature(pair):
+    img_a, img_b, K, _ = pair
+    cfg = KeypointConfig(max_features=2000, ratio=0.75)
+    raw = keypoint_relative_pose(img_a, img_b, K, cfg)
+    floored = keypoint_relative_pose(img_a, img_b, K, KeypointConfig(max_features=2000, ratio=0.75,
+                                                                     rotation_floor_deg=0.5, direction_floor_deg=2.0))
+    assert raw.ok and floored.ok and raw.t_dir_b is not None
+    np.testing.assert_allclose(floored.R_b_a, raw.R_b_a)           # the estimate is the same, only its covariance
+    expected = np.diag(np.radians([0.5, 0.5, 0.5, 2.0, 2.0]) ** 2)
+    np.testing.assert_allclose(floored.cov_55 - raw.cov_55, expected, rtol=1e-9, atol=1e-15)
+    assert floored.sigma_rot_rad >= math.radians(0.5) and floored.sigma_dir_rad >= math.radians(2.0)

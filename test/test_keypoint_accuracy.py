@@ -1,0 +1,64 @@
+"""benchmarks.keypoint_accuracy: the error of a keypoint estimate against the truth in its covariance's
+coordinates, the rotation given the direction, and the floors fitted to honest NEES."""
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+import pytest
+
+from dpv_sensor.benchmarks import keypoint_accuracy as KA
+from dpv_sensor.core.keypoint_pose import KeypointPose
+
+
+def _pair(err, cov=None):
+    return KA.PairError('s', 1, 0, 50, 5.0, 0.05, list(err), (np.eye(len(err)) * 1e-12 if cov is None else cov).tolist())
+
+
+def test_pair_error_is_the_left_rotation_increment_and_the_direction_increment():
+    R_gt = cv2.Rodrigues(np.array([[0.1], [-0.2], [0.05]]))[0]
+    t_gt = np.array([0.03, -0.01, 0.04])
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R_gt, t_gt
+    delta = np.radians([0.3, -0.2, 0.1])
+    R_kp = cv2.Rodrigues(delta.reshape(3, 1))[0] @ R_gt               # the estimate: Exp(delta) R_true
+    u = t_gt / np.linalg.norm(t_gt)
+    off = np.cross(u, [0.0, 0.0, 1.0])
+    t_kp = u + 0.01 * off / np.linalg.norm(off)
+    t_kp /= np.linalg.norm(t_kp)
+    B = np.c_[off / np.linalg.norm(off), np.cross(t_kp, off / np.linalg.norm(off))]   # normal to t_kp (to first order)
+    kp = KeypointPose(True, None, R_kp, t_kp, 50, 60, 5.0, 0.01, 0.1, np.eye(5) * 1e-6, B)
+    e = KA.pair_error('s', 1, 0, kp, T)
+    np.testing.assert_allclose(e.err[:3], delta, atol=1e-12)
+    np.testing.assert_allclose(e.err[3:], B.T @ (t_kp - u), atol=1e-12)
+    assert abs(e.err[3]) == pytest.approx(0.01, rel=1e-3) and abs(e.err[4]) < 1e-4
+    assert e.has_direction and e.baseline_m == pytest.approx(np.linalg.norm(t_gt))
+
+
+def test_rotation_given_the_direction_by_hand():
+    # rotation x and direction x perfectly explained by each other (corr 0.8): given the direction, the rotation's
+    # x error is d_r - (0.8 * 1 * 2 / 2^2) d_d and its variance 1 - 0.64
+    S = np.diag([1.0, 1.0, 1.0, 4.0, 4.0])
+    S[0, 3] = S[3, 0] = 0.8 * 1.0 * 2.0
+    rot, dirn, cond = KA.blocks(_pair([0.5, 0.0, 0.0, 1.0, 0.0], S))
+    np.testing.assert_allclose(cond[0], [0.5 - 0.4 * 1.0, 0.0, 0.0])
+    assert cond[1][0, 0] == pytest.approx(1 - 0.64)
+    assert KA.nees(*dirn) == pytest.approx(1.0 / 4.0)
+    assert KA.nees(*rot) == pytest.approx(0.25)
+    # floors add in quadrature before conditioning: a huge direction floor leaves the rotation's marginal
+    _, _, cond_floor = KA.blocks(_pair([0.5, 0.0, 0.0, 1.0, 0.0], S), 0.0, math.degrees(1e4))
+    assert cond_floor[1][0, 0] == pytest.approx(1.0, rel=1e-6)
+
+
+def test_fitted_floors_make_the_median_nees_honest_and_ignore_gross_errors():
+    rng = np.random.default_rng(0)
+    rows = [_pair(np.r_[rng.normal(0, math.radians(0.3), 3), rng.normal(0, math.radians(3.0), 2)])
+            for _ in range(400)]
+    br, bd = KA.fit_floors(rows)
+    assert br == pytest.approx(0.3, rel=0.15) and bd == pytest.approx(3.0, rel=0.15)
+    rows += [_pair(np.r_[rng.normal(0, math.radians(3.0), 3), rng.normal(0, math.radians(40.0), 2)])
+             for _ in range(40)]                                          # 10 % matched one period off
+    br2, bd2 = KA.fit_floors(rows)
+    assert br2 == pytest.approx(0.3, rel=0.25) and bd2 == pytest.approx(3.0, rel=0.25)
+    assert KA.fit_floors([_pair([0.0, 0.0, 0.0])]) == (0.0, 0.0)       # no pair with a direction: nothing to fit
