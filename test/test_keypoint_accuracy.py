@@ -62,3 +62,18 @@ def test_fitted_floors_make_the_median_nees_honest_and_ignore_gross_errors():
     br2, bd2 = KA.fit_floors(rows)
     assert br2 == pytest.approx(0.3, rel=0.25) and bd2 == pytest.approx(3.0, rel=0.25)
     assert KA.fit_floors([_pair([0.0, 0.0, 0.0])]) == (0.0, 0.0)       # no pair with a direction: nothing to fit
+
+
+def test_the_tool_measures_a_rendered_scene(tmp_path, capsys):
+    out = tmp_path / 'kp.json'
+    assert KA.main(['--seeds', '7', '--frames', '40', '--json', str(out)]) == 0
+    text = capsys.readouterr().out
+    assert 'synthetic_seed7' in text and 'floors fitted on the rendered sequences' in text
+    import json
+    data = json.loads(out.read_text())
+    pairs = [KA.PairError(**p) for p in data['pairs']]
+    assert len(pairs) >= 5 and all(p.sequence == 'synthetic_seed7' for p in pairs)
+    assert sum(p.ref > p.src for p in pairs) == len(pairs)                  # each keyframe with earlier ones
+    rot_deg = np.degrees([np.linalg.norm(p.err[:3]) for p in pairs])
+    assert np.median(rot_deg) < 2.0                                          # keypoints, not noise
+    assert data['tried']['synthetic_seed7'] >= len(pairs)
