@@ -46,6 +46,7 @@ def test_rotation_given_the_direction_by_hand():
     assert cond[1][0, 0] == pytest.approx(1 - 0.64)
     assert KA.nees(*dirn) == pytest.approx(1.0 / 4.0)
     assert KA.nees(*rot) == pytest.approx(0.25)
+    assert KA.nees([1.0, 0.0], np.zeros((2, 2))) == math.inf                 # a covariance that calls it exact
     # floors add in quadrature before conditioning: a huge direction floor leaves the rotation's marginal
     _, _, cond_floor = KA.blocks(_pair([0.5, 0.0, 0.0, 1.0, 0.0], S), 0.0, math.degrees(1e4))
     assert cond_floor[1][0, 0] == pytest.approx(1.0, rel=1e-6)

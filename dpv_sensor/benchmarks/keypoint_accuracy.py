@@ -148,8 +148,12 @@ def sequence_pairs(name: str, images: Iterable[np.ndarray], K_33: np.ndarray, po
 # the covariance model (KeypointConfig's floors added to the inliers' covariance) and its fit
 
 def nees(err, cov) -> float:
+    """d^T S^-1 d; inf where S is singular (a covariance that calls some direction exact)."""
     d = np.asarray(err, np.float64)
-    return float(d @ np.linalg.solve(np.asarray(cov, np.float64), d))
+    try:
+        return float(d @ np.linalg.solve(np.asarray(cov, np.float64), d))
+    except np.linalg.LinAlgError:
+        return math.inf
 
 
 def fit_floors(rows: Seq[PairError]) -> Tuple[float, float]:
@@ -197,8 +201,9 @@ def summary(rows: List[PairError], fitted: Optional[Tuple[float, float]] = None)
             continue
         n = len(got[0][0])
         ns = np.asarray([nees(e, S) for e, S in got])
+        stds = [math.sqrt(max(float(np.trace(S)) / n, 0.0)) for _, S in got]     # >= 0 against rounding
         out.update({f'{name}_err_deg': float(np.degrees(np.median([np.linalg.norm(e) for e, _ in got]))),
-                    f'{name}_sigma_deg': float(np.degrees(np.median([math.sqrt(np.trace(S) / n) for _, S in got]))),
+                    f'{name}_sigma_deg': float(np.degrees(np.median(stds))),
                     f'{name}_nees_median': float(np.median(ns)), f'{name}_beyond95': float(np.mean(ns > CHI2_95[n]))})
     if fitted:
         got = [blocks(r, *fitted)[2] for r in rows if r.has_direction]
@@ -274,11 +279,14 @@ def main(argv: Optional[List[str]] = None) -> int:
     p.add_argument('--seeds', default='60,61,62,63', help='rendered scenes (comma separated; none: empty)')
     p.add_argument('--frames', type=int, default=120, help='frames of each rendered scene')
     p.add_argument('--sources', type=int, default=2, help="pairs per keyframe (the refiner's keypoint_sources)")
+    p.add_argument('--size', help="match at this WxH (default: the node's processing size; 'full': the images' own)")
     p.add_argument('--loso', action='store_true', help='also fit leaving each sequence out')
     p.add_argument('--json', type=pathlib.Path, help='write every pair and the fits here')
     a = p.parse_args(argv)
     from tqdm import tqdm
     size = (P.default('processing_width'), P.default('processing_height'))
+    if a.size:
+        size = None if a.size == 'full' else tuple(int(v) for v in a.size.lower().split('x'))
     seeds = [int(s) for s in a.seeds.split(',') if s.strip()]
     config = dataclasses.replace(KeypointConfig(), rotation_floor_deg=0.0, direction_floor_deg=0.0)  # S_kp raw
     rows: Dict[str, List[PairError]] = {}
@@ -287,7 +295,7 @@ def main(argv: Optional[List[str]] = None) -> int:
         poses = np.asarray(seq.poses, np.float64)
         kfs = keyframe_indices(poses)
         images = (seq.image(i) for i in tqdm(kfs, desc=name, unit='keyframe', leave=False))
-        rows[name], tried[name] = sequence_pairs(name, images, seq.K, poses, size, a.sources, config)
+        rows[name], tried[name] = sequence_pairs(name, images, seq.K, poses, size or seq.size, a.sources, config)
     if not rows:
         p.error('no sequences: give --data or --seeds')
     every = [r for v in rows.values() for r in v]
