@@ -228,3 +228,6 @@ def test_offline_runs_agree_with_the_node_and_carry_the_covariance(table_run):
     table = ST._Table(out=out, params=params, folders={'synthetic_seed50': folder}, noise_seeds=[0],
                       single_sources=(), command='', offline=True)
     assert 'offline=True' in table.run_file('synthetic_seed50', 'noisy0').name
+    rows = ST.table_rows([plain, honest], table.sequences, [0], table.tag_params, single_sources=())
+    assert [r['poses'] for r in rows] == ['noisy ×1', 'noisy+cov ×1']        # the offline table has its rows
+    assert rows[0]['abs_rel'] == pytest.approx(plain['abs_rel'])

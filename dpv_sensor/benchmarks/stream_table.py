@@ -397,7 +397,7 @@ def run_one_offline(seq_name: str, seq_dir: pathlib.Path, pose_source: str, user
     from dpv_sensor.evaluation import offline as E
     from dpv_sensor.evaluation import runner as RN
     from dpv_sensor.data.sequence import Sequence
-    key = run_key(seq_name, pose_source, user_params)
+    key = run_key(seq_name, pose_source, dict(user_params, offline=True))     # cached and tabled apart
     t_all = time.perf_counter()
     seq = Sequence(seq_dir)
     config, values = RN.build_config(user_params)
@@ -664,6 +664,7 @@ class _Table:
                 if f.is_file():
                     r = json.loads(f.read_text())
                     if r.get('version') == RUN_VERSION:
+                        r['key'] = f.stem      # the file's name is the key (offline runs once kept the node's)
                         runs.append(r)
         return runs
 
