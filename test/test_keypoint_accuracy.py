@@ -13,7 +13,8 @@ from dpv_sensor.core.keypoint_pose import KeypointPose
 
 
 def _pair(err, cov=None):
-    return KA.PairError('s', 1, 0, 50, 5.0, 0.05, list(err), (np.eye(len(err)) * 1e-12 if cov is None else cov).tolist())
+    cov = np.eye(len(err)) * 1e-12 if cov is None else cov
+    return KA.PairError('s', 1, 0, 50, 5.0, 0.05, list(err), np.asarray(cov).tolist())
 
 
 def test_pair_error_is_the_left_rotation_increment_and_the_direction_increment():
