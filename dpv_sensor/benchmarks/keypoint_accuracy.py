@@ -94,16 +94,6 @@ def keyframe_indices(poses_n44: np.ndarray) -> List[int]:
     return [i for i, T in enumerate(poses_n44) if sel.decide(T).is_keyframe]
 
 
-def processing_image(image: np.ndarray, K_33: np.ndarray, size: Tuple[int, int]) -> Tuple[np.ndarray, np.ndarray]:
-    """The image and K at the processing size, resized as the estimator does."""
-    from dpv_sensor.core.geometry import scale_intrinsics_np
-    W, H = size
-    h0, w0 = image.shape[:2]
-    if (w0, h0) != (W, H):
-        image = cv2.resize(image, (W, H), interpolation=cv2.INTER_AREA if (W <= w0 and H <= h0) else cv2.INTER_LINEAR)
-    return image, scale_intrinsics_np(K_33, W / w0, H / h0)
-
-
 def _log_so3(R: np.ndarray) -> np.ndarray:
     return cv2.Rodrigues(np.asarray(R, np.float64))[0].ravel()
 
@@ -123,20 +113,19 @@ def pair_error(name: str, ref: int, src: int, kp: KeypointPose, T_src_ref_gt: np
 
 
 def sequence_pairs(name: str, images: Iterable[np.ndarray], K_33: np.ndarray, poses_n44: np.ndarray,
-                   size: Tuple[int, int], sources: int, config: KeypointConfig) -> Tuple[List[PairError], int]:
+                   sources: int, config: KeypointConfig) -> Tuple[List[PairError], int]:
     """Every keyframe paired with its ``sources`` nearest earlier keyframes; (errors of the estimates, pairs tried).
-    ``images`` yields the keyframes' images in order."""
+    ``images`` yields the keyframes' images in order, at the size ``K_33`` belongs to."""
     kfs = keyframe_indices(poses_n44)
     feats, out, tried = [], [], 0
     for j, (i, img) in enumerate(zip(kfs, images)):
-        img_p, K = processing_image(img, K_33, size)
-        feats.append(detect_features(img_p, config))
+        feats.append(detect_features(img, config))
         for g in range(1, sources + 1):
             if j - g < 0:
                 break
             s = kfs[j - g]
             tried += 1
-            kp = keypoint_relative_pose(feats[j], feats[j - g], K, config)
+            kp = keypoint_relative_pose(feats[j], feats[j - g], K_33, config)
             if not kp.ok:
                 continue
             T_src_ref = np.linalg.inv(poses_n44[s]) @ poses_n44[i]
@@ -252,7 +241,7 @@ def binned(rows: List[PairError]) -> Dict[str, List[PairError]]:
 # ------------------------------------------------------------------------------------------------------------------
 
 def _sequences(data: Optional[pathlib.Path], names: Seq[str], seeds: Seq[int], frames: int):
-    """(name, images iterator factory, K, poses) of the data folder's sequences and the rendered seeds."""
+    """(name, sequence) of the data folder's sequences and the rendered seeds."""
     from dpv_sensor.benchmarks.stream_table import RENDER_SIZE, sequence_folders
     from dpv_sensor.data.sequence import Sequence
     if data is not None:
@@ -292,10 +281,12 @@ def main(argv: Optional[List[str]] = None) -> int:
     rows: Dict[str, List[PairError]] = {}
     tried: Dict[str, int] = {}
     for name, seq in _sequences(a.data, a.sequences, seeds, a.frames):
+        if size is not None and tuple(seq.size) != size:
+            seq = seq.resized(*size)           # as the estimator resizes (interpolation and K alike)
         poses = np.asarray(seq.poses, np.float64)
         kfs = keyframe_indices(poses)
         images = (seq.image(i) for i in tqdm(kfs, desc=name, unit='keyframe', leave=False))
-        rows[name], tried[name] = sequence_pairs(name, images, seq.K, poses, size or seq.size, a.sources, config)
+        rows[name], tried[name] = sequence_pairs(name, images, seq.K, poses, a.sources, config)
     if not rows:
         p.error('no sequences: give --data or --seeds')
     every = [r for v in rows.values() for r in v]
