@@ -171,6 +171,11 @@ SPECS: tuple[ParamSpec, ...] = (
     ParamSpec('refine_keypoints', True, 'Pose refinement: add relative-pose factors from matched keypoints between '
               'the reference and its two nearest sources (rotation and direction from the images, the length from '
               'the odometry; robust), evidence that does not depend on the depth being estimated.'),
+    ParamSpec('refine_keypoint_direction', 'keypoints', "Pose refinement with refine_keypoints: what a keypoint "
+              "factor holds. keypoints: the rotation and the translation's direction of the matched keypoints; "
+              "odometry: only the rotation, given the odometry's direction (the keypoints' rotation corrected by "
+              "its correlation with the direction), the translation left to the odometry.",
+              choices=('keypoints', 'odometry')),
     ParamSpec('refine_marginals', False, "Pose refinement: after a refined window, each source's pose covariance "
               "relative to the reference (gtsam marginals) widens the measurement and the confidence in place of "
               "the odometry's covariance and drift figures."),

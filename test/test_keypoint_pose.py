@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from dpv_sensor.core.geometry import rotation_angle_np
-from dpv_sensor.core.keypoint_pose import KeypointConfig, keypoint_covariance, keypoint_relative_pose
+from dpv_sensor.core.keypoint_pose import KeypointConfig, KeypointPose, keypoint_covariance, keypoint_relative_pose
 
 
 @pytest.fixture(scope='module')
@@ -90,3 +90,41 @@ def test_floors_add_to_the_inliers_covariance_in_quadrature(pair):
     expected = np.diag(np.radians([0.5, 0.5, 0.5, 2.0, 2.0]) ** 2)
     np.testing.assert_allclose(floored.cov_55 - raw.cov_55, expected, rtol=1e-9, atol=1e-15)
     assert floored.sigma_rot_rad >= math.radians(0.5) and floored.sigma_dir_rad >= math.radians(2.0)
+
+
+def _correlated_estimate() -> KeypointPose:
+    """By hand: R = I, direction +z, basis (x, y); the rotation about y and the direction's x component have
+    variance 1e-4 each and covariance 5e-5 (correlation 0.5), everything else 1e-4 and uncorrelated."""
+    S = np.diag([1e-4] * 5)
+    S[1, 3] = S[3, 1] = 5e-5
+    return KeypointPose(True, None, np.eye(3), np.array([0.0, 0.0, 1.0]), 100, 100, 10.0, 0.01, 0.01, S,
+                        np.array([[1.0, 0.0], [0.0, 1.0], [0.0, 0.0]]))
+
+
+def test_the_rotation_given_a_direction_is_the_linear_conditional():
+    kp = _correlated_estimate()
+    u = np.array([0.01, 0.0, 1.0])                      # the direction from elsewhere: 0.01 rad towards +x
+    R, cov = kp.rotation_given_direction(u)
+    # e = B^T (t - u/|u|) = (-0.01/|u|, 0); shift = -G e with G = S_rd S_dd^-1 = 0.5 on (y, x): +0.005 rad about y
+    shift = cv2.Rodrigues(R)[0].ravel()
+    np.testing.assert_allclose(shift, [0.0, 0.5 * 0.01 / math.sqrt(1.0001), 0.0], atol=1e-9)
+    np.testing.assert_allclose(cov, np.diag([1e-4, 1e-4 - 5e-5 ** 2 / 1e-4, 1e-4]), atol=1e-15)
+    # the same direction as the estimate's: the rotation is unchanged, its covariance still the conditional one
+    R0, cov0 = kp.rotation_given_direction(np.array([0.0, 0.0, 2.0]))
+    np.testing.assert_allclose(R0, np.eye(3), atol=1e-12)
+    np.testing.assert_allclose(cov0, cov, atol=1e-15)
+    # a direction 40 deg away is not a small offset: the rotation's marginal
+    R40, cov40 = kp.rotation_given_direction(np.array([math.sin(math.radians(40)), 0.0, math.cos(math.radians(40))]))
+    np.testing.assert_allclose(R40, np.eye(3))
+    np.testing.assert_allclose(cov40, np.diag([1e-4] * 3))
+
+
+def test_a_rotation_only_factor_covariance_frees_the_translation():
+    kp = _correlated_estimate()
+    kp.R_b_a = cv2.Rodrigues(np.array([[0.0], [0.0], [math.pi / 2]]))[0]
+    C = np.diag([1e-4, 2e-4, 3e-4])
+    cov = kp.rotation_covariance_gtsam(C, 100.0)
+    np.testing.assert_allclose(cov[3:, 3:], np.eye(3) * 100.0, atol=1e-12)
+    np.testing.assert_allclose(cov[:3, 3:], 0.0, atol=1e-15)
+    # in frame a's axes: b's x is a's y after the 90 deg turn about z (R_b_a^T C R_b_a)
+    np.testing.assert_allclose(np.diag(cov[:3, :3]), [2e-4, 1e-4, 3e-4], atol=1e-15)

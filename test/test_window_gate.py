@@ -48,9 +48,10 @@ def _rot_err(T_est, T_true):
     return math.degrees(rotation_angle_np(T_est[:3, :3].T @ T_true[:3, :3]))
 
 
-def test_keypoint_factor_corrects_rotation_and_the_marginal_is_below_the_odometry(pair):
+@pytest.mark.parametrize('direction', ['keypoints', 'odometry'])
+def test_keypoint_factor_corrects_rotation_and_the_marginal_is_below_the_odometry(pair, direction):
     ref, src = _window(pair, 2.0)
-    res = WindowPoseRefiner(_config()).refine(ref, [src])
+    res = WindowPoseRefiner(_config(keypoint_direction=direction)).refine(ref, [src])
     assert res.refined and res.gate == 'refined'
     assert _rot_err(src.T_world_cam_odom_44, pair[4]) == pytest.approx(ERR_DEG, abs=1e-6)
     assert _rot_err(res.T_world_cam[1], pair[4]) < 0.5
@@ -112,3 +113,20 @@ def test_photometric_sources_parameter_sets_the_photometric_factors(pair, source
     assert res.factors.get('photometric', []) == ([(0, 1)] if sources else [])
     assert (res.alignments[0] is not None) == bool(sources)
     assert _rot_err(res.T_world_cam[1], pair[4]) < 0.5
+
+
+def test_a_rotation_only_keypoint_factor_leaves_the_translation_to_the_odometry(pair):
+    # the odometry's translation off by 1 cm sideways, its rotation exact: with the direction left to the
+    # odometry the refined translation stays the odometry's; with the keypoints' direction it moves (a little:
+    # the odometry's covariance is capped at 2 % of the step, the keypoints' direction is 18 deg uncertain here)
+    img_a, img_b, K, T_wa, T_wb = pair
+    T_odom_b = T_wb.copy()
+    T_odom_b[:3, 3] += T_wb[:3, :3] @ np.array([0.01, 0.0, 0.0])
+    ref = WindowKeyframe(0, img_a, K, T_wa, _cov(0.001, 1e-4))
+    src = WindowKeyframe(1, img_b, K, T_odom_b, _cov(0.001, 1e-4) + _cov(0.5, 0.02))
+    moved = {}
+    for direction in ('keypoints', 'odometry'):
+        res = WindowPoseRefiner(_config(keypoint_direction=direction)).refine(ref, [src])
+        assert res.refined
+        moved[direction] = float(np.linalg.norm(res.T_world_cam[1][:3, 3] - T_odom_b[:3, 3]))
+    assert moved['odometry'] < 1e-6 and moved['keypoints'] > 5e-5

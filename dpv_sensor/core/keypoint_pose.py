@@ -94,12 +94,44 @@ class KeypointPose:
         else:
             cov[:3, :3] = self.rotation_covariance()
             cov[3:, 3:] = np.eye(3) * max(along, 1e6 if self.t_dir_b is None else along)
-        # gtsam's tangent is on the right: rotation and translation increments in frame a's axes (R^T)
-        Rt = np.asarray(self.R_b_a, np.float64).T
-        A = np.zeros((6, 6))
-        A[:3, :3] = Rt
-        A[3:, 3:] = Rt
-        return A @ cov @ A.T
+        return _gtsam_tangent(cov, self.R_b_a)
+
+    def rotation_given_direction(self, t_dir_b: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+        """(R_b_a, 3x3 covariance about frame b's axes) of the rotation given the translation direction
+        ``t_dir_b`` from elsewhere (the odometry's): the linear conditional of the 5-dof estimate,
+        ``exp(-G e) R`` with ``e = B^T (t_dir - t_dir_b)`` the direction's offset and ``G = S_rd S_dd^-1``, and
+        covariance ``S_rr - G S_dr``. Rotation and direction are correlated (a turn and a sideways step move
+        the matches alike), so a well-known direction sharpens the rotation. The rotation alone (its marginal)
+        where there is no direction or the two directions are more than 30 degrees apart."""
+        u = np.asarray(t_dir_b, np.float64).ravel()
+        u = u / max(float(np.linalg.norm(u)), 1e-12)
+        if self.cov_55 is None or self.t_dir_b is None or float(u @ self.t_dir_b) < math.cos(math.radians(30.0)):
+            return np.asarray(self.R_b_a, np.float64).copy(), self.rotation_covariance()
+        S = self.cov_55
+        G = S[:3, 3:] @ np.linalg.pinv(S[3:, 3:])
+        shift = -G @ (self.basis_32.T @ (np.asarray(self.t_dir_b, np.float64) - u))
+        R = cv2.Rodrigues(shift.reshape(3, 1))[0] @ np.asarray(self.R_b_a, np.float64)
+        cov = S[:3, :3] - G @ S[3:, :3]
+        return R, 0.5 * (cov + cov.T)
+
+    def rotation_covariance_gtsam(self, cov_33: np.ndarray, free_translation_var: float) -> np.ndarray:
+        """6x6 covariance (gtsam order) of a Pose3 between factor ``T_b_a`` that holds only a rotation with
+        covariance ``cov_33`` (frame b's axes): the translation gets ``free_translation_var`` on each axis, so
+        it is left to the other factors."""
+        cov = np.zeros((6, 6))
+        cov[:3, :3] = cov_33
+        cov[3:, 3:] = np.eye(3) * free_translation_var
+        return _gtsam_tangent(cov, self.R_b_a)
+
+
+def _gtsam_tangent(cov_66: np.ndarray, R_b_a: np.ndarray) -> np.ndarray:
+    """A covariance of (rotation, translation) increments about frame b's axes in gtsam's tangent of ``T_b_a``,
+    which is on the right: increments in frame a's axes (``R^T``)."""
+    Rt = np.asarray(R_b_a, np.float64).T
+    A = np.zeros((6, 6))
+    A[:3, :3] = Rt
+    A[3:, 3:] = Rt
+    return A @ cov_66 @ A.T
 
 
 def keypoint_covariance(n_inliers: int, focal_px: float, parallax_px: float, pixel_sigma: float = 1.0

@@ -63,6 +63,10 @@ from dpv_sensor.stream.window_graph import (OdometrySteps, odometry_between_sigm
                                             odometry_steps, pose3_from_matrix, relative_marginal_sigmas,
                                             relative_pose, solve_window)
 
+#: per-axis variance (m^2) of the translation of a keypoint factor that holds only a rotation: 10 m std, nothing
+#: next to the odometry's millimetres
+_FREE_TRANSLATION_VAR = 100.0
+
 __all__ = ['PoseRefinerConfig', 'WindowKeyframe', 'RefinementResult', 'WindowPoseRefiner',
            'odometry_between_sigmas', 'odometry_step_covariance', 'relative_pose_errors', 'pose3_from_matrix',
            'relative_pose']
@@ -150,6 +154,7 @@ class PoseRefinerConfig:
     keypoint_prior_gate_px: float = 0.0
     keypoint_huber_k: float = 1.345
     keypoint_scale_sigma_rel: float = 0.5
+    keypoint_direction: str = _params.default('refine_keypoint_direction')
     marginals: bool = _params.default('refine_marginals')
     gate_chi2: float = _params.default('refine_gate_chi2')
     gate_min_inliers: int = _params.default('refine_gate_min_inliers')
@@ -173,6 +178,7 @@ class PoseRefinerConfig:
     PARAMS = {'odom_sigma_rot_deg': 'odom_sigma_rot_deg', 'odom_sigma_trans_m': 'odom_sigma_trans_m',
               'odom_sigma_trans_rel': 'odom_sigma_trans_rel', 'refine_odom_covariance': 'odom_covariance',
               'refine_photometric_sources': 'max_sources', 'refine_keypoints': 'keypoint_factors',
+              'refine_keypoint_direction': 'keypoint_direction',
               'refine_marginals': 'marginals',
               'refine_gate_chi2': 'gate_chi2', 'refine_gate_min_inliers': 'gate_min_inliers'}
 
@@ -556,9 +562,19 @@ class WindowPoseRefiner:
                 continue
             base = float(np.linalg.norm(T0[:3, 3]))
             T = np.eye(4)
-            T[:3, :3] = kp.R_b_a
-            T[:3, 3] = base * kp.t_dir_b
-            factors.append((s.key, ref.key, T, kp.between_covariance_gtsam(base, cfg.keypoint_scale_sigma_rel)))
+            if cfg.keypoint_direction == 'odometry':
+                # the rotation given the odometry's direction; the translation (the odometry's) is left free
+                T[:3, :3], cov_rot = kp.rotation_given_direction(T0[:3, 3])
+                T[:3, 3] = T0[:3, 3]
+                cov = kp.rotation_covariance_gtsam(cov_rot, _FREE_TRANSLATION_VAR)
+            elif cfg.keypoint_direction == 'keypoints':
+                T[:3, :3] = kp.R_b_a
+                T[:3, 3] = base * kp.t_dir_b
+                cov = kp.between_covariance_gtsam(base, cfg.keypoint_scale_sigma_rel)
+            else:
+                raise ValueError(f"keypoint_direction must be 'keypoints' or 'odometry', not "
+                                 f"{cfg.keypoint_direction!r}")
+            factors.append((s.key, ref.key, T, cov))
         return factors, kps
 
     def _evidence_gate(self, kps: List[KeypointPose], kp_factors: list, skipped) -> str:
