@@ -150,7 +150,7 @@ SPECS: tuple[ParamSpec, ...] = (
               "odometry's child_frame_id.", scope='node'),
     ParamSpec('pose_refinement', 'window', 'Sliding-window pose refinement with gtsam: window or off. With the '
               'refine_* defaults the window holds the odometry as its covariance (else the odom_drift_* figures) '
-              'says and corrects rotation and direction from matched keypoints; a window without enough matches, '
+              'says and corrects its rotation from matched keypoints; a window without enough matches, '
               'one that does not converge, moves a pose implausibly far from the odometry or turns in place keeps '
               'the odometry poses (counted in the pose_refinement_fallbacks diagnostic).',
               choices=('off', 'window')),
@@ -169,12 +169,13 @@ SPECS: tuple[ParamSpec, ...] = (
               'default): keypoints and odometry only, half the time; the alignments follow the depth being '
               'estimated, which made the confidence over-confident under drift.', min_value=0, max_value=64),
     ParamSpec('refine_keypoints', True, 'Pose refinement: add relative-pose factors from matched keypoints between '
-              'the reference and its two nearest sources (rotation and direction from the images, the length from '
-              'the odometry; robust), evidence that does not depend on the depth being estimated.'),
-    ParamSpec('refine_keypoint_direction', 'keypoints', "Pose refinement with refine_keypoints: what a keypoint "
-              "factor holds. keypoints: the rotation and the translation's direction of the matched keypoints; "
-              "odometry: only the rotation, given the odometry's direction (the keypoints' rotation corrected by "
-              "its correlation with the direction), the translation left to the odometry.",
+              'the reference and its two nearest sources (robust; what they hold: refine_keypoint_direction), '
+              'evidence that does not depend on the depth being estimated.'),
+    ParamSpec('refine_keypoint_direction', 'odometry', "Pose refinement with refine_keypoints: what a keypoint "
+              "factor holds. odometry (the default): only the rotation, given the odometry's translation direction "
+              "(the keypoints' rotation corrected by its correlation with the direction), the translation left to "
+              "the odometry; keypoints: the rotation and the translation's direction of the matched keypoints, "
+              "whose direction errs by several degrees on small indoor baselines.",
               choices=('keypoints', 'odometry')),
     ParamSpec('refine_marginals', False, "Pose refinement: after a refined window, each source's pose covariance "
               "relative to the reference (gtsam marginals) widens the measurement and the confidence in place of "

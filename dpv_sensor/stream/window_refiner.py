@@ -165,8 +165,10 @@ class PoseRefinerConfig:
     # odom_covariance: 'fixed' (the odom_sigma_* above) or 'odometry' (each step's covariance: the growth of the
     #     keyframes' published pose covariance where both are filled, else the ``drift`` figures of the step).
     # keypoint_factors: add keypoint relative-pose factors (core.keypoint_pose) between the reference and its
-    #     ``keypoint_sources`` nearest sources: rotation and direction from the images, the translation's length
-    #     from the odometry (``keypoint_scale_sigma_rel`` of it along the baseline), Huber ``keypoint_huber_k``.
+    #     ``keypoint_sources`` nearest sources, Huber ``keypoint_huber_k``. keypoint_direction 'odometry': the
+    #     rotation given the odometry's translation direction, the translation free (left to the odometry
+    #     factors); 'keypoints': rotation and direction from the images, the translation's length from the
+    #     odometry (``keypoint_scale_sigma_rel`` of it along the baseline).
     # marginals: after the solve, each source's pose covariance relative to the reference (gtsam Marginals) in
     #     ``RefinementResult.source_sigma``, the pose uncertainty the estimator widens with in place of the
     #     odometry's.
