@@ -13,6 +13,7 @@ import pytest
 
 from ros_helpers import REPO, start_node, stop_process, wait_for
 from dpv_sensor.benchmarks.transport import TRANSPORT_VARS
+from dpv_sensor.ros.stream_loss import StreamLoss
 from dpv_sensor.tools.soak import OutputCollector
 
 SECONDS = 6
@@ -93,7 +94,12 @@ def test_every_image_is_received_or_counted_as_lost(observer, reliability, trans
         assert lost > 0, figures
         # images lost after the last one received show in no stamp gap: at most a few at the very end
         assert sent['image'] - 10 <= received + lost <= sent['image'], figures
-    assert abs(float(diag['input_period_ms']) - 1000 / 30) < 1.0, figures
+    # the period needs StreamLoss.min_intervals stamp intervals: under load Fast DDS's defaults can let fewer
+    # images through, and then the node must say it does not know rather than guess
+    if received > StreamLoss().min_intervals:
+        assert abs(float(diag['input_period_ms']) - 1000 / 30) < 1.0, figures
+    else:
+        assert transport == 'fastdds_defaults' and diag['input_period_ms'] == 'n/a', figures
     # processed + dropped by the node account for every image it received
     assert int(diag['frames_processed']) + int(diag['dropped_total']) == received, figures
     assert 'in the camera stream' not in diag.get('last_reset_reason', ''), figures
