@@ -128,3 +128,17 @@ def test_a_rotation_only_factor_covariance_frees_the_translation():
     np.testing.assert_allclose(cov[:3, 3:], 0.0, atol=1e-15)
     # in frame a's axes: b's x is a's y after the 90 deg turn about z (R_b_a^T C R_b_a)
     np.testing.assert_allclose(np.diag(cov[:3, :3]), [2e-4, 1e-4, 3e-4], atol=1e-15)
+
+
+def test_the_true_direction_sharpens_the_rotation_on_a_rendered_pair():
+    # frames 0 and 4 of rendered room 7 with the refiner's keypoint settings: the rotation given the true direction
+    # errs several times less than the rotation estimated with the keypoints' own direction (0.06 vs 0.39 deg)
+    from dpv_sensor.data.synthetic import render_sequence
+    seq = render_sequence(seed=7, num_frames=5, width=320, height=240, plain_wall_prob=0.0)
+    T_b_a = np.linalg.inv(seq.pose(4)) @ seq.pose(0)
+    kp = keypoint_relative_pose(seq.image(0), seq.image(4), np.asarray(seq.K, np.float64), KeypointConfig())
+    assert kp.ok and kp.t_dir_b is not None, kp.reason
+    R_cond, cov_cond = kp.rotation_given_direction(T_b_a[:3, 3])
+    marginal, conditional = _rot_err_deg(kp.R_b_a, T_b_a), _rot_err_deg(R_cond, T_b_a)
+    assert conditional < 0.5 * marginal, (marginal, conditional)
+    assert np.trace(cov_cond) < np.trace(kp.rotation_covariance())
