@@ -192,7 +192,10 @@ def test_rgb_confidence_info_compressed_points_and_rate_warning_in_both_resoluti
                         and all(o.diag_int('frames_processed') + o.diag_int('dropped_total') == FRAMES
                                 and o.diag_int('outputs_published') == len(o.complete()) for o in (a, b)),
                         timeout=120.0, spin=spin)
-        assert done, f'replay did not finish: A {a.diagnostics} B {b.diagnostics}'
+        assert done, (f'replay did not finish: player running {thread.is_alive()}; ' + '; '.join(
+            f"{n}: processed {o.diag_int('frames_processed')} + dropped {o.diag_int('dropped_total')} of {FRAMES}, "
+            f"published {o.diag_int('outputs_published')}, received complete {len(o.complete())} of "
+            f"{len(o.by_stamp)} stamps" for n, o in (('A', a), ('B', b))) + f'\nA {a.diagnostics}\nB {b.diagnostics}')
         # the last diagnostics of the run (two more ticks of each node) and every cloud node B counted
         ticks = (a.diag_count, b.diag_count)
         settled = wait_for(lambda: a.diag_count >= ticks[0] + 2 and b.diag_count >= ticks[1] + 2 and
