@@ -40,7 +40,8 @@ import numpy as np
 
 from dpv_sensor import params as P
 from dpv_sensor.common import to_jsonable
-from dpv_sensor.core.keypoint_pose import KeypointConfig, KeypointPose, detect_features, keypoint_relative_pose
+from dpv_sensor.core.keypoint_pose import (KeypointConfig, KeypointPose, detect_features, keypoint_relative_pose,
+                                           rotation_given_direction_gain)
 
 CHI2_MEDIAN = {3: 2.366, 2: 1.386}
 CHI2_95 = {2: 5.991, 3: 7.815, 5: 11.070}
@@ -82,8 +83,8 @@ def blocks(r: PairError, rot_deg: float = 0.0, dir_deg: float = 0.0):
     rot = (e[:3], S[:3, :3])
     if not r.has_direction:
         return rot, None, None
-    G = S[:3, 3:] @ np.linalg.pinv(S[3:, 3:])
-    return rot, (e[3:], S[3:, 3:]), (e[:3] - G @ e[3:], S[:3, :3] - G @ S[3:, :3])
+    G, cov_cond = rotation_given_direction_gain(S)
+    return rot, (e[3:], S[3:, 3:]), (e[:3] - G @ e[3:], cov_cond)
 
 
 def keyframe_indices(poses_n44: np.ndarray) -> List[int]:

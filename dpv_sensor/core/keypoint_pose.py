@@ -27,7 +27,7 @@ import cv2
 import numpy as np
 
 __all__ = ['KeypointConfig', 'KeypointPose', 'Features', 'detect_features', 'keypoint_relative_pose',
-           'keypoint_covariance', 'to_gray_u8']
+           'keypoint_covariance', 'rotation_given_direction_gain', 'to_gray_u8']
 
 
 @dataclass
@@ -107,12 +107,10 @@ class KeypointPose:
         u = u / max(float(np.linalg.norm(u)), 1e-12)
         if self.cov_55 is None or self.t_dir_b is None or float(u @ self.t_dir_b) < math.cos(math.radians(30.0)):
             return np.asarray(self.R_b_a, np.float64).copy(), self.rotation_covariance()
-        S = self.cov_55
-        G = S[:3, 3:] @ np.linalg.pinv(S[3:, 3:])
+        G, cov = rotation_given_direction_gain(self.cov_55)
         shift = -G @ (self.basis_32.T @ (np.asarray(self.t_dir_b, np.float64) - u))
         R = cv2.Rodrigues(shift.reshape(3, 1))[0] @ np.asarray(self.R_b_a, np.float64)
-        cov = S[:3, :3] - G @ S[3:, :3]
-        return R, 0.5 * (cov + cov.T)
+        return R, cov
 
     def rotation_covariance_gtsam(self, cov_33: np.ndarray, free_translation_var: float) -> np.ndarray:
         """6x6 covariance (gtsam order) of a Pose3 between factor ``T_b_a`` that holds only a rotation with
@@ -122,6 +120,16 @@ class KeypointPose:
         cov[:3, :3] = cov_33
         cov[3:, 3:] = np.eye(3) * free_translation_var
         return _gtsam_tangent(cov, self.R_b_a)
+
+
+def rotation_given_direction_gain(cov_55: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+    """(G 3x2, conditional covariance 3x3) of a (rotation 3, direction 2) estimate with covariance ``cov_55``:
+    given the direction's offset ``e`` the rotation moves by ``-G e``, ``G = S_rd S_dd^-1``, and its covariance is
+    ``S_rr - G S_dr`` (the linear-Gaussian conditional)."""
+    S = np.asarray(cov_55, np.float64)
+    G = S[:3, 3:] @ np.linalg.pinv(S[3:, 3:])
+    cov = S[:3, :3] - G @ S[3:, :3]
+    return G, 0.5 * (cov + cov.T)
 
 
 def _gtsam_tangent(cov_66: np.ndarray, R_b_a: np.ndarray) -> np.ndarray:
