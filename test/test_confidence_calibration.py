@@ -179,6 +179,9 @@ MALFORMED = [
     (_with(['format'], 'other'), "format is 'other'"),
     (_with(['version'], 2), 'version 2 is not supported'),
     (_with(['knots', 'confidence'], [0.0, 0.7, 0.5]), 'not strictly increasing (0.7 then 0.5)'),
+    # equal knots: the torch path would divide 0 by 0 between them (at the last two, for every confidence above)
+    (_with(['knots', 'confidence'], [0.0, 0.5, 0.5]), 'not strictly increasing (0.5 then 0.5)'),
+    (_with(['knots', 'confidence'], [0.0, 0.0, 1.0]), 'not strictly increasing (0 then 0)'),
     (_with(['knots', 'probability'], [0.2, 0.6, 0.5]), 'decreases (0.6 then 0.5'),
     (_with(['knots', 'probability'], [0.2, 0.6, 1.5]), 'holds 1.5, outside [0, 1]'),
     (_with(['knots', 'confidence'], [-0.1, 0.5, 1.0]), 'holds -0.1, outside [0, 1]'),
@@ -204,6 +207,54 @@ def test_load_refuses_a_malformed_file_saying_what_is_wrong(tmp_path, data, mess
 def test_load_refuses_a_missing_file(tmp_path):
     with pytest.raises(CC.CalibrationError, match='no such file'):
         CC.load(tmp_path / 'absent.json')
+
+
+def test_knots_just_apart_are_taken_and_the_torch_path_stays_finite(tmp_path):
+    """The next float above an equal knot is strictly increasing: loaded, and the torch path (which divides by the
+    knots' spacing) agrees with numpy on both sides of and between the close pair, and at the last knot."""
+    close = float(np.nextafter(0.5, 1.0))
+    cal = CC.load(_file(tmp_path, _with(['knots', 'confidence'], [0.0, 0.5, close])))
+    assert cal.confidence == (0.0, 0.5, close)
+    c = np.array([0.0, 0.25, 0.5, close, 0.75, 1.0])
+    out = cal.apply(c)
+    np.testing.assert_allclose(out, [0.2, 0.4, 0.6, 0.9, 0.9, 0.9])     # 0.2 + 0.4 * c below 0.5, a step to 0.9
+    t = cal.apply(torch.from_numpy(c))
+    assert torch.isfinite(t).all()
+    np.testing.assert_allclose(t.numpy(), out, atol=1e-12)
+
+
+def _padded_to(tmp_path, size, name):
+    """A valid calibration file of exactly `size` bytes (the JSON, then spaces)."""
+    text = json.dumps(_good())
+    return _file(tmp_path, text + ' ' * (size - len(text)), name)
+
+
+def test_load_takes_a_file_at_the_size_bound_and_refuses_one_byte_more(tmp_path):
+    at = _padded_to(tmp_path, CC.MAX_FILE_BYTES, 'at.json')
+    assert at.stat().st_size == CC.MAX_FILE_BYTES and CC.load(at).probability == (0.2, 0.6, 0.9)
+    above = _padded_to(tmp_path, CC.MAX_FILE_BYTES + 1, 'above.json')
+    with pytest.raises(CC.CalibrationError) as info:
+        CC.load(above)
+    assert str(info.value).startswith(f'{CC.MAX_FILE_BYTES + 1} bytes, larger than the {CC.MAX_FILE_BYTES} bytes')
+
+
+def test_load_refuses_a_large_file_from_its_size_without_reading_it(tmp_path):
+    """A 64 MB file (sparse: no disk used) is refused with its size while the load allocates under 1 MB: the
+    size was judged before anything was read (reading it, or its first MAX_FILE_BYTES, would allocate that much)."""
+    import tracemalloc
+    big = tmp_path / 'big.json'
+    with big.open('wb') as f:
+        f.truncate(64 * 1024 * 1024)
+    tracemalloc.start()
+    try:
+        with pytest.raises(CC.CalibrationError, match=f'^{64 * 1024 * 1024} bytes, larger than'):
+            CC.load(big)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak < 1024 * 1024, peak
+    with pytest.raises(CC.CalibrationError, match='^not a regular file'):
+        CC.load(tmp_path)                                   # a folder
 
 
 def test_signature_mismatch_names_each_setting():

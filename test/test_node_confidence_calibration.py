@@ -1,7 +1,7 @@
 """The confidence_calibration parameter through the node process: with a calibration file the node publishes the
 same depth images, byte for byte, and the map applied to the confidence it publishes without one; /diagnostics
-names the file. A malformed or mismatched file stops the node at start: exit 2, one message naming the parameter
-and what is wrong, no traceback."""
+names the file. A malformed, mismatched or oversized file stops the node at start: exit 2, one message naming the
+parameter and what is wrong, no traceback."""
 import json
 import re
 
@@ -65,10 +65,13 @@ BAD_KNOTS = {'format': CC.FORMAT, 'version': 1, 'estimator': FAST_SIGNATURE,
              'knots': {'confidence': [0.0, 0.5, 1.0], 'probability': [0.2, 0.7, 0.4]}}
 OTHER_SIZE = {**BAD_KNOTS, 'knots': {'confidence': [0.0, 1.0], 'probability': [0.2, 0.9]},
               'estimator': {**FAST_SIGNATURE, 'processing_size': [320, 256]}}
+TOO_LARGE = 300 * 1024 * 1024      # written sparse: refused from its size, never read
 REFUSED = [
     ('decreasing', BAD_KNOTS, 'knots.probability decreases (0.7 then 0.4 at confidence 1): the map must be monotone'),
     ('mismatched', OTHER_SIZE, f'fitted for another estimator: processing_size 320x256 (the estimator: {W}x{H})'),
     ('missing', None, 'no such file'),
+    ('too_large', TOO_LARGE, f'{TOO_LARGE} bytes, larger than the {CC.MAX_FILE_BYTES} bytes a calibration file may '
+     'have (a map is a few kB); not read'),
 ]
 
 
@@ -79,7 +82,10 @@ def refusals(tmp_path_factory):
     starts = []
     for case, data, _ in REFUSED:
         path = folder / f'{case}.json'
-        if data is not None:
+        if isinstance(data, int):
+            with path.open('wb') as f:
+                f.truncate(data)
+        elif data is not None:
             path.write_text(json.dumps(data))
         starts.append(('module', params_args({**FAST_PARAMS, 'confidence_calibration': str(path)})))
     return dict(zip((case for case, _, _ in REFUSED), forked_node_starts(starts)))

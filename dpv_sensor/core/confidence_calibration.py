@@ -17,13 +17,15 @@ JSON file::
 measurement model, weights file, processing size, depth planes and confidence definition, and
 :meth:`ConfidenceCalibration.check_signature` refuses another. ``fitted_on`` is free-form metadata (what the map was
 fitted on and how well it did); it must be a JSON object. :func:`load` refuses a malformed file with a
-:class:`CalibrationError` that says what is wrong.
+:class:`CalibrationError` that says what is wrong, and a file larger than :data:`MAX_FILE_BYTES` (or not a regular
+file) before it reads any of it: a map is a few kB.
 """
 from __future__ import annotations
 
 import json
 import math
 import pathlib
+import stat
 from dataclasses import dataclass, field
 from typing import Any, Dict, Optional, Sequence, Tuple
 
@@ -31,8 +33,8 @@ import numpy as np
 
 from dpv_sensor.common import to_jsonable
 
-__all__ = ['FORMAT', 'VERSION', 'EVENT', 'SIGNATURE_KEYS', 'CalibrationError', 'ConfidenceCalibration', 'signature',
-           'from_dict', 'load', 'save']
+__all__ = ['FORMAT', 'VERSION', 'EVENT', 'SIGNATURE_KEYS', 'MAX_FILE_BYTES', 'CalibrationError',
+           'ConfidenceCalibration', 'signature', 'from_dict', 'load', 'save']
 
 FORMAT = 'dpv_sensor.confidence_calibration'
 VERSION = 1
@@ -40,6 +42,9 @@ EVENT = 'true depth within x1.25 of the published depth'
 # the estimator settings a map depends on (the keys of signature()), in the order mismatches are reported
 SIGNATURE_KEYS = ('measurement', 'weights', 'processing_size', 'depth_planes', 'confidence')
 _PLANE_TOL = 1e-6
+# the largest calibration file load() reads: a fitted map has at most a few hundred knots and a little metadata (a
+# few kB); anything near this is not a calibration file, and is refused from its size before it is read
+MAX_FILE_BYTES = 4 * 1024 * 1024
 
 
 class CalibrationError(ValueError):
@@ -193,11 +198,22 @@ def from_dict(data: Any, path: Optional[str] = None) -> ConfidenceCalibration:
 
 
 def load(path) -> ConfidenceCalibration:
-    """The calibration in ``path`` (:func:`from_dict`); :class:`CalibrationError` when it is missing, unreadable,
-    not JSON or malformed (the message says what, not where: the caller names the file or the setting)."""
+    """The calibration in ``path`` (:func:`from_dict`); :class:`CalibrationError` when it is missing, not a regular
+    file, larger than :data:`MAX_FILE_BYTES` (judged from its size before anything is read), unreadable, not JSON or
+    malformed (the message says what, not where: the caller names the file or the setting)."""
     p = pathlib.Path(path)
     try:
-        text = p.read_text()
+        st = p.stat()
+        if not stat.S_ISREG(st.st_mode):
+            raise CalibrationError('not a regular file')
+        if st.st_size > MAX_FILE_BYTES:
+            raise CalibrationError(f'{st.st_size} bytes, larger than the {MAX_FILE_BYTES} bytes a calibration file '
+                                   'may have (a map is a few kB); not read')
+        with p.open('rb') as f:
+            raw = f.read(MAX_FILE_BYTES + 1)        # a file that grew since its stat is still read only this far
+        if len(raw) > MAX_FILE_BYTES:
+            raise CalibrationError(f'larger than the {MAX_FILE_BYTES} bytes a calibration file may have')
+        text = raw.decode('utf-8')
     except FileNotFoundError:
         raise CalibrationError('no such file') from None
     except (OSError, UnicodeDecodeError) as exc:
