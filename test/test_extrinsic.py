@@ -1,6 +1,7 @@
 """CameraExtrinsic (dpv_sensor.ros.extrinsic) on TF messages handed to its callbacks: which source auto picks, the
 mount chained from /tf_static, a dynamic mount on /tf that changes (the next lookup uses the new one, one info line
-per change), bad transforms ignored and counted."""
+per change; a turn without a move is a change), bad transforms ignored and counted; a loop through the mount's path
+and publishers that disagree on it (the last good mount kept, counted, a WARN naming the frames, extrinsic_fault)."""
 import collections
 import math
 from types import SimpleNamespace as NS
@@ -29,6 +30,9 @@ class FakeFaults:
     def report(self, kind, message, level='warn', count=True, **_):
         self.counts[kind] += count
         self.lines.append((level, message))
+
+    def count(self, kind, n=1):
+        self.counts[kind] += n
 
 
 def translation(x, y, z):
@@ -88,3 +92,114 @@ def test_mount_from_tf_static_and_a_changing_dynamic_mount():
     dynamic_cb(tf_message([bad]))
     assert faults.counts['bad_transform'] == 1 and 'not a unit quaternion' in faults.lines[-1][1]
     np.testing.assert_allclose(ext.lookup('base_link', 'cam')[0][:3, 3], [0.2, -0.1, 0.5])   # kept the last good
+
+
+def rotation(axis, rad):
+    """Rodrigues: the rotation by `rad` about `axis`."""
+    k = np.asarray(axis, float) / np.linalg.norm(axis)
+    K = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+    return np.eye(3) + math.sin(rad) * K + (1.0 - math.cos(rad)) * K @ K
+
+
+def rigid(R, t):
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R, t
+    return T
+
+
+MOUNT_T = (0.3, -0.4, 1.2)                         # 1.3 m: not a unit length
+MOUNT_R = rotation((1.0, 2.0, 2.0), 0.4)
+
+
+def tf_extrinsic():
+    node, faults = FakeNode(), FakeFaults()
+    ext = CameraExtrinsic(node, faults, 'tf', 'tf', np.eye(4))
+    return ext, faults, node.callbacks['/tf_static'][0], node.callbacks['/tf'][0]
+
+
+def infos(faults):
+    return [m for lvl, m in faults.lines if lvl == 'info']
+
+
+def test_a_mount_that_turns_without_moving_is_reported_as_changed():
+    ext, faults, _static, dynamic = tf_extrinsic()
+    dynamic(tf_message([transform_stamped(rigid(MOUNT_R, MOUNT_T), 0, 'base_link', 'cam')]))
+    ext.lookup('base_link', 'cam')
+    turned = MOUNT_R @ rotation((0.0, 0.0, 1.0), 3e-6)                 # 3 microradians, the translation kept
+    dynamic(tf_message([transform_stamped(rigid(turned, MOUNT_T), 0, 'base_link', 'cam')]))
+    T, _ = ext.lookup('base_link', 'cam')
+    np.testing.assert_allclose(T[:3, :3], turned, atol=1e-12)
+    assert ext.changes == 1 and infos(faults)[-1].startswith("camera mount changed on TF: 'base_link' -> 'cam'")
+    less = turned @ rotation((0.0, 0.0, 1.0), 0.5e-6)                  # below the 1e-6 threshold: the same mount
+    dynamic(tf_message([transform_stamped(rigid(less, MOUNT_T), 0, 'base_link', 'cam')]))
+    ext.lookup('base_link', 'cam')
+    assert ext.changes == 1 and len(infos(faults)) == 2
+
+
+CLOSING = rigid(rotation((0.0, 0.0, 1.0), math.radians(30.0)), (0.5, 0.1, 0.0))   # cam -> base_link: a loop
+LOOP = "'base_link' -> 'camera_link' -> 'cam' -> 'base_link'"
+
+
+def _chain(static):
+    static(tf_message([transform_stamped(rigid(MOUNT_R, MOUNT_T), 0, 'base_link', 'camera_link'),
+                       transform_stamped(rigid(MOUNT_R.T, (0.0, 0.1, 0.0)), 0, 'camera_link', 'cam')]))
+
+
+def test_a_tf_loop_keeps_the_last_good_mount_counts_once_and_warns_naming_the_frames():
+    ext, faults, static, _dynamic = tf_extrinsic()
+    _chain(static)
+    good, _ = ext.lookup('base_link', 'cam')
+    np.testing.assert_allclose(good, rigid(np.eye(3), MOUNT_R @ [0.0, 0.1, 0.0] + MOUNT_T), atol=1e-12)
+    assert ext.values()['extrinsic_fault'] == ''
+    static(tf_message([transform_stamped(CLOSING, 0, 'cam', 'base_link')]))      # another publisher closes it
+    for _ in range(3):
+        T, why = ext.lookup('base_link', 'cam')
+        np.testing.assert_allclose(T, good, atol=1e-12)
+        assert why == ''
+    assert faults.counts['tf_loop'] == 1 and ext.changes == 0 and len(infos(faults)) == 1     # the first mount
+    level, message = faults.lines[-1]
+    assert level == 'warn' and message.startswith(f"TF loop on the camera mount's path 'base_link' -> 'cam': {LOOP}")
+    assert 'keeping the last good mount xyz' in message
+    assert ext.values()['extrinsic_fault'] == f'TF loop on the camera mount path: {LOOP}'
+    # with the loop there from the start there is no good mount: none, and why
+    fresh, fresh_faults, fresh_static, _ = tf_extrinsic()
+    _chain(fresh_static)
+    fresh_static(tf_message([transform_stamped(CLOSING, 0, 'cam', 'base_link')]))
+    assert fresh.lookup('base_link', 'cam') == (None, f'a loop in TF: {LOOP}')
+    assert fresh_faults.counts['tf_loop'] == 1 and 'no good mount yet' in fresh_faults.lines[-1][1]
+
+
+def test_static_publishers_that_disagree_hold_the_mount_count_each_message_and_warn():
+    """Two latched publishers of camera_link -> cam that differ in rotation only (the translation, 1.3 m, kept)."""
+    ext, faults, static, _dynamic = tf_extrinsic()
+    static(tf_message([transform_stamped(rigid(np.eye(3), (0.2, 0.0, 0.5)), 0, 'base_link', 'camera_link')]))
+    first, other = rigid(MOUNT_R, MOUNT_T), rigid(MOUNT_R @ rotation((0.0, 1.0, 0.0), 0.05), MOUNT_T)
+    seen = []
+    for T in (first, other, first, other, first, other):
+        static(tf_message([transform_stamped(T, 0, 'camera_link', 'cam')]))
+        seen.append(ext.lookup('base_link', 'cam')[0])
+    for T in seen:
+        np.testing.assert_allclose(T[:3, :3], MOUNT_R, atol=1e-12)      # always the first publisher's turn
+    assert faults.counts['tf_mount_flip'] == 5 and faults.counts['tf_conflicting_parents'] == 0
+    assert ext.changes == 0 and len(infos(faults)) == 1                  # no 'changed' line per flip
+    warn = [m for lvl, m in faults.lines if lvl == 'warn']
+    assert warn[0].startswith("TF on the camera mount's path 'base_link' -> 'cam': /tf_static publishers disagree "
+                              "on 'camera_link' -> 'cam': xyz [0.300, -0.400, 1.200]"), warn
+    assert ext.values()['extrinsic_fault'] == ("TF publishers disagree on the camera mount path: 'camera_link' -> "
+                                               "'cam' (transforms, held)")
+    for T in (first, other, first):                 # three more between two images: all three counted
+        static(tf_message([transform_stamped(T, 0, 'camera_link', 'cam')]))
+    ext.lookup('base_link', 'cam')
+    assert faults.counts['tf_mount_flip'] == 8
+
+
+def test_a_second_parent_on_tf_is_a_conflicting_parent_and_the_static_one_stays():
+    ext, faults, static, dynamic = tf_extrinsic()
+    _chain(static)
+    good, _ = ext.lookup('base_link', 'cam')
+    dynamic(tf_message([transform_stamped(translation(1.0, 0.0, 0.0), 0, 'odom', 'camera_link')]))
+    T, _ = ext.lookup('base_link', 'cam')
+    np.testing.assert_allclose(T, good, atol=1e-12)
+    assert faults.counts['tf_conflicting_parents'] == 1 and faults.counts['tf_mount_flip'] == 0
+    assert "frame 'camera_link' is given conflicting parents 'base_link', 'odom'" in faults.lines[-1][1]
+    assert ext.values()['extrinsic_fault'].endswith("'base_link' -> 'camera_link' (parents, held)")

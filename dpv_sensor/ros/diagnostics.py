@@ -2,8 +2,9 @@
 sim time is paused) with every counter as a key/value, and its level and message: per output a measured rate
 against expected_depth_rate / expected_points_rate, the share of recent images lost in transport (lost.transport) or
 rejected as faulty (dropped.* other than busy) against drop_warn_share / drop_error_share, new input faults,
-estimator exceptions, the classical fallback, a stalled input. Counters: frames_received + lost.transport = images
-sent and frames_processed + dropped_total = frames_received (but for the one or two in flight)."""
+estimator exceptions, the classical fallback, a stalled input, a TF fault holding the camera mount (while it lasts).
+Counters: frames_received + lost.transport = images sent and frames_processed + dropped_total = frames_received (but
+for the one or two in flight)."""
 from __future__ import annotations
 
 import collections
@@ -156,6 +157,8 @@ class NodeDiagnostics:
         """Pose buffer, TF, rectification and the QoS and publishers of the inputs."""
         node, inputs = self.node, self.node.inputs
         values = {'pose_buffer_size': len(inputs.pose_buffer),
+                  # the worker waits for the odometry after an image's stamp, or for the camera mount on TF
+                  'waiting_for_pose': inputs.odometry_wait.waiting,
                   'tf': node.outputs.tf.status() if node.outputs.tf is not None else 'off',
                   **inputs.extrinsic.values()}
         rect = inputs.rectifier
@@ -261,6 +264,9 @@ class NodeDiagnostics:
         for rate_level, rate_problem in self._rate_status(values):
             level = max(level, rate_level)
             problems.append(rate_problem)
+        if values.get('extrinsic_fault'):       # a TF loop or disagreeing publishers hold the mount: WARN throughout
+            level = max(level, DiagnosticStatus.WARN)
+            problems.append(str(values['extrinsic_fault']))
         if str(values.get('measurement_reason', '')).startswith('fallback'):
             level = max(level, DiagnosticStatus.WARN)
             problems.append('network weights missing: classical fallback')

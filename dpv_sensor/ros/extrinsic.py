@@ -11,6 +11,13 @@ camera_link -> camera_color_optical_frame). A transform that changes is followed
 and the change is logged at info (at most three lines in 10 s; extrinsic_changes counts them all). A transform with
 NaN or a non-unit quaternion is ignored and counted (faults.bad_transform); the caller drops an image without a
 mount (dropped.no_extrinsic, faults.no_extrinsic).
+
+The tree's faults on the mount's path (detected there, see transform_tree) are counted and logged here: a loop keeps
+the last good mount of the same frames (without one the image has no mount) and counts faults.tf_loop once per
+appearance; links that publishers disagree on are held at their value before the disagreement (the tree does it),
+and every disagreeing message counts faults.tf_mount_flip (transforms on /tf_static) or faults.tf_conflicting_parents
+(a second parent). Both WARN with the frames (at most three lines in 30 s per link or loop), and `fault_text()`
+says what holds the mount while it lasts (/diagnostics: extrinsic_fault, level WARN).
 """
 from __future__ import annotations
 
@@ -18,16 +25,15 @@ import threading
 
 import numpy as np
 
-from dpv_sensor.ros.fault_kinds import BAD_TRANSFORM
+from dpv_sensor.ros.fault_kinds import BAD_TRANSFORM, TF_CONFLICTING_PARENTS, TF_LOOP, TF_MOUNT_FLIP
 from dpv_sensor.ros.msgs import transform_to_matrix
 from dpv_sensor.stream.pose_buffer import matrix_to_pose7
-from dpv_sensor.stream.transform_tree import TransformTree, frame_name
+from dpv_sensor.stream.transform_tree import CONFLICT_CLEAR_S, Conflict, TransformTree, frame_name, same_transform
 
 STATIC_TOPIC = '/tf_static'
 DYNAMIC_TOPIC = '/tf'
 TF_DEPTH = 100
-SAME_MOUNT_M = 1e-6         # a mount that moves less than this (and turns less than SAME_MOUNT_ROT) has not changed
-SAME_MOUNT_ROT = 1e-6       # largest element of R_old^T R_new - I
+TF_FAULT_LOG_S = 30.0       # at most three WARN lines per loop or disagreeing link in this window
 
 
 def pose_text(T_44) -> str:
@@ -36,10 +42,9 @@ def pose_text(T_44) -> str:
     return f"xyz [{', '.join(f'{v:.3f}' for v in p[:3])}] q [{', '.join(f'{v:.4f}' for v in p[3:])}]"
 
 
-def same_mount(A_44, B_44) -> bool:
-    A, B = np.asarray(A_44), np.asarray(B_44)
-    return bool(np.linalg.norm(A[:3, 3] - B[:3, 3]) <= SAME_MOUNT_M and
-                np.max(np.abs(A[:3, :3].T @ B[:3, :3] - np.eye(3))) <= SAME_MOUNT_ROT)
+def loop_text(loop) -> str:
+    """"'a' -> 'b' -> 'a'"."""
+    return ' -> '.join(f"'{f}'" for f in loop)
 
 
 class CameraExtrinsic:
@@ -56,6 +61,9 @@ class CameraExtrinsic:
         self._on_update = on_update
         self._lock = threading.Lock()
         self._used: tuple[str, str, np.ndarray] | None = None      # (base, image, T) of the last image
+        self._pair: tuple[str, str] | None = None                  # (base, image) of the last lookup
+        self._loop: tuple = ()                                      # the loop met by the last lookup
+        self._events: dict[tuple, int] = {}                         # (child, since) -> disagreements counted
         self.changes = 0
         self.tree = TransformTree() if source == 'tf' else None
         self.subscriptions = []
@@ -98,23 +106,88 @@ class CameraExtrinsic:
         if not base:
             return None, 'the odometry has no child_frame_id (set the base_frame parameter)'
         found = self.tree.lookup(base, image)
+        with self._lock:
+            self._pair = (base, image)
+            new_loop = bool(found.loop) and found.loop != self._loop
+            self._loop = found.loop
+            used = self._used
+        if found.loop:
+            return self._on_loop(base, image, found.loop, used, new_loop)
         if not found.ok:
             return None, found.reason
-        self._note(base, image, found.T_target_source_44)
-        return found.T_target_source_44, ''
+        T = found.T_target_source_44
+        for conflict in found.conflicts:
+            self._on_conflict(base, image, conflict, T)
+        self._note(base, image, T, quiet=bool(found.conflicts))
+        return T, ''
 
-    def _note(self, base: str, image: str, T: np.ndarray) -> None:
-        """Log the first mount and every change of it (info)."""
+    def _on_loop(self, base: str, image: str, loop: tuple, used, new: bool) -> tuple[np.ndarray | None, str]:
+        """The last good mount of these frames (None without one), the loop counted once and warned about."""
+        good = used[2] if used is not None and used[:2] == (base, image) else None
+        keeping = f'keeping the last good mount {pose_text(good)}' if good is not None else \
+            'no good mount yet: images wait for it'
+        text = (f"TF loop on the camera mount's path '{base}' -> '{image}': {loop_text(loop)} (a frame is its own "
+                f'ancestor; remove the link that closes it); {keeping}')
+        if new:
+            self.faults.report(TF_LOOP, text, key=f'{TF_LOOP}:{loop_text(loop)}', period_s=TF_FAULT_LOG_S)
+        if good is None:
+            return None, f'a loop in TF: {loop_text(loop)}'
+        return good, ''
+
+    def _on_conflict(self, base: str, image: str, c: Conflict, T: np.ndarray) -> None:
+        """Count the disagreeing messages on a link of the mount's path not counted yet; WARN (rate-limited)."""
+        key = (c.child, c.since)
+        with self._lock:
+            new = c.events - self._events.get(key, 0)
+            self._events = {k: v for k, v in self._events.items() if k[0] != c.child}
+            self._events[key] = c.events
+        if new <= 0:
+            return
+        if c.kind == 'parents':
+            kind = TF_CONFLICTING_PARENTS
+            what = (f"frame '{c.child}' is given conflicting parents "
+                    f"{', '.join(repr(p) for p in dict.fromkeys(v[0] for v in c.values))}")
+            held = f"holding its parent '{c.parent}' {pose_text(c.held[1])}"
+        else:
+            kind = TF_MOUNT_FLIP
+            what = (f"/tf_static publishers disagree on '{c.parent}' -> '{c.child}': "
+                    + ' vs '.join(pose_text(v[1]) for v in c.values))
+            held = f'holding {pose_text(c.held[1])}'
+        if new > 1:
+            self.faults.count(kind, new - 1)
+        self.faults.report(kind, f"TF on the camera mount's path '{base}' -> '{image}': {what}; {held}, the value "
+                           f'before the disagreement, until {CONFLICT_CLEAR_S:g} s pass without one; mount '
+                           f'{pose_text(T)}', key=f'{kind}:{c.child}', period_s=TF_FAULT_LOG_S)
+
+    def _note(self, base: str, image: str, T: np.ndarray, quiet: bool = False) -> None:
+        """Log the first mount and every change of it (info; `quiet`: a held mount, its WARN says it)."""
         with self._lock:
             used, self._used = self._used, (base, image, T)
-            if used is not None and used[:2] == (base, image) and same_mount(used[2], T):
+            if used is not None and used[:2] == (base, image) and same_transform(used[2], T):
                 return
             first = used is None
             if not first:
                 self.changes += 1
+        if quiet:
+            return
         what = 'camera mount from TF' if first else 'camera mount changed on TF'
         self.faults.report('extrinsic_change', f"{what}: '{base}' -> '{image}' {pose_text(T)}; used for the following "
                            'images', level='info', count=False, period_s=10.0)
+
+    def fault_text(self) -> str:
+        """What holds the mount now (a loop, links publishers disagree on, through the last lookup's path), or ''."""
+        with self._lock:
+            pair = self._pair
+        if self.tree is None or pair is None:
+            return ''
+        found = self.tree.lookup(*pair)
+        if found.loop:
+            return f'TF loop on the camera mount path: {loop_text(found.loop)}'
+        if found.conflicts:
+            return 'TF publishers disagree on the camera mount path: ' + ', '.join(
+                f"'{c.parent}' -> '{c.child}' ({'parents' if c.kind == 'parents' else 'transforms'}, held)"
+                for c in found.conflicts)
+        return ''
 
     def values(self) -> dict:
         """/diagnostics: the source in use and the mount of the last image."""
@@ -126,4 +199,5 @@ class CameraExtrinsic:
             mount = f'waiting for TF ({len(self.tree)} links known)'
         else:
             mount = f"'{used[0]}' -> '{used[1]}' {pose_text(used[2])}"
-        return {'extrinsic_source': self.description(), 'extrinsic': mount, 'extrinsic_changes': self.changes}
+        return {'extrinsic_source': self.description(), 'extrinsic': mount, 'extrinsic_changes': self.changes,
+                'extrinsic_fault': self.fault_text()}
