@@ -53,7 +53,7 @@ def test_covariance_growth_replaces_the_drift_terms_and_unfilled_covariance_is_i
     m = PU.DriftModel(sync_s=0.0, cov_trans_per_m=0.05)     # a cap that does not bind: (0.05 * 1 m)^2 / 3 > 4e-4
     a = np.diag([1e-4] * 3 + [1e-6] * 3)
     b = np.diag([5e-4] * 3 + [5e-6] * 3)
-    s = PU.relative_pose_sigma(m, [_T(), _T((1.0, 0, 0))], cov_ref_66=a, cov_src_66=b)
+    s = PU.relative_pose_sigma(m, [_T(), _T((1.0, 0, 0))], odom_first=a, odom_last=b)
     assert s.trans_m == pytest.approx(0.02)          # sqrt(4e-4)
     assert s.rot_rad == pytest.approx(0.002)         # sqrt(4e-6)
     assert PU.covariance_sigma(a, np.zeros((6, 6))) is None
@@ -65,14 +65,14 @@ def test_covariance_translation_growth_is_capped_by_the_relative_motion():
     m = PU.DriftModel(sync_s=0.0)                            # cov_trans_per_m 0.02
     a = np.diag([1e-4] * 3 + [1e-6] * 3)
     b = np.diag([5e-4] * 3 + [5e-6] * 3)
-    s = PU.relative_pose_sigma(m, [_T(), _T((0.5, 0, 0)), _T((1.0, 0, 0))], cov_ref_66=a, cov_src_66=b)
+    s = PU.relative_pose_sigma(m, [_T(), _T((0.5, 0, 0)), _T((1.0, 0, 0))], odom_first=a, odom_last=b)
     assert s.trans_m == pytest.approx(math.sqrt(0.02 ** 2 / 3 + 4e-6 / 3))
     assert s.rot_rad == pytest.approx(0.002)                 # the rotation growth is taken as it is
     # a growth below the cap is kept; with no path (turning in place) only the rotation's lever is left: 0
     small = np.diag([2e-4] * 3 + [5e-6] * 3)                  # growth 1e-4 m^2: 1 cm, under the cap
-    assert PU.relative_pose_sigma(m, [_T(), _T((1.0, 0, 0))], cov_ref_66=a,
-                                  cov_src_66=small).trans_m == pytest.approx(0.01)
-    assert PU.relative_pose_sigma(m, [_T(), _T(rotvec=(0, 0.1, 0))], cov_ref_66=a, cov_src_66=b).trans_m == 0.0
+    assert PU.relative_pose_sigma(m, [_T(), _T((1.0, 0, 0))], odom_first=a,
+                                  odom_last=small).trans_m == pytest.approx(0.01)
+    assert PU.relative_pose_sigma(m, [_T(), _T(rotvec=(0, 0.1, 0))], odom_first=a, odom_last=b).trans_m == 0.0
 
 
 def test_match_shift_at_the_principal_point_and_off_axis():

@@ -130,3 +130,29 @@ def test_a_rotation_only_keypoint_factor_leaves_the_translation_to_the_odometry(
         assert res.refined
         moved[direction] = float(np.linalg.norm(res.T_world_cam[1][:3, 3] - T_odom_b[:3, 3]))
     assert moved['odometry'] < 1e-6 and moved['keypoints'] > 5e-5
+
+
+@pytest.mark.parametrize('kind', ['constant pose and twist 1e6', 'pose jumping to 1e6'])
+def test_a_huge_odometry_covariance_trusts_the_images_and_refinement_still_corrects(pair, kind):
+    # the source's odometry 2 deg off. A constant pose covariance (here 1e6, as ROS 1 diff_drive publishes for
+    # unmeasured axes) does not grow, so the twist covariance (1e6 as well) is integrated; a pose covariance that
+    # jumps grows by 1e6. Either way the odometry factor is loose, capped at the window's jump limits (never the
+    # 0.001 deg / 0.1 mm floor, which would hold the odometry and leave the 2 deg), and the keypoints correct it
+    from dpv_sensor.stream.window_graph import PUBLISHED, TWIST
+    img_a, img_b, K, T_wa, T_wb = pair
+    T_odom_b = T_wb.copy()
+    T_odom_b[:3, :3] = T_wb[:3, :3] @ cv2.Rodrigues(np.radians([ERR_DEG, 0, 0]).reshape(3, 1))[0]
+    huge = np.eye(6) * 1e6
+    if kind.startswith('constant'):
+        ref = WindowKeyframe(0, img_a, K, T_wa, huge, huge, stamp=10.0)
+        src = WindowKeyframe(1, img_b, K, T_odom_b, huge, huge, stamp=10.3)
+    else:
+        ref = WindowKeyframe(0, img_a, K, T_wa, _cov(0.001, 1e-4), stamp=10.0)
+        src = WindowKeyframe(1, img_b, K, T_odom_b, huge, stamp=10.3)
+    cfg = _config(keypoint_direction='odometry', gate_chi2=16.27)
+    res = WindowPoseRefiner(cfg).refine(ref, [src])
+    assert res.odometry.source == (TWIST if kind.startswith('constant') else PUBLISHED)
+    assert (res.odometry.rot_rad, res.odometry.trans_m) == pytest.approx(
+        (math.radians(cfg.max_jump_rotation_deg), cfg.max_jump_translation_m))
+    assert res.refined and res.gate == 'refined'
+    assert _rot_err(res.T_world_cam[1], pair[4]) < 0.5 and res.correction[1] > 1.0

@@ -15,13 +15,21 @@ default drift figures, is in docs/pose_uncertainty.md.
    * drift of the odometry along the path between the two views (length ``L`` metres, rotation ``A`` degrees):
      error magnitudes ``trans_per_m * L`` and ``rot_deg_per_m * L + rot_per_deg * A`` (an error vector of magnitude
      ``m`` in a random direction has per-axis std ``m / sqrt(3)``);
-   * the odometry's own covariance where the publisher fills it (the growth of the pose covariance between the two
-     views, which for integrated odometry is the covariance of the relative motion), used instead of the drift
-     terms. Its translation growth also holds the heading error accumulated before the first view, levered by the
-     step (with its cross-covariance to the position), which does not enter the relative motion: on a long path it
-     overstates the relative translation by up to ten times. So the translation variance taken from it is capped at
-     what ``cov_trans_per_m`` of the path (the relative motion's own translation error) plus the rotation growth's
-     lever within the segment give: ``(cov_trans_per_m L)^2 / 3 + var_rot L^2 / 3``;
+   * what the odometry says about itself (:func:`odometry_sigma`), used instead of the drift terms, from the first
+     of these that applies:
+
+     - the growth of the pose covariance between the two views, when it grows (the mean translation variance and
+       the mean rotation variance are both larger at the later view): for integrated odometry the covariance of
+       the relative motion. Its translation growth also holds the heading error accumulated before the first view,
+       levered by the step (with its cross-covariance to the position), which does not enter the relative motion:
+       on a long path it overstates the relative translation by up to ten times. So the translation variance taken
+       from it is capped at what ``cov_trans_per_m`` of the path (the relative motion's own translation error) plus
+       the rotation growth's lever within the segment give: ``(cov_trans_per_m L)^2 / 3 + var_rot L^2 / 3``;
+     - else the twist covariance integrated over the interval (a pose covariance that stays constant, as
+       diff_drive_controller's ``pose_covariance_diagonal``, says nothing about the relative motion; the motion
+       noise is then in ``twist.covariance``): the mean of the two views' twist covariances, read as a rate in the
+       child frame, integrated over the time between them along their relative motion
+       (:func:`dpv_sensor.core.odometry_covariance.twist_step_covariance`), per axis the trace of each block / 3;
    * a camera-odometry time offset of std ``sync_s``: with body velocities ``v``, ``w`` the pose at ``t + tau`` is
      off by ``tau * (v, w)``, and the relative pose of two views by ``tau`` times the *difference* of their
      velocities (a constant offset cancels for constant motion).
@@ -53,13 +61,17 @@ import torch
 
 from dpv_sensor.core import dpv as dpv_ops
 from dpv_sensor.core.geometry import rotation_angle_np
+from dpv_sensor.core.odometry_covariance import OdometryCovariance, twist_step_covariance
 from dpv_sensor.core.parallax import BAND_RATIO
 
-__all__ = ['DriftModel', 'PoseSigma', 'relative_pose_sigma', 'path_between', 'covariance_sigma', 'twist_between',
+__all__ = ['DriftModel', 'PoseSigma', 'relative_pose_sigma', 'path_between', 'covariance_sigma', 'twist_sigma',
+           'odometry_sigma', 'GROWTH', 'TWIST', 'DRIFT', 'twist_between',
            'match_shift_px', 'inverse_depth_sigma', 'window_sigma_planes', 'confidence_factor', 'widen_planes',
            'WIDTH_LADDER', 'SQRT3', 'BAND_RATIO']
 
 SQRT3 = math.sqrt(3.0)
+# where the relative uncertainty of two odometry poses comes from (odometry_sigma)
+GROWTH, TWIST, DRIFT = 'pose covariance growth', 'twist covariance', 'drift figures'
 # Gaussian widths (planes) the per-pixel widening interpolates between; 0 = unchanged.
 WIDTH_LADDER = (0.0, 0.5, 1.0, 2.0, 4.0, 8.0, 16.0, 32.0)
 
@@ -99,20 +111,73 @@ def path_between(poses_44: Sequence[np.ndarray]) -> Tuple[float, float]:
     return L, A
 
 
+def _filled(diag_6: np.ndarray) -> bool:
+    """A covariance's diagonal says something: finite, none negative, some positive."""
+    return bool(np.all(np.isfinite(diag_6)) and np.all(diag_6 >= 0) and np.any(diag_6 > 0))
+
+
 def covariance_sigma(cov_a_66: Optional[np.ndarray], cov_b_66: Optional[np.ndarray]) -> Optional[PoseSigma]:
-    """Per-axis std of the motion between two odometry poses from their covariances (ROS order: x, y, z, then
-    rotation about x, y, z): the growth of the mean diagonal variance from one to the other (integrated odometry:
-    the covariance of the relative motion). None when either is missing or not filled (a non-positive or non-finite
-    diagonal, as drivers publish when they do not know)."""
+    """Per-axis std of the motion between two odometry poses from their pose covariances (ROS order: x, y, z, then
+    rotation about x, y, z; ``a`` the earlier, ``b`` the later): the growth of the mean diagonal variance from a to b
+    (integrated odometry: the covariance of the relative motion). None when either is missing or not filled (a
+    non-finite or negative diagonal, or none of it positive), or when the covariance does not grow (the mean
+    translation or the mean rotation variance is not larger at b: a constant covariance, or one that shrank after a
+    correction)."""
     if cov_a_66 is None or cov_b_66 is None:
         return None
     da = np.diag(np.asarray(cov_a_66, np.float64).reshape(6, 6))
     db = np.diag(np.asarray(cov_b_66, np.float64).reshape(6, 6))
-    if not (np.all(np.isfinite(da)) and np.all(np.isfinite(db)) and np.all(da > 0) and np.all(db > 0)):
+    if not (_filled(da) and _filled(db)):
         return None
-    dt = abs(float(db[:3].mean() - da[:3].mean()))
-    dr = abs(float(db[3:].mean() - da[3:].mean()))
+    dt = float(db[:3].mean() - da[:3].mean())
+    dr = float(db[3:].mean() - da[3:].mean())
+    if not (dt > 0 and dr > 0):
+        return None
     return PoseSigma(rot_rad=math.sqrt(dr), trans_m=math.sqrt(dt))
+
+
+def twist_sigma(twist_a_66: Optional[np.ndarray], twist_b_66: Optional[np.ndarray], T_a_44: np.ndarray,
+                T_b_44: np.ndarray, dt_s: Optional[float]) -> Optional[PoseSigma]:
+    """Per-axis std of the motion from pose a to pose b (``T_world_*``) from the twist covariances at the two poses
+    (ROS order, child frame, per second) over the ``dt_s`` seconds between them: their mean integrated along the
+    motion (:func:`dpv_sensor.core.odometry_covariance.twist_step_covariance`), the trace of each block / 3. None
+    when either is missing or not filled (as for :func:`covariance_sigma`), or without a positive, finite ``dt_s``."""
+    if twist_a_66 is None or twist_b_66 is None or dt_s is None or not (dt_s > 0 and math.isfinite(dt_s)):
+        return None
+    Qa = np.asarray(twist_a_66, np.float64).reshape(6, 6)
+    Qb = np.asarray(twist_b_66, np.float64).reshape(6, 6)
+    if not (np.all(np.isfinite(Qa)) and np.all(np.isfinite(Qb)) and _filled(np.diag(Qa)) and _filled(np.diag(Qb))):
+        return None
+    T_ab = np.linalg.inv(np.asarray(T_a_44, np.float64)) @ np.asarray(T_b_44, np.float64)
+    S = twist_step_covariance(0.5 * (Qa + Qb), T_ab, float(dt_s))
+    return PoseSigma(rot_rad=math.sqrt(max(float(np.trace(S[3:, 3:])) / 3.0, 0.0)),
+                     trans_m=math.sqrt(max(float(np.trace(S[:3, :3])) / 3.0, 0.0)))
+
+
+def odometry_sigma(chain_44: Sequence[np.ndarray], first, last, cov_trans_per_m: float
+                   ) -> Tuple[Optional[PoseSigma], str]:
+    """What the odometry says about the motion along ``chain_44`` (time order) from its covariances at the chain's
+    first and last pose (:class:`~dpv_sensor.core.odometry_covariance.OdometryCovariance`, a bare 6x6 pose
+    covariance, or None): (sigma, ``GROWTH``) from the pose covariance's growth, its translation capped (module
+    docstring, item 1); else (sigma, ``TWIST``) from the twist covariance over the time between them; else (None,
+    ``DRIFT``). Two stamps in the wrong order are swapped first (the growth is read from the earlier to the later)."""
+    a, b = OdometryCovariance.of(first), OdometryCovariance.of(last)
+    if a is None or b is None:
+        return None, DRIFT
+    chain = list(chain_44)
+    if a.stamp is not None and b.stamp is not None and a.stamp > b.stamp:
+        a, b, chain = b, a, chain[::-1]
+    cov = covariance_sigma(a.pose_66, b.pose_66)
+    if cov is not None:
+        L, _ = path_between(chain)
+        var_r = cov.rot_rad ** 2
+        var_t = min(cov.trans_m ** 2, (cov_trans_per_m * L) ** 2 / 3.0 + var_r * L ** 2 / 3.0)
+        return PoseSigma(rot_rad=cov.rot_rad, trans_m=math.sqrt(var_t)), GROWTH
+    dt = None if a.stamp is None or b.stamp is None else float(b.stamp) - float(a.stamp)
+    tw = twist_sigma(a.twist_66, b.twist_66, chain[0], chain[-1], dt)
+    if tw is not None:
+        return tw, TWIST
+    return None, DRIFT
 
 
 def twist_between(T_prev_44: np.ndarray, T_44: np.ndarray, dt: float) -> Optional[np.ndarray]:
@@ -127,20 +192,20 @@ def twist_between(T_prev_44: np.ndarray, T_44: np.ndarray, dt: float) -> Optiona
     return np.concatenate([v, w])
 
 
-def relative_pose_sigma(model: DriftModel, chain_44: Sequence[np.ndarray], *,
-                        cov_ref_66: Optional[np.ndarray] = None, cov_src_66: Optional[np.ndarray] = None,
+def relative_pose_sigma(model: DriftModel, chain_44: Sequence[np.ndarray], *, odom_first=None, odom_last=None,
                         twist_ref_6: Optional[np.ndarray] = None, twist_src_6: Optional[np.ndarray] = None
                         ) -> PoseSigma:
     """Per-axis std of a source's pose relative to the reference (see the module docstring, item 1).
 
-    chain_44: the poses from the reference to the source in time order, the keyframes between them included (the
-    path the drift accumulates over). cov_*_66: the odometry covariances of the two views (used instead of the drift
-    terms when both are filled). twist_*_6: world-frame velocities of the two views (the time-offset term)."""
-    cov = covariance_sigma(cov_ref_66, cov_src_66)
+    chain_44: the poses from one of the two to the other in time order, the keyframes between them included (the
+    path the drift accumulates over). odom_first / odom_last: what the odometry says about itself at the chain's
+    first and last pose (:class:`~dpv_sensor.core.odometry_covariance.OdometryCovariance` or a bare pose
+    covariance; used instead of the drift terms where :func:`odometry_sigma` gives a figure). twist_*_6: world-frame
+    velocities of the two views (the time-offset term)."""
     L, A = path_between(list(chain_44))
-    if cov is not None:
-        var_r = cov.rot_rad ** 2
-        var_t = min(cov.trans_m ** 2, (model.cov_trans_per_m * L) ** 2 / 3.0 + var_r * L ** 2 / 3.0)
+    sig, _source = odometry_sigma(chain_44, odom_first, odom_last, model.cov_trans_per_m)
+    if sig is not None:
+        var_r, var_t = sig.rot_rad ** 2, sig.trans_m ** 2
     else:
         rot = math.radians(model.rot_deg_per_m * L + model.rot_per_deg * A) / SQRT3
         tr = model.trans_per_m * L / SQRT3
@@ -179,6 +244,12 @@ def inverse_depth_sigma(depth_bhw: torch.Tensor, span_nbhw: torch.Tensor, shift_
     return torch.where(total > 0, total.clamp_min(1e-30).rsqrt(), torch.full_like(total, math.inf))
 
 
+def _odometry(kf) -> OdometryCovariance:
+    """What the odometry said about itself at a keyframe (``pose_cov_66``, ``twist_cov_66``, ``stamp``)."""
+    return OdometryCovariance(pose_66=getattr(kf, 'pose_cov_66', None), twist_66=getattr(kf, 'twist_cov_66', None),
+                              stamp=getattr(kf, 'stamp', None))
+
+
 def window_sigma_planes(ref, sources: Sequence, depth_bhw: torch.Tensor, span_nbhw: torch.Tensor,
                         K_vol_b33: torch.Tensor, model: DriftModel, plane_step_rho: float, *,
                         covariance_only: bool = False, source_sigma: Optional[dict] = None
@@ -186,36 +257,49 @@ def window_sigma_planes(ref, sources: Sequence, depth_bhw: torch.Tensor, span_nb
     """(B, H, W) std in planes of the measured plane index of a window, and a status dict (items 1-3 of the module
     docstring, all sources).
 
-    ref / sources: keyframes with ``index``, ``T_world_cam_44``, ``K_b33`` (processing size), ``pose_cov_66`` and
-    ``twist_world_6``. depth_bhw / span_nbhw: the measurement's depth and each source's disparity span (processing
-    pixels) on the volume grid ``K_vol_b33``. plane_step_rho: the plane spacing in inverse depth. covariance_only:
-    without any source's covariance, None (the poses count as exact). Status: ``source`` (covariance when every
-    source's came from the odometry's covariance, else drift; none without covariance in covariance_only), the
-    largest per-axis rotation (deg) and translation (mm) std and the median std in planes. source_sigma: per-source
+    ref / sources: keyframes with ``index``, ``stamp``, ``T_world_cam_44``, ``K_b33`` (processing size),
+    ``pose_cov_66``, ``twist_cov_66`` and ``twist_world_6``. depth_bhw / span_nbhw: the measurement's depth and each
+    source's disparity span (processing pixels) on the volume grid ``K_vol_b33``. plane_step_rho: the plane spacing
+    in inverse depth. covariance_only: when no source has a figure from the odometry's covariances
+    (:func:`odometry_sigma`), None (the poses count as exact). Status: ``source`` (``covariance`` when every source's
+    came from the growth of the pose covariance, ``twist covariance`` when every one came from either covariance
+    and some from the twist's, else ``drift``; ``none (...)`` without either in covariance_only), the largest
+    per-axis rotation (deg) and translation (mm) std and the median std in planes. source_sigma: per-source
     :class:`PoseSigma` by ``float(stamp)`` (a pose refiner's marginals) used instead of items 1's terms for the
     sources it names (``source`` then says ``window marginals``)."""
     given = source_sigma or {}
-    from_win = [float(getattr(s, 'stamp', math.nan)) in given for s in sources]
-    from_cov = [covariance_sigma(ref.pose_cov_66, s.pose_cov_66) is not None or w for s, w in zip(sources, from_win)]
-    if covariance_only and not any(from_cov):
-        return None, {'source': 'none (no odometry covariance)'}
     kfs = sorted([ref] + list(sources), key=lambda k: k.index)
     r = kfs.index(ref)
-    to_proc = float(ref.K_b33[0, 0, 0] / K_vol_b33[0, 0, 0])     # volume -> processing pixels (as the spans)
-    shifts, sig_r, sig_t = [], [], []
+    chains, figures = [], []
     for s in sources:
         i = kfs.index(s)
-        chain = [k.T_world_cam_44 for k in kfs[min(i, r):max(i, r) + 1]]
-        sig = given.get(float(getattr(s, 'stamp', math.nan)))
+        chain = kfs[min(i, r):max(i, r) + 1]
+        chains.append([k.T_world_cam_44 for k in chain])
+        if float(getattr(s, 'stamp', math.nan)) in given:
+            figures.append((given[float(s.stamp)], 'window marginals'))
+        else:
+            figures.append(odometry_sigma(chains[-1], _odometry(chain[0]), _odometry(chain[-1]),
+                                          model.cov_trans_per_m))
+    kinds = {k for _sig, k in figures}
+    if covariance_only and kinds <= {DRIFT}:
+        return None, {'source': 'none (no odometry covariance: neither a pose covariance that grows nor a twist '
+                                'covariance)'}
+    to_proc = float(ref.K_b33[0, 0, 0] / K_vol_b33[0, 0, 0])     # volume -> processing pixels (as the spans)
+    shifts, sig_r, sig_t = [], [], []
+    for s, chain, (fig, kind) in zip(sources, chains, figures):
+        sig = fig if kind == 'window marginals' else None
         if sig is None:
-            sig = relative_pose_sigma(model, chain, cov_ref_66=ref.pose_cov_66, cov_src_66=s.pose_cov_66,
+            first, last = (ref, s) if ref.index <= s.index else (s, ref)
+            sig = relative_pose_sigma(model, chain, odom_first=_odometry(first), odom_last=_odometry(last),
                                       twist_ref_6=ref.twist_world_6, twist_src_6=s.twist_world_6)
         sig_r.append(sig.rot_rad)
         sig_t.append(sig.trans_m)
         shifts.append(match_shift_px(depth_bhw, K_vol_b33, sig) * to_proc)
     sigma_planes = inverse_depth_sigma(depth_bhw, span_nbhw, torch.stack(shifts, 0), BAND_RATIO) / plane_step_rho
-    status = {'source': 'window marginals' if all(from_win) else 'covariance' if all(from_cov) else 'drift',
-              'rot_deg_max': math.degrees(max(sig_r)), 'trans_mm_max': 1000.0 * max(sig_t),
+    source = ('window marginals' if kinds == {'window marginals'} else
+              'covariance' if kinds <= {'window marginals', GROWTH} else
+              'twist covariance' if kinds <= {'window marginals', GROWTH, TWIST} else 'drift')
+    status = {'source': source, 'rot_deg_max': math.degrees(max(sig_r)), 'trans_mm_max': 1000.0 * max(sig_t),
               'median_planes': float(sigma_planes.clamp_max(1e3).median())}
     return sigma_planes, status
 

@@ -465,7 +465,8 @@ class Estimator:
                       K_b33=torch.as_tensor(K_proc, dtype=torch.float32, device=self.device)[None],
                       input_size=size, input_K_33=K_in, frame_id=frame.frame_id, odom_T_world_cam_44=T,
                       twist_world_6=self._twist,
-                      pose_cov_66=window_pose_uncertainty.frame_covariance(self.config, frame))
+                      pose_cov_66=window_pose_uncertainty.frame_covariance(self.config, frame),
+                      twist_cov_66=window_pose_uncertainty.frame_covariance(self.config, frame, 'twist'))
         self._kf_counter += 1
         self._keyframes += 1
         self.window.append(kf)

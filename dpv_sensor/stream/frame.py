@@ -22,8 +22,10 @@ class Frame:
     estimator then uses the time since the previous pushed frame.
 
     pose_covariance_66: covariance of the camera pose from the odometry (6x6, ROS order: x, y, z, rotation about
-    x, y, z), None when the odometry does not fill it; it sets the pose uncertainty of the measurement
-    (``pose_uncertainty``: auto).
+    x, y, z), None when the odometry does not fill it; twist_covariance_66: the odometry's twist covariance (6x6,
+    ROS order, in its child frame, read as the variance the relative pose gains per second:
+    ``dpv_sensor.core.odometry_covariance``), None when not filled. They set the pose uncertainty of the measurement
+    and the window's odometry factors (``pose_uncertainty``, docs/pose_uncertainty.md).
     """
     stamp: float
     image: np.ndarray
@@ -32,6 +34,7 @@ class Frame:
     frame_id: str = 'camera'
     sensor_gap_s: float | None = None
     pose_covariance_66: np.ndarray | None = None
+    twist_covariance_66: np.ndarray | None = None
 
 
 @dataclass

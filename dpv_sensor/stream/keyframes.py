@@ -115,8 +115,9 @@ class Keyframe:
     ``K_b33`` its intrinsics. ``cache`` holds per-keyframe results that must not be recomputed when the
     keyframe serves as a source again (network features). ``index`` counts keyframes since the last
     reset; ``frame_index`` counts accepted frames. ``twist_world_6`` is the camera's world-frame velocity
-    (vx, vy, vz, wx, wy, wz) when the frame arrived and ``pose_cov_66`` the odometry's pose covariance (ROS order),
-    when known: what the pose uncertainty of the measurement is computed from (``dpv_sensor.core.pose_uncertainty``).
+    (vx, vy, vz, wx, wy, wz) when the frame arrived, ``pose_cov_66`` and ``twist_cov_66`` the odometry's pose
+    and twist covariance (ROS order), when known: what the pose uncertainty of the measurement is computed from
+    (``dpv_sensor.core.pose_uncertainty``).
     """
     index: int
     frame_index: int
@@ -131,6 +132,7 @@ class Keyframe:
     cache: Dict[str, Any] = field(default_factory=dict)
     twist_world_6: Optional[np.ndarray] = None
     pose_cov_66: Optional[np.ndarray] = None
+    twist_cov_66: Optional[np.ndarray] = None
 
     def __post_init__(self):
         self.T_world_cam_44 = np.array(self.T_world_cam_44, dtype=np.float64, copy=True)

@@ -23,12 +23,16 @@ __all__ = ['odometry_between_sigmas', 'odometry_step_covariance', 'odometry_step
            'odometry_steps', 'pose3_from_matrix', 'relative_pose', 'solve_window', 'relative_marginal_sigmas']
 
 # where an odometry step's covariance comes from (odometry_step_source)
-FIXED, PUBLISHED, DRIFT = 'fixed sigmas', 'published covariance', 'drift figures'
+FIXED = 'fixed sigmas'
+PUBLISHED, TWIST, DRIFT = pose_uncertainty.GROWTH, pose_uncertainty.TWIST, pose_uncertainty.DRIFT
+# an odometry step's per-axis std never goes below these (odometry is never exact)
+STEP_FLOOR_ROT_DEG, STEP_FLOOR_TRANS_M = 1e-3, 1e-4
 
 
 class OdometrySteps(NamedTuple):
     """The odometry factors of a window: the median per-axis std of its steps (rotation rad, translation m) and
-    where their covariance came from (the source of most steps: ``FIXED``, ``PUBLISHED`` or ``DRIFT``)."""
+    where their covariance came from (the source of most steps: ``FIXED``, ``PUBLISHED`` (the growth of the pose
+    covariance), ``TWIST`` (the twist covariance) or ``DRIFT``)."""
     rot_rad: float
     trans_m: float
     source: str
@@ -41,35 +45,49 @@ def odometry_between_sigmas(T_a_b_44: np.ndarray, cfg) -> np.ndarray:
     return np.array([rot, rot, rot, tr, tr, tr])
 
 
-def odometry_step_covariance(T_odom_a: np.ndarray, T_odom_b: np.ndarray, cov_a_66, cov_b_66,
-                             cfg) -> np.ndarray:
-    """gtsam-ordered 6x6 covariance of the odometry's motion from keyframe a to b: ``odom_covariance='fixed'``
-    the configured sigmas; 'odometry' the growth of the published covariance where both are filled, else the drift
-    figures of the step (never below 1e-3 deg / 0.1 mm per axis: odometry is never exact)."""
+def odometry_step_covariance(T_odom_a: np.ndarray, T_odom_b: np.ndarray, cov_a, cov_b, cfg) -> np.ndarray:
+    """gtsam-ordered 6x6 covariance of the odometry's motion from keyframe a to b (a the earlier): with
+    ``odom_covariance='fixed'`` the configured sigmas; with 'odometry' what the odometry says about itself
+    (``cov_a`` / ``cov_b``: :class:`~dpv_sensor.core.odometry_covariance.OdometryCovariance`, a bare 6x6 pose
+    covariance, or None; :func:`dpv_sensor.core.pose_uncertainty.odometry_sigma`: the growth of the pose covariance,
+    else the twist covariance over the step), else the drift figures of the step.
+
+    Per axis never below 0.001 deg / 0.1 mm (odometry is never exact) and never above the window's jump limits
+    (``max_jump_rotation_deg``, ``max_jump_translation_m``): a correction larger than those counts as lost tracking
+    anyway, so a looser factor would say nothing more. A huge or jumping covariance thus makes a loose factor (the
+    images decide within the limits), never a stiff one."""
     T_ab = relative_pose(T_odom_a, T_odom_b)
     if cfg.odom_covariance == 'fixed':
         return np.diag(odometry_between_sigmas(T_ab, cfg) ** 2)
     if cfg.odom_covariance != 'odometry':
         raise ValueError(f"odom_covariance must be 'fixed' or 'odometry', not {cfg.odom_covariance!r}")
-    sig = pose_uncertainty.relative_pose_sigma(cfg.drift, [T_odom_a, T_odom_b], cov_ref_66=cov_a_66,
-                                               cov_src_66=cov_b_66)
-    rot = max(sig.rot_rad, math.radians(1e-3))
-    tr = max(sig.trans_m, 1e-4)
+    sig = pose_uncertainty.relative_pose_sigma(cfg.drift, [T_odom_a, T_odom_b], odom_first=cov_a, odom_last=cov_b)
+    rot = _bounded(sig.rot_rad, math.radians(STEP_FLOOR_ROT_DEG), math.radians(cfg.max_jump_rotation_deg))
+    tr = _bounded(sig.trans_m, STEP_FLOOR_TRANS_M, cfg.max_jump_translation_m)
     return np.diag([rot ** 2] * 3 + [tr ** 2] * 3)
 
 
-def odometry_step_source(cov_a_66, cov_b_66, cfg) -> str:
-    """Where the covariance of an odometry step between two keyframes comes from (``odometry_step_covariance``):
-    the fixed sigmas, the growth of the published covariance (both filled), or the drift figures."""
+def _bounded(sigma: float, floor: float, cap: float) -> float:
+    """``sigma`` within [floor, cap]; the cap for NaN or infinity (nothing known: loose)."""
+    if not math.isfinite(sigma):
+        return max(cap, floor)
+    return max(min(sigma, cap), floor)
+
+
+def odometry_step_source(cov_a, cov_b, cfg, T_odom_a=None, T_odom_b=None) -> str:
+    """Where the covariance of an odometry step between two keyframes comes from (``odometry_step_covariance``;
+    ``a`` the earlier): the fixed sigmas, the growth of the pose covariance, the twist covariance (needs the two
+    poses), or the drift figures."""
     if cfg.odom_covariance == 'fixed':
         return FIXED
-    return PUBLISHED if pose_uncertainty.covariance_sigma(cov_a_66, cov_b_66) is not None else DRIFT
+    chain = [np.eye(4), np.eye(4)] if T_odom_a is None or T_odom_b is None else [T_odom_a, T_odom_b]
+    return pose_uncertainty.odometry_sigma(chain, cov_a, cov_b, cfg.drift.cov_trans_per_m)[1]
 
 
-def odometry_steps(window: Sequence[Hashable], odom: Mapping[Hashable, np.ndarray],
-                   cov: Mapping[Hashable, Optional[np.ndarray]], cfg) -> Optional[OdometrySteps]:
+def odometry_steps(window: Sequence[Hashable], odom: Mapping[Hashable, np.ndarray], cov: Mapping[Hashable, object],
+                   cfg) -> Optional[OdometrySteps]:
     """The window's odometry factors as :func:`solve_window` builds them, summarised (:class:`OdometrySteps`);
-    None for a window of one keyframe."""
+    None for a window of one keyframe. ``cov``: per key what ``odometry_step_covariance`` takes."""
     if len(window) < 2:
         return None
     rot, tr, sources = [], [], []
@@ -77,7 +95,7 @@ def odometry_steps(window: Sequence[Hashable], odom: Mapping[Hashable, np.ndarra
         C = odometry_step_covariance(odom[a], odom[b], cov.get(a), cov.get(b), cfg)
         rot.append(math.sqrt(np.trace(C[:3, :3]) / 3.0))
         tr.append(math.sqrt(np.trace(C[3:, 3:]) / 3.0))
-        sources.append(odometry_step_source(cov.get(a), cov.get(b), cfg))
+        sources.append(odometry_step_source(cov.get(a), cov.get(b), cfg, odom[a], odom[b]))
     return OdometrySteps(float(np.median(rot)), float(np.median(tr)), Counter(sources).most_common(1)[0][0])
 
 
@@ -98,14 +116,15 @@ def relative_pose(T_world_a: np.ndarray, T_world_b: np.ndarray) -> np.ndarray:
 
 
 def solve_window(window: Sequence[Hashable], init: Mapping[Hashable, np.ndarray], odom: Mapping[Hashable, np.ndarray],
-                 cov: Mapping[Hashable, Optional[np.ndarray]], anchor: Hashable, factors: Sequence = (),
+                 cov: Mapping[Hashable, object], anchor: Hashable, factors: Sequence = (),
                  kp_factors: Sequence = (), cfg=None) -> Tuple[Dict[Hashable, np.ndarray], tuple]:
     """Optimise the window's poses: returns (``T_world_cam`` by key, (graph, result, index) for the marginals).
 
-    window: the keys in time order; init: the starting poses; odom / cov: each keyframe's odometry pose and
-    published covariance (or None); anchor: the keyframe the gauge prior holds at its starting pose; factors:
-    photometric ``(ref, src, T_ref_src, cov)``; kp_factors: keypoint ``(src, ref, T_src_ref, cov)``. Raises
-    RuntimeError for a non-finite solution (gtsam raises it for an indeterminate system)."""
+    window: the keys in time order; init: the starting poses; odom / cov: each keyframe's odometry pose and what
+    the odometry says about itself there (``odometry_step_covariance``'s ``cov_a``, or None); anchor: the keyframe
+    the gauge prior holds at its starting pose; factors: photometric ``(ref, src, T_ref_src, cov)``; kp_factors:
+    keypoint ``(src, ref, T_src_ref, cov)``. Raises RuntimeError for a non-finite solution (gtsam raises it for an
+    indeterminate system)."""
     idx = {k: i for i, k in enumerate(window)}
     graph = gtsam.NonlinearFactorGraph()
     values = gtsam.Values()

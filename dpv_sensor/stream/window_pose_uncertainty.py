@@ -1,7 +1,7 @@
 """The pose uncertainty of a keyframe window, as the estimator applies it (docs/estimator.md, the pose-uncertainty
-step): which frames' odometry covariance it reads, the drift figures of ``pose_uncertainty``, each source's std
-relative to the reference as a std in planes of the measured plane index (the window refiner's marginals where it
-solved the window), and the share of the ratio confidence that survives it. The maths is
+step): which frames' odometry covariances (pose and twist) it reads, the drift figures of ``pose_uncertainty``, each
+source's std relative to the reference as a std in planes of the measured plane index (the window refiner's marginals
+where it solved the window), and the share of the ratio confidence that survives it. The maths is
 :mod:`dpv_sensor.core.pose_uncertainty`; this module only maps the estimator's settings onto it. No ROS import.
 """
 from __future__ import annotations
@@ -16,10 +16,10 @@ from dpv_sensor.core import pose_uncertainty
 __all__ = ['frame_covariance', 'drift_model', 'window_sigma_planes', 'confidence_factor']
 
 
-def frame_covariance(cfg, frame) -> Optional[np.ndarray]:
-    """The frame's odometry pose covariance (6x6) when ``cfg.pose_uncertainty`` reads it (covariance, auto) and the
-    frame has one."""
-    cov = getattr(frame, 'pose_covariance_66', None)
+def frame_covariance(cfg, frame, which: str = 'pose') -> Optional[np.ndarray]:
+    """The frame's odometry covariance (6x6; ``which``: 'pose' or 'twist') when ``cfg.pose_uncertainty`` reads it
+    (covariance, auto) and the frame has one."""
+    cov = getattr(frame, f'{which}_covariance_66', None)
     if cov is None or cfg.pose_uncertainty not in ('covariance', 'auto'):
         return None
     cov = np.asarray(cov, np.float64)

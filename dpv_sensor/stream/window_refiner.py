@@ -57,6 +57,7 @@ from dpv_sensor.core import pose_uncertainty
 from dpv_sensor.core.keypoint_pose import (Features, KeypointConfig, KeypointPose, detect_features,
                                            keypoint_relative_pose)
 from dpv_sensor.core.geometry import rotation_angle_np
+from dpv_sensor.core.odometry_covariance import OdometryCovariance
 from dpv_sensor.core.photometric import (AlignmentConfig, AlignmentResult, Aligner, ImagePyramid,
                                    inverse_depth_std_from_confidence, pose_error)
 from dpv_sensor.stream.window_graph import (OdometrySteps, odometry_between_sigmas, odometry_step_covariance,
@@ -163,7 +164,9 @@ class PoseRefinerConfig:
     # no photometric factors; the plain photometric window of paper eq. 11 is odom_covariance='fixed',
     # keypoint_factors=False, max_sources=2; see :meth:`WindowPoseRefiner._optimize`):
     # odom_covariance: 'fixed' (the odom_sigma_* above) or 'odometry' (each step's covariance: the growth of the
-    #     keyframes' published pose covariance where both are filled, else the ``drift`` figures of the step).
+    #     keyframes' published pose covariance where it grows, else their twist covariance integrated over the
+    #     step, else the ``drift`` figures of the step; within the floor and the jump limits:
+    #     window_graph.odometry_step_covariance).
     # keypoint_factors: add keypoint relative-pose factors (core.keypoint_pose) between the reference and its
     #     ``keypoint_sources`` nearest sources, Huber ``keypoint_huber_k``. keypoint_direction 'odometry': the
     #     rotation given the odometry's translation direction, the translation free (left to the odometry
@@ -212,12 +215,24 @@ class WindowKeyframe:
         carry the same key in every call. image: uint8 HxWx3 RGB (or grey / float [0,1], any form
         :func:`~dpv_sensor.core.photometric.to_gray` takes), at the processing size. K_33: its intrinsics.
     T_world_cam_odom_44: the pose from odometry (or visual odometry); only its first value per key is used.
+    pose_cov_66 / twist_cov_66: the odometry's pose and twist covariance there (ROS order; None: not filled) and
+    stamp its time (s; the twist covariance is integrated over the time between keyframes): what the odometry
+    factors' covariance is read from (``odom_covariance='odometry'``); only their first values per key are used.
     """
     key: Hashable
     image: object
     K_33: np.ndarray
     T_world_cam_odom_44: np.ndarray
     pose_cov_66: Optional[np.ndarray] = None
+    twist_cov_66: Optional[np.ndarray] = None
+    stamp: Optional[float] = None
+
+    def odometry_covariance(self) -> Optional[OdometryCovariance]:
+        """What the odometry says about itself at this keyframe (None when it says nothing)."""
+        if self.pose_cov_66 is None and self.twist_cov_66 is None:
+            return None
+        as66 = lambda c: None if c is None else np.asarray(c, np.float64).reshape(6, 6)  # noqa: E731
+        return OdometryCovariance(as66(self.pose_cov_66), as66(self.twist_cov_66), self.stamp)
 
 
 @dataclass
@@ -322,7 +337,7 @@ class WindowPoseRefiner:
         self._pyramids: Dict[Hashable, ImagePyramid] = {}   # per keyframe, reused while it stays in the window
         self._features: Dict[Hashable, Features] = {}       # keypoints per keyframe, likewise
         self._depth_refs = 0                                 # references with a predicted depth since the start
-        self._cov: Dict[Hashable, Optional[np.ndarray]] = {}   # first odometry pose covariance seen per key
+        self._cov: Dict[Hashable, Optional[OdometryCovariance]] = {}   # first odometry covariances seen per key
         self._graph = None                                   # (graph, result, index) of the last solve
         self._anchor_key: Optional[Hashable] = None          # the gauge keyframe of the last solve
         self.last_result: Optional[RefinementResult] = None
@@ -358,7 +373,8 @@ class WindowPoseRefiner:
             odom = kf.T_world_cam_44 if odom is None else odom
             frames.append(WindowKeyframe(float(kf.stamp), img.detach().float().cpu() if hasattr(img, 'detach')
                                          else img, K, np.asarray(odom, dtype=np.float64),
-                                         getattr(kf, 'pose_cov_66', None)))
+                                         getattr(kf, 'pose_cov_66', None), getattr(kf, 'twist_cov_66', None),
+                                         float(kf.stamp)))
         r = int(request.reference)
         depth = request.depth_hw
         conf = request.confidence_hw
@@ -476,7 +492,7 @@ class WindowPoseRefiner:
         for f in frames:
             if f.key not in self._odom:
                 self._odom[f.key] = np.asarray(f.T_world_cam_odom_44, dtype=np.float64).copy()
-                self._cov[f.key] = None if f.pose_cov_66 is None else np.asarray(f.pose_cov_66, np.float64)
+                self._cov[f.key] = f.odometry_covariance()
         for store in (self._est, self._odom, self._pyramids, self._features, self._cov):
             for k in list(store):
                 if k not in keys:
@@ -593,7 +609,8 @@ class WindowPoseRefiner:
             for s, r, T_src_ref, cov in kp_factors:
                 T_odom = relative_pose(self._odom[s], self._odom[r])
                 d = gtsam.Pose3.Logmap(pose3_from_matrix(T_odom).between(pose3_from_matrix(T_src_ref)))[:3]
-                S = odometry_step_covariance(self._odom[s], self._odom[r], self._cov.get(s), self._cov.get(r), cfg)
+                a, b = (s, r) if s <= r else (r, s)           # in time order (keys order keyframes in time)
+                S = odometry_step_covariance(self._odom[a], self._odom[b], self._cov.get(a), self._cov.get(b), cfg)
                 if float(d @ np.linalg.solve(S[:3, :3] + cov[:3, :3], d)) > cfg.gate_chi2:
                     return 'rejected_chi2'
         return 'none'
