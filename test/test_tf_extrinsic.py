@@ -6,6 +6,11 @@
   same images, and /tf reports its source and the mount in /diagnostics.
 - No transform: each image is dropped with a WARN naming both frames, counted (dropped.no_extrinsic,
   faults.no_extrinsic), nothing is published and the node stays up; once /tf_static carries the mount, depth comes.
+- A second /tf_static publisher closes a loop through the mount's path (base_link -> camera_link -> cam -> base_link):
+  the depth stays that of a clean run (abs_rel within 0.01 per frame, no reset), faults.tf_loop counts it once as it
+  arrives, one WARN names the frames, /diagnostics stays at level WARN while it lasts.
+- Two /tf_static publishers take turns on camera_link -> cam with values that differ in rotation only: each return
+  counted (faults.tf_mount_flip), WARN, level WARN, the mount held at the value before the disagreement.
 """
 import threading
 
@@ -125,3 +130,158 @@ def test_no_transform_warns_counts_and_publishes_nothing_until_tf_static_arrives
     assert "camera mount from TF: 'base_link' -> 'cam'" in log, log
     assert 'camera mount=tf (auto): looked up on /tf_static and /tf' in log, log          # the starting line
     assert min(drv.outputs.order) > drv.stamp_ns(n_without - 1)       # no output for an image without a mount
+
+
+# ----------------------------------------------------------------------------------------------------
+# TF faults on the mount's path: a loop, publishers that disagree
+# ----------------------------------------------------------------------------------------------------
+
+def _rigid(axis, deg: float, t) -> np.ndarray:
+    from scipy.spatial.transform import Rotation
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_rotvec(np.radians(deg) * np.asarray(axis, float) / np.linalg.norm(axis)).as_matrix()
+    T[:3, 3] = t
+    return T
+
+
+# base_link -> camera_link -> cam composes to the identity, the mount of the driver's odometry (base_link tracks cam)
+LINK = _rigid((1.0, 2.0, 2.0), 23.0, (0.3, -0.4, 1.2))
+# a second publisher's link cam -> base_link closes a loop; taken as the mount it would be 30 deg and 0.5 m off
+CLOSING = _rigid((0.0, 0.0, 1.0), 30.0, (0.5, 0.1, 0.0))
+LOOP_TEXT = "'base_link' -> 'camera_link' -> 'cam' -> 'base_link'"
+LOOP_FRAMES, LOOP_AT = 14, 6
+WARN_LEVEL = 1                         # diagnostic_msgs/DiagnosticStatus.WARN
+
+
+def _latched_tf_static(drv: StreamDriver):
+    """A publisher of /tf_static with tf2's static QoS (reliable, transient local), matched by the node."""
+    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+    from tf2_msgs.msg import TFMessage
+    qos = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+    pub = drv.node.create_publisher(TFMessage, '/tf_static', qos)
+    assert wait_for(lambda: pub.get_subscription_count() >= 1, timeout=20.0, spin=drv.spin), \
+        'the node does not subscribe /tf_static'
+    return pub
+
+
+def _tf(*links):
+    from dpv_sensor.ros.tf_publisher import tf_message, transform_stamped
+    return tf_message([transform_stamped(T, 0, parent, child) for parent, child, T in links])
+
+
+def _mount_of(diag: dict) -> np.ndarray:
+    """The 7 numbers (xyz, q xyzw) of /diagnostics extrinsic "'base' -> 'image' xyz [..] q [..]"."""
+    import re
+    return np.array([float(v) for v in re.findall(r'-?\d+\.\d+', diag['extrinsic'].split('xyz', 1)[1])])
+
+
+def _abs_rel_by_frame(drv: StreamDriver) -> dict:
+    """{frame index: abs_rel of its published depth against the rendered depth} (valid GT within 0.3-8 m)."""
+    out = {}
+    for rec in drv.outputs.complete():
+        i = round((rec.stamp_ns - drv.stamp_ns(0)) * 30.0 / 1e9)
+        depth, gt = M.image_to_float(rec.depth), drv.seq.depth(i)
+        ok = np.isfinite(depth) & (depth > 0) & (gt >= 0.3) & (gt <= 8.0)
+        out[i] = float(np.mean(np.abs(depth[ok] - gt[ok]) / gt[ok]))
+    return out
+
+
+def _mount_run(name: str, loop: bool) -> tuple[dict, dict, int, str, str]:
+    """LOOP_FRAMES frames one at a time to a node with the identity mount: from the parameter (loop False) or as
+    the chain LINK, inv(LINK) on /tf_static, a second publisher closing the loop after LOOP_AT frames (loop True).
+    ({frame: abs_rel}, diagnostics, level, level message, log)."""
+    source = 'tf' if loop else 'parameter'
+    drv = StreamDriver(params_args({**FAST_PARAMS, 'extrinsic_source': source}), frames=LOOP_FRAMES, name=name)
+    try:
+        drv.wait_ready()
+        if loop:
+            robot = _latched_tf_static(drv)
+            robot.publish(_tf(('base_link', 'camera_link', LINK), ('camera_link', 'cam', np.linalg.inv(LINK))))
+        for i in range(LOOP_FRAMES):
+            if loop and i == LOOP_AT:
+                other = _latched_tf_static(drv)
+                other.publish(_tf(('cam', 'base_link', CLOSING)))
+                out = drv.outputs         # counted and shown as the link arrives, before the next image
+                assert wait_for(lambda: out.diag_int('faults.tf_loop') == 1 and out.diagnostics_level == WARN_LEVEL
+                                and out.diagnostics.get('extrinsic_fault', '').startswith('TF loop'),
+                                timeout=20.0, spin=drv.spin), out.diagnostics
+            drv.send(i, drv.stamp_ns(i))
+            assert drv.wait_accounted(i + 1), drv.outputs.diagnostics
+        out = drv.outputs
+        assert wait_for(lambda: out.diag_int('outputs_published', -1) == len(out.complete()), timeout=30.0,
+                        spin=drv.spin), out.diagnostics
+        diag = drv.wait_diagnostics()
+        level, message = out.diagnostics_level, out.diagnostics_message
+        by_frame = _abs_rel_by_frame(drv)
+    finally:
+        log = drv.stop()
+    assert drv.code == 0 and 'Traceback' not in log, log
+    return by_frame, diag, level, message, log
+
+
+def test_a_tf_loop_keeps_the_depth_of_the_mount_before_it_counts_once_and_warns():
+    clean, diag_clean, _, _, _ = _mount_run('tf_clean', loop=False)
+    looped, diag, level, message, log = _mount_run('tf_loop', loop=True)
+    after = [i for i in clean if i >= LOOP_AT]
+    assert len(after) >= 4 and sorted(looped) == sorted(clean), (sorted(looped), sorted(clean))
+    # the same depth as the clean run after the loop: no reset, abs_rel within 0.01 frame by frame and in the mean
+    assert diag['filter_resets'] == diag_clean['filter_resets'], (diag, diag_clean)
+    for i in after:
+        assert abs(looped[i] - clean[i]) < 0.01, (i, looped[i], clean[i])
+    np.testing.assert_allclose(_mount_of(diag), [0.0] * 6 + [1.0], atol=1e-3)     # the identity kept
+    assert int(diag['faults.tf_loop']) == 1 and int(diag['extrinsic_changes']) == 0, diag
+    assert int(diag['dropped_total']) == int(diag.get('dropped.busy', 0)) == 0, diag
+    # level WARN while the loop is there, saying why; one WARN line naming the frames
+    assert level == WARN_LEVEL and f'TF loop on the camera mount path: {LOOP_TEXT}' in message, message
+    assert diag['extrinsic_fault'] == f'TF loop on the camera mount path: {LOOP_TEXT}'
+    assert log.count(f"TF loop on the camera mount's path 'base_link' -> 'cam': {LOOP_TEXT}") == 1, log
+    assert 'keeping the last good mount xyz' in log and 'camera mount changed on TF' not in log, log
+
+
+def test_two_tf_static_publishers_that_disagree_warn_count_each_message_and_hold_the_mount():
+    """The robot's publisher latches camera_link -> cam = inv(LINK) (the identity mount); a second publisher's
+    value turns 5 deg more without moving. Once the first value is older than a burst, the second publisher's value
+    arrives (a change), then the first's and the second's again: two returns, counted, the mount held at the first
+    publisher's (the latest, the second's, would turn the camera 5 deg)."""
+    from dpv_sensor.stream.transform_tree import STATIC_BURST_S
+    import time
+    turned = np.linalg.inv(LINK)
+    turned[:3, :3] = _rigid((0.0, 1.0, 0.0), 5.0, (0.0, 0.0, 0.0))[:3, :3] @ turned[:3, :3]
+    drv = StreamDriver(params_args({**FAST_PARAMS, 'extrinsic_source': 'tf'}), frames=8, name='tf_flip')
+    try:
+        drv.wait_ready()
+        robot, other = _latched_tf_static(drv), _latched_tf_static(drv)
+        first = _tf(('base_link', 'camera_link', LINK), ('camera_link', 'cam', np.linalg.inv(LINK)))
+        robot.publish(first)
+        drv.send(0, drv.stamp_ns(0))
+        assert drv.wait_accounted(1) and wait_for(lambda: drv.outputs.diagnostics.get('extrinsic', '').startswith(
+            "'base_link' -> 'cam' xyz"), timeout=10.0, spin=drv.spin), drv.outputs.diagnostics
+        mount_seen = time.monotonic()                   # the first value had arrived: frame 0 used it
+        for i in range(1, 4):
+            drv.send(i, drv.stamp_ns(i))
+            assert drv.wait_accounted(i + 1), drv.outputs.diagnostics
+        i = 4
+        # not a synchronisation: the rule under test is the value's age (two latched values within a burst are a
+        # conflict at once), and here the first value must be older than that when the second arrives
+        wait_for(lambda: time.monotonic() - mount_seen > STATIC_BURST_S + 0.5, timeout=10.0, spin=drv.spin)
+        second = _tf(('camera_link', 'cam', turned))
+        for pub, msg in ((other, second), (robot, first), (other, second)):
+            pub.publish(msg)
+        out = drv.outputs
+        assert wait_for(lambda: out.diag_int('faults.tf_mount_flip') == 2 and out.diagnostics_level == WARN_LEVEL,
+                        timeout=20.0, spin=drv.spin), out.diagnostics
+        for k in range(i, i + 3):
+            drv.send(k, drv.stamp_ns(k))
+            assert drv.wait_accounted(k + 1), drv.outputs.diagnostics
+        diag = drv.wait_diagnostics()
+        message = out.diagnostics_message
+    finally:
+        log = drv.stop()
+    assert drv.code == 0 and 'Traceback' not in log, log
+    assert int(diag['faults.tf_mount_flip']) == 2 and int(diag.get('faults.tf_conflicting_parents', 0)) == 0, diag
+    np.testing.assert_allclose(_mount_of(diag), [0.0] * 6 + [1.0], atol=1e-3)     # held at the first publisher's
+    assert int(diag['extrinsic_changes']) == 0 and 'camera mount changed on TF' not in log, log
+    assert int(diag['frames_processed']) == i + 3, diag
+    fault = "TF publishers disagree on the camera mount path: 'camera_link' -> 'cam' (transforms, held)"
+    assert diag['extrinsic_fault'] == fault and fault in message, (diag, message)
+    assert "/tf_static publishers disagree on 'camera_link' -> 'cam'" in log and 'WARN' in log, log

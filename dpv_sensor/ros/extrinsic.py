@@ -12,12 +12,13 @@ and the change is logged at info (at most three lines in 10 s; extrinsic_changes
 NaN or a non-unit quaternion is ignored and counted (faults.bad_transform); the caller drops an image without a
 mount (dropped.no_extrinsic, faults.no_extrinsic).
 
-The tree's faults on the mount's path (detected there, see transform_tree) are counted and logged here: a loop keeps
-the last good mount of the same frames (without one the image has no mount) and counts faults.tf_loop once per
-appearance; links that publishers disagree on are held at their value before the disagreement (the tree does it),
-and every disagreeing message counts faults.tf_mount_flip (transforms on /tf_static) or faults.tf_conflicting_parents
-(a second parent). Both WARN with the frames (at most three lines in 30 s per link or loop), and `fault_text()`
-says what holds the mount while it lasts (/diagnostics: extrinsic_fault, level WARN).
+The tree's faults on the mount's path (detected there, see transform_tree) are counted and logged here, as the TF
+arrives (for the frames of the last image) or at the next lookup: a loop keeps the last good mount of the same
+frames (without one the image has no mount) and counts faults.tf_loop once per appearance; links that publishers
+disagree on are held at their value before the disagreement (the tree does it), and every disagreeing message counts
+faults.tf_mount_flip (transforms on /tf_static) or faults.tf_conflicting_parents (a second parent). Both WARN with
+the frames (at most three lines in 30 s per link or loop), and `fault_text()` says what holds the mount while it
+lasts (/diagnostics: extrinsic_fault, level WARN).
 """
 from __future__ import annotations
 
@@ -91,6 +92,10 @@ class CameraExtrinsic:
                                    f"'{tf.child_frame_id}' on {topic}: {exc}")
                 continue
             self.tree.set(tf.header.frame_id, tf.child_frame_id, T, static=static)
+        with self._lock:
+            pair = self._pair
+        if pair is not None:            # a fault on the mount's path is counted when it arrives, images or not
+            self._path_faults(*pair, self.tree.lookup(*pair))
         if self._on_update is not None:
             self._on_update()
 
@@ -108,31 +113,33 @@ class CameraExtrinsic:
         found = self.tree.lookup(base, image)
         with self._lock:
             self._pair = (base, image)
-            new_loop = bool(found.loop) and found.loop != self._loop
-            self._loop = found.loop
-            used = self._used
+        good = self._path_faults(base, image, found)
         if found.loop:
-            return self._on_loop(base, image, found.loop, used, new_loop)
+            return (good, '') if good is not None else (None, f'a loop in TF: {loop_text(found.loop)}')
         if not found.ok:
             return None, found.reason
         T = found.T_target_source_44
-        for conflict in found.conflicts:
-            self._on_conflict(base, image, conflict, T)
         self._note(base, image, T, quiet=bool(found.conflicts))
         return T, ''
 
-    def _on_loop(self, base: str, image: str, loop: tuple, used, new: bool) -> tuple[np.ndarray | None, str]:
-        """The last good mount of these frames (None without one), the loop counted once and warned about."""
+    def _path_faults(self, base: str, image: str, found) -> np.ndarray | None:
+        """Count and warn about what `found` (the tree's answer for the mount) met on the path that was not counted
+        yet: a loop once per appearance, each disagreeing message once. Returns the last good mount of these
+        frames (None without one)."""
+        with self._lock:
+            new_loop = bool(found.loop) and found.loop != self._loop
+            self._loop = found.loop
+            used = self._used
         good = used[2] if used is not None and used[:2] == (base, image) else None
-        keeping = f'keeping the last good mount {pose_text(good)}' if good is not None else \
-            'no good mount yet: images wait for it'
-        text = (f"TF loop on the camera mount's path '{base}' -> '{image}': {loop_text(loop)} (a frame is its own "
-                f'ancestor; remove the link that closes it); {keeping}')
-        if new:
-            self.faults.report(TF_LOOP, text, key=f'{TF_LOOP}:{loop_text(loop)}', period_s=TF_FAULT_LOG_S)
-        if good is None:
-            return None, f'a loop in TF: {loop_text(loop)}'
-        return good, ''
+        if new_loop:
+            keeping = f'keeping the last good mount {pose_text(good)}' if good is not None else \
+                'no good mount yet: images wait for it'
+            self.faults.report(TF_LOOP, f"TF loop on the camera mount's path '{base}' -> '{image}': "
+                               f'{loop_text(found.loop)} (a frame is its own ancestor; remove the link that closes '
+                               f'it); {keeping}', key=f'{TF_LOOP}:{loop_text(found.loop)}', period_s=TF_FAULT_LOG_S)
+        for conflict in found.conflicts:
+            self._on_conflict(base, image, conflict, found.T_target_source_44)
+        return good
 
     def _on_conflict(self, base: str, image: str, c: Conflict, T: np.ndarray) -> None:
         """Count the disagreeing messages on a link of the mount's path not counted yet; WARN (rate-limited)."""
