@@ -30,7 +30,7 @@ from __future__ import annotations
 import threading
 import time
 from collections import OrderedDict
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -231,7 +231,8 @@ class TransformTree:
                     if loop:
                         return Lookup(None, 'a loop in the tree: ' + ' -> '.join(f"'{f}'" for f in loop), loop=loop)
                     links = [f for f, _ in up_source[:i]] + [f for f, _ in up_target[:j]]
-                    held = tuple(c for c in (self._active(f, now) for f in links) if c is not None)
+                    held = tuple(replace(c, values=list(c.values)) for c in (self._active(f, now) for f in links)
+                                 if c is not None)           # copies: the tree goes on changing its own
                     return Lookup(np.linalg.inv(T_ancestor_target) @ T_ancestor_source, conflicts=held)
         return Lookup(None, self._why_unconnected(target, source, up_target[-1][0], up_source[-1][0]))
 
