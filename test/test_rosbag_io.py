@@ -259,6 +259,25 @@ def test_pose_variance_is_written_as_the_odometry_covariance(tmp_path):
         R.write_sequence_bag(tmp_path / 'bad2', seq, pose_variance=-var, progress=False)
 
 
+def test_twist_variance_is_written_as_the_odometry_twist_covariance(tmp_path):
+    seq = make_seq(n=5, rate=10.0)
+    twist = np.array([[1e-4, 4e-6], [1e-4, 4e-6], [3e-4, 8e-6], [2e-4, 1e-5], [5e-4, 3e-5]])
+    R.write_sequence_bag(tmp_path / 'bag', seq, odom_rate=20.0, pose_variance=np.full((5, 2), 1e-3),
+                         twist_variance=twist, progress=False)
+    msgs = [m for _t, _ty, _ns, m in R.read_messages(tmp_path / 'bag', [R.ODOM_TOPIC])]
+    poses = [np.asarray(m.pose.covariance).reshape(6, 6) for m in msgs]
+    twists = [np.asarray(m.twist.covariance).reshape(6, 6) for m in msgs]
+    assert all(np.array_equal(p, poses[0]) for p in poses)                # the pose covariance stays constant
+    np.testing.assert_allclose(np.diag(twists[4]), [3e-4] * 3 + [8e-6] * 3)      # frame 2
+    np.testing.assert_allclose(np.diag(twists[5]), [2.5e-4] * 3 + [9e-6] * 3)    # halfway to frame 3: linear
+    assert np.count_nonzero(twists[5] - np.diag(np.diag(twists[5]))) == 0
+    R.write_sequence_bag(tmp_path / 'plain', seq, odom_rate=20.0, progress=False)
+    assert not any(np.any(m.twist.covariance) for _t, _ty, _ns, m in R.read_messages(tmp_path / 'plain',
+                                                                                         [R.ODOM_TOPIC]))
+    with pytest.raises(R.BagError, match='twist_variance must be finite'):
+        R.write_sequence_bag(tmp_path / 'bad', seq, twist_variance=-twist, progress=False)
+
+
 def test_the_mount_on_tf_static_as_a_two_link_chain(tmp_path):
     """bag write --tf-static: odometry of base_link and the mount on /tf_static, latched, written first; the chain
     base_link -> camera_link -> camera frame composes to T_base_camera, so odometry @ chain = the camera poses."""

@@ -198,6 +198,45 @@ def test_corruption_variance_by_hand_and_against_the_noise_it_describes():
     assert np.mean(err ** 2) == pytest.approx(var[-1, 0], rel=0.2)
 
 
+def test_corruption_twist_variance_by_hand_integrates_to_the_noise_models_variance():
+    from dpv_sensor.data.trajectory import corruption_twist_variance, corruption_variance
+    # steps of 5, 10 and 0 cm after 0.04, 0.05 and 0.02 s
+    gt = [np.eye(4) for _ in range(4)]
+    for T, x in zip(gt, (0.0, 0.05, 0.15, 0.15)):
+        T[0, 3] = x
+    rates = corruption_twist_variance(gt, [1.0, 1.04, 1.09, 1.11], trans_noise_rel=0.02, rot_noise_deg=0.1)
+    r = math.radians(0.1) ** 2 / 3
+    np.testing.assert_allclose(rates[1:], [[(0.02 * 0.05) ** 2 / 3 / 0.04, r / 0.04],
+                                           [(0.02 * 0.10) ** 2 / 3 / 0.05, r / 0.05], [0.0, r / 0.02]])
+    np.testing.assert_array_equal(rates[0], rates[1])
+    # integrated over the steps (rate x dt), the noise model's rotation variance, as the pose covariance grows
+    dt = np.diff([1.0, 1.04, 1.09, 1.11])
+    assert float(np.sum(rates[1:, 1] * dt)) == pytest.approx(corruption_variance(gt, 0.02, 0.1)[-1, 1])
+    with pytest.raises(ValueError):
+        corruption_twist_variance(gt, [1.0, 1.0, 1.1, 1.2])
+
+
+def test_the_diff_drive_source_has_the_noisy_poses_a_constant_pose_and_a_twist_covariance():
+    from dpv_sensor.data.synthetic import render_sequence
+    seq = render_sequence(50, 6, width=32, height=24, lazy=True)
+    assert [T.tolist() for T in ST.odometry_poses(seq, 'noisy1twist')] == \
+        [T.tolist() for T in ST.odometry_poses(seq, 'noisy1')]
+    pose = ST.odometry_variance(seq, 'noisy1twist')
+    assert pose.shape == (6, 2) and np.all(pose == ST.CONSTANT_POSE_VARIANCE)
+    twist = ST.odometry_twist_variance(seq, 'noisy1twist')
+    assert twist.shape == (6, 2) and np.all(twist > 0)
+    assert ST.odometry_twist_variance(seq, 'noisy1cov') is None and ST.odometry_twist_variance(seq, 'noisy1') is None
+    assert ST.noise_description('noisy1twist')['twist_covariance']
+    assert not ST.noise_description('noisy1twist')['covariance']
+    table = ST._Table(out=pathlib.Path('.'), params={}, folders={'a': None}, noise_seeds=[0, 1],
+                      single_sources=('gt',), command='', covariance=True, twist=True)
+    assert table.sources == ['gt', 'noisy0', 'noisy1', 'noisy0cov', 'noisy1cov', 'noisy0twist', 'noisy1twist']
+    runs = [{'key': ST.run_key('a', src, {}), 'abs_rel': v, 'output_resets': 0}
+            for src, v in (('noisy0cov', 0.2), ('noisy0twist', 0.3))]
+    rows = ST.table_rows(runs, ['a'], [0], {}, single_sources=())
+    assert [(r['poses'], r['abs_rel']) for r in rows] == [('noisy+cov ×1', 0.2), ('noisy+twist cov ×1', 0.3)]
+
+
 def test_the_honest_odometry_source_has_the_noisy_poses_and_a_covariance():
     from dpv_sensor.data.synthetic import render_sequence
     seq = render_sequence(50, 6, width=32, height=24, lazy=True)

@@ -20,8 +20,10 @@ t ms after each image's stamp, a camera-odometry time offset), ``noisy<k>`` for 
 drift: 2 % of each step's translation in a random direction and a 0.1 deg rotation about a random axis per frame,
 chained: dpv_sensor.data.trajectory.corrupt_trajectory) and ``noisy<k>cov`` (``--covariance``: the same poses with the
 noise model's own accumulated variance in ``pose.covariance``, as an honest odometry publishes it:
-dpv_sensor.data.trajectory.corruption_variance). Depth is always scored against the GT depth, and consumer
-odometry against the GT poses.
+dpv_sensor.data.trajectory.corruption_variance) and ``noisy<k>twist`` (``--twist-covariance``: the same poses with a
+constant ``pose.covariance`` and the noise model's motion noise in ``twist.covariance``, as a diff-drive controller
+publishes it: dpv_sensor.data.trajectory.corruption_twist_variance). Depth is always scored against the GT depth,
+and consumer odometry against the GT poses.
 
 Columns (frame means over the recorded keyframe outputs unless said otherwise):
 
@@ -81,6 +83,9 @@ RENDER_SIZE = (320, 240)
 # the time-offset pose source: the odometry a camera image is paired with describes the pose this much later (ms)
 TIME_OFFSET_MS = 10.0
 RUN_VERSION = 2   # bump when a cached run's content changes meaning (2: calibration)
+# the constant pose covariance of the noisy<k>twist sources (per axis: m^2, rad^2), diff_drive_controller's example
+# pose_covariance_diagonal: says nothing about the motion between two poses, the twist covariance does
+CONSTANT_POSE_VARIANCE = (1e-3, 1e-3)
 
 
 # --------------------------------------------------------------------------------------------------------------
@@ -105,13 +110,13 @@ class PosedView:
         return getattr(self._seq, name)
 
 
-NOISY_SOURCE = re.compile(r'noisy(\d+)(cov)?')
+NOISY_SOURCE = re.compile(r'noisy(\d+)(cov|twist)?')
 
 
 def odometry_poses(seq, pose_source: str) -> List[np.ndarray]:
-    """The poses written as odometry for a pose source: 'gt', 'noisy<seed>' or 'noisy<seed>cov' (corrupt_trajectory
-    with the table's noise, seeded), or 'offset<ms>' (the GT pose ``ms`` milliseconds after each image's stamp,
-    SLERP + linear between frames: a camera-odometry time offset)."""
+    """The poses written as odometry for a pose source: 'gt', 'noisy<seed>', 'noisy<seed>cov' or 'noisy<seed>twist'
+    (corrupt_trajectory with the table's noise, seeded), or 'offset<ms>' (the GT pose ``ms`` milliseconds after each
+    image's stamp, SLERP + linear between frames: a camera-odometry time offset)."""
     gt = [np.asarray(seq.pose(i), np.float64) for i in range(len(seq))]
     if pose_source == 'gt':
         return gt
@@ -120,20 +125,37 @@ def odometry_poses(seq, pose_source: str) -> List[np.ndarray]:
         return time_shifted_poses(seq, gt, float(m.group(1)) / 1000.0)
     m = NOISY_SOURCE.fullmatch(pose_source)
     if not m:
-        raise ValueError(f'pose source {pose_source!r} is neither gt, offset<ms>ms, noisy<seed> nor noisy<seed>cov')
+        raise ValueError(f'pose source {pose_source!r} is neither gt, offset<ms>ms, noisy<seed>, noisy<seed>cov nor '
+                         'noisy<seed>twist')
     from dpv_sensor.data.trajectory import corrupt_trajectory
     return corrupt_trajectory(gt, trans_noise_rel=NOISE_TRANS_REL, rot_noise_deg=NOISE_ROT_DEG, seed=int(m.group(1)))
 
 
 def odometry_variance(seq, pose_source: str) -> Optional[np.ndarray]:
     """The pose variance a pose source's odometry publishes (rows per frame: position m^2, rotation rad^2 per
-    axis): the noise model's accumulated variance for 'noisy<seed>cov', None (covariance not filled) otherwise."""
+    axis): the noise model's accumulated variance for 'noisy<seed>cov', CONSTANT_POSE_VARIANCE for
+    'noisy<seed>twist', None (covariance not filled) otherwise."""
     m = NOISY_SOURCE.fullmatch(pose_source)
     if not (m and m.group(2)):
         return None
+    if m.group(2) == 'twist':
+        return np.tile(np.asarray(CONSTANT_POSE_VARIANCE, np.float64), (len(seq), 1))
     from dpv_sensor.data.trajectory import corruption_variance
     gt = [np.asarray(seq.pose(i), np.float64) for i in range(len(seq))]
     return corruption_variance(gt, trans_noise_rel=NOISE_TRANS_REL, rot_noise_deg=NOISE_ROT_DEG)
+
+
+def odometry_twist_variance(seq, pose_source: str) -> Optional[np.ndarray]:
+    """The twist variance a pose source's odometry publishes (rows per frame: linear m^2/s, angular rad^2/s per
+    axis): the noise model's motion noise as rates for 'noisy<seed>twist' (corruption_twist_variance), None (not
+    filled) otherwise."""
+    m = NOISY_SOURCE.fullmatch(pose_source)
+    if not (m and m.group(2) == 'twist'):
+        return None
+    from dpv_sensor.data.trajectory import corruption_twist_variance
+    gt = [np.asarray(seq.pose(i), np.float64) for i in range(len(seq))]
+    return corruption_twist_variance(gt, [float(seq.stamp(i)) for i in range(len(seq))],
+                                     trans_noise_rel=NOISE_TRANS_REL, rot_noise_deg=NOISE_ROT_DEG)
 
 
 def time_shifted_poses(seq, poses: List[np.ndarray], offset_s: float) -> List[np.ndarray]:
@@ -272,14 +294,10 @@ def noise_description(pose_source: str) -> Optional[Dict[str, float]]:
     m = re.fullmatch(r'offset(\d+(?:\.\d+)?)ms', pose_source)
     if m:
         return {'time_offset_ms': float(m.group(1))}
-    return {'trans_rel': NOISE_TRANS_REL, 'rot_deg_per_frame': NOISE_ROT_DEG,
-            'covariance': odometry_variance_named(pose_source)}
-
-
-def odometry_variance_named(pose_source: str) -> bool:
-    """Whether a pose source's odometry publishes its accumulated variance ('noisy<seed>cov')."""
     m = NOISY_SOURCE.fullmatch(pose_source)
-    return bool(m and m.group(2))
+    published = m.group(2) if m else None
+    return {'trans_rel': NOISE_TRANS_REL, 'rot_deg_per_frame': NOISE_ROT_DEG,
+            'covariance': published == 'cov', 'twist_covariance': published == 'twist'}
 
 
 def run_one(seq_name: str, seq_dir: pathlib.Path, pose_source: str, user_params: Dict[str, Any],
@@ -309,7 +327,8 @@ def run_one(seq_name: str, seq_dir: pathlib.Path, pose_source: str, user_params:
     t = time.perf_counter()
     odom = PosedView(seq, odometry_poses(seq, pose_source))
     bs = R.write_sequence_bag(input_bag, odom, odom_rate=D.ODOM_RATE_HZ,
-                              pose_variance=odometry_variance(seq, pose_source), progress=progress)
+                              pose_variance=odometry_variance(seq, pose_source),
+                              twist_variance=odometry_twist_variance(seq, pose_source), progress=progress)
     timing['bag_s'] = round(time.perf_counter() - t, 1)
 
     steps = D.Steps(3)
@@ -403,7 +422,8 @@ def run_one_offline(seq_name: str, seq_dir: pathlib.Path, pose_source: str, user
     config, values = RN.build_config(user_params)
     records, _ = RN.run_sequence(seq, config, E.EvalOptions(progress=progress), keep_images=False,
                                  poses=odometry_poses(seq, pose_source),
-                                 pose_variance=odometry_variance(seq, pose_source))
+                                 pose_variance=odometry_variance(seq, pose_source),
+                                 twist_variance=odometry_twist_variance(seq, pose_source))
     if not records:
         raise RuntimeError('the pipeline published no keyframe depth')
     options = E.EvalOptions(min_depth=min_depth, max_depth=max_depth, progress=progress,
@@ -474,7 +494,7 @@ def table_rows(runs: List[Dict[str, Any]], sequences: List[str], noise_seeds: Li
             if one is not None:
                 rows.append({'sequence': s, 'poses': src, 'runs': 1,
                              **{h: _value(one, k) for h, k, _f_ in COLUMNS}})
-        for suffix, label in (('', 'noisy'), ('cov', 'noisy+cov')):
+        for suffix, label in (('', 'noisy'), ('cov', 'noisy+cov'), ('twist', 'noisy+twist cov')):
             noisy = [by_key[run_key(s, f'noisy{k}{suffix}', params)] for k in noise_seeds
                      if run_key(s, f'noisy{k}{suffix}', params) in by_key]
             if noisy:
@@ -524,7 +544,9 @@ LEGEND = ('Frame means over the keyframe outputs recorded from the node (lockste
           "poses: gt = the sequence's poses as odometry; offset<t>ms = the GT pose t ms after each image stamp (a "
           'camera-odometry time offset); noisy ×n = mean over n odometry noise seeds (2 % of each '
           'step, 0.1°/frame rotation random walk; abs_rel range over the seeds in brackets); noisy+cov = the same '
-          "odometry publishing the noise model's accumulated variance in pose.covariance. ms = median-scaled. "
+          "odometry publishing the noise model's accumulated variance in pose.covariance; noisy+twist cov = the same "
+          "odometry publishing a constant pose.covariance and the noise model's motion noise in twist.covariance (a "
+          'diff-drive controller). ms = median-scaled. '
           "conf½ = abs_rel of the most confident half of each frame's pixels / abs_rel of all. ECE = expected "
           'calibration error of the confidence against the event "true depth within ×1.25" (10 bins, pixels pooled '
           'over the run); mean conf vs d1 pooled = the same two averages over all pooled pixels; kept@.9 / d1@.9 = '
@@ -551,11 +573,11 @@ def run_details(runs: List[Dict[str, Any]]) -> str:
 
 def write_table(out: pathlib.Path, runs, sequences, noise_seeds, params, command: str,
                 failures: Dict[str, str], single_sources: Tuple[str, ...] = ('gt',),
-                covariance: bool = False) -> Tuple[str, Dict[str, Any]]:
+                covariance: bool = False, twist: bool = False) -> Tuple[str, Dict[str, Any]]:
     rows = table_rows(runs, sequences, noise_seeds, params, single_sources)
     md = markdown(rows)
     done = len(runs)
-    wanted = len(sequences) * (len(single_sources) + len(noise_seeds) * (2 if covariance else 1))
+    wanted = len(sequences) * (len(single_sources) + len(noise_seeds) * (1 + int(covariance) + int(twist)))
     times = [r['timing']['total_s'] for r in runs if _get(r, 'timing', 'total_s') is not None]
     head = (f'Command: `{command}`\n\nParameters: {params_tag(params)}; {done} of {wanted} runs done'
             + (f', {len(failures)} failed' if failures else '')
@@ -594,6 +616,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--covariance', action='store_true',
                    help='add the honest-odometry pose sources noisy<k>cov: the noisy poses of every noise seed with '
                         "the noise model's accumulated variance in pose.covariance")
+    p.add_argument('--twist-covariance', action='store_true',
+                   help='add the diff-drive pose sources noisy<k>twist: the noisy poses of every noise seed with a '
+                        "constant pose.covariance and the noise model's motion noise in twist.covariance")
     p.add_argument('--no-gt', action='store_true', help='only the noisy (and time-offset) pose sources')
     p.add_argument('--offset-ms', type=float, default=TIME_OFFSET_MS,
                    help=f'add the time-offset pose source: GT poses taken this many ms after each image stamp '
@@ -636,6 +661,7 @@ class _Table:
     single_sources: Tuple[str, ...]      # pose sources with one run per sequence (gt, offset<t>ms)
     command: str
     covariance: bool = False             # also the noisy<k>cov sources (the noise model's variance published)
+    twist: bool = False                  # also the noisy<k>twist sources (constant pose, motion noise in the twist)
     offline: bool = False                # the pipeline in this process instead of the node (run_one_offline)
 
     @property
@@ -649,7 +675,7 @@ class _Table:
 
     @property
     def sources(self) -> List[str]:
-        suffixes = ('', 'cov') if self.covariance else ('',)
+        suffixes = ('',) + (('cov',) if self.covariance else ()) + (('twist',) if self.twist else ())
         return list(self.single_sources) + [f'noisy{k}{x}' for x in suffixes for k in self.noise_seeds]
 
     def run_file(self, seq_name: str, pose_source: str) -> pathlib.Path:
@@ -671,7 +697,7 @@ class _Table:
     def write(self, failures: Dict[str, str]) -> str:
         """Write the table of the cached runs; its text."""
         text, _ = write_table(self.out, self.cached_runs(), self.sequences, self.noise_seeds, self.tag_params,
-                              self.command, failures, self.single_sources, self.covariance)
+                              self.command, failures, self.single_sources, self.covariance, self.twist)
         return text
 
 
@@ -785,7 +811,8 @@ def main(argv: Optional[List[str]] = None) -> int:
     single = tuple(([] if a.no_gt else ['gt']) + ([f'offset{a.offset_ms:g}ms'] if a.offset_ms > 0 else []))
     table = _Table(out=out, params=opts.params, folders=folders, noise_seeds=opts.noise_seeds, single_sources=single,
                    command='python -m dpv_sensor.benchmarks.stream_table ' +
-                   ' '.join(x for x in argv if x != '--table-only'), covariance=a.covariance, offline=a.offline)
+                   ' '.join(x for x in argv if x != '--table-only'), covariance=a.covariance, twist=a.twist_covariance,
+                   offline=a.offline)
     failures: Dict[str, str] = {}
     if not a.table_only:
         _prepare_to_run(out, a.domain_id)

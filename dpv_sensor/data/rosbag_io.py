@@ -230,17 +230,17 @@ def _perturb(T: np.ndarray, rng, pos_sigma: float, rot_sigma_rad: float) -> np.n
 COVARIANCE_FLOOR_SIGMA = 1e-6   # m and rad: the smallest sigma written with pose_variance
 
 
-def _pose_variance(pose_variance, n_frames: int, idx: list[int]) -> np.ndarray | None:
-    """write_sequence_bag's pose_variance checked (one finite, non-negative row of two per frame) and taken at the
-    written frames; None when not given."""
+def _pose_variance(pose_variance, n_frames: int, idx: list[int], name: str = 'pose_variance') -> np.ndarray | None:
+    """write_sequence_bag's pose_variance (or twist_variance: `name`) checked (one finite, non-negative row of two per
+    frame) and taken at the written frames; None when not given."""
     if pose_variance is None:
         return None
     var = np.asarray(pose_variance, dtype=np.float64)
     if var.shape != (n_frames, 2):
-        raise BagError(f'pose_variance must have one row (position, rotation variance) per frame: shape '
+        raise BagError(f'{name} must have one row (linear, angular variance) per frame: shape '
                        f'({n_frames}, 2), got {var.shape}')
     if not (np.all(np.isfinite(var)) and np.all(var >= 0)):
-        raise BagError('pose_variance must be finite and non-negative')
+        raise BagError(f'{name} must be finite and non-negative')
     return var[idx]
 
 
@@ -290,7 +290,7 @@ def write_sequence_bag(path: str | os.PathLike, seq, *, storage: str = 'mcap', r
                        odom_topic: str = ODOM_TOPIC, camera_frame: str = 'camera_optical_frame',
                        odom_frame: str = 'odom', base_frame: str = 'base_link', T_base_camera=None,
                        encoding: str = 'rgb8', frames: Iterable[int] | None = None, with_odometry: bool = True,
-                       pose_variance=None, compressed: str | None = None, jpeg_quality: int = 90,
+                       pose_variance=None, twist_variance=None, compressed: str | None = None, jpeg_quality: int = 90,
                        tf_static: bool = False, camera_link: str = '', overwrite: bool = False,
                        progress: bool = True) -> BagSummary:
     """Write a posed image sequence as a rosbag2 and return what was written.
@@ -304,7 +304,10 @@ def write_sequence_bag(path: str | os.PathLike, seq, *, storage: str = 'mcap', r
     T_world_base = T_world_cam @ inv(T_base_camera). pose_variance: one row per sequence frame (position variance
     per axis m^2, rotation variance per axis rad^2), e.g. data.trajectory.corruption_variance: the odometry's pose
     covariance then carries it (linear in time between frames, plus the odom_noise variances) as an odometry that
-    reports its own accumulated uncertainty does; None: only the odom_noise variances. compressed: 'jpeg' or 'png'
+    reports its own accumulated uncertainty does; None: only the odom_noise variances. twist_variance: one row per
+    sequence frame (linear variance per axis m^2/s, angular variance per axis rad^2/s), e.g.
+    data.trajectory.corruption_twist_variance: the odometry's twist covariance (linear in time between frames; zeros
+    without it), as a wheel odometry publishes its motion noise. compressed: 'jpeg' or 'png'
     writes image_transport's sensor_msgs/CompressedImage (``ros.compressed_image.rgb_to_compressed``: format
     '<encoding>; jpeg compressed bgr8', JPEG at jpeg_quality) instead of sensor_msgs/Image, as a robot recording its
     camera's compressed topic; image_topic defaults to /image, or /image/compressed with `compressed`. The bag's
@@ -331,6 +334,7 @@ def write_sequence_bag(path: str | os.PathLike, seq, *, storage: str = 'mcap', r
     K = np.asarray(seq.K, dtype=np.float64)
 
     variance_n2 = _pose_variance(pose_variance, len(seq), idx)
+    twist_n2 = _pose_variance(twist_variance, len(seq), idx, 'twist_variance')
     rng = np.random.default_rng(seed)
     events: list[tuple[int, int, str, Any]] = []   # (stamp, order, kind, payload)
     odom_count = odom_dropped = 0
@@ -347,7 +351,10 @@ def write_sequence_bag(path: str | os.PathLike, seq, *, storage: str = 'mcap', r
                 var = [float(np.interp(t, img_ns, variance_n2[:, j])) for j in (0, 1)]
                 # floored so that the first pose's covariance reads as filled (ROS: all zeros = unknown)
                 sigmas = tuple(max(float(np.sqrt(s0 ** 2 + v)), COVARIANCE_FLOOR_SIGMA) for s0, v in zip(sigmas, var))
-            events.append((int(t), 0, 'odom', (_perturb(T_wb, rng, pos_sigma, rot_sigma), sigmas)))
+            twist = None
+            if twist_n2 is not None:
+                twist = np.diag([float(np.interp(t, img_ns, twist_n2[:, j])) for j in (0, 0, 0, 1, 1, 1)])
+            events.append((int(t), 0, 'odom', (_perturb(T_wb, rng, pos_sigma, rot_sigma), sigmas, twist)))
             odom_count += 1
     for k, t in enumerate(img_ns):
         events.append((int(t), 1, 'image', k))
@@ -369,9 +376,10 @@ def write_sequence_bag(path: str | os.PathLike, seq, *, storage: str = 'mcap', r
                                  ROSBAGS)
                 bag.write(TF_STATIC_TOPIC, TF_MESSAGE, msg, t, qos_profile(True, 1, latched=True))
             elif kind == 'odom':
-                T_wb, (position_sigma, rotation_sigma) = payload
+                T_wb, (position_sigma, rotation_sigma), twist = payload
                 msg = M.matrix_to_odometry(T_wb, t, base_frame, frame_id=odom_frame, types=ROSBAGS,
-                                           position_sigma=position_sigma, rotation_sigma=rotation_sigma)
+                                           position_sigma=position_sigma, rotation_sigma=rotation_sigma,
+                                           twist_covariance_66=twist)
                 bag.write(odom_topic, ODOMETRY, msg, t, reliable)
             else:
                 rgb = np.asarray(seq.image(idx[payload]))

@@ -11,7 +11,9 @@ blur and rolling shutter included — is exact and deterministic.
 World frame: z up. Camera frame: OpenCV (x right, y down, z forward). ``pose(t)`` returns T_world_cam.
 
 :func:`corrupt_trajectory` turns an exact trajectory into an odometry-like one (drift and rotation noise per
-step), for pose-refinement experiments and as training augmentation.
+step), for pose-refinement experiments and as training augmentation; :func:`corruption_variance` and
+:func:`corruption_twist_variance` are what an honest odometry would publish for that noise as its pose and its twist
+covariance.
 """
 from __future__ import annotations
 
@@ -276,6 +278,32 @@ def corruption_variance(T_world_cam: Sequence[np.ndarray], trans_noise_rel: floa
         P_66 = F_66 @ P_66 @ F_66.T + Q_66
         var_n2[i] = [np.trace(P_66[:3, :3]) / 3.0, np.trace(P_66[3:, 3:]) / 3.0]
     return var_n2
+
+
+def corruption_twist_variance(T_world_cam: Sequence[np.ndarray], stamps: Sequence[float],
+                              trans_noise_rel: float = 0.03, rot_noise_deg: float = 0.5) -> np.ndarray:
+    """The twist variance that an honest wheel odometry would publish for :func:`corrupt_trajectory`'s noise, one row
+    per pose: (linear variance per axis in m^2/s, angular variance per axis in rad^2/s), the rates that
+    ``twist.covariance`` is read as (``dpv_sensor.core.odometry_covariance``).
+
+    The noise model adds to the step from pose i-1 to pose i (``dt_i`` seconds, ``s_i`` metres) a translation error of
+    length ``trans_noise_rel * s_i`` and a rotation error of ``rot_noise_deg`` in random directions: per-axis
+    variances ``(trans_noise_rel s_i)^2 / 3`` and ``radians(rot_noise_deg)^2 / 3`` gained over ``dt_i``, i.e. rates
+    of those divided by ``dt_i`` (row i; row 0 repeats row 1). Integrated over an interval they give back the noise
+    model's variance of the relative motion (the rotation's lever on the path after it comes with the integration).
+    """
+    T_world_cam = [np.asarray(T, dtype=np.float64) for T in T_world_cam]
+    t = np.asarray(stamps, dtype=np.float64)
+    if len(T_world_cam) < 2 or t.shape != (len(T_world_cam),) or np.any(np.diff(t) <= 0):
+        raise ValueError('corruption_twist_variance needs two or more poses with increasing stamps, one per pose')
+    q_rot = math.radians(rot_noise_deg) ** 2 / 3.0
+    out = np.zeros((len(T_world_cam), 2), np.float64)
+    for i in range(1, len(T_world_cam)):
+        dt = t[i] - t[i - 1]
+        step = float(np.linalg.norm(T_world_cam[i][:3, 3] - T_world_cam[i - 1][:3, 3]))
+        out[i] = [(trans_noise_rel * step) ** 2 / 3.0 / dt, q_rot / dt]
+    out[0] = out[1]
+    return out
 
 
 def corrupt_trajectory(T_world_cam: Sequence[np.ndarray], trans_noise_rel: float = 0.03,

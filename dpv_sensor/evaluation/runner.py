@@ -192,8 +192,8 @@ def input_poses(seq, options: EvalOptions) -> List[np.ndarray]:
 
 def run_sequence(seq, config, options: Optional[EvalOptions] = None, *, model=None, pose_refiner=None,
                  keep_images: bool = True, poses: Optional[List[np.ndarray]] = None,
-                 pose_variance: Optional[np.ndarray] = None, features: bool = False
-                 ) -> Tuple[List[KeyframeRecord], EstimatorStatus]:
+                 pose_variance: Optional[np.ndarray] = None, twist_variance: Optional[np.ndarray] = None,
+                 features: bool = False) -> Tuple[List[KeyframeRecord], EstimatorStatus]:
     """Push the sequence (prepared as ``options`` say) frame by frame through a :class:`Pipeline`, the node's code
     path; return (keyframe records, the pipeline's :class:`EstimatorStatus`). The one offline runner.
 
@@ -202,9 +202,10 @@ def run_sequence(seq, config, options: Optional[EvalOptions] = None, *, model=No
     with ``odometry='none'`` visual odometry instead of the sequence's poses. ``model``: a DPVNet to use
     instead of loading weights (see ``Estimator``). ``poses``: the odometry pose of every frame in place of the
     options' pose source; ``pose_variance``: one row per frame (position, rotation variance per axis) published as
-    the frames' pose covariance, as ``data.rosbag_io.write_sequence_bag`` writes it into a bag's odometry.
-    ``features``: the records carry each keyframe's confidence cues (``stream.confidence_features``) at the depth
-    map's size.
+    the frames' pose covariance, as ``data.rosbag_io.write_sequence_bag`` writes it into a bag's odometry;
+    ``twist_variance``: one row per frame (linear, angular variance per axis and second) published as the frames' twist
+    covariance, likewise. ``features``: the records carry each keyframe's confidence cues
+    (``stream.confidence_features``) at the depth map's size.
     """
     from dpv_sensor.data.rosbag_io import COVARIANCE_FLOOR_SIGMA
     from dpv_sensor.stream.frame import Frame
@@ -227,8 +228,10 @@ def run_sequence(seq, config, options: Optional[EvalOptions] = None, *, model=No
         index_of[stamp] = i
         cov = None if pose_variance is None else np.diag([max(float(pose_variance[i][0]), floor)] * 3
                                                          + [max(float(pose_variance[i][1]), floor)] * 3)
+        twist = None if twist_variance is None else np.diag([float(twist_variance[i][0])] * 3
+                                                            + [float(twist_variance[i][1])] * 3)
         out = pipe.push(Frame(stamp=stamp, image=seq.image(i), K_33=K, T_world_cam_44=poses_in[i],
-                              frame_id='camera', pose_covariance_66=cov)).output
+                              frame_id='camera', pose_covariance_66=cov, twist_covariance_66=twist)).output
         if out is None or not out.is_keyframe:
             continue
         j = index_of[out.stamp]

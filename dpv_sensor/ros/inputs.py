@@ -27,14 +27,14 @@ from dpv_sensor.ros import msgs as M
 from dpv_sensor.ros import qos
 from dpv_sensor.ros.compressed_image import decode_message
 from dpv_sensor.ros.extrinsic import CameraExtrinsic
+from dpv_sensor.ros.odometry_covariance import OdometryCovariances
 from dpv_sensor.ros.fault_kinds import (BAD_CAMERA_INFO, BUSY, EMPTY_FRAME_ID, NAN_ODOMETRY, ODOM_CONFLICT, ODOM_JUMP,
-                                        ODOM_COVARIANCE_NAN, ODOM_LATE, ODOM_ZERO_STAMP, TIME_BACKWARDS,
-                                        UNSUPPORTED_DISTORTION)
+                                        ODOM_LATE, ODOM_ZERO_STAMP, TIME_BACKWARDS, UNSUPPORTED_DISTORTION)
 from dpv_sensor.ros.node_support import Incoming, Mailbox, OdometryWait, RateMeter, merge_incoming
 from dpv_sensor.ros.receipt import ImageReceipt, OdomFrameWatch
 from dpv_sensor.ros.stream_loss import StreamLoss
 from dpv_sensor.ros.transport import choose_reliability
-from dpv_sensor.stream.pose_buffer import CovarianceTrack, PoseBuffer, PoseQuery
+from dpv_sensor.stream.pose_buffer import PoseBuffer, PoseQuery
 
 NO_MOUNT = 'no mount'    # PoseQuery.reason: no camera mount (TF) for the image yet
 
@@ -53,7 +53,8 @@ class NodeInputs:
         est = node.settings.estimator
         self.pose_buffer = PoseBuffer(max_gap_s=s.max_odom_gap, history_s=max(10.0, 4 * s.max_odom_gap),
                                       max_speed=est.odom_max_speed, max_rate_deg=est.odom_max_rate_deg)
-        self.pose_covariance = CovarianceTrack()      # the odometry's pose covariance (pose_uncertainty: auto)
+        # the odometry's pose and twist covariance, checked (invalid ones counted and kept as not filled)
+        self.covariances = OdometryCovariances(faults, lambda: node.settings.estimator.pose_uncertainty)
         self.cv = threading.Condition()               # notified when odometry or camera_info arrives
         self._K = None                                # (K 3x3, (w, h)) from camera_info or the parameters
         if s.camera_info_source == 'parameters':
@@ -243,9 +244,7 @@ class NodeInputs:
         buffer = self.pose_buffer
         jumps, conflicts = buffer.jumps, buffer.conflicts
         cleared = buffer.add(stamp_ns, T)
-        self.pose_covariance.add(stamp_ns, M.odometry_covariance(msg))
-        if M.covariance_not_finite(msg):
-            self._on_bad_covariance(stamp_ns)
+        self.covariances.add(msg, stamp_ns)
         if buffer.conflicts != conflicts:
             self.faults.report(ODOM_CONFLICT, f'{buffer.last_conflict}; keeping the first (two odometry '
                                'sources publishing on one topic?)')
@@ -257,16 +256,6 @@ class NodeInputs:
                                key='time_backwards:odometry')
         with self.cv:
             self.cv.notify_all()
-
-    def _on_bad_covariance(self, stamp_ns: int) -> None:
-        """Odometry whose pose covariance holds NaN or infinity: counted, and what is done instead said."""
-        mode = self.node.settings.estimator.pose_uncertainty
-        instead = {'covariance': 'its poses count as exact (pose_uncertainty auto would use the drift figures)',
-                   'auto': 'the drift figures (odom_drift_*) are used for its poses'}.get(
-                       mode, f'pose_uncertainty {mode} does not read it')
-        self.faults.report(ODOM_COVARIANCE_NAN, f'odometry at {stamp_ns / NS:.3f} s has NaN or infinity in its pose '
-                           f'covariance: the covariance is ignored and {instead} '
-                           '(faults.odometry_covariance_nan counts them)', period_s=30.0)
 
     # ------------------------------------------------------------------------------------------ the worker's side
     @property

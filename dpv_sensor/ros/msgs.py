@@ -20,6 +20,7 @@ from typing import Any, Callable
 import numpy as np
 
 from dpv_sensor.core.geometry import make_pose, matrix_to_quat, scale_intrinsics_np
+from dpv_sensor.core.odometry_covariance import CovarianceCheck, check_covariance
 
 NS = 1_000_000_000
 
@@ -368,13 +369,15 @@ def odometry_to_matrix(msg) -> np.ndarray:
 
 def odometry_covariance(msg) -> np.ndarray | None:
     """The pose covariance of a nav_msgs/Odometry as 6x6 (x, y, z, rotation about x, y, z), or None when the
-    publisher did not fill it (a diagonal that is not all positive: zeros, or -1 for unknown) or filled it with
-    NaN or infinity anywhere (``covariance_not_finite`` tells that apart)."""
-    cov = np.asarray(msg.pose.covariance, dtype=np.float64)
-    if cov.size != 36 or not bool(np.all(np.isfinite(cov))):
-        return None
-    cov = cov.reshape(6, 6)
-    return cov if bool(np.all(np.diag(cov) > 0)) else None
+    publisher did not fill it (all zeros, or -1 for unknown) or it is not a covariance (NaN or infinity, a negative
+    variance, asymmetric, not positive semi-definite: ``odometry_covariance_checks`` says which)."""
+    return odometry_covariance_checks(msg)[0].matrix_66
+
+
+def odometry_covariance_checks(msg) -> tuple[CovarianceCheck, CovarianceCheck]:
+    """A nav_msgs/Odometry's pose and twist covariance, each checked (``dpv_sensor.core.odometry_covariance``:
+    the usable 6x6, or why not)."""
+    return check_covariance(msg.pose.covariance), check_covariance(msg.twist.covariance)
 
 
 def covariance_not_finite(msg) -> bool:
@@ -403,11 +406,16 @@ def matrix_to_pose_stamped(T_44, header, frame_id: str | None = None, types: Mes
 
 
 def matrix_to_odometry(T_world_base_44, header, child_frame_id: str, frame_id: str | None = None,
-                       types: MessageTypes = ROS, position_sigma: float = 0.0, rotation_sigma: float = 0.0):
-    """4x4 T_world_base -> nav_msgs/Odometry (zero twist; diagonal pose covariance from the sigmas)."""
+                       types: MessageTypes = ROS, position_sigma: float = 0.0, rotation_sigma: float = 0.0,
+                       pose_covariance_66=None, twist_covariance_66=None):
+    """4x4 T_world_base -> nav_msgs/Odometry (zero twist; diagonal pose covariance from the sigmas, or
+    ``pose_covariance_66`` as given; twist covariance ``twist_covariance_66``, else zeros)."""
     cov = np.zeros((6, 6))
     cov[[0, 1, 2], [0, 1, 2]] = position_sigma ** 2
     cov[[3, 4, 5], [3, 4, 5]] = rotation_sigma ** 2
+    if pose_covariance_66 is not None:
+        cov = np.asarray(pose_covariance_66, np.float64).reshape(6, 6)
+    twist_cov = np.zeros(36) if twist_covariance_66 is None else np.asarray(twist_covariance_66, np.float64)
     vec = lambda: types('geometry_msgs/msg/Vector3', x=0.0, y=0.0, z=0.0)  # noqa: E731
     return types('nav_msgs/msg/Odometry', header=header_for(header, frame_id, types),
                  child_frame_id=str(child_frame_id),
@@ -415,4 +423,4 @@ def matrix_to_odometry(T_world_base_44, header, child_frame_id: str, frame_id: s
                             covariance=_f64(cov, 36)),
                  twist=types('geometry_msgs/msg/TwistWithCovariance',
                              twist=types('geometry_msgs/msg/Twist', linear=vec(), angular=vec()),
-                             covariance=_f64(np.zeros(36), 36)))
+                             covariance=_f64(twist_cov, 36)))

@@ -271,7 +271,8 @@ class Worker:
         gap_ns = self._stream_gap_ns(item)
         frame = Frame(stamp=stamp_s, image=rgb, K_33=K, T_world_cam_44=pose, frame_id=frame_id,
                       sensor_gap_s=None if gap_ns is None else gap_ns / NS,
-                      pose_covariance_66=self.inputs.pose_covariance.at(stamp_ns) if pose is not None else None)
+                      pose_covariance_66=self.inputs.covariances.pose.at(stamp_ns) if pose is not None else None,
+                      twist_covariance_66=self.inputs.covariances.twist.at(stamp_ns) if pose is not None else None)
         t0 = time.perf_counter()
         with self.lock:
             try:
