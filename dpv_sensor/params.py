@@ -162,7 +162,10 @@ SPECS: tuple[ParamSpec, ...] = (
               'part proportional to the distance travelled (0.03 = 3 %).', min_value=0.0, max_value=10.0),
     ParamSpec('refine_odom_covariance', 'odometry', "Pose refinement: the odometry between factors' covariance. fixed: "
               'the odom_sigma_* above; odometry: what the odometry says about itself, the growth of the published '
-              'pose covariance between two keyframes where it is filled, else the odom_drift_* figures.',
+              'pose covariance between two keyframes where it grows, else its twist covariance integrated over the '
+              'step, else the odom_drift_* figures (per axis at most 5 deg / 0.10 m, the largest correction the '
+              'window accepts: a huge covariance '
+              'leaves the images to decide).',
               choices=('fixed', 'odometry')),
     ParamSpec('refine_photometric_sources', 0, 'Pose refinement: align the reference photometrically (against its '
               'predicted depth, paper eq. 11) to this many of its nearest sources, each a between factor. 0 (the '
@@ -217,8 +220,9 @@ SPECS: tuple[ParamSpec, ...] = (
               '0: rotation adds nothing.', min_value=0.0, max_value=1.0),
     ParamSpec('pose_uncertainty', 'covariance', "How each source's pose error relative to the reference widens "
               'its measurement (and so lowers the confidence where the pose error moves the match by more of the '
-              "depth band than the parallax): covariance (the odometry's pose covariance where the publisher fills "
-              'it; poses taken as exact otherwise), auto (the covariance, else the odom_drift_* and '
+              "depth band than the parallax): covariance (the odometry's pose covariance's growth where it grows, "
+              'else its twist covariance integrated over the time between two views; poses taken as exact '
+              'otherwise), auto (the covariance, else the odom_drift_* and '
               'odom_time_sync_ms figures), drift (always those figures) or off. The figures are not the default: '
               'through the node they helped tum_fr1_rpy and ICL-NUIM (ECE -0.004 to -0.015) and cost SUN3D '
               '(+0.004 to +0.016) and some depth on SUN3D frag2 (+0.002 abs_rel).',
