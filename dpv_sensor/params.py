@@ -62,6 +62,11 @@ SPECS: tuple[ParamSpec, ...] = (
               'autocast. bfloat16 held about 90 MB more resident memory than float32 in a 30-minute soak (bounded; '
               "peaks to 1.5 GB) before the node capped glibc's malloc arenas at two, which brought it lower.",
               choices=('auto', 'float32', 'bfloat16')),
+    ParamSpec('inference_backend', 'torch', 'What runs D-Net, K-Net and R-Net on the CPU: torch (PyTorch, the '
+              'reference), onnxruntime (ONNX Runtime, float32) or openvino (OpenVINO, in cpu_precision). The ONNX '
+              'files are exported from the loaded weights at start and cached (~/.cache/dpv_sensor/onnx); a runtime '
+              'that is not installed or fails its check against PyTorch (1e-4) is reported once and PyTorch runs.',
+              choices=('torch', 'onnxruntime', 'openvino')),
     ParamSpec('processing_width', 320, 'Width the images are resized to for estimation (pixels).',
               min_value=32, max_value=4096),
     ParamSpec('processing_height', 256, 'Height the images are resized to for estimation (pixels).',
@@ -132,6 +137,11 @@ SPECS: tuple[ParamSpec, ...] = (
               min_value=0.0, max_value=60.0, scope='node'),
     ParamSpec('max_odom_gap', 0.5, 'Largest gap between the two odometry messages an image pose is '
               'interpolated from (s).', min_value=0.0, max_value=60.0, scope='node'),
+    ParamSpec('future_stamp_tolerance', 1.0, "An image stamped ahead of both the node's clock and the newest "
+              'odometry by more than this (s) is dropped at once (dropped.future_stamp, a WARN naming how far ahead): '
+              'no odometry can come for it by waiting; the camera clock and the odometry or node clock disagree '
+              '(not synchronised), or the driver stamps wrongly. Not judged while the clock reads 0 (use_sim_time '
+              'before /clock).', min_value=0.0, max_value=3600.0, scope='node'),
     ParamSpec('odom_max_speed', 10.0, 'A pose step faster than this (m/s, and over 0.1 m) is a teleport: between '
               'two odometry messages the pose buffer restarts and so does the estimator; between two frames pushed '
               'with their poses (offline) the estimator restarts. 0 disables.', min_value=0.0, max_value=1e4),
@@ -264,6 +274,11 @@ SPECS: tuple[ParamSpec, ...] = (
               'a PNG on one core of the 2-core CPU, benchmarks/image_decode.py). A payload that cannot be decoded '
               'is counted (faults.undecodable_image) and dropped.',
               choices=('raw', 'compressed'), scope='node'),
+    ParamSpec('size_change_images', 3, "The image size changes only when the new size persists: an image of another "
+              "size than the stream's is a stray, dropped on receipt (dropped.stray_image_size) without restarting "
+              'the filter, until this many images in a row have one new size; the last of them is used and the '
+              'filter restarts once. 1: every new size at once. Images under 2x2 pixels are always refused '
+              '(dropped.image_too_small).', min_value=1, max_value=1000, scope='node'),
     ParamSpec('output_reliability', 'reliable', 'QoS reliability of the publishers.',
               choices=('best_effort', 'reliable'), scope='node'),
     ParamSpec('output_depth', 5, 'QoS history depth of the publishers.', min_value=1, max_value=1000, scope='node'),

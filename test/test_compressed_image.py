@@ -157,3 +157,74 @@ def test_the_decode_benchmark_runs_and_reports_both_codecs():
     res = image_decode.run(width=64, height=48, repeats=3)
     assert set(res['codecs']) == {'jpeg', 'png'} and res['codecs']['png']['mean_abs_error'] == 0.0
     assert res['codecs']['jpeg']['decode']['median_ms'] > 0 and '| jpeg | quality 90 |' in image_decode.table(res)
+
+
+# ---------------------------------------------------------------- every channel order, raw and compressed
+def banded_channels(h=12, w=10, seed=3):
+    """R, G, B and alpha from disjoint value bands (R < 64 <= G < 128 <= B < 192 <= A): any swap or an alpha read
+    as colour changes every pixel."""
+    rng = np.random.default_rng(seed)
+    bands = [rng.integers(64 * k, 64 * (k + 1), (h, w), dtype=np.uint8) for k in range(4)]
+    return np.stack(bands[:3], -1), bands[3][..., None]
+
+
+CH_RGB, CH_ALPHA = banded_channels()
+GREY = CH_RGB[..., 1:2].copy()
+
+
+def raw_message(encoding: str):
+    from sensor_msgs.msg import Image
+    px = {'rgb8': CH_RGB, 'bgr8': CH_RGB[..., ::-1], 'rgba8': np.concatenate([CH_RGB, CH_ALPHA], 2),
+          'bgra8': np.concatenate([CH_RGB[..., ::-1], CH_ALPHA], 2), 'mono8': GREY}[encoding]
+    px = np.ascontiguousarray(px)
+    h, w, c = px.shape
+    return Image(header=header(), height=h, width=w, encoding=encoding, step=w * c, data=px.tobytes())
+
+
+# (format as the publisher wrote it, the pixels it handed to the PNG encoder (OpenCV takes them as B, G, R[, A]))
+PNG_CASES = {
+    'rgb8 -> bgr8': ('rgb8; png compressed bgr8', CH_RGB[..., ::-1]),
+    'bgr8 -> bgr8': ('bgr8; png compressed bgr8', CH_RGB[..., ::-1]),
+    'rgb8 -> rgb8': ('rgb8; png compressed rgb8', CH_RGB),
+    'rgba8 -> rgba8': ('rgba8; png compressed rgba8', np.concatenate([CH_RGB, CH_ALPHA], 2)),
+    'rgba8 -> bgra8': ('rgba8; png compressed bgra8', np.concatenate([CH_RGB[..., ::-1], CH_ALPHA], 2)),
+    'bgra8 -> bgra8': ('bgra8; png compressed bgra8', np.concatenate([CH_RGB[..., ::-1], CH_ALPHA], 2)),
+    'bgra8 -> rgba8': ('bgra8; png compressed rgba8', np.concatenate([CH_RGB, CH_ALPHA], 2)),
+    'RGBA file, format png': ('png', np.concatenate([CH_RGB[..., ::-1], CH_ALPHA], 2)),
+    'RGBA file, no format': ('', np.concatenate([CH_RGB[..., ::-1], CH_ALPHA], 2)),
+    'RGB file, format png': ('png', CH_RGB[..., ::-1]),
+    'mono8 -> mono8': ('mono8; png compressed mono8', GREY),
+}
+
+
+@pytest.mark.parametrize('encoding', ['rgb8', 'bgr8', 'rgba8', 'bgra8', 'mono8'])
+def test_every_raw_channel_order_decodes_to_exactly_its_rgb(encoding):
+    out = M.image_to_rgb(raw_message(encoding))
+    expected = np.repeat(GREY, 3, 2) if encoding == 'mono8' else CH_RGB
+    np.testing.assert_array_equal(out, expected, err_msg=encoding)
+
+
+@pytest.mark.parametrize('case', sorted(PNG_CASES))
+def test_every_compressed_png_channel_order_decodes_to_exactly_its_rgb_through_the_receipt(case):
+    """A PNG with and without alpha in every order a publisher writes it: exactly the RGB that was sent (PNG is
+    lossless), the alpha never read as a colour, through the path the node takes (header size, decode, receipt)."""
+    fmt, px = PNG_CASES[case]
+    msg = compressed(encoded(np.ascontiguousarray(px), '.png'), fmt)
+    assert CI.compressed_size(msg.data) == (px.shape[1], px.shape[0])
+    faults, dropped = _Faults(), collections.Counter()
+    item = ImageReceipt(faults, lambda reason: dropped.update([reason])).image(
+        msg, 1_700_000_000_000_000_000, 0.0, 0, decode=CI.decode_message)
+    assert item is not None and not dropped, faults.lines
+    expected = np.repeat(GREY, 3, 2) if px.shape[2] == 1 else CH_RGB
+    np.testing.assert_array_equal(M.image_to_rgb(item.msg), expected, err_msg=case)
+    np.testing.assert_array_equal(CI.compressed_to_rgb(msg), expected, err_msg=case)
+
+
+@pytest.mark.parametrize('encoding', ['rgb8', 'bgr8', 'rgba8', 'bgra8'])
+def test_every_colour_order_through_a_jpeg_keeps_its_channels(encoding):
+    """JPEG (lossy, no alpha) as image_transport's plugin writes each colour encoding: every channel stays in its
+    band (a swap would move it by 64 grey levels or more)."""
+    smooth = cv2.GaussianBlur(CH_RGB, (5, 5), 0)
+    out = CI.compressed_to_rgb(CI.rgb_to_compressed(smooth, header(), codec='jpeg', jpeg_quality=98,
+                                                    encoding=encoding))
+    assert np.abs(out.astype(int) - smooth.astype(int)).max() < 32, encoding

@@ -85,6 +85,54 @@ def _sniff(data: bytes) -> str:
     return ''
 
 
+# JPEG start-of-frame markers (baseline, extended, progressive, lossless; Huffman and arithmetic): they carry the size
+_JPEG_SOF = frozenset({0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF})
+# markers without a length field
+_JPEG_STANDALONE = frozenset({0x01, *range(0xD0, 0xD8)})
+
+
+def compressed_size(data) -> tuple[int, int] | None:
+    """(width, height) of a JPEG or PNG payload read from its header (the PNG IHDR chunk, the JPEG start-of-frame
+    segment) without decoding the pixels, or None when the header does not say (not JPEG / PNG, truncated before
+    the size, a malformed segment). The node judges a compressed image's size on receipt with it, so that an image
+    it refuses for its size is never decoded."""
+    try:
+        payload = memoryview(data).cast('B')          # bytes, array('B'), a uint8 array: no copy
+    except (TypeError, ValueError):
+        payload = memoryview(bytes(data))
+    head = bytes(payload[:8])
+    if head == PNG_SIGNATURE:
+        if len(payload) < 24 or bytes(payload[12:16]) != b'IHDR':
+            return None
+        return int.from_bytes(payload[16:20], 'big'), int.from_bytes(payload[20:24], 'big')
+    if not head.startswith(JPEG_SIGNATURE):
+        return None
+    i, n = 2, len(payload)
+    while i + 4 <= n:
+        if payload[i] != 0xFF:
+            return None
+        marker = payload[i + 1]
+        if marker == 0xFF:                  # fill byte before a marker
+            i += 1
+            continue
+        if marker in _JPEG_STANDALONE:
+            i += 2
+            continue
+        if marker in (0xD9, 0xDA):          # end of image, start of scan: no frame header before it
+            return None
+        length = int.from_bytes(payload[i + 2:i + 4], 'big')
+        if length < 2:
+            return None
+        if marker in _JPEG_SOF:
+            if length < 7 or i + 9 > n:
+                return None
+            height = int.from_bytes(payload[i + 5:i + 7], 'big')
+            width = int.from_bytes(payload[i + 7:i + 9], 'big')
+            return width, height
+        i += 2 + length
+    return None
+
+
 def decode_compressed(fmt: str, data) -> tuple[np.ndarray, str]:
     """(pixels HxWxC uint8, encoding 'bgr8' / 'rgb8' / 'bgra8' / 'rgba8' / 'mono8') of a compressed colour image.
 

@@ -4,13 +4,15 @@ waits in the one-slot mailbox, odometry goes into the pose buffer, camera_info s
 worker's wait for the camera_info and the odometry pose of an image (``wait_for``).
 
 With ``image_transport: compressed`` the image subscription is sensor_msgs/CompressedImage on ``image/compressed``
-(following a remapped ``image`` as image_transport names it); each message is decoded on receipt
-(``dpv_sensor.ros.compressed_image``) and then takes the raw image's path.
+(following a remapped ``image`` as image_transport names it); each message takes the raw image's path and is
+decoded on receipt (``dpv_sensor.ros.compressed_image``) once the receipt takes its size (read from its header).
 
 Images are checked on receipt (``dpv_sensor.ros.receipt``), so a bad one is counted and logged even when the
 newest-wins mailbox would have replaced it; images lost before the callback are counted by ``stream_loss``; a change
 of the odometry frame_id is logged and counted (faults.odometry_frame_change). The camera mount the odometry is
-composed with comes from ``extrinsic`` (the T_base_camera parameter, or /tf_static and /tf).
+composed with comes from ``extrinsic`` (the T_base_camera parameter, or /tf_static and /tf). An image stamped ahead
+of the node's clock and the newest odometry by more than future_stamp_tolerance is not waited for
+(``continuity.future_stamp``).
 """
 from __future__ import annotations
 
@@ -28,15 +30,31 @@ from dpv_sensor.ros import qos
 from dpv_sensor.ros.compressed_image import decode_message
 from dpv_sensor.ros.extrinsic import CameraExtrinsic
 from dpv_sensor.ros.odometry_covariance import OdometryCovariances
-from dpv_sensor.ros.fault_kinds import (BAD_CAMERA_INFO, BUSY, EMPTY_FRAME_ID, NAN_ODOMETRY, ODOM_CONFLICT, ODOM_JUMP,
-                                        ODOM_LATE, ODOM_ZERO_STAMP, TIME_BACKWARDS, UNSUPPORTED_DISTORTION)
+from dpv_sensor.ros.fault_kinds import (BAD_CAMERA_INFO, BUSY, EMPTY_FRAME_ID, NAN_ODOMETRY, NO_EXTRINSIC,
+                                        ODOM_CONFLICT, ODOM_JUMP, ODOM_LATE, ODOM_ZERO_STAMP,
+                                        TIME_BACKWARDS, UNSUPPORTED_DISTORTION)
 from dpv_sensor.ros.node_support import Incoming, Mailbox, OdometryWait, RateMeter, merge_incoming
 from dpv_sensor.ros.receipt import ImageReceipt, OdomFrameWatch
 from dpv_sensor.ros.stream_loss import StreamLoss
 from dpv_sensor.ros.transport import choose_reliability
-from dpv_sensor.stream.pose_buffer import PoseBuffer, PoseQuery
+from dpv_sensor.stream.continuity import future_stamp
+from dpv_sensor.stream.pose_buffer import FUTURE, PoseBuffer, PoseQuery
 
 NO_MOUNT = 'no mount'    # PoseQuery.reason: no camera mount (TF) for the image yet
+FROM_THE_FUTURE = 'from the future'   # PoseQuery.reason: stamped ahead of the clock and the odometry (future_stamp)
+
+
+def replaced_drop_kind(reason: str | None) -> str:
+    """What an image replaced in the mailbox while the worker waited for the pose of the image before it is counted
+    as, by how that wait ended (the PoseQuery.reason it ended with; None: it got the pose, or waited for camera_info):
+    the odometry never came within odom_wait_timeout ('future': dropped.odometry_late), the camera mount was not on TF
+    (NO_MOUNT: dropped.no_extrinsic, as the image waited for); anything else (the pose came, or the odometry came
+    and failed: a gap, too old, invalid) is the usual busy worker (dropped.busy): the odometry was not late."""
+    if reason == FUTURE:
+        return ODOM_LATE
+    if reason == NO_MOUNT:
+        return NO_EXTRINSIC
+    return BUSY
 
 NS = 1_000_000_000
 
@@ -70,7 +88,7 @@ class NodeInputs:
         self.tf = None                                # the TF output (set by the node), told the frame names
         # images lost before on_image are counted by stream_loss (callback thread only)
         self.stream_loss = StreamLoss()
-        self._receipt = ImageReceipt(faults, drop, self.stream_loss)
+        self._receipt = ImageReceipt(faults, drop, self.stream_loss, size_change_images=s.size_change_images)
         self._odom_frames = OdomFrameWatch(faults)
         self.mailbox = Mailbox(merge=merge_incoming)
         self._drop = drop
@@ -139,9 +157,10 @@ class NodeInputs:
                 self.subscribe(topic, want)
 
     # ------------------------------------------------------------------------------------------ callbacks
-    def on_image(self, msg, info) -> None:
+    def on_image(self, msg, info, decode=None) -> None:
         """An image and its message info (rclpy passes it to a callback of two arguments: a dict with the
-        publication sequence number, where the middleware gives one)."""
+        publication sequence number, where the middleware gives one); `decode`: for a compressed image, its decoder
+        (the receipt calls it once the image's size is taken)."""
         self.n_received += 1
         self.last_image_mono = time.monotonic()
         if self.first_image_mono is None:
@@ -156,38 +175,45 @@ class NodeInputs:
         seq = info.get('publication_sequence_number') if isinstance(info, dict) else None
         # a second camera, lost images, stamp jumps and unusable images: judged here, before the mailbox
         # (dpv_sensor.ros.receipt)
-        item = self._receipt.image(msg, stamp_ns, time.monotonic(), time.time_ns(), seq=seq, source='image')
+        item = self._receipt.image(msg, stamp_ns, time.monotonic(), time.time_ns(), seq=seq, source='image',
+                                   decode=decode)
         if item is None:
             return
         if self.tf is not None:
             self.tf.frames(image_frame=msg.header.frame_id or self.node.settings.node.frame_id)
         if self.mailbox.put(item) and self.odometry_wait.replaced():
-            self._count_replaced(1, odometry_late=False)
+            self._count_replaced(1, BUSY)
 
-    def _count_replaced(self, n: int, odometry_late: bool) -> None:
-        """`n` images replaced in the mailbox by newer ones, counted by why the worker could not take them: it
-        waited for odometry that did not come in time (dropped.odometry_late), or it was busy (dropped.busy)."""
+    def _count_replaced(self, n: int, kind: str) -> None:
+        """`n` images replaced in the mailbox by newer ones, counted as `kind`: why the worker could not take them
+        (``replaced_drop_kind``): it waited for odometry that did not come in time (dropped.odometry_late), for the
+        camera mount on TF (dropped.no_extrinsic, logged with the image it waited for), or it was busy
+        (dropped.busy)."""
         if n <= 0:
             return
         for _ in range(n):
-            self._drop(ODOM_LATE if odometry_late else BUSY)
-        if odometry_late:
+            self._drop(kind)
+        if kind == ODOM_LATE:
             self.faults.report(ODOM_LATE, f'odometry arrives later than the images: {n} image(s) dropped while the '
                                'worker waited for the odometry of the one before, which did not come within '
                                f'odom_wait_timeout {self.node.settings.node.odom_wait_timeout:g} s '
                                '(dropped.odometry_late counts them)', count=False, period_s=30.0)
-        else:
+        elif kind == BUSY:
             self.faults.report(BUSY, 'estimator busy: dropping an older image that was still waiting (newest wins; '
                                'the count is in /diagnostics)', level='info', count=False, period_s=60.0)
 
     def on_compressed_image(self, msg, info) -> None:
-        """image_transport compressed: decode (JPEG / PNG), then the raw image's path with the same message info
-        (two arguments, so rclpy passes it); a payload that cannot be decoded goes that path too, to be counted
-        (stream loss, received) and refused by the receipt."""
+        """image_transport compressed: the raw image's path with the same message info (two arguments, so rclpy
+        passes it) and the decoder (JPEG / PNG), which the receipt calls once it takes the image's size (read from
+        the header); a payload that cannot be decoded is counted (stream loss, received) and refused there."""
+        self.on_image(msg, info, decode=self._decode)
+
+    def _decode(self, msg):
+        """A CompressedImage -> compressed_image.DecodedImage, timed (image_decode_ms_median)."""
         t0 = time.perf_counter()
         decoded = decode_message(msg)
         self.decode_ms.append((time.perf_counter() - t0) * 1000.0)
-        self.on_image(decoded, info)
+        return decoded
 
     def _on_empty_frame_id(self, stamp_ns) -> None:
         """An image without header.frame_id: the outputs use the frame_id parameter (warned once, every one counted)."""
@@ -270,7 +296,10 @@ class NodeInputs:
 
         Returns (K, camera_info size, T_world_cam | None, None) when all are there, else (None, None, None, why):
         why is None when no camera_info has arrived, else the PoseQuery whose reason ('future' once the timeout
-        passed, 'gap', 'too old', 'nan', or NO_MOUNT: no camera mount from TF) and detail say why there is no pose.
+        passed, 'gap', 'too old', 'nan', NO_MOUNT: no camera mount from TF, or FROM_THE_FUTURE: the image is stamped
+        ahead of the node's clock and the newest odometry by more than future_stamp_tolerance, not waited for) and
+        detail say why there is no pose. Images replaced in the mailbox meanwhile are counted by how the wait ended
+        (``replaced_drop_kind``).
         """
         result = None
         try:
@@ -278,7 +307,7 @@ class NodeInputs:
             return result
         finally:
             why = None if result is None else result[3]
-            self._count_replaced(self.odometry_wait.end(), odometry_late=why is not None and why.reason == 'future')
+            self._count_replaced(self.odometry_wait.end(), replaced_drop_kind(None if why is None else why.reason))
 
     def _wait_for(self, item: Incoming, stamp_ns: int, stop: threading.Event):
         deadline = item.receipt_mono + self.node.settings.node.odom_wait_timeout
@@ -289,7 +318,12 @@ class NodeInputs:
             query = self._camera_pose(item, stamp_ns) if need_pose else None
             if K is not None and (not need_pose or query.ok):
                 return K[0], K[1], (query.T_world_cam_44 if need_pose else None), None
-            if K is not None and need_pose and query.reason not in ('future', NO_MOUNT):
+            if need_pose and query.reason == FUTURE:     # no odometry after the stamp yet: will it come?
+                ahead = future_stamp(stamp_ns, self.node.get_clock().now().nanoseconds, self.pose_buffer.newest_ns,
+                                     self.node.settings.node.future_stamp_tolerance)
+                if ahead is not None:
+                    return None, None, None, PoseQuery(None, FROM_THE_FUTURE, ahead)
+            if K is not None and need_pose and query.reason not in (FUTURE, NO_MOUNT):
                 return None, None, None, query          # waiting cannot help (gap, too old, invalid odometry)
             if time.monotonic() >= deadline or stop.is_set():
                 return None, None, None, (query if K is not None else None)

@@ -4,7 +4,15 @@ first camera's odometry), images lost in transport or a discontinuity in the sta
 and the publication sequence numbers the callback passes in), an image that cannot be used (unsupported encoding,
 size, step and data disagreeing: checked without touching the pixels, so a bad image is counted and logged even
 when the worker is busy and the image would have been replaced unseen; a compressed image arrives decoded,
-``compressed_image.DecodedImage``, or as one that could not be decoded), and a change of the odometry's frame_id.
+``compressed_image.DecodedImage``, or as one that could not be decoded, or undecoded with the decoder to call), an
+image's size, and a change of the odometry's frame_id.
+
+The size: an image smaller than the estimator takes (``stream.frame.image_too_small``) is refused
+(dropped.image_too_small, faults.image_too_small), and one of another size than the stream's is a stray until the
+new size persists (``stream.continuity.StreamSize``, ``size_change_images`` images in a row): dropped and counted
+(dropped.stray_image_size, faults.stray_image_size), so it never reaches the worker and never restarts the filter.
+A compressed image's size is read from its header (``compressed_image.compressed_size``): one refused for its size
+is never decoded (a 4000x3000 JPEG among 640x480 ones costs no 90 ms decode).
 
 The camera's frame_id: the stream belongs to the first non-empty frame_id that arrives. An image of another frame_id
 is a second camera publishing on the same topic: it is dropped and counted (dropped.other_camera,
@@ -15,10 +23,14 @@ new frame from then on (faults.camera_frame_change, one warning). Images with an
 (the outputs use the frame_id parameter for them)."""
 from __future__ import annotations
 
+from dpv_sensor import params as P
 from dpv_sensor.ros import msgs as M
-from dpv_sensor.ros.compressed_image import UNDECODABLE_IMAGE, DecodedImage
+from dpv_sensor.ros.compressed_image import UNDECODABLE_IMAGE, DecodedImage, UndecodableImage, compressed_size
+from dpv_sensor.ros.fault_kinds import IMAGE_TOO_SMALL, STRAY_IMAGE_SIZE
 from dpv_sensor.ros.node_support import Incoming, merge_incoming
 from dpv_sensor.ros.stream_loss import StreamLoss
+from dpv_sensor.stream.continuity import StreamSize
+from dpv_sensor.stream.frame import image_too_small
 
 NS = 1_000_000_000
 UNSUPPORTED_ENCODING = 'unsupported_encoding'
@@ -69,22 +81,27 @@ class CameraFrame:
 
 
 class ImageReceipt:
-    """The image callback's checks. faults: node_support.FaultLog; drop(reason): counts a dropped image."""
+    """The image callback's checks. faults: node_support.FaultLog; drop(reason): counts a dropped image;
+    size_change_images: images in a row a new image size must persist for to be taken (``StreamSize``)."""
 
-    def __init__(self, faults, drop, stream_loss: StreamLoss | None = None):
+    def __init__(self, faults, drop, stream_loss: StreamLoss | None = None,
+                 size_change_images: int = P.default('size_change_images')):
         self.faults = faults
         self.drop = drop
         self.stream_loss = stream_loss or StreamLoss()
         self.camera = CameraFrame(faults, drop)
+        self.size = StreamSize(size_change_images)
         self._carry: Incoming | None = None     # what a rejected image knew about the stream, for the next one
         self._last_stamp_ns: int | None = None  # header stamp of the stream's newest image
         self._restarts_mono: list[float] = []   # receipt times of recent sequence restarts
 
     def image(self, msg, stamp_ns: int | None, receipt_mono: float, receipt_ns: int,
-              seq: int | None = None, source: str = '') -> Incoming | None:
+              seq: int | None = None, source: str = '', decode=None) -> Incoming | None:
         """The Incoming to hand to the worker, or None when the image is rejected (counted and logged here).
         `stamp_ns`: its header stamp (None: unreadable); `seq`: its publication sequence number (None or 0: the
-        middleware gives none); `source`: the subscription it came through (each has its own writers' numbers)."""
+        middleware gives none); `source`: the subscription it came through (each has its own writers' numbers);
+        `decode`: for a compressed image still undecoded, `decode(msg) -> DecodedImage`, called once its size (from
+        the header) is taken; the Incoming then holds the DecodedImage."""
         loss = self.stream_loss
         if not self.camera.accept(msg.header.frame_id, stamp_ns, receipt_mono):
             loss.on_sample(seq, source)       # another camera's image: its number still shows what was lost
@@ -108,6 +125,16 @@ class ImageReceipt:
         item = Incoming(msg, receipt_mono, receipt_ns, None if lost else gap_ns, [lost] if lost else [])
         if self._carry is not None:
             item = merge_incoming(self._carry, item)
+        header_size = None
+        if decode is not None:      # compressed: judge the size from the header, decode only an image it takes
+            header_size = compressed_size(msg.data)
+            if header_size is not None and not self._size_taken(item, header_size, stamp_ns):
+                return None
+            item.msg = msg = decode(msg)
+            if msg.error is None and header_size is not None and (msg.width, msg.height) != header_size:
+                return self._reject(item, UNDECODABLE_IMAGE, UndecodableImage(
+                    f'the header says {header_size[0]}x{header_size[1]} but the payload decodes to '
+                    f'{msg.width}x{msg.height}'), stamp_ns)
         if isinstance(msg, DecodedImage) and msg.error is not None:
             return self._reject(item, UNDECODABLE_IMAGE, msg.error, stamp_ns)
         try:
@@ -116,8 +143,25 @@ class ImageReceipt:
             return self._reject(item, UNSUPPORTED_ENCODING, exc, stamp_ns)
         except M.BadImage as exc:
             return self._reject(item, BAD_IMAGE, exc, stamp_ns)
+        if header_size is None and not self._size_taken(item, (int(msg.width), int(msg.height)), stamp_ns):
+            return None
         self._carry = None
         return item
+
+    def _size_taken(self, item: Incoming, size: tuple[int, int], stamp_ns: int | None) -> bool:
+        """False (rejected, counted and logged) for an image too small for the estimator or a stray of another size
+        than the stream's (``StreamSize``); True when the stream takes its size."""
+        w, h = size
+        small = image_too_small(w, h)
+        if small is not None:
+            self._reject(item, IMAGE_TOO_SMALL, small, stamp_ns, key=f'{IMAGE_TOO_SMALL}:{w}x{h}', period_s=30.0)
+            return False
+        verdict = self.size.image(size)
+        if not verdict.taken:
+            self._reject(item, STRAY_IMAGE_SIZE, f'{verdict.stray} (size_change_images); a stray image does not '
+                         'restart the filter', stamp_ns, key=f'{STRAY_IMAGE_SIZE}:{w}x{h}', period_s=30.0)
+            return False
+        return True
 
     def _on_sequence_restart(self, frame_id: str, receipt_mono: float) -> None:
         """The image publisher's sequence numbers went back: a restarted driver (info), or, when they go back again
@@ -135,12 +179,13 @@ class ImageReceipt:
                            'the camera driver restarted (or a second publisher appeared); lost images are judged '
                            'from the stamps until they run forward again', level='info', period_s=30.0)
 
-    def _reject(self, item: Incoming, kind: str, exc: Exception, stamp_ns: int | None) -> None:
+    def _reject(self, item: Incoming, kind: str, why, stamp_ns: int | None, key: str | None = None,
+                period_s: float | None = None) -> None:
         self._carry = item
         self.drop(kind)
         at = f'{stamp_ns / NS:.3f} s' if stamp_ns is not None else 'an unreadable stamp'
-        what = f"compressed image (format '{item.msg.format}')" if isinstance(item.msg, DecodedImage) else 'image'
-        self.faults.report(kind, f'dropping {what} at {at}: {exc}')
+        what = f"compressed image (format '{item.msg.format}')" if hasattr(item.msg, 'format') else 'image'
+        self.faults.report(kind, f'dropping {what} at {at}: {why}', key=key, period_s=period_s)
         return None
 
 

@@ -18,10 +18,10 @@ import traceback
 
 from dpv_sensor import params as P
 from dpv_sensor.ros import msgs as M
-from dpv_sensor.ros.fault_kinds import (CAMERA_INFO_MISMATCH, DUPLICATE_STAMP, ESTIMATOR_EXCEPTION, INTERNAL_ERROR,
-                                        NO_CAMERA_INFO, NO_EXTRINSIC, ODOM_GAP, ODOM_INVALID, ODOM_TIMEOUT,
-                                        ODOM_TOO_OLD, RECTIFY_SIZE, SIZE_CHANGE, TIME_BACKWARDS)
-from dpv_sensor.ros.inputs import NO_MOUNT
+from dpv_sensor.ros.fault_kinds import (CAMERA_INFO_MISMATCH, DUPLICATE_STAMP, ESTIMATOR_EXCEPTION, FUTURE_STAMP,
+                                        INTERNAL_ERROR, NO_CAMERA_INFO, NO_EXTRINSIC, ODOM_GAP, ODOM_INVALID,
+                                        ODOM_TIMEOUT, ODOM_TOO_OLD, RECTIFY_SIZE, SIZE_CHANGE, TIME_BACKWARDS)
+from dpv_sensor.ros.inputs import FROM_THE_FUTURE, NO_MOUNT
 from dpv_sensor.ros.node_support import Incoming, camera_gap_ns, max_gap
 from dpv_sensor.ros.outputs import FrameMeta
 from dpv_sensor.ros.receipt import BAD_IMAGE, UNSUPPORTED_ENCODING
@@ -242,6 +242,13 @@ class Worker:
             where = self.inputs.topic_name('camera_info') or 'parameters'
             self.faults.report(NO_CAMERA_INFO, f'no camera_info received yet on {where}; waiting '
                                '(images are dropped until it arrives)')
+        elif why.reason == FROM_THE_FUTURE:
+            self._drop(FUTURE_STAMP)
+            self.faults.report(FUTURE_STAMP, f'dropping image at {stamp_ns / NS:.3f} s: {why.detail} (more than '
+                               f'future_stamp_tolerance {self.node.settings.node.future_stamp_tolerance:g} s): no '
+                               "odometry can come for it by waiting: the camera's clock runs ahead of the node's and "
+                               "the odometry's (synchronise the clocks, e.g. with chrony) or the driver stamps its "
+                               'images wrongly (dropped.future_stamp counts them)', period_s=30.0)
         elif why.reason == 'future':
             self._drop(ODOM_TIMEOUT)
             self.faults.report(ODOM_TIMEOUT, f'dropping image at {stamp_ns / NS:.3f} s: no odometry at or after '

@@ -4,7 +4,11 @@ Rules between two consecutive frames of one camera stream:
 
 * time order (:func:`time_order`): a stamp equal to the previous one is a *duplicate* (the frame is dropped);
   a smaller one means time went *backwards* (a bag restarting, a simulator reset: everything restarts);
-* size (:func:`size_change`): another image size restarts the stream;
+* size (:func:`size_change`): another image size restarts the stream; a caller that receives images (the node)
+  first applies :class:`StreamSize`: the stream takes a new size only once it persists (``size_change_images`` images
+  in a row of it), and an image of another size before that is a *stray* (dropped, never restarting anything);
+* time from the future (:func:`future_stamp`): an image stamped ahead of both the receiver's clock and the newest
+  odometry by more than a tolerance cannot get a pose by waiting (the clocks disagree or the stamp is wrong);
 * intrinsics, time gap and teleport (:func:`stream_break`, which applies all rules for a posed frame):
   the time gap is the camera stream's own (``sensor_gap_s`` when the caller gives it, else the time since the
   previous frame; frames a busy caller left out do not make a gap), and a *teleport* (:func:`teleport`) is a pose
@@ -33,7 +37,7 @@ import numpy as np
 from dpv_sensor.core.geometry import pose_delta_np
 
 __all__ = ['teleport', 'time_order', 'size_change', 'stream_break', 'ReceivedImages', 'ImageVerdict', 'BACKWARDS',
-           'DUPLICATE', 'TELEPORT_FLOOR_M', 'TELEPORT_FLOOR_DEG']
+           'DUPLICATE', 'TELEPORT_FLOOR_M', 'TELEPORT_FLOOR_DEG', 'StreamSize', 'SizeVerdict', 'future_stamp']
 
 # A pose step is only a teleport when it is also larger than these (jitter of fast odometry is not one).
 TELEPORT_FLOOR_M = 0.1
@@ -63,6 +67,78 @@ def size_change(previous: Optional[Tuple[int, int]], size: Tuple[int, int]) -> O
     if previous is None or tuple(previous) == tuple(size):
         return None
     return f'image size changed from {previous[0]}x{previous[1]} to {size[0]}x{size[1]}'
+
+
+@dataclass(frozen=True)
+class SizeVerdict:
+    """What :class:`StreamSize` says about an image's size: taken (``stray`` None; ``changed``: the stream's size
+    became this one with it, ``previous`` the size before), or a stray of another size (``stray``: why; the image is
+    dropped)."""
+    stray: Optional[str] = None
+    changed: bool = False
+    previous: Optional[Tuple[int, int]] = None
+
+    @property
+    def taken(self) -> bool:
+        return self.stray is None
+
+
+class StreamSize:
+    """The image size of a received stream, which changes only when a new size persists.
+
+    The stream's size is its first image's. An image of another size is a *stray* (a glitching driver, a thumbnail or
+    a full-resolution still on the video topic) until ``persist_images`` images in a row have that one new size: the
+    last of them is taken, and the stream's size is the new one from then on (the caller restarts the filter once, at
+    it, as for any size change). An image of the stream's size ends a run; an image of a third size starts its own.
+    ``persist_images`` 1 takes every new size at once. Only the images the caller hands in count (one it refused for
+    another reason, e.g. too small to use, is neither in a run nor ends one)."""
+
+    def __init__(self, persist_images: int):
+        if int(persist_images) < 1:
+            raise ValueError(f'persist_images must be at least 1, got {persist_images}')
+        self.persist_images = int(persist_images)
+        self.size: Optional[Tuple[int, int]] = None
+        self._candidate: Optional[Tuple[int, int]] = None
+        self._run = 0
+
+    def image(self, size: Tuple[int, int]) -> SizeVerdict:
+        """The verdict on an image of ``size`` (w, h)."""
+        size = (int(size[0]), int(size[1]))
+        if self.size is None or size == self.size:
+            self.size = size
+            self._candidate, self._run = None, 0
+            return SizeVerdict()
+        if size == self._candidate:
+            self._run += 1
+        else:
+            self._candidate, self._run = size, 1
+        if self._run >= self.persist_images:
+            previous, self.size = self.size, size
+            self._candidate, self._run = None, 0
+            return SizeVerdict(changed=True, previous=previous)
+        (w, h), (w0, h0) = size, self.size
+        return SizeVerdict(stray=f"{w}x{h} is not the stream's {w0}x{h0} ({self._run} image(s) in a row of "
+                                 f'{w}x{h}; a new size is taken once {self.persist_images} in a row have it)')
+
+
+def future_stamp(stamp_ns: int, clock_ns: int, newest_odometry_ns: Optional[int], tolerance_s: float) -> Optional[str]:
+    """Why an image stamped ``stamp_ns`` comes from the future: ahead of the receiver's clock ``clock_ns`` and of the
+    newest odometry stamp ``newest_odometry_ns`` (None: no odometry yet, every stamp is ahead of it) each by more than
+    ``tolerance_s`` seconds; else None. A clock that reads 0 or less (sim time before the first /clock) says
+    nothing: None."""
+    if clock_ns <= 0:
+        return None
+    tolerance_ns = float(tolerance_s) * 1e9
+    ahead_clock = int(stamp_ns) - int(clock_ns)
+    if ahead_clock <= tolerance_ns:
+        return None
+    odometry = 'no odometry has arrived yet'
+    if newest_odometry_ns is not None:
+        ahead_odometry = int(stamp_ns) - int(newest_odometry_ns)
+        if ahead_odometry <= tolerance_ns:
+            return None
+        odometry = f'{ahead_odometry / 1e9:.3f} s ahead of the newest odometry'
+    return f"stamped {ahead_clock / 1e9:.3f} s ahead of the node's clock, {odometry}"
 
 
 def teleport(elapsed_s: float, distance_m: float, angle_deg: float, max_speed: float,

@@ -24,7 +24,7 @@ from dpv_sensor.core.edge_filter import joint_weighted_median
 from dpv_sensor.core.geometry import resample_to_camera, scale_intrinsics_np
 from dpv_sensor.core.nets.model import cpu_bf16_fast
 from dpv_sensor.stream.continuity import DUPLICATE, stream_break, time_order
-from dpv_sensor.stream.frame import DepthOutput, Frame
+from dpv_sensor.stream.frame import DepthOutput, Frame, image_too_small
 from dpv_sensor.stream.depth_output import compose_output, volume_maps_to_processing
 from dpv_sensor.stream.estimator_config import (EstimatorConfig, EstimatorStatus, PoseRefinementRequest,  # noqa: F401
                                                 PoseRefiner, _Measurement, _Posterior, calibration_signature,
@@ -88,6 +88,7 @@ class Estimator:
         self.pose_refiner = pose_refiner
         self._notes: List[str] = []
         self.model = None
+        self.nets = None                   # where the networks run (core.nets.runtime), with the network
         self.classical = None
         self._weights_path: Optional[str] = None
         self._checkpoint_meta: Dict[str, Any] = {}
@@ -122,6 +123,7 @@ class Estimator:
         self._anchor_T_world: Optional[np.ndarray] = None
         self._tracking = 'waiting for frames'
         self._last_timings: Dict[str, float] = {}
+        self._knet_ms = 0.0                # K-Net's share of the filter step being timed
         self._kf_counter = 0
         self._frames_degenerate = 0
         self._last_degenerate_reason: Optional[str] = None
@@ -210,10 +212,14 @@ class Estimator:
         return dpv_ops.resolve_readout(self.config.depth_readout, self.measurement == 'network')
 
     def _use_network(self) -> None:
+        from dpv_sensor.core.nets.runtime import build_runner
         self.measurement = 'network'
         m = self.model
         self.depths_d = m.depth_planes(torch.float32, self.device)
         self.d_min, self.d_max, self.num_planes = float(m.d_min), float(m.d_max), int(m.num_planes)
+        W, H = self.config.processing_size
+        self.nets = build_runner(m, self.config.inference_backend, (H, W), self.device, bfloat16=self._cpu_bfloat16(),
+                                 autocast=self._autocast, note=self._note)
 
     def _use_classical(self, reason: str) -> None:
         from dpv_sensor.core.classical import ClassicalMeasurement
@@ -221,6 +227,7 @@ class Estimator:
         self.measurement = 'classical'
         self._measurement_reason = reason
         self.model = None
+        self.nets = None
         self.classical = ClassicalMeasurement(cfg.d_min, cfg.d_max, cfg.num_planes,
                                               downscale=cfg.classical_downscale)
         self.depths_d = dpv_ops.depth_planes(cfg.d_min, cfg.d_max, cfg.num_planes, torch.float32, self.device)
@@ -253,6 +260,8 @@ class Estimator:
         """What the networks run in (the geometry, filter and DPV normalisations are always float32)."""
         if self.model is None:
             return 'float32'
+        if self.nets.backend != 'torch':
+            return f'{self.nets.runtime.precision} ({self.nets.backend})'
         if self.device.type == 'cuda' and self.config.amp_dtype != 'none':
             return f'{self.config.amp_dtype} autocast'
         if self._cpu_bfloat16():
@@ -267,12 +276,11 @@ class Estimator:
         return torch.autocast(self.device.type, enabled=False)
 
     def _knet_callable(self):
-        knet = self.model.knet
-
         def g(residual_bdhw, image_b3hw):
-            with self._autocast():
-                out = knet(residual_bdhw, image_b3hw)
-            return out.float()
+            t = time.perf_counter()
+            out = self.nets.knet(residual_bdhw, image_b3hw)
+            self._knet_ms += self._ms(t)
+            return out
         return g
 
     # ------------------------------------------------------------------ public API
@@ -294,6 +302,7 @@ class Estimator:
             if self._checkpoint_meta else None,
             device=str(self.device),
             precision=self._precision(),
+            inference_backend=self.nets.backend if self.nets is not None else 'torch',
             torch_threads=torch.get_num_threads(),
             filter_mode=self.filter_mode,
             filter_mode_requested=cfg.filter_mode,
@@ -401,8 +410,9 @@ class Estimator:
         image = np.asarray(frame.image)
         if image.ndim != 3 or image.shape[2] != 3 or image.dtype != np.uint8:
             raise ValueError(f'Frame.image must be uint8 HxWx3 RGB, got {image.dtype} {image.shape}')
-        if min(image.shape[:2]) < 2:
-            raise ValueError(f'Frame.image is too small: {image.shape}')
+        small = image_too_small(image.shape[1], image.shape[0])
+        if small is not None:
+            raise ValueError(f'Frame.image is too small: {small}')
         gap = frame.sensor_gap_s
         if gap is not None and not (math.isfinite(float(gap)) and float(gap) >= 0.0):
             raise ValueError(f'Frame.sensor_gap_s must be None or a finite number >= 0, got {gap!r}')
@@ -500,8 +510,10 @@ class Estimator:
         t = time.perf_counter()
         T_src_ref = np.stack([np.linalg.inv(s.T_world_cam_44) @ ref.T_world_cam_44 for s in sources])
         T_src_ref_t = torch.as_tensor(T_src_ref, dtype=torch.float32, device=self.device)[None]   # 1,N,4,4
-        meas = self._measure(ref, sources, T_src_ref_t)
+        meas = self._measure(ref, sources, T_src_ref_t, timings)
         timings['measurement'] = self._ms(t)
+        if 'measurement.features' in timings:
+            timings['measurement.cost_volume'] = timings['measurement'] - timings['measurement.features']
 
         t = time.perf_counter()
         vol_hw = tuple(meas.logp_bdhw.shape[-2:])
@@ -519,8 +531,11 @@ class Estimator:
         if sigma_planes is not None:
             meas.logp_bdhw = pose_uncertainty.widen_planes(meas.logp_bdhw, sigma_planes)
             timings['pose_uncertainty'] = self._ms(t_pose)
+        self._knet_ms = 0.0
         step = self.filter.step(meas.logp_bdhw.float(), meas.K_vol_b33, self._filter_pose(ref.T_world_cam_44),
                                 ref.stamp, self.depths_d, image_b3hw=ref.image_b3hw, update_weight_bhw=weight)
+        if self.filter_mode == 'knet':
+            timings['filter.knet'] = self._knet_ms
         post = step.logp_bdhw
         support = keyframe_geometry.carry_support(step.predicted_logp_bdhw, weight, self._posterior,
                                                   ref.T_world_cam_44, meas.K_vol_b33, self.depths_d, self.readout)
@@ -533,10 +548,9 @@ class Estimator:
         H, W = ref.image_b3hw.shape[-2:]
         K_proc_t = ref.K_b33[0]
         if self.measurement == 'network':
-            with self._autocast():
-                full = self.model.refine(post, meas.feats, ref.image_b3hw)
-            full = full.float()
-            depth, conf = self._readout(full, ref.image_b3hw)
+            full = self.nets.refine(post, meas.feats, ref.image_b3hw)
+            timings['refine.rnet'] = self._ms(t)
+            depth, conf = self._readout(full, ref.image_b3hw, timings=timings, stage='refine')
             band_mass = conf
             if sigma_planes is not None:
                 factor = window_pose_uncertainty.confidence_factor(self.config, post, sigma_planes, self.depths_d,
@@ -548,7 +562,7 @@ class Estimator:
                                        mode='nearest')[:, 0] > 0.5
             timings['refine'] = self._ms(t)
         else:
-            depth_v, conf_v = self._readout(post, None, sigma_planes)
+            depth_v, conf_v = self._readout(post, None, sigma_planes, timings=timings, stage='upsample')
             if support is not None:
                 conf_v = conf_v * support
             depth, conf, valid = volume_maps_to_processing(
@@ -600,21 +614,29 @@ class Estimator:
         return reason
 
     def _readout(self, logp_bdhw: torch.Tensor, guide_b3hw: Optional[torch.Tensor] = None,
-                 sigma_planes_bhw: Optional[torch.Tensor] = None) -> Tuple[torch.Tensor, torch.Tensor]:
+                 sigma_planes_bhw: Optional[torch.Tensor] = None, timings: Optional[Dict[str, float]] = None,
+                 stage: str = '') -> Tuple[torch.Tensor, torch.Tensor]:
         """(depth, confidence), each (B, H, W), of a DPV with the configured ``depth_readout`` and
         ``confidence``; with ``depth_subplane`` the depth is refined between planes
         (``dpv.subplane_depth``), and with a colour ``guide_b3hw`` of the same size and
         ``edge_filter_radius`` > 0 it is then filtered edge-aware: the weighted median of its neighbourhood,
-        weighted by confidence and colour similarity (``edge_filter.joint_weighted_median``)."""
+        weighted by confidence and colour similarity (``edge_filter.joint_weighted_median``). With ``timings``
+        the two parts are timed there as ``<stage>.readout`` and ``<stage>.edge_filter``."""
         cfg = self.config
+        t = time.perf_counter()
         depth = dpv_ops.depth_estimate(logp_bdhw, self.depths_d, self.readout)
         if cfg.depth_subplane:
             depth = dpv_ops.subplane_depth(logp_bdhw, self.depths_d, depth)
         conf = dpv_ops.published_confidence(logp_bdhw, self.depths_d, depth, cfg.confidence, cfg.confidence_ratio,
                                             sigma_planes_bhw)
+        if timings is not None:
+            timings[f'{stage}.readout'] = self._ms(t)
         if guide_b3hw is not None and cfg.edge_filter_radius > 0 and guide_b3hw.shape[-2:] == depth.shape[-2:]:
+            t = time.perf_counter()
             depth = joint_weighted_median(depth, conf, guide_b3hw, cfg.edge_filter_radius, cfg.edge_filter_step,
                                           cfg.edge_filter_sigma)
+            if timings is not None:
+                timings[f'{stage}.edge_filter'] = self._ms(t)
         return depth, conf
 
     @staticmethod
@@ -638,6 +660,8 @@ class Estimator:
             depth, conf = depth[0], dpv_ops.confidence(pred, self.depths_d, depth_bhw=depth)[0]
             K_depth = self._posterior.K_vol_b33[0].double().cpu().numpy()
         request = PoseRefinementRequest(kfs, r, depth, conf, K_depth, self.depths_d)
+        timings['pose_refinement.predict'] = self._ms(t)
+        last = getattr(self.pose_refiner, 'last_result', None)
         try:
             refined = self.pose_refiner(request)
         except Exception as exc:  # a failing refiner must not stop the sensor
@@ -652,7 +676,12 @@ class Estimator:
                 for kf, T in zip(kfs, refined):
                     kf.T_world_cam_44 = T.copy()
         timings['pose_refinement'] = self._ms(t)
-        skipped = getattr(getattr(self.pose_refiner, 'last_result', None), 'skipped', None)
+        result = getattr(self.pose_refiner, 'last_result', None)
+        if result is not None and result is not last:      # the parts the refiner timed in this call
+            for part in ('align', 'keypoints', 'optimize'):
+                if part in getattr(result, 'timings_ms', {}):
+                    timings[f'pose_refinement.{part}'] = float(result.timings_ms[part])
+        skipped = getattr(result, 'skipped', None)
         if skipped:
             # the refiner kept the odometry for this window (e.g. the camera turns in place): a fallback
             self._refine_fallbacks += 1
@@ -663,12 +692,15 @@ class Estimator:
         return None
 
     # ------------------------------------------------------------------ measurement
-    def _measure(self, ref: Keyframe, sources: List[Keyframe], T_src_ref_t: torch.Tensor) -> _Measurement:
+    def _measure(self, ref: Keyframe, sources: List[Keyframe], T_src_ref_t: torch.Tensor,
+                 timings: Dict[str, float]) -> _Measurement:
         if self.measurement == 'network':
             with self._autocast():
+                t = time.perf_counter()
                 for kf in [ref] + list(sources):
                     if 'features' not in kf.cache:
-                        kf.cache['features'] = self.model.extract_features(kf.image_b3hw)
+                        kf.cache['features'] = self.nets.extract_features(kf.image_b3hw)
+                timings['measurement.features'] = self._ms(t)
                 logp, K_vol, feats = self.model.measure(
                     ref.image_b3hw, None, ref.K_b33, T_src_ref_t,
                     src_features=[s.cache['features'] for s in sources], ref_features=ref.cache['features'])

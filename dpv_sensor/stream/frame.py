@@ -5,6 +5,18 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+# The smallest image side (pixels) the estimator takes: one pixel has no neighbour to resize, grade or match with.
+# The estimator refuses a smaller Frame.image (ValueError); the node refuses such images on receipt.
+MIN_IMAGE_SIDE = 2
+
+
+def image_too_small(width: int, height: int) -> str | None:
+    """Why a width x height image is too small for the estimator (a side under :data:`MIN_IMAGE_SIDE`), or None."""
+    if min(int(width), int(height)) >= MIN_IMAGE_SIDE:
+        return None
+    return (f'{int(width)}x{int(height)} is smaller than the smallest image the estimator takes '
+            f'({MIN_IMAGE_SIDE}x{MIN_IMAGE_SIDE} pixels)')
+
 
 @dataclass
 class Frame:
@@ -43,6 +55,10 @@ class DepthOutput:
 
     depth_hw: float32 metres, NaN where there is no estimate. confidence_hw: float32 in [0, 1], higher is
     more certain (NaN-free; 0 where there is no estimate). K_33: intrinsics of the output size.
+    timings_ms: wall time (ms) of the push that made it, by stage ('resize', 'pose_refinement', 'measurement',
+    'pose_uncertainty', 'filter', 'refine' or 'upsample', 'output'; 'between' for a non-keyframe) and 'total';
+    a key 'stage.part' is a part of that stage, already counted in it (e.g. 'measurement.features',
+    'filter.knet', 'refine.rnet', 'refine.edge_filter', 'pose_refinement.keypoints').
     """
     stamp: float
     depth_hw: np.ndarray
