@@ -38,17 +38,18 @@ Distorted input (camera_info with non-zero D, plumb_bob / rational_polynomial / 
 (dpv_sensor.core.rectify) before the estimator; every output then carries the rectified K with D zero.
 
 Bad input never stops the node: each kind of fault (``fault_kinds``: unsupported encoding, inconsistent image, a
-compressed image that cannot be decoded, size change, missing or zero camera_info, NaN odometry or NaN in its
-covariance, odometry stamped 0, odometry gap or timeout, conflicting odometry at one stamp, time going backwards, an
-empty image frame_id, no camera mount on TF yet, a second camera (another frame_id) on the image topic, a degenerate
-image, an exception inside the estimator) is counted, reported in /diagnostics and logged with a specific,
-rate-limited message. No image is lost uncounted: images lost before the callback (transport) are counted from the
-publisher's sequence numbers (the image callback takes the message info), the middleware's reports and the stamps
-(lost.*), images the node skips or refuses in dropped.* (an image replaced in the mailbox while the worker waited for
-odometry that then came too late: odometry_late, else busy). A loss is counted only on evidence (a sequence gap, a
+compressed image that cannot be decoded, an image too small for the estimator, a stray image of another size (a new
+size is taken once it persists: size_change_images), size change, missing or zero camera_info, NaN odometry or NaN
+in its covariance, odometry stamped 0, odometry gap or timeout, conflicting odometry at one stamp, time going
+backwards, an empty image frame_id, no camera mount on TF yet, a second camera (another frame_id) on the image
+topic, a degenerate image, an exception inside the estimator) is counted, reported in /diagnostics and logged with a
+specific, rate-limited message. No image is lost uncounted: images lost before the callback (transport) are counted
+from the publisher's sequence numbers (the image callback takes the message info), the middleware's reports and the
+stamps (lost.*), images the node skips or refuses in dropped.* (an image replaced in the mailbox while the worker
+waited for odometry that then came too late: odometry_late; for the camera mount: no_extrinsic; else busy; an image
+stamped ahead of the clock and the odometry: future_stamp). A loss is counted only on evidence (a sequence gap, a
 middleware report, or a stamp gap the stream around it confirms): a camera that lowers its rate loses nothing
-(input_rate_changes) and a stamp jump is a discontinuity (input_stamp_jumps,
-faults.stamp_jump).
+(input_rate_changes) and a stamp jump is a discontinuity (input_stamp_jumps, faults.stamp_jump).
 """
 from __future__ import annotations
 
