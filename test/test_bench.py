@@ -23,7 +23,7 @@ def bench(tmp_path_factory):
     cmd = [sys.executable, '-m', 'dpv_sensor.tools.bench', '--presets', 'lite', '--sizes', '64x48',
            '--devices', 'cpu,cuda', '--repeats', '1', '--warmup', '1', '--keyframes', '1', '--e2e-hz', '10',
            '--e2e-seconds', '3', '--e2e-min-outputs', '1', '--e2e-max-seconds', '90', '--e2e-frames', '12',
-           '--out', str(out)]
+           '--keyframe-keyframes', '1', '--out', str(out)]
     proc = subprocess.run(cmd, cwd=REPO, env=dict(os.environ), capture_output=True, text=True, timeout=400)
     assert proc.returncode == 0, proc.stdout + proc.stderr
     return out, proc, json.loads((out / 'bench.json').read_text())
@@ -32,7 +32,8 @@ def bench(tmp_path_factory):
 def test_report_files_and_tables(bench):
     out, proc, report = bench
     md = (out / 'bench.md').read_text()
-    for title in ('## Per-stage latency (ms)', '## Estimator: keyframes per second', '## End to end through the node'):
+    for title in ('## Per-stage latency (ms)', '## Estimator: keyframes per second', '## End to end through the node',
+                  '## The default keyframe, stage by stage (cpu)'):
         assert title in md and title in proc.stdout
     assert '| cpu | lite | 64x48 | 32 |' in md            # the per-stage row of the preset
     assert '| cpu | classical | 64x48 | 64 |' in md       # the classical cost volume row
@@ -87,10 +88,31 @@ def test_estimator_keyframes_per_second(bench):
         # and its stages run one after the other inside its total
         st = r['stages_ms_median']
         assert 0 < st['total'] <= r['push_ms_median'], (st, r['push_ms_median'])
-        assert 0 < sum(v for k, v in st.items() if k != 'total') <= st['total'] + 0.1, st
+        assert 0 < sum(v for k, v in st.items() if k != 'total' and '.' not in k) <= st['total'] + 0.1, st
+        # a 'stage.part' is inside its stage
+        assert all(v <= st[k.split('.')[0]] + 0.1 for k, v in st.items() if '.' in k), st
         assert r['rss_peak_mib'] > 0 and r['cuda_peak_mib'] is None
         assert r['stages_ms_median']
     assert rows['classical']['measurement'] == 'classical' and rows['lite']['measurement'] == 'network'
+
+
+def test_default_keyframe_stages(bench):
+    """The default keyframe part: the node's defaults, float32 and bfloat16 on the CPU, every stage with a median
+    and a p95, the parts inside their stages."""
+    _out, _proc, report = bench
+    (r,) = report['keyframe']
+    assert r['defaults']['window_mode'] == 'centered' and r['defaults']['pose_refinement'] == 'window'
+    assert set(r['variants']) == {'torch/float32', 'torch/bfloat16'}
+    for v in r['variants'].values():
+        assert v['keyframes_timed'] == 1
+        st = v['stages_ms']
+        for stage in ('push', 'total', 'pose_refinement', 'measurement', 'measurement.features', 'filter',
+                      'filter.knet', 'refine', 'refine.rnet', 'refine.readout', 'refine.edge_filter', 'output'):
+            assert st[stage]['median'] > 0 and st[stage]['p95'] >= st[stage]['median'], (stage, st[stage])
+        assert st['total']['median'] <= st['push']['median']
+        assert st['filter.knet']['median'] <= st['filter']['median'] + 0.1
+    assert r['variants']['torch/float32']['precision'] == 'float32'
+    assert r['variants']['torch/bfloat16']['precision'].startswith('bfloat16')
 
 
 def test_node_end_to_end(bench):

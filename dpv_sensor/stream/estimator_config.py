@@ -68,6 +68,7 @@ class EstimatorStatus:
     checkpoint: Optional[Dict[str, Any]]        # preset, steps, training_data, code_version of the checkpoint
     device: str
     precision: str                              # what the networks run in
+    inference_backend: str                      # what runs them (inference_backend, 'torch' after a fallback)
     torch_threads: int
     filter_mode: str                            # in use (knet falls back to global without the network)
     filter_mode_requested: str

@@ -247,7 +247,9 @@ class RefinementResult:
         there was nothing to refine, e.g. no depth yet: then ``refined`` is False).
     refined: True when photometric factors entered the optimisation.
     alignments: per source (order given) the :class:`AlignmentResult` (None when not aligned).
-    timings_ms: wall time of 'align', 'optimize', 'total'; 'cpu': process CPU time of the call.
+    timings_ms: wall time of 'align' (the photometric alignments), 'keypoints' (detection, matching and the keypoint
+        poses), 'optimize' (the rest: the gate, the solve, the marginals), 'total'; 'cpu': process CPU time of the
+        call.
     skipped: why this window was not refined although it could have been (the camera turns in place: see
         ``PoseRefinerConfig.max_rotation_parallax``); the poses are then the odometry-chained ones, tracking is ok.
     """
@@ -448,8 +450,10 @@ class WindowPoseRefiner:
             # a fallback, not a loss: the odometry-chained poses, and no photometric history across the turn
             self._factors = []
         kp_factors, kps = [], []
+        t_kp = time.perf_counter()
         if self.config.keypoint_factors and sources and skipped is None and reason is None:
             kp_factors, kps = self._keypoint_factors(ref, sources, init)
+        keypoints_ms = 1e3 * (time.perf_counter() - t_kp)
         factors = self._factors + aligned.new_factors
         gate = self._evidence_gate(kps, kp_factors, skipped)
         if gate != 'none':
@@ -476,8 +480,9 @@ class WindowPoseRefiner:
             T_world_ref_44=T_world_ref.copy(),
             T_src_ref=[relative_pose(poses[s.key], T_world_ref) for s in sources],
             tracking_ok=tracking_ok, reason=reason, refined=refined, alignments=aligned.alignments,
-            timings_ms={'align': 1e3 * (t_opt - t_align), 'optimize': 1e3 * (t1 - t_opt),
-                        'total': 1e3 * (t1 - t0), 'cpu': 1e3 * (time.process_time() - c0)}, skipped=skipped,
+            timings_ms={'align': 1e3 * (t_opt - t_align), 'keypoints': keypoints_ms,
+                        'optimize': 1e3 * (t1 - t_opt) - keypoints_ms, 'total': 1e3 * (t1 - t0),
+                        'cpu': 1e3 * (time.process_time() - c0)}, skipped=skipped,
             source_sigma=sigmas, gate=gate, correction=correction, keypoints=kps,
             factors=self._factor_pairs(window, factors, kp_factors) if refined else {},
             odometry=odometry_steps(window, self._odom, self._cov, self.config))

@@ -17,7 +17,11 @@ node, and writes OUT/bench.md (printed too) and OUT/bench.json:
    keyframe (causal window, 4 sources: resize, features, measurement, filter with K-Net, R-Net, output) for the
    classical model and each preset, with its stage split; peak memory of that run (growth of the process's peak
    RSS via /proc/self/clear_refs + VmHWM, and ``torch.cuda.max_memory_allocated`` on CUDA).
-3. **End to end through the node**: the node is started as its own process (``python -m dpv_sensor.ros.node``) with
+3. **The default keyframe** (``benchmarks.keyframe.run``): ``Pipeline.push`` of a keyframe at the node's defaults
+   (640x480 camera, centred window, refinement window, K-Net, readout, edge filter, output), every stage's median
+   and p95, in float32 and bfloat16 on the CPU, for each ``--backends`` entry (``inference_backend``), the variants
+   pushed the same frames in turn; ``--keyframe-keyframes`` keyframes each.
+4. **End to end through the node**: the node is started as its own process (``python -m dpv_sensor.ros.node``) with
    the preset, the device and the size as its processing size; a rendered sequence at that size is played into it
    in a loop at ``--e2e-hz`` images/s (``BagPlayer``, stamps rebased to the wall clock) for ``--e2e-seconds`` (longer
    until ``--e2e-min-outputs`` depth images arrived, at most ``--e2e-max-seconds``). Reported: depth outputs per
@@ -52,7 +56,7 @@ from dpv_sensor.client.node_process import ClientNode, node_command
 from dpv_sensor.cli import tool_argv
 
 REPO = pathlib.Path(__file__).resolve().parents[2]
-PARTS = ('nets', 'core', 'estimator', 'node')
+PARTS = ('nets', 'core', 'estimator', 'keyframe', 'node')
 CLASSICAL_PLANES = 64      # the node's default num_planes (the classical model's D)
 
 
@@ -147,6 +151,15 @@ def bench_estimator(models, sizes, device, keyframes) -> List[Dict]:
                         'rss_peak_mib': mem.rss_peak_mib, 'rss_growth_mib': mem.rss_growth_mib,
                         'cuda_peak_mib': mem.cuda_peak_mib, 'memory_method': mem.method})
     return out
+
+
+def bench_keyframe(device: str, backends: List[str], keyframes: int) -> Dict:
+    from dpv_sensor.benchmarks import keyframe as KB
+    precisions = ['float32', 'bfloat16'] if device == 'cpu' else ['auto']
+    _say(f'keyframe: node defaults on {device}, backends {",".join(backends)}, {",".join(precisions)}')
+    r = KB.run(KB.variants(backends, precisions), keyframes=keyframes, settings={'device': device})
+    r['device'] = device
+    return r
 
 
 def _node_weights(preset: str, out: pathlib.Path) -> Tuple[str, str]:
@@ -368,7 +381,7 @@ def markdown(report: Dict) -> str:
                'CUDA peak MiB']
         rows = []
         for r in est:
-            st = ', '.join(f'{k} {v:.0f}' for k, v in r['stages_ms_median'].items() if k != 'total')
+            st = ', '.join(f'{k} {v:.0f}' for k, v in r['stages_ms_median'].items() if k != 'total' and '.' not in k)
             weights = 'none' if r['model'] == 'classical' else ('random init' if 'RANDOM' in r['what'] else 'packaged')
             rows.append([r['device'], r['model'], f"{r['width']}x{r['height']}", weights,
                          _f(r['push_ms_median'], '{:.0f}'),
@@ -377,6 +390,9 @@ def markdown(report: Dict) -> str:
                                                            is not None else ''),
                          _f(r['cuda_peak_mib'], '{:.0f}')])
         lines += _table(hdr, rows) + ['']
+    for r in report.get('keyframe', []):
+        from dpv_sensor.benchmarks.keyframe import markdown as keyframe_markdown
+        lines += [f"## The default keyframe, stage by stage ({r['device']})", '', keyframe_markdown(r)]
     node = report.get('node', [])
     if node:
         lines += ['## End to end through the node', '',
@@ -444,6 +460,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--repeats', type=int, default=3, help='timed runs per stage (default 3)')
     p.add_argument('--warmup', type=int, default=1, help='untimed runs per stage (default 1)')
     p.add_argument('--keyframes', type=int, default=3, help='timed estimator keyframes per model (default 3)')
+    p.add_argument('--keyframe-keyframes', type=int, default=12,
+                   help='timed keyframes per variant of the default-keyframe part (default 12)')
+    p.add_argument('--backends', type=_csv, default=['torch'],
+                   help='inference_backend values of the default-keyframe part, comma list (default torch)')
     p.add_argument('--threads', type=int, default=None, help='torch threads (bench process and node; default torch)')
     p.add_argument('--e2e-hz', type=float, default=10.0, help='images per second into the node (default 10)')
     p.add_argument('--e2e-seconds', type=float, default=15.0, help='node run length (default 15 s)')
@@ -497,9 +517,10 @@ def _new_report(a, devices: List[str], notes: List[str]) -> Dict[str, Any]:
                     'load_before': load_before},
         'config': {'presets': a.presets, 'devices': devices, 'devices_note': '; '.join(notes),
                    'sizes': [f'{w}x{h}' for w, h in a.sizes], 'parts': a.parts, 'repeats': a.repeats,
-                   'warmup': a.warmup, 'keyframes': a.keyframes, 'e2e_hz': a.e2e_hz, 'e2e_seconds': a.e2e_seconds,
+                   'warmup': a.warmup, 'keyframes': a.keyframes, 'backends': a.backends, 'e2e_hz': a.e2e_hz,
+                   'e2e_seconds': a.e2e_seconds,
                    'e2e_min_outputs': a.e2e_min_outputs, 'threads': a.threads},
-        'nets': [], 'core': [], 'estimator': [], 'node': [], 'warnings': list(notes)}
+        'nets': [], 'core': [], 'estimator': [], 'keyframe': [], 'node': [], 'warnings': list(notes)}
 
 
 def _run_parts(a, devices: List[str], out: pathlib.Path, report: Dict[str, Any]) -> None:
@@ -511,6 +532,8 @@ def _run_parts(a, devices: List[str], out: pathlib.Path, report: Dict[str, Any])
             report['core'] += bench_core(a.presets, a.sizes, device, a.repeats)
         if 'estimator' in a.parts:
             report['estimator'] += bench_estimator(['classical'] + list(a.presets), a.sizes, device, a.keyframes)
+        if 'keyframe' in a.parts:
+            report['keyframe'].append(bench_keyframe(device, a.backends, a.keyframe_keyframes))
         if 'node' in a.parts:
             report['node'] += bench_node(a.presets, a.sizes, device, out, hz=a.e2e_hz, seconds=a.e2e_seconds,
                                          min_outputs=a.e2e_min_outputs, max_seconds=a.e2e_max_seconds,
