@@ -3,7 +3,8 @@ waits for the pose of the image before them count by how that wait ended: the ca
 (dropped.no_extrinsic, not busy), odometry that never came within odom_wait_timeout (dropped.odometry_late), odometry
 that came but with a gap around the image (dropped.busy: the odometry was not late). An image stamped ahead of the
 node's clock and the odometry by more than future_stamp_tolerance is dropped at once as dropped.future_stamp with its
-own words; one just under the tolerance is waited for as usual (odometry_timeout).
+own words; one just under the tolerance, or ahead of the clock but not of the odometry, is waited for as usual
+(odometry_timeout).
 
 Stamps are on the node's clock (the system clock): the images run a minute behind it, and the future ones are
 stamped from the clock at the moment they are sent. The client waits for the node to be waiting for a pose
@@ -136,6 +137,14 @@ def test_drops_while_waiting_count_as_the_mount_late_odometry_or_busy_and_future
         c.image(time.time_ns() + int((TOLERANCE_S - 0.3) * NS), odometry=False)
         c.wait_accounted()
         steps['under the tolerance'] = delta(c.counts(), before)
+        # ahead of the clock by more than the tolerance, but not of the odometry (its clock runs ahead too): waited
+        # for as usual
+        before = c.counts()
+        now = time.time_ns()
+        drv.send_odom(0, now + 2 * NS)
+        c.image(now + int(2.5 * NS), odometry=False)
+        c.wait_accounted()
+        steps['ahead of the clock, not of the odometry'] = delta(c.counts(), before)
         before = c.counts()
         sent = time.monotonic()
         c.image(time.time_ns() + int((TOLERANCE_S + 0.6) * NS), odometry=False)
@@ -156,6 +165,8 @@ def test_drops_while_waiting_count_as_the_mount_late_odometry_or_busy_and_future
     assert 'dropped.busy' not in late and 'dropped.future_stamp' not in late, steps
     assert steps['under the tolerance'].get('dropped.odometry_timeout') == 1, steps
     assert 'dropped.future_stamp' not in steps['under the tolerance'], steps
+    assert steps['ahead of the clock, not of the odometry'].get('dropped.odometry_timeout') == 1, steps
+    assert 'dropped.future_stamp' not in steps['ahead of the clock, not of the odometry'], steps
     assert steps['over the tolerance'].get('dropped.future_stamp') == 1, steps
     assert steps['over the tolerance'].get('faults.future_stamp') == 1, steps
     assert 'dropped.odometry_timeout' not in steps['over the tolerance'], steps
