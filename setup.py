@@ -11,6 +11,7 @@ TOOLS = {
     'evaluate': 'dpv_sensor.tools.evaluate:main',
     'fuse': 'dpv_sensor.tools.fuse:main',
     'train': 'dpv_sensor.tools.train:main',
+    'adapt': 'dpv_sensor.tools.adapt:main',
     'bag': 'dpv_sensor.tools.bag:main',
     'soak': 'dpv_sensor.tools.soak:main',
     'demo': 'dpv_sensor.tools.demo:main',

@@ -207,15 +207,16 @@ class _FolderFiles:
     extras: Dict[str, List[pathlib.Path]]
 
     @classmethod
-    def find(cls, folder: pathlib.Path) -> '_FolderFiles':
-        """Check the folder's layout and read its text files; SequenceFormatError names what is wrong."""
+    def find(cls, folder: pathlib.Path, depth: bool = True) -> '_FolderFiles':
+        """Check the folder's layout and read its text files; SequenceFormatError names what is wrong. With
+        ``depth=False`` depth/ is not looked at."""
         image_files = _image_files(folder)
         poses = read_poses(folder / 'poses.txt')
         if len(image_files) != len(poses):
             raise SequenceFormatError(
                 f'{folder}: {len(image_files)} images but {len(poses)} poses in poses.txt')
         K_33 = read_intrinsics(folder / 'K.txt')
-        depths = _depth_files(folder, image_files)
+        depths = _depth_files(folder, image_files) if depth else None
         stamps = _read_stamps(folder, len(poses))
         meta = _read_meta(folder)
         return cls(images=image_files, poses=poses, K_33=K_33, depths=depths, stamps=stamps, meta=meta,
@@ -322,7 +323,8 @@ def _read_extra(path: pathlib.Path) -> np.ndarray:
 class Sequence:
     """A posed RGB-D sequence: colour images, optional z-depth, T_world_cam poses, intrinsics, stamps.
 
-    ``Sequence(folder)`` reads a sequence folder lazily. Accessors:
+    ``Sequence(folder)`` reads a sequence folder lazily; ``Sequence(folder, depth=False)`` never looks at its depth/
+    (a sequence without depth, as a recording to adapt to is read). Accessors:
 
     - ``len(seq)``; ``seq.K`` (3x3 float64); ``seq.size`` = (W, H); ``seq.poses`` (N,4,4); ``seq.stamps`` (N,)
     - ``seq.image(i)`` -> uint8 HxWx3 RGB; ``seq.depth(i)`` -> float32 HxW metres, 0 = invalid
@@ -332,9 +334,9 @@ class Sequence:
     - ``seq.keyframe_indices(every)``, ``seq.windows(every, size=5, mode='centered'|'causal')``
     """
 
-    def __init__(self, folder: PathLike):
+    def __init__(self, folder: PathLike, depth: bool = True):
         folder = pathlib.Path(folder)
-        files = _FolderFiles.find(folder)
+        files = _FolderFiles.find(folder, depth=depth)
         self._setup(K=files.K_33, size=_image_size(files.images), poses=files.poses, stamps=files.stamps,
                     load_image=lambda i: _read_rgb(files.images[i]),
                     load_depth=None if files.depths is None else (lambda i: _read_depth_mm(files.depths[i])),
@@ -537,6 +539,13 @@ class Sequence:
             load_image=lambda i: base.image(idx[i]),
             load_depth=None if not self.has_depth else (lambda i: base.depth(idx[i])),
             meta=self.meta, extras=extras, name=self.name, folder=self.folder)
+
+    def without_depth(self) -> 'Sequence':
+        """A view without depth (asking it for depth raises): what a recording to adapt to looks like."""
+        base = self
+        return Sequence._from_loaders(K=self._K, size=self._size, poses=self._poses, stamps=self._stamps,
+                                      load_image=lambda i: base.image(i), load_depth=None, meta=self.meta,
+                                      extras={}, name=self.name, folder=self.folder)
 
     def materialize(self) -> 'Sequence':
         """Load every frame into memory (useful for a resized view of a folder that is read repeatedly)."""

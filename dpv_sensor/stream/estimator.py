@@ -202,7 +202,8 @@ class Estimator:
     def _load_network(self, path: pathlib.Path):
         """DPVNet from a checkpoint; raises CheckpointError (file missing, corrupt, other preset ...)."""
         from dpv_sensor.core.nets.checkpoint import load_checkpoint
-        model, meta = load_checkpoint(str(path), preset=self.config.preset, device=self.device)
+        model, meta = load_checkpoint(str(path), preset=self.config.preset, device=self.device,
+                                      processing_size=(self.config.processing_width, self.config.processing_height))
         self._checkpoint_meta = dict(meta or {})
         return model.to(self.device).eval()
 

@@ -235,7 +235,8 @@ def sample_from_sequence(seq, frame_ids: Seq[int], layout: WindowLayout, rng: np
 
     ``seq`` is anything with ``image(i)`` (uint8 HxWx3 RGB), ``depth(i)`` (metres), ``pose(i)``
     (4x4 T_world_cam) and ``K``; ``stamp(i)`` is used when present. With ``out_wh`` the frames are
-    scaled by ``scale`` relative to "fit the width" and randomly cropped to ``out_wh``.
+    scaled by ``scale`` relative to "fit the width" and randomly cropped to ``out_wh``. A sequence without
+    depth (``has_depth`` False) gives a sample without ``depths`` (its depth is never asked for).
     """
     frame_ids = [int(i) for i in frame_ids]
     if len(frame_ids) != layout.num_keyframes:
@@ -244,9 +245,10 @@ def sample_from_sequence(seq, frame_ids: Seq[int], layout: WindowLayout, rng: np
     imgs, deps = [], []
     K = K0
     crop = None
+    with_depth = bool(getattr(seq, 'has_depth', True))
     for i in frame_ids:
         im = np.asarray(seq.image(i))
-        de = _clean_depth(seq.depth(i))
+        de = _clean_depth(seq.depth(i)) if with_depth else np.zeros(im.shape[:2], np.float32)
         if out_wh is not None and (im.shape[1], im.shape[0]) != tuple(out_wh):
             H0, W0 = im.shape[:2]
             s = max(out_wh[0] / W0, out_wh[1] / H0) * scale
@@ -270,7 +272,7 @@ def sample_from_sequence(seq, frame_ids: Seq[int], layout: WindowLayout, rng: np
     # forward: the filter resets on time going backwards, which would cut every unrolled step of that run
     stamps = np.abs(stamps - stamps[0])
     ref_idx, src_idx = layout.indices()
-    return {
+    sample = {
         'images': torch.from_numpy(np.ascontiguousarray(images)),
         'depths': torch.from_numpy(np.stack(deps)),
         'poses': torch.from_numpy(poses.astype(np.float32)),
@@ -280,6 +282,9 @@ def sample_from_sequence(seq, frame_ids: Seq[int], layout: WindowLayout, rng: np
         'src_idx': torch.from_numpy(src_idx),
         'seed': torch.tensor(int(seed), dtype=torch.int64),
     }
+    if not with_depth:
+        del sample['depths']
+    return sample
 
 
 def draw_keyframes(rng: np.random.Generator, num_keyframes: int, gap_min: int, gap_max: int,

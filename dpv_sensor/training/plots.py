@@ -1,4 +1,5 @@
-"""The trainer's figures: the validation montage and the loss / validation curves (PNG, written atomically)."""
+"""The trainer's figures: the validation montage and the loss / validation curves, and the ``adapt`` tool's report
+(PNG, written atomically)."""
 from __future__ import annotations
 
 import os
@@ -8,7 +9,7 @@ import numpy as np
 
 from dpv_sensor.training.stream_validation import stream_metric_key
 
-__all__ = ['save_montage', 'plot_curves']
+__all__ = ['save_montage', 'plot_curves', 'save_adapt_report']
 
 
 def save_montage(examples: List[Dict], path: str, d_min: float, d_max: float, title: str = '') -> None:
@@ -106,6 +107,70 @@ def plot_curves(history: Dict, path: str, reference: Optional[Dict] = None) -> N
             ax.set_xlabel('step')
             ax.legend(fontsize=7)
             ax.grid(alpha=0.3)
+    fig.tight_layout()
+    _atomic_savefig(fig, path)
+    plt.close(fig)
+
+
+def save_adapt_report(path: str, result, gt: Optional[Dict], d_min: float, d_max: float, title: str = '') -> None:
+    """The ``adapt`` tool's PNG: the loss per step (raw and smoothed) with the held-out scores of the base and the
+    adapted weights, and per held-out example a row image | depth before | depth after | confidence before |
+    confidence after (``result``: :class:`dpv_sensor.training.adapt_loop.AdaptResult`; ``gt``: the tool's
+    ground-truth scores, quoted in the title when given)."""
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+    rows = len(result.examples)
+    fig = plt.figure(figsize=(13, 3.2 + 2.2 * rows))
+    grid = fig.add_gridspec(1 + rows, 5, height_ratios=[1.4] + [1.0] * rows)
+    ax = fig.add_subplot(grid[0, :3])
+    hist = result.history
+    if hist:
+        steps = np.array([h['step'] for h in hist])
+        for key, colour in (('loss', 'k'), ('photometric', 'tab:blue'), ('photometric_q', 'tab:orange'),
+                            ('nll', 'tab:blue')):
+            y = np.array([h.get(key, np.nan) for h in hist], np.float64)
+            if not np.isfinite(y).any():
+                continue
+            ax.plot(steps, y, color=colour, alpha=0.25, lw=0.8)
+            k = max(1, min(25, len(y) // 10))
+            if len(y) >= k:
+                ax.plot(steps[k - 1:], np.convolve(y, np.ones(k) / k, mode='valid'), color=colour, lw=1.6, label=key)
+        ax.legend(fontsize=8)
+    ax.set_xlabel('step')
+    ax.set_title('training loss', fontsize=9)
+    ax.grid(alpha=0.3)
+    ax2 = fig.add_subplot(grid[0, 3:])
+    ax2.bar(['base', 'adapted'], [result.base_score, result.adapted_score], color=['tab:gray', 'tab:green'])
+    ax2.set_title(f'held-out {result.score_kind} score (lower is better)', fontsize=9)
+    lo = min(result.base_score, result.adapted_score)
+    hi = max(result.base_score, result.adapted_score)
+    if np.isfinite(lo) and hi > 0:
+        ax2.set_ylim(max(0.0, lo - 2 * (hi - lo) - 0.02 * hi), hi + 0.5 * (hi - lo) + 0.02 * hi)
+    for r, ex in enumerate(result.examples):
+        panels = [(np.clip(ex['image'], 0, 1), None, f"held-out frame {ex['frame']}"),
+                  (ex['depth'], 'turbo', 'depth, base'), (ex['depth_adapted'], 'turbo', 'depth, adapted'),
+                  (ex['confidence'], 'viridis', 'confidence, base'),
+                  (ex['confidence_adapted'], 'viridis', 'confidence, adapted')]
+        vmax = float(np.percentile(ex['depth'], 98))
+        for c, (img, cmap, name) in enumerate(panels):
+            a = fig.add_subplot(grid[1 + r, c])
+            if cmap is None:
+                a.imshow(img)
+            elif cmap == 'turbo':
+                a.imshow(img, cmap=cmap, vmin=d_min, vmax=max(vmax, d_min + 0.1))
+            else:
+                a.imshow(img, cmap=cmap, vmin=0, vmax=1)
+            a.set_title(name, fontsize=8)
+            a.axis('off')
+    if gt:
+        nan = float('nan')
+        b, ad = gt.get('base', {}), gt.get('adapted', {})
+        title += (f"\nheld-out GT: abs_rel {b.get('abs_rel', nan):.4f} -> {ad.get('abs_rel', nan):.4f}, "
+                  f"delta1 {b.get('delta1', nan):.3f} -> {ad.get('delta1', nan):.3f}, "
+                  f"ECE {b.get('ece') or nan:.3f} -> {ad.get('ece') or nan:.3f}")
+    if title:
+        fig.suptitle(title, fontsize=9)
     fig.tight_layout()
     _atomic_savefig(fig, path)
     plt.close(fig)

@@ -46,8 +46,9 @@ def _pick(x: torch.Tensor, idx: int) -> torch.Tensor:
 def measure_steps(model, batch: Dict[str, torch.Tensor], steps: Optional[Seq[int]] = None) -> List[Dict]:
     """D-Net measurement of every unrolled step of a batch (see :mod:`.dataset` for the layout).
 
-    Returns per step a dict: logp_q (B,D,h,w), K_vol, feats, image (B,3,H,W), gt (B,H,W),
-    T_world_ref (B,4,4), stamp (float).
+    Returns per step a dict: logp_q (B,D,h,w), K_vol, feats, image (B,3,H,W), gt (B,H,W; None for a batch
+    without depths), T_world_ref (B,4,4), stamp (float), ref (keyframe index), sources (the keyframe indices used),
+    T_src_ref (B,S,4,4).
     """
     from dpv_sensor.core.nets.dnet import ImageFeatures
     images, poses, K = batch['images'], batch['poses'], batch['K']
@@ -70,8 +71,10 @@ def measure_steps(model, batch: Dict[str, torch.Tensor], steps: Optional[Seq[int
         T_src_ref = T_src_world @ T_world_ref[:, None]
         logp_q, K_vol, feats = model.measure(ref, None, K, T_src_ref, src_features=fusion[:, ss],
                                              ref_features=ImageFeatures(fusion[:, r], half[:, r]))
-        out.append(dict(logp_q=logp_q, K_vol=K_vol, feats=feats, image=ref, gt=batch['depths'][:, r],
-                        T_world_ref=T_world_ref, stamp=float(batch['stamps'][0, r])))
+        out.append(dict(logp_q=logp_q, K_vol=K_vol, feats=feats, image=ref,
+                        gt=batch['depths'][:, r] if 'depths' in batch else None,
+                        T_world_ref=T_world_ref, stamp=float(batch['stamps'][0, r]), ref=r, sources=list(ss),
+                        T_src_ref=T_src_ref))
     return out
 
 

@@ -16,7 +16,9 @@ tensor data. dpv_sensor stores its metadata as one JSON document under ``__metad
 ``safetensors.torch.load``; every failure raises :class:`CheckpointError` with a message that names
 the problem: file missing, not a safetensors file, truncated (size mismatch), not a dpv_sensor
 checkpoint, wrong preset (or a preset whose D / d_min / d_max differ), missing or unexpected
-tensors, shape mismatch, or corrupted data (checksum mismatch).
+tensors, shape mismatch, corrupted data (checksum mismatch), or weights adapted to a recording
+(``adaptation`` in the metadata, written by the ``adapt`` tool) at another processing size than the
+caller's (``processing_size``): adapted weights are fitted to the image scale they were adapted at.
 """
 from __future__ import annotations
 
@@ -207,7 +209,8 @@ def read_metadata(path) -> dict:
     return _read(path)[2]
 
 
-def load_checkpoint(path, preset: Union[None, str, Preset] = None, device='cpu', model=None):
+def load_checkpoint(path, preset: Union[None, str, Preset] = None, device='cpu', model=None,
+                    processing_size: Optional[Tuple[int, int]] = None):
     """Load a checkpoint written by :func:`save_checkpoint`.
 
     Args:
@@ -215,6 +218,8 @@ def load_checkpoint(path, preset: Union[None, str, Preset] = None, device='cpu',
         preset: the preset the caller expects (name or Preset). None: use the checkpoint's own.
         device: where to put the model.
         model: optionally an existing DPVNet to load into (its preset must match).
+        processing_size: (width, height) the caller runs the nets at; weights adapted to a recording at
+            another size are refused (None: not checked).
     Returns:
         (model in eval mode, metadata dict)
     Raises:
@@ -233,6 +238,8 @@ def load_checkpoint(path, preset: Union[None, str, Preset] = None, device='cpu',
     if preset is None and model is not None:
         preset = model.preset
     use = _check_preset(path, preset, stored, meta) if preset is not None else stored
+    if processing_size is not None:
+        _check_adapted_size(path, meta, processing_size)
     net = model if model is not None else DPVNet(use)
     _check_tensor_shapes(path, net, header)
     try:
@@ -269,6 +276,22 @@ def _check_preset(path: Path, preset: Union[str, Preset], stored: Preset, meta: 
         raise CheckpointError(f"{path}: wrong preset: preset {want.name!r} differs from the checkpoint's "
                               f'in {", ".join(diff)}')
     return want
+
+
+def _check_adapted_size(path: Path, meta: dict, processing_size) -> None:
+    """Weights adapted to a recording (metadata ``adaptation``) run at the processing size they were adapted at."""
+    adaptation = meta.get('adaptation')
+    if not isinstance(adaptation, dict):
+        return
+    try:
+        adapted = [int(v) for v in adaptation['processing_size']]
+    except (KeyError, TypeError, ValueError):
+        raise CheckpointError(f'{path}: corrupted metadata (adapted weights without a valid processing_size)') from None
+    want = [int(v) for v in processing_size]
+    if adapted != want:
+        raise CheckpointError(f'{path}: adapted to a recording at processing size {adapted[0]}x{adapted[1]}, but '
+                              f'the nets run at {want[0]}x{want[1]}: set processing_width:={adapted[0]} '
+                              f'processing_height:={adapted[1]}, or adapt again at {want[0]}x{want[1]}')
 
 
 def _check_tensor_shapes(path: Path, net, header: dict) -> None:

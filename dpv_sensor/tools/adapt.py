@@ -1,0 +1,280 @@
+"""``ros2 run dpv_sensor adapt``: fit the depth networks to your own recording, without depth labels.
+
+Examples::
+
+    # a rosbag2 of your robot (camera image or compressed image, camera_info, odometry, /tf_static: found by type)
+    adapt my_building.mcap --out adapted/
+    # a sequence folder (images/ PNG or JPEG, poses.txt, K.txt; depth/ is never read)
+    adapt DATA/my_office --out adapted/ --minutes 10
+    # then run the node with the adapted weights
+    ros2 run dpv_sensor node --ros-args -p weights:=adapted/weights.safetensors
+
+The recording is resized to the node's processing size (320x256 by default) and cut into keyframes as the node
+cuts them; its last --holdout share of frames is held out. The networks are adapted on the rest with a photometric
+reprojection loss across each keyframe window, using the recording's poses, tied to the shipped weights
+(dpv_sensor/training/adapt_loop.py; docs/adaptation.md). Both weights are then scored on the held-out slice with
+the same label-free score (photometric reprojection error of their depth); the adapted weights are written only
+when they score better. --minutes caps the whole run (the default fits a 700-image recording on a 2-core CPU).
+
+Writes to --out: weights.safetensors (only when better; with metadata: base weights and their hash, the
+recording, steps, losses, minutes, scores), report.json and report.png (loss curve and a before/after montage of
+held-out frames). --gt FOLDER (a sequence folder with depth/ whose frames are the recording's) adds abs_rel,
+delta<1.25 and ECE of the held-out slice through the node's pipeline at its defaults, before and after (not
+counted in --minutes). --supervised fine-tunes with the trainer's loss on a recording folder that has depth/.
+
+Exit status: 0 weights written; 1 not written (adapted weights scored no better, or no step fitted in --minutes;
+one line says why); 2 bad input; 130 interrupted (nothing written).
+"""
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import os
+import pathlib
+import signal
+import sys
+import time
+from typing import Dict, List, Optional
+
+from dpv_sensor import params as P
+from dpv_sensor.cli import tool_argv
+from dpv_sensor.training.adapt_loop import DEFAULT_MINUTES, AdaptConfig
+from dpv_sensor.training.config import MODULES
+
+EXIT_WRITTEN, EXIT_REFUSED, EXIT_BAD_INPUT, EXIT_INTERRUPTED = 0, 1, 2, 130
+WEIGHTS_NAME, REPORT_JSON, REPORT_PNG = 'weights.safetensors', 'report.json', 'report.png'
+
+
+def build_parser() -> argparse.ArgumentParser:
+    d = AdaptConfig()
+    p = argparse.ArgumentParser(prog='adapt', description=__doc__.split('\n\n')[0], epilog=__doc__.split('\n\n', 1)[1],
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument('source', help='the recording: a rosbag2 (folder or .mcap/.db3) or a sequence folder')
+    p.add_argument('--out', required=True, help='output folder (created)')
+    p.add_argument('--minutes', type=float, default=d.minutes,
+                   help=f'time cap of the whole run (default {DEFAULT_MINUTES:g})')
+    p.add_argument('--steps', type=int, default=0, help='stop after this many steps (0: as many as --minutes allows)')
+    p.add_argument('--weights', default='', help='weights to start from (default: the packaged weights of --preset)')
+    p.add_argument('--preset', default=P.default('preset'), choices=P.choices('preset'), help='network preset')
+    p.add_argument('--width', type=int, default=d.width, help="processing width (the node's processing_width)")
+    p.add_argument('--height', type=int, default=d.height, help="processing height (the node's processing_height)")
+    p.add_argument('--holdout', type=float, default=d.holdout, help='share of the frames held out (the last ones)')
+    p.add_argument('--gt', default='', metavar='FOLDER',
+                   help='a sequence folder with depth/ matching the recording frame for frame: adds abs_rel, '
+                        'delta<1.25 and ECE of the held-out slice before and after')
+    p.add_argument('--supervised', action='store_true',
+                   help="fine-tune with the trainer's loss on the recording's depth (a sequence folder with depth/)")
+    p.add_argument('--lr', type=float, default=d.lr, help='learning rate (AdamW)')
+    p.add_argument('--unroll', type=int, default=d.unroll, help='filter steps unrolled per sample')
+    p.add_argument('--penalty', type=float, default=d.penalty, help='weight of ||theta - theta_base||^2')
+    p.add_argument('--distill', type=float, default=d.distill, help='weight of KL(base DPV || adapted DPV)')
+    p.add_argument('--aux', type=float, default=d.aux, help="weight of the 1/4-res measurement's photometric term")
+    p.add_argument('--train-modules', nargs='+', choices=MODULES, default=list(d.train_modules), metavar='MODULE',
+                   help=f'adapt only these sub-networks ({", ".join(MODULES)}; default: all)')
+    p.add_argument('--seed', type=int, default=d.seed, help='seed of the sample order')
+    p.add_argument('--threads', type=int, default=0, help="torch CPU threads (0: torch's default)")
+    p.add_argument('--image-topic', default=None, help='bag: the image topic (needed only among several)')
+    p.add_argument('--camera-info-topic', default=None, help='bag: the camera_info topic')
+    p.add_argument('--odom-topic', default=None, help='bag: the odometry topic')
+    p.add_argument('--T-base-camera', type=float, nargs=7, default=None,
+                   metavar=('X', 'Y', 'Z', 'QX', 'QY', 'QZ', 'QW'),
+                   help='bag: the camera mount in the odometry child frame (default: /tf_static, else identity)')
+    p.add_argument('--quiet', action='store_true', help='no progress bar or log lines')
+    return p
+
+
+def _config(a) -> AdaptConfig:
+    return AdaptConfig(width=a.width, height=a.height, minutes=a.minutes, max_steps=a.steps, lr=a.lr,
+                       unroll=a.unroll, holdout=a.holdout, train_modules=tuple(a.train_modules), aux=a.aux,
+                       penalty=a.penalty, distill=a.distill, supervised=a.supervised, seed=a.seed).check()
+
+
+def _file_sha256(path) -> str:
+    h = hashlib.sha256()
+    with open(path, 'rb') as f:
+        for chunk in iter(lambda: f.read(1 << 20), b''):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def _load(a, log):
+    """(recording sequence at the processing size, in memory; its source dict)."""
+    from dpv_sensor.data.recording import is_bag, load_recording
+    size = (a.width, a.height)
+    if a.supervised:
+        from dpv_sensor.data.sequence import Sequence
+        if is_bag(a.source):
+            raise ValueError('--supervised reads depth from a sequence folder with depth/; a bag is not supported')
+        seq = Sequence(a.source)
+        if not seq.has_depth:
+            raise ValueError(f'--supervised needs depth: {a.source} has no depth/')
+        source = {'kind': 'folder', 'path': str(pathlib.Path(a.source).resolve()), 'name': pathlib.Path(a.source).name,
+                  'frames': len(seq), 'native_size': list(seq.size), 'depth_read': True}
+        seq = seq.resized(*size)
+    else:
+        rec = load_recording(a.source, size=size, image_topic=a.image_topic, camera_info_topic=a.camera_info_topic,
+                             odom_topic=a.odom_topic, T_base_camera=a.T_base_camera)
+        seq, source = rec.sequence, rec.source
+        if source['kind'] == 'bag':
+            log(f"bag topics: {source['topics_chosen']}; camera mount: {source['camera_mount']}")
+    return seq.materialize(), source
+
+
+def _gt_sequence(gt_folder: str, frames: int):
+    """The --gt folder, checked before any work: a sequence folder with depth/ and the recording's frame count."""
+    from dpv_sensor.data.sequence import Sequence
+    gt = Sequence(gt_folder)
+    if not gt.has_depth:
+        raise ValueError(f'--gt {gt_folder} has no depth/')
+    if len(gt) != frames:
+        raise ValueError(f'--gt {gt_folder} has {len(gt)} frames, the recording {frames}: they must match frame for '
+                         'frame')
+    return gt
+
+
+def _gt_scores(gt, split: int, models: Dict, cfg: AdaptConfig, log) -> Dict:
+    """abs_rel, delta1 and ECE of the held-out frames of the --gt sequence through the pipeline at the node's
+    defaults (GT poses), per model."""
+    from dpv_sensor.evaluation.offline import EvalOptions, evaluate_sequence
+    held = gt.subset(range(split, len(gt)))
+    overrides = {'processing_width': cfg.width, 'processing_height': cfg.height}
+    out = {}
+    for name, model in models.items():
+        t0 = time.time()
+        s = evaluate_sequence(held, overrides, options=EvalOptions(progress=False, consumer_odometry=False),
+                              model=model)
+        fm = s['metric']['frame_mean']
+        cal = s.get('calibration') or {}
+        kept = (cal.get('kept') or {}).get('0.9') or {}
+        out[name] = {'abs_rel': fm['abs_rel'], 'delta1': fm['delta1'], 'ece': cal.get('ece'),
+                     'mean_confidence': cal.get('mean_confidence'), 'kept_0.9': kept.get('share'),
+                     'delta1_0.9': kept.get('delta1'), 'keyframes': s['num_keyframes'],
+                     'seconds': round(time.time() - t0, 1)}
+        log(f"GT on the held-out slice, {name}: abs_rel {fm['abs_rel']:.4f}, delta1 {fm['delta1']:.3f}, "
+            f"ECE {cal.get('ece', float('nan')):.3f}")
+    return {'folder': str(pathlib.Path(gt.folder).resolve()), 'frames': [split, len(gt)],
+            'how': 'the pipeline at the node defaults, GT poses, the held-out frames', **out}
+
+
+def _atomic_json(path: pathlib.Path, data: Dict) -> None:
+    from dpv_sensor.common import to_jsonable
+    tmp = path.with_name(f'.{path.name}.tmp-{os.getpid()}')
+    try:
+        tmp.write_text(json.dumps(to_jsonable(data), indent=1, allow_nan=True))
+        os.replace(tmp, path)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+
+
+def _metadata(a, cfg: AdaptConfig, base_path: pathlib.Path, base_meta: Dict, source: Dict, result, minutes: float,
+              gt: Optional[Dict], argv: List[str]) -> Dict:
+    from dpv_sensor.training.adapt_loop import LOSS_DESCRIPTION
+    base_steps = int(base_meta.get('steps') or 0)
+    adaptation = {
+        'base_weights': {'file': str(base_path), 'sha256': _file_sha256(base_path),
+                         'tensors_sha256': base_meta.get('tensors_sha256'), 'steps': base_steps},
+        'recording': {**source, 'keyframes': result.keyframes},
+        'processing_size': [cfg.width, cfg.height],
+        'steps': result.steps, 'minutes': round(minutes, 2), 'stop_reason': result.stop_reason,
+        'loss': "the trainer's loss on the recording's depth" if cfg.supervised else LOSS_DESCRIPTION,
+        'config': cfg.to_json(),
+        'held_out': {'score': result.score_kind, 'base': result.base_score, 'adapted': result.adapted_score},
+        'ground_truth': gt,
+        'command': ' '.join(['adapt'] + argv),
+    }
+    return {'adaptation': adaptation, 'steps': base_steps + result.steps, 'input_size': [cfg.width, cfg.height],
+            'training_data': {'base': base_meta.get('training_data'), 'adapted_on': source.get('name')},
+            'validation_metrics': adaptation['held_out'], 'loss': adaptation['loss']}
+
+
+def _sigterm(signum, frame):
+    raise KeyboardInterrupt(f'signal {signum}')
+
+
+def run(a, argv: List[str], log) -> int:
+    import torch
+
+    from dpv_sensor.core.nets.checkpoint import default_weights_path, load_checkpoint, save_checkpoint
+    from dpv_sensor.training.adapt_loop import Adapter
+    from dpv_sensor.training.plots import save_adapt_report
+    t0 = time.time()
+    cfg = _config(a)
+    deadline = t0 + cfg.minutes * 60.0
+    if a.threads:
+        torch.set_num_threads(a.threads)
+    out = pathlib.Path(a.out)
+    out.mkdir(parents=True, exist_ok=True)
+    base_path = pathlib.Path(a.weights) if a.weights else default_weights_path(a.preset)
+    model, base_meta = load_checkpoint(base_path, preset=a.preset)
+    seq, source = _load(a, log)
+    gt_seq = _gt_sequence(a.gt, len(seq)) if a.gt else None
+    log(f'{source["name"]}: {len(seq)} frames at {cfg.width}x{cfg.height} ({time.time() - t0:.0f} s to load)')
+    adapter = Adapter(cfg, model, seq, log=log)
+    log(f'keyframes: {len(adapter.train_kf)} to adapt on, {len(adapter.held_kf)} held out (frames {adapter.split}..'
+        f'{len(seq) - 1})')
+    result = adapter.run(deadline, progress=not a.quiet)
+    minutes = (time.time() - t0) / 60.0
+    gt = None
+    if gt_seq is not None:
+        base_model, _ = load_checkpoint(base_path, preset=a.preset)
+        gt = _gt_scores(gt_seq, adapter.split, {'base': base_model, 'adapted': model.eval()}, cfg, log)
+    report = {'source': source, 'config': cfg.to_json(), 'base_weights': str(base_path), 'steps': result.steps,
+              'stop_reason': result.stop_reason, 'minutes': round(minutes, 2), 'seconds': result.seconds,
+              'held_out': {'score': result.score_kind, 'base': result.base_score, 'adapted': result.adapted_score,
+                           'keyframes': result.keyframes},
+              'ground_truth': gt, 'history': result.history}
+    if result.steps == 0:
+        reason = f'no adaptation step fitted in --minutes {cfg.minutes:g}'
+    elif not result.improved:
+        reason = (f'the adapted weights scored no better on the held-out slice ({result.score_kind} '
+                  f'{result.adapted_score:.5f} against {result.base_score:.5f} for the base weights)')
+    else:
+        reason = ''
+    report['written'] = not reason
+    report['refused'] = reason or None
+    if not reason:
+        meta = _metadata(a, cfg, base_path, base_meta, source, result, minutes, gt, argv)
+        save_checkpoint(out / WEIGHTS_NAME, model, meta)            # atomic: temp file + rename
+        report['weights'] = str(out / WEIGHTS_NAME)
+    _atomic_json(out / REPORT_JSON, report)
+    save_adapt_report(str(out / REPORT_PNG), result, gt, model.d_min, model.d_max,
+                      title=f'{source["name"]}: {result.steps} steps, {minutes:.1f} min')
+    print(f'adapt: {result.steps} steps in {minutes:.1f} min (limit {cfg.minutes:g}); held-out {result.score_kind} '
+          f'{result.base_score:.5f} -> {result.adapted_score:.5f}', flush=True)
+    if reason:
+        print(f'adapt: weights not written: {reason}', file=sys.stderr, flush=True)
+        return EXIT_REFUSED
+    print(f'adapt: wrote {out / WEIGHTS_NAME}; run the node with -p weights:={out / WEIGHTS_NAME}', flush=True)
+    return EXIT_WRITTEN
+
+
+def main(argv: Optional[List[str]] = None) -> int:
+    argv = tool_argv(argv)
+    a = build_parser().parse_args(argv)
+
+    def log(msg: str) -> None:
+        if not a.quiet:
+            print(f'[adapt {time.strftime("%H:%M:%S")}] {msg}', flush=True)
+
+    previous = signal.signal(signal.SIGTERM, _sigterm)
+    try:
+        return run(a, argv, log)
+    except KeyboardInterrupt:
+        print('adapt: interrupted; no weights written', file=sys.stderr, flush=True)
+        return EXIT_INTERRUPTED
+    except (ValueError, OSError) as e:
+        print(f'adapt: {e}', file=sys.stderr, flush=True)
+        return EXIT_BAD_INPUT
+    except Exception as e:
+        if type(e).__name__ in ('BagError', 'SequenceFormatError', 'CheckpointError'):
+            print(f'adapt: {e}', file=sys.stderr, flush=True)
+            return EXIT_BAD_INPUT
+        raise
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+if __name__ == '__main__':
+    sys.exit(main())

@@ -1,0 +1,351 @@
+"""Adapting the networks to one recording without depth labels: the loop behind the ``adapt`` tool.
+
+The recording (images, intrinsics, camera poses; :mod:`dpv_sensor.data.recording`) is resized to the node's
+processing size and cut into keyframes with the node's own keyframe rule (:class:`~dpv_sensor.stream.keyframes.
+KeyframeSelector` at its defaults). The last ``holdout`` share of its frames is held out; training samples are runs
+of ``unroll + window - 1`` consecutive keyframes from the rest (played forwards or backwards), laid out in five-frame
+windows as the trainer lays them (:func:`dpv_sensor.training.dataset.sample_from_sequence`), and go through the
+trainer's unrolled stream (:func:`dpv_sensor.training.unrolled.measure_steps` and ``filter_steps``: D-Net, the K-Net
+filter, R-Net). Each unrolled step's depth warps the window's sources into the reference
+(:mod:`.self_supervised`); the loss per batch is::
+
+    L = mean_j photo(R-Net output_j)  +  aux * mean_j photo(D-Net 1/4-res measurement_j)
+        + penalty * ||theta - theta_base||^2  +  distill * KL(p_base || p)
+
+``photo`` is the auto-masked photometric reprojection error (SSIM + L1, per-pixel minimum over the sources). With
+``supervised`` the loss is the trainer's instead (:func:`dpv_sensor.training.unrolled.run_unrolled`: NLL of the
+recording's depth), and the depth is read.
+
+**Held-out score**: the mean photometric reprojection error (no auto-mask) of the R-Net output over every held-out
+run, base and adapted weights scored on exactly the same runs (with ``supervised``: the NLL of the held-out depth).
+The adapted weights are kept only when their score is lower; :class:`AdaptResult` says which.
+
+**Time**: ``minutes`` caps the whole run (loading, both held-out scores, training): training stops when the
+time left would not cover one more step and the adapted weights' held-out score (timed on the base weights).
+Everything is seeded (``seed``): the same recording and settings give the same weights, bit for bit, when the run
+is cut by ``max_steps`` rather than by the clock.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from typing import Callable, Dict, List, Optional, Sequence as Seq, Tuple
+
+import numpy as np
+import torch
+
+from dpv_sensor import params as P
+from dpv_sensor.core import dpv as dpvops
+from dpv_sensor.training.config import MODULES
+from dpv_sensor.training.dataset import WindowLayout, sample_from_sequence
+from dpv_sensor.training.self_supervised import (distillation, downsample_image, masked_mean, parameter_penalty,
+                                                 reprojection_error)
+from dpv_sensor.training.unrolled import filter_steps, measure_steps, run_unrolled
+
+__all__ = ['AdaptConfig', 'AdaptResult', 'Adapter', 'select_keyframes', 'DEFAULT_MINUTES', 'LOSS_DESCRIPTION']
+
+# The default time cap of a whole run: a 700-image 640x480 recording at the 320x256 processing size fits the
+# 20 minutes of a 2-core CPU with this (loading and resizing, two held-out scores, the report).
+DEFAULT_MINUTES = 18.0
+
+LOSS_DESCRIPTION = ('mean over the unrolled knet-filter steps of the auto-masked photometric reprojection error '
+                    "(0.85 SSIM + 0.15 L1, per-pixel minimum over the window's sources) of the R-Net output's depth, "
+                    '+ aux x the same for the D-Net 1/4-res measurement, + penalty x ||theta - theta_base||^2, '
+                    '+ distill x KL(base DPV || adapted DPV)')
+
+
+@dataclasses.dataclass
+class AdaptConfig:
+    """Settings of one adaptation run (stored in the adapted weights' metadata)."""
+    width: int = P.default('processing_width')     # the node's processing size: what the nets will see
+    height: int = P.default('processing_height')
+    minutes: float = DEFAULT_MINUTES                # the whole run's time cap
+    max_steps: int = 0                              # 0: as many as ``minutes`` allows
+    lr: float = 1e-4
+    warmup: int = 10
+    clip: float = 1.0
+    batch_size: int = 1
+    unroll: int = 2                                 # filter steps per sample
+    window: int = P.default('window_size')
+    ref_position: str = 'center'                    # the node's default window (window_mode: centered)
+    holdout: float = 0.2                            # share of the frames held out (the last ones)
+    max_holdout_runs: int = 16                      # held-out runs scored (evenly spread over the slice)
+    train_modules: Tuple[str, ...] = ()             # sub-networks adapted (see training.config.MODULES); () = all
+    aux: float = 0.5                                # weight of the 1/4-res measurement's photometric term
+    penalty: float = 1.0                            # L2-SP weight
+    distill: float = 0.0                            # weight of KL(base DPV || adapted DPV) (a second forward)
+    readout: str = 'mean'                           # the depth the photometric loss warps with
+    automask: bool = True
+    supervised: bool = False                        # the trainer's NLL on the recording's depth instead
+    seed: int = 0
+
+    def check(self) -> 'AdaptConfig':
+        if self.width % 4 or self.height % 4 or min(self.width, self.height) < 32:
+            raise ValueError(f'processing size must be multiples of 4 and >= 32, got {self.width}x{self.height}')
+        if not 0.05 <= self.holdout <= 0.5:
+            raise ValueError(f'holdout must lie in [0.05, 0.5], got {self.holdout}')
+        if self.minutes <= 0 or self.lr <= 0 or self.unroll < 1 or self.batch_size < 1 or self.max_steps < 0:
+            raise ValueError('minutes and lr must be > 0, unroll and batch_size >= 1, max_steps >= 0')
+        unknown = set(self.train_modules) - set(MODULES)
+        if unknown:
+            raise ValueError(f'train_modules: unknown {sorted(unknown)}; choose from {MODULES}')
+        if self.readout not in dpvops.READOUTS:
+            raise ValueError(f'readout must be one of {dpvops.READOUTS}, got {self.readout!r}')
+        if min(self.aux, self.penalty, self.distill) < 0:
+            raise ValueError('aux, penalty and distill must be >= 0')
+        return self
+
+    def layout(self) -> WindowLayout:
+        return WindowLayout(steps=self.unroll, window=self.window, ref_position=self.ref_position)
+
+    def trains(self, module: str) -> bool:
+        return not self.train_modules or module in self.train_modules
+
+    def to_json(self) -> Dict:
+        d = dataclasses.asdict(self)
+        d['train_modules'] = list(self.train_modules)
+        return d
+
+
+@dataclasses.dataclass
+class AdaptResult:
+    """What a run did: steps, the held-out scores (lower is better), why it stopped, its time, the training history
+    and a few held-out examples (image, depth and confidence before and after) for the report."""
+    steps: int
+    base_score: float
+    adapted_score: float
+    score_kind: str
+    stop_reason: str
+    seconds: Dict[str, float]
+    history: List[Dict]
+    keyframes: Dict[str, int]
+    examples: List[Dict]
+
+    @property
+    def improved(self) -> bool:
+        return self.steps > 0 and math.isfinite(self.adapted_score) and self.adapted_score < self.base_score
+
+
+def select_keyframes(poses: Seq[np.ndarray]) -> List[int]:
+    """Frame indices the node's keyframe rule picks along ``poses`` (its defaults: baseline, rotation, interval)."""
+    from dpv_sensor.stream.keyframes import KeyframeSelector
+    sel = KeyframeSelector(translation=P.default('keyframe_translation'),
+                           rotation_deg=P.default('keyframe_rotation_deg'),
+                           max_interval=P.default('keyframe_max_interval'))
+    return [i for i, T in enumerate(poses) if sel.decide(np.asarray(T, np.float64)).is_keyframe]
+
+
+def _collate(samples: List[Dict[str, torch.Tensor]]) -> Dict[str, torch.Tensor]:
+    return {k: torch.stack([s[k] for s in samples]) for k in samples[0]}
+
+
+class Adapter:
+    """One adaptation run of ``model`` (a DPVNet, adapted in place) on ``sequence`` (resized to the processing size;
+    see the module docstring)."""
+
+    def __init__(self, cfg: AdaptConfig, model, sequence, log: Optional[Callable[[str], None]] = None):
+        self.cfg = cfg.check()
+        self.log = log or (lambda _m: None)
+        self.model = model
+        self.seq = sequence
+        self.depths_d = model.depth_planes(torch.float32)
+        self.base = {k: v.detach().clone() for k, v in model.named_parameters()}
+        self.base_model = None
+        if cfg.distill > 0:
+            import copy
+            self.base_model = copy.deepcopy(model).eval().requires_grad_(False)
+        frames = len(sequence)
+        self.split = int(round(frames * (1.0 - cfg.holdout)))
+        kfs = select_keyframes([sequence.pose(i) for i in range(frames)])
+        self.train_kf = [k for k in kfs if k < self.split]
+        self.held_kf = [k for k in kfs if k >= self.split]
+        M = cfg.layout().num_keyframes
+        for name, kf in (('training part', self.train_kf), ('held-out slice', self.held_kf)):
+            if len(kf) < M:
+                raise ValueError(f'the recording is too short: its {name} has {len(kf)} keyframes (the node picks one '
+                                 f'every {P.default("keyframe_translation")} m, {P.default("keyframe_rotation_deg")} '
+                                 f'deg or {P.default("keyframe_max_interval")} frames), {M} are needed')
+        starts = list(range(0, len(self.held_kf) - M + 1, cfg.unroll))
+        if len(starts) > cfg.max_holdout_runs:
+            starts = [starts[int(i)] for i in np.linspace(0, len(starts) - 1, cfg.max_holdout_runs).round()]
+        self.held_runs = [self.held_kf[s:s + M] for s in starts]
+        for name, child in model.named_children():
+            child.requires_grad_(cfg.trains(name))
+        self.measure_grad = cfg.trains('features') or cfg.trains('cost_volume')
+        params = [p for p in model.parameters() if p.requires_grad]
+        self.optimizer = torch.optim.AdamW(params, lr=cfg.lr, weight_decay=0.0)
+
+    # ------------------------------------------------------------------ data
+    def _sample(self, ids: Seq[int], rng: np.random.Generator) -> Dict[str, torch.Tensor]:
+        return sample_from_sequence(self.seq, ids, self.cfg.layout(), rng, augment=None)
+
+    def training_batch(self, rng: np.random.Generator) -> Dict[str, torch.Tensor]:
+        M = self.cfg.layout().num_keyframes
+        out = []
+        for _ in range(self.cfg.batch_size):
+            s = int(rng.integers(0, len(self.train_kf) - M + 1))
+            ids = self.train_kf[s:s + M]
+            if rng.random() < 0.5:          # played backwards: another trajectory through the same place
+                ids = ids[::-1]
+            out.append(self._sample(ids, rng))
+        return _collate(out)
+
+    # ------------------------------------------------------------------ losses
+    def _photometric(self, batch, meas, res, automask: bool) -> Tuple[List[torch.Tensor], List[torch.Tensor]]:
+        """Per unrolled step: the R-Net output's and the measurement's masked photometric errors."""
+        cfg = self.cfg
+        full, quarter = [], []
+        K = batch['K']
+        for m, r in zip(meas, res):
+            srcs = batch['images'][:, m['sources']]
+            depth = dpvops.depth_estimate(r['logp_full'].float(), self.depths_d, cfg.readout)
+            err, mask = reprojection_error(m['image'], srcs, depth, K, m['T_src_ref'], automask=automask)
+            full.append(masked_mean(err, mask))
+            if cfg.aux > 0 and self.measure_grad and torch.is_grad_enabled():
+                dq = dpvops.depth_estimate(m['logp_q'].float(), self.depths_d, cfg.readout)
+                B, S = srcs.shape[:2]
+                srcs_q = downsample_image(srcs.reshape(B * S, *srcs.shape[2:]))
+                eq, mq = reprojection_error(downsample_image(m['image']), srcs_q.reshape(B, S, *srcs_q.shape[1:]),
+                                            dq, m['K_vol'], m['T_src_ref'], automask=automask)
+                quarter.append(masked_mean(eq, mq))
+        return full, quarter
+
+    def loss(self, batch) -> Tuple[torch.Tensor, Dict[str, float]]:
+        """The loss of one batch (see the module docstring) and its terms."""
+        cfg = self.cfg
+        if cfg.supervised:
+            loss, stats = run_unrolled(self.model, batch, self.depths_d, cfg.aux, measure_grad=self.measure_grad)
+            stats = {'loss': stats['loss'], 'nll': stats['nll_full']}
+        else:
+            with torch.set_grad_enabled(self.measure_grad):
+                meas = measure_steps(self.model, batch)
+            res = filter_steps(self.model, meas, self.depths_d, 'knet')
+            full, quarter = self._photometric(batch, meas, res, cfg.automask)
+            loss = torch.stack(full).mean()
+            stats = {'photometric': float(loss.detach())}
+            if quarter:
+                q = torch.stack(quarter).mean()
+                loss = loss + cfg.aux * q
+                stats['photometric_q'] = float(q.detach())
+            if self.base_model is not None:
+                with torch.no_grad():
+                    bmeas = measure_steps(self.base_model, batch)
+                    bres = filter_steps(self.base_model, bmeas, self.depths_d, 'knet')
+                kl = torch.stack([distillation(r['logp_full'].float(), b['logp_full'].float())
+                                  for r, b in zip(res, bres)]).mean()
+                loss = loss + cfg.distill * kl
+                stats['distill'] = float(kl.detach())
+        if cfg.penalty > 0:
+            pen = parameter_penalty(self.model.named_parameters(), self.base)
+            loss = loss + cfg.penalty * pen
+            stats['penalty'] = float(pen.detach())
+        stats['loss'] = float(loss.detach())
+        return loss, stats
+
+    # ------------------------------------------------------------------ held-out score
+    @torch.no_grad()
+    def score(self, examples: int = 0) -> Tuple[float, List[Dict]]:
+        """The held-out score of the model as it is now (see the module docstring), and ``examples`` of its outputs
+        (the last unrolled step of evenly spread held-out runs: image, depth and confidence at the node's readout)."""
+        cfg = self.cfg
+        was = self.model.training
+        self.model.eval()
+        rng = np.random.default_rng(0)
+        num, den = 0.0, 0.0
+        pick = set(np.linspace(0, len(self.held_runs) - 1, examples).round().astype(int).tolist()) if examples \
+            else set()
+        out = []
+        readout = dpvops.resolve_readout(P.default('depth_readout'), learned=True)
+        try:
+            for i, ids in enumerate(self.held_runs):
+                batch = self._sample(ids, rng)
+                batch = _collate([batch])
+                meas = measure_steps(self.model, batch)
+                res = filter_steps(self.model, meas, self.depths_d, 'knet')
+                if cfg.supervised:
+                    for m, r in zip(meas, res):
+                        valid = dpvops.valid_depth_mask(m['gt'], self.model.d_min, self.model.d_max)
+                        nll = dpvops.nll(r['logp_full'].float(), self.depths_d, m['gt'])
+                        n = float(valid.sum())
+                        num += float(nll) * n
+                        den += n
+                else:
+                    for m, r in zip(meas, res):
+                        depth = dpvops.depth_estimate(r['logp_full'].float(), self.depths_d, cfg.readout)
+                        srcs = batch['images'][:, m['sources']]
+                        err, mask = reprojection_error(m['image'], srcs, depth, batch['K'], m['T_src_ref'],
+                                                       automask=False)
+                        num += float((err * mask).sum())
+                        den += float(mask.sum())
+                if i in pick:
+                    logp = res[-1]['logp_full'].float()
+                    d = dpvops.depth_estimate(logp, self.depths_d, readout)
+                    c = dpvops.confidence(logp, self.depths_d, readout, depth_bhw=d)
+                    out.append({'frame': int(ids[meas[-1]['ref']]),
+                                'image': meas[-1]['image'][0].permute(1, 2, 0).numpy(),
+                                'depth': d[0].numpy(), 'confidence': c[0].numpy()})
+        finally:
+            self.model.train(was)
+        return (num / den if den > 0 else float('nan')), out
+
+    # ------------------------------------------------------------------ the run
+    def run(self, deadline: float, progress: bool = True, examples: int = 3,
+            on_step: Optional[Callable[[int, Dict], None]] = None) -> AdaptResult:
+        """Score the base weights, adapt until ``max_steps`` or the ``deadline`` (a ``time.time()`` value) leaves
+        no room for one more step and the final score, score the adapted weights. KeyboardInterrupt propagates."""
+        from tqdm import tqdm
+        cfg = self.cfg
+        torch.manual_seed(cfg.seed)
+        rng = np.random.default_rng(cfg.seed)
+        seconds: Dict[str, float] = {}
+        t0 = time.time()
+        base_score, base_examples = self.score(examples)
+        seconds['base_score'] = time.time() - t0
+        self.log(f'held-out score of the base weights: {base_score:.5f} ({len(self.held_runs)} runs, '
+                 f'{seconds["base_score"]:.0f} s)')
+        history: List[Dict] = []
+        step, step_s, stop = 0, 0.0, 'max_steps'
+        bar = tqdm(total=cfg.max_steps or None, disable=not progress, desc='adapt', unit='step', dynamic_ncols=True)
+        t_train = time.time()
+        self.model.train()
+        try:
+            while not cfg.max_steps or step < cfg.max_steps:
+                if time.time() + step_s * 1.2 + seconds['base_score'] * 1.1 + 5.0 > deadline:
+                    stop = 'minutes'
+                    break
+                ts = time.time()
+                lr = cfg.lr * min(1.0, (step + 1) / max(1, cfg.warmup))
+                for g in self.optimizer.param_groups:
+                    g['lr'] = lr
+                batch = self.training_batch(rng)
+                loss, stats = self.loss(batch)
+                self.optimizer.zero_grad(set_to_none=True)
+                loss.backward()
+                gnorm = torch.nn.utils.clip_grad_norm_([p for p in self.model.parameters() if p.requires_grad],
+                                                       cfg.clip)
+                if torch.isfinite(gnorm):
+                    self.optimizer.step()
+                step += 1
+                dt = time.time() - ts
+                step_s = dt if step == 1 else 0.8 * step_s + 0.2 * dt
+                stats.update(step=step, lr=lr, grad_norm=float(gnorm), seconds=dt)
+                history.append(stats)
+                bar.update(1)
+                bar.set_postfix(loss=f"{stats['loss']:.4f}")
+                if on_step is not None:
+                    on_step(step, stats)
+        finally:
+            bar.close()
+        seconds['train'] = time.time() - t_train
+        t1 = time.time()
+        adapted_score, adapted_examples = self.score(examples) if step else (base_score, base_examples)
+        seconds['adapted_score'] = time.time() - t1
+        self.log(f'held-out score after {step} steps: {adapted_score:.5f} (base {base_score:.5f})')
+        ex = [{**b, 'depth_adapted': a['depth'], 'confidence_adapted': a['confidence']}
+              for b, a in zip(base_examples, adapted_examples)]
+        return AdaptResult(steps=step, base_score=float(base_score), adapted_score=float(adapted_score),
+                           score_kind='nll' if cfg.supervised else 'photometric', stop_reason=stop, seconds=seconds,
+                           history=history, examples=ex,
+                           keyframes={'training': len(self.train_kf), 'held_out': len(self.held_kf),
+                                      'held_out_runs': len(self.held_runs), 'split_frame': self.split})

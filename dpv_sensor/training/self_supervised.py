@@ -1,0 +1,174 @@
+"""Label-free losses for adapting the networks to a recording: photometric reprojection across the window with
+the recording's poses, and the ties that keep the adapted weights near the shipped ones.
+
+Photometric reprojection (Monodepth2's form, Godard et al. 2019, on the DPV's depth): the reference depth ``d``
+read out of a DPV warps every source image of the window into the reference view
+(:func:`dpv_sensor.core.geometry.warp_image_with_depth`), and each warped image is compared with the reference::
+
+    pe(a, b) = alpha * (1 - SSIM(a, b)) / 2 + (1 - alpha) * |a - b|        (mean over the colour channels)
+    e(u)     = min over sources s of pe(I_ref, warp(I_s; d, T_s_ref))(u)   (sources u falls outside are skipped)
+
+The per-pixel minimum over the sources keeps a pixel that is occluded or out of view in one source from being
+pushed to a wrong depth by that source. **Auto-masking**: a pixel counts only where the best warped error is
+below the best error of the sources left *unwarped* (``min_s pe(I_ref, I_s)``): pixels that do not change
+between the views (a static camera, texture-free surfaces, objects moving with the camera) say nothing about
+depth and are left out.
+
+Ties to the base weights, so that what the renderer taught (e.g. about texture-free walls, where the photometric
+error is flat) survives the adaptation:
+
+- :func:`parameter_penalty` (L2-SP): ``sum (theta - theta_base)^2`` over the adapted parameters;
+- :func:`distillation`: ``KL(p_base || p)`` of the base network's DPV and the adapted one's, per pixel, mean.
+
+The adapt loop (:mod:`.adapt_loop`) scores weights on a held-out slice with :func:`reprojection_error` without the
+auto-mask: every pixel that reaches a source counts, whichever the weights.
+"""
+from __future__ import annotations
+
+from typing import Dict, Iterable, Optional, Tuple
+
+import torch
+import torch.nn.functional as F
+
+from dpv_sensor.core import geometry
+
+__all__ = ['SSIM_ALPHA', 'ssim_dissimilarity', 'photometric_error', 'reprojection_error', 'masked_mean',
+           'parameter_penalty', 'distillation', 'downsample_image']
+
+SSIM_ALPHA = 0.85           # weight of the SSIM term (Monodepth2's)
+_C1, _C2 = 0.01 ** 2, 0.03 ** 2
+_FAR = 1e3                  # error given to a source a pixel does not reach (never the minimum when one does)
+
+
+def ssim_dissimilarity(a_bchw: torch.Tensor, b_bchw: torch.Tensor) -> torch.Tensor:
+    """``(1 - SSIM) / 2`` per pixel and channel over 3x3 windows (reflection padding), clamped to [0, 1]."""
+    a = F.pad(a_bchw, (1, 1, 1, 1), mode='reflect')
+    b = F.pad(b_bchw, (1, 1, 1, 1), mode='reflect')
+    mu_a, mu_b = F.avg_pool2d(a, 3, 1), F.avg_pool2d(b, 3, 1)
+    var_a = F.avg_pool2d(a * a, 3, 1) - mu_a ** 2
+    var_b = F.avg_pool2d(b * b, 3, 1) - mu_b ** 2
+    cov = F.avg_pool2d(a * b, 3, 1) - mu_a * mu_b
+    num = (2 * mu_a * mu_b + _C1) * (2 * cov + _C2)
+    den = (mu_a ** 2 + mu_b ** 2 + _C1) * (var_a + var_b + _C2)
+    return torch.clamp((1 - num / den) / 2, 0.0, 1.0)
+
+
+def photometric_error(a_b3hw: torch.Tensor, b_b3hw: torch.Tensor, alpha: float = SSIM_ALPHA) -> torch.Tensor:
+    """``alpha * (1 - SSIM) / 2 + (1 - alpha) * L1``, mean over channels: (B, H, W)."""
+    l1 = (a_b3hw - b_b3hw).abs().mean(1)
+    if alpha <= 0:
+        return l1
+    return alpha * ssim_dissimilarity(a_b3hw, b_b3hw).mean(1) + (1 - alpha) * l1
+
+
+def reprojection_error(ref_b3hw: torch.Tensor, srcs_bn3hw: torch.Tensor, depth_bhw: torch.Tensor,
+                       K_b33: torch.Tensor, T_src_ref_bn44: torch.Tensor, automask: bool = True
+                       ) -> Tuple[torch.Tensor, torch.Tensor]:
+    """Per-pixel photometric reprojection error of ``depth_bhw`` and the pixels it counts on.
+
+    ref_b3hw: (B, 3, H, W) reference image; srcs_bn3hw: (B, N, 3, H, W) the window's sources (same K);
+    depth_bhw: (B, H, W) reference depth (metres; differentiable); T_src_ref_bn44: reference -> source.
+    Returns (error (B, H, W): the minimum over the sources a pixel reaches, mask (B, H, W) bool: the pixel reaches
+    a source and, with ``automask``, its warped error is below the unwarped one; see the module docstring).
+    """
+    B, N = srcs_bn3hw.shape[:2]
+    errs, ident = [], []
+    for s in range(N):
+        src = srcs_bn3hw[:, s]
+        warped, valid = geometry.warp_image_with_depth(src, depth_bhw, K_b33, K_b33, T_src_ref_bn44[:, s])
+        e = photometric_error(ref_b3hw, warped)
+        errs.append(torch.where(valid, e, torch.full_like(e, _FAR)))
+        if automask:
+            with torch.no_grad():
+                ident.append(photometric_error(ref_b3hw, src))
+    err, _ = torch.stack(errs, 1).min(1)
+    mask = err < _FAR
+    if automask:
+        identity, _ = torch.stack(ident, 1).min(1)
+        mask = mask & (err.detach() < identity)
+    return err, mask
+
+
+def plane_errors(ref_b3hw: torch.Tensor, srcs_bn3hw: torch.Tensor, K_b33: torch.Tensor,
+                 T_src_ref_bn44: torch.Tensor, depths_d: torch.Tensor) -> torch.Tensor:
+    """Photometric error of every (source, plane, pixel) of a plane sweep: (B, N, D, H, W), ``_FAR`` where the
+    plane's point falls outside the source. No gradient (a target, not a prediction)."""
+    B, N = srcs_bn3hw.shape[:2]
+    D = int(depths_d.shape[-1])
+    H, W = ref_b3hw.shape[-2:]
+    out = []
+    with torch.no_grad():
+        ref = ref_b3hw[:, :, None].expand(B, 3, D, H, W).transpose(1, 2).reshape(B * D, 3, H, W)
+        for s in range(N):
+            warped, valid = geometry.plane_sweep_warp(srcs_bn3hw[:, s], K_b33, K_b33, T_src_ref_bn44[:, s], depths_d)
+            e = photometric_error(ref, warped.transpose(1, 2).reshape(B * D, 3, H, W)).reshape(B, D, H, W)
+            out.append(torch.where(valid, e, torch.full_like(e, _FAR)))
+    return torch.stack(out, 1)
+
+
+def photometric_pseudo_depth(ref_b3hw: torch.Tensor, srcs_bn3hw: torch.Tensor, K_b33: torch.Tensor,
+                             T_src_ref_bn44: torch.Tensor, depths_d: torch.Tensor, uniqueness: float = 0.8,
+                             agree: int = 2) -> Tuple[torch.Tensor, torch.Tensor]:
+    """A depth label from the images alone where the views agree on it: (depth (B, H, W), mask (B, H, W) bool).
+
+    The plane sweep's photometric error (:func:`plane_errors`, minimum over the sources) has its best plane k*
+    (refined between planes by a parabola through k* and its neighbours, in inverse depth). A pixel is labelled
+    when (a) that error is below the error of the sources left unwarped (auto-mask: the pixel moves),
+    (b) it is unique: below ``uniqueness`` times the best error two or more planes away, and (c) at least ``agree``
+    sources have their own best plane within one plane of k*."""
+    from dpv_sensor.core import dpv as dpvops
+    e_s = plane_errors(ref_b3hw, srcs_bn3hw, K_b33, T_src_ref_bn44, depths_d)          # B,N,D,H,W
+    e, _ = e_s.min(1)                                                                  # B,D,H,W
+    D = e.shape[1]
+    best, k = e.min(1)                                                                 # B,H,W
+    planes = torch.arange(D, device=e.device).view(1, D, 1, 1)
+    far = (planes - k[:, None]).abs() >= 2
+    second, _ = torch.where(far, e, torch.full_like(e, _FAR)).min(1)
+    with torch.no_grad():
+        identity, _ = photometric_error(ref_b3hw[:, None].expand_as(srcs_bn3hw).flatten(0, 1),
+                                        srcs_bn3hw.flatten(0, 1)).view(*srcs_bn3hw.shape[:2], *e.shape[-2:]).min(1)
+    k_s = e_s.argmin(2)                                                                # B,N,H,W
+    reach = e_s.min(2).values < _FAR
+    votes = (((k_s - k[:, None]).abs() <= 1) & reach).sum(1)
+    mask = (best < _FAR) & (best < identity) & (best < uniqueness * second) & (votes >= agree)
+    # sub-plane refinement: the vertex of the parabola through planes k-1, k, k+1
+    km, kp = (k - 1).clamp(0, D - 1), (k + 1).clamp(0, D - 1)
+    em, ep = e.gather(1, km[:, None])[:, 0], e.gather(1, kp[:, None])[:, 0]
+    curv = em + ep - 2 * best
+    inner = (k > 0) & (k < D - 1) & (em < _FAR) & (ep < _FAR) & (curv > 1e-9)
+    delta = torch.where(inner, 0.5 * (em - ep) / curv.clamp_min(1e-9), torch.zeros_like(best)).clamp(-0.5, 0.5)
+    d = depths_d.to(e.dtype)
+    depth = dpvops.index_to_depth(k.to(e.dtype) + delta, float(d[0]), float(d[-1]), D)
+    return depth, mask
+
+
+def masked_mean(x_bhw: torch.Tensor, mask_bhw: torch.Tensor) -> torch.Tensor:
+    """Mean of ``x`` over the mask (0 with a graph to ``x`` when the mask is empty)."""
+    m = mask_bhw.to(x_bhw.dtype)
+    return (x_bhw * m).sum() / m.sum().clamp_min(1.0)
+
+
+def downsample_image(image_b3hw: torch.Tensor, factor: int = 4) -> torch.Tensor:
+    """The image on the quarter-resolution DPV grid: volume pixel j sits on image pixel ``factor * j``
+    (``dnet.feature_intrinsics``), so each is the mean of the (factor + 1)^2 pixels centred there."""
+    k = factor + 1
+    return F.avg_pool2d(image_b3hw, k, factor, padding=k // 2, count_include_pad=False)
+
+
+def parameter_penalty(named_params: Iterable[Tuple[str, torch.Tensor]], base: Dict[str, torch.Tensor]
+                      ) -> torch.Tensor:
+    """L2-SP: ``sum over the adapted parameters of ||theta - theta_base||^2`` (a scalar with a graph)."""
+    total: Optional[torch.Tensor] = None
+    for name, p in named_params:
+        if not p.requires_grad:
+            continue
+        d = ((p - base[name].to(p.device, p.dtype)) ** 2).sum()
+        total = d if total is None else total + d
+    return total if total is not None else torch.zeros(())
+
+
+def distillation(logp_bdhw: torch.Tensor, logp_base_bdhw: torch.Tensor) -> torch.Tensor:
+    """``KL(p_base || p)`` over the planes, mean over pixels: keeps the adapted DPV (shape and width, hence the
+    confidence) near the base network's where the photometric error does not say otherwise."""
+    p_base = torch.exp(logp_base_bdhw)
+    return (p_base * (logp_base_bdhw - logp_bdhw)).sum(1).mean()
