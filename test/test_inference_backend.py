@@ -190,3 +190,21 @@ def test_torch_backend_builds_no_runtime_and_other_devices_fall_back(lite):
     assert isinstance(runner, RT.TorchRunner) and len(notes) == 1 and 'CPU only' in notes[0]
     with pytest.raises(ValueError, match='inference_backend'):
         RT.build_runner(lite, 'tensorrt', HW)
+
+
+def test_export_tool_writes_the_three_files_and_their_check(tmp_path):
+    from dpv_sensor.tools.export_onnx import main
+    assert main(['--size', '96x64', '--out', str(tmp_path)]) == 0
+    import json
+    report = json.loads((tmp_path / 'export.json').read_text())
+    assert report['processing_size'] == [96, 64] and report['preset'] == 'lite' and report['num_planes'] == 32
+    for part in RT.PARTS:
+        assert (tmp_path / f'{part}.onnx').stat().st_size > 1000
+        diff = report['parts'][part]['max_diff_vs_torch']
+        try:
+            import onnxruntime  # noqa: F401
+        except ImportError:
+            assert diff is None
+        else:
+            assert diff <= RT.CHECK_TOLERANCE
+    assert main(['--size', '96', '--out', str(tmp_path)]) == 2

@@ -14,11 +14,12 @@ variant sees the same load and the ratios between variants hold even where the a
 
 The stages are the estimator's own timings (``DepthOutput.timings_ms``: resize, pose refinement, measurement,
 pose uncertainty, filter, refine, output, and their parts such as ``filter.knet`` or ``refine.edge_filter``);
-``push`` is the wall time of the whole call, measured here. A keyframe whose push publishes an output is timed
-(in the centred window that output is the keyframe two keyframes back); the first ``--warmup`` of them are not
-(the window fills, the refiner warms up). Also reported per variant: the largest depth difference from the
-``torch`` variant of the same precision on the pixels both estimate (a runtime's check), and the estimator's
-notes (e.g. a runtime that could not load).
+``push`` is the wall time of the whole call, measured here, ``push_cpu`` the process CPU time it took (all
+threads: on a loaded machine the steadier figure; with ``--threads 1`` it is the one-core cost). A keyframe whose
+push publishes an output is timed (in the centred window that output is the keyframe two keyframes back); the first
+``--warmup`` of them are not (the window fills, the refiner warms up). Also reported per variant: the largest depth
+difference from the ``torch`` variant of the same precision on the pixels both estimate (a runtime's check), and
+the estimator's notes (e.g. a runtime that could not load).
 """
 from __future__ import annotations
 
@@ -42,6 +43,7 @@ __all__ = ['run', 'main', 'STAGES', 'markdown']
 # (stage, label) in the order of a push; parts ('stage.part') are indented under their stage
 STAGES = (
     ('push', 'Pipeline.push (wall)'),
+    ('push_cpu', 'Pipeline.push (process CPU time)'),
     ('total', 'estimator total'),
     ('resize', 'resize'),
     ('pose_refinement', 'pose refinement'),
@@ -145,9 +147,9 @@ def run(variant_settings: Optional[Dict[str, Dict]] = None, input_size: Tuple[in
         order = names[i % len(names):] + names[:i % len(names)]
         outputs = {}
         for n in order:
-            t = time.perf_counter()
+            c, t = time.process_time(), time.perf_counter()
             r = pipes[n].push(frame)
-            ms = (time.perf_counter() - t) * 1e3
+            ms, cpu_ms = (time.perf_counter() - t) * 1e3, (time.process_time() - c) * 1e3
             out = r.output
             if not (r.is_keyframe and out is not None and out.is_keyframe):
                 continue
@@ -155,7 +157,7 @@ def run(variant_settings: Optional[Dict[str, Dict]] = None, input_size: Tuple[in
             outputs[n] = out
             if seen[n] <= warmup:
                 continue
-            for k, v in dict(out.timings_ms, push=ms).items():
+            for k, v in dict(out.timings_ms, push=ms, push_cpu=cpu_ms).items():
                 stages[n].setdefault(k, []).append(float(v))
         for n, out in outputs.items():
             ref = outputs.get(_reference(n, names))
@@ -207,7 +209,8 @@ def markdown(result: Dict) -> str:
         for a, b in pairs:
             ok = stats[a] is not None and stats[b] is not None and stats[b]['median'] > 0
             cells.append(f"{stats[a]['median'] / stats[b]['median']:.2f}" if ok else '-')
-        name = f'&nbsp;&nbsp;{label}' if '.' in key else (f'**{label}**' if key in ('push', 'total') else label)
+        name = f'&nbsp;&nbsp;{label}' if '.' in key else (f'**{label}**' if key.startswith('push') or key == 'total'
+                                                          else label)
         rows.append([name] + cells)
     lines += ['| ' + ' | '.join(hdr) + ' |', '|' + '|'.join('---' for _ in hdr) + '|']
     lines += ['| ' + ' | '.join(r) + ' |' for r in rows] + ['']
