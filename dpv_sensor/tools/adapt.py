@@ -70,6 +70,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--penalty', type=float, default=d.penalty, help='weight of ||theta - theta_base||^2')
     p.add_argument('--distill', type=float, default=d.distill, help='weight of KL(base DPV || adapted DPV)')
     p.add_argument('--aux', type=float, default=d.aux, help="weight of the 1/4-res measurement's photometric term")
+    p.add_argument('--readout', choices=('mean', 'median', 'relative'), default=d.readout,
+                   help='the depth the photometric loss warps with (the DPV readout)')
     p.add_argument('--train-modules', nargs='+', choices=MODULES, default=list(d.train_modules), metavar='MODULE',
                    help=f'adapt only these sub-networks ({", ".join(MODULES)}; default: all)')
     p.add_argument('--seed', type=int, default=d.seed, help='seed of the sample order')
@@ -87,7 +89,8 @@ def build_parser() -> argparse.ArgumentParser:
 def _config(a) -> AdaptConfig:
     return AdaptConfig(width=a.width, height=a.height, minutes=a.minutes, max_steps=a.steps, lr=a.lr,
                        unroll=a.unroll, holdout=a.holdout, train_modules=tuple(a.train_modules), aux=a.aux,
-                       penalty=a.penalty, distill=a.distill, supervised=a.supervised, seed=a.seed).check()
+                       penalty=a.penalty, distill=a.distill, readout=a.readout, supervised=a.supervised,
+                       seed=a.seed).check()
 
 
 def _file_sha256(path) -> str:

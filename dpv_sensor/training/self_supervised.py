@@ -89,59 +89,6 @@ def reprojection_error(ref_b3hw: torch.Tensor, srcs_bn3hw: torch.Tensor, depth_b
     return err, mask
 
 
-def plane_errors(ref_b3hw: torch.Tensor, srcs_bn3hw: torch.Tensor, K_b33: torch.Tensor,
-                 T_src_ref_bn44: torch.Tensor, depths_d: torch.Tensor) -> torch.Tensor:
-    """Photometric error of every (source, plane, pixel) of a plane sweep: (B, N, D, H, W), ``_FAR`` where the
-    plane's point falls outside the source. No gradient (a target, not a prediction)."""
-    B, N = srcs_bn3hw.shape[:2]
-    D = int(depths_d.shape[-1])
-    H, W = ref_b3hw.shape[-2:]
-    out = []
-    with torch.no_grad():
-        ref = ref_b3hw[:, :, None].expand(B, 3, D, H, W).transpose(1, 2).reshape(B * D, 3, H, W)
-        for s in range(N):
-            warped, valid = geometry.plane_sweep_warp(srcs_bn3hw[:, s], K_b33, K_b33, T_src_ref_bn44[:, s], depths_d)
-            e = photometric_error(ref, warped.transpose(1, 2).reshape(B * D, 3, H, W)).reshape(B, D, H, W)
-            out.append(torch.where(valid, e, torch.full_like(e, _FAR)))
-    return torch.stack(out, 1)
-
-
-def photometric_pseudo_depth(ref_b3hw: torch.Tensor, srcs_bn3hw: torch.Tensor, K_b33: torch.Tensor,
-                             T_src_ref_bn44: torch.Tensor, depths_d: torch.Tensor, uniqueness: float = 0.8,
-                             agree: int = 2) -> Tuple[torch.Tensor, torch.Tensor]:
-    """A depth label from the images alone where the views agree on it: (depth (B, H, W), mask (B, H, W) bool).
-
-    The plane sweep's photometric error (:func:`plane_errors`, minimum over the sources) has its best plane k*
-    (refined between planes by a parabola through k* and its neighbours, in inverse depth). A pixel is labelled
-    when (a) that error is below the error of the sources left unwarped (auto-mask: the pixel moves),
-    (b) it is unique: below ``uniqueness`` times the best error two or more planes away, and (c) at least ``agree``
-    sources have their own best plane within one plane of k*."""
-    from dpv_sensor.core import dpv as dpvops
-    e_s = plane_errors(ref_b3hw, srcs_bn3hw, K_b33, T_src_ref_bn44, depths_d)          # B,N,D,H,W
-    e, _ = e_s.min(1)                                                                  # B,D,H,W
-    D = e.shape[1]
-    best, k = e.min(1)                                                                 # B,H,W
-    planes = torch.arange(D, device=e.device).view(1, D, 1, 1)
-    far = (planes - k[:, None]).abs() >= 2
-    second, _ = torch.where(far, e, torch.full_like(e, _FAR)).min(1)
-    with torch.no_grad():
-        identity, _ = photometric_error(ref_b3hw[:, None].expand_as(srcs_bn3hw).flatten(0, 1),
-                                        srcs_bn3hw.flatten(0, 1)).view(*srcs_bn3hw.shape[:2], *e.shape[-2:]).min(1)
-    k_s = e_s.argmin(2)                                                                # B,N,H,W
-    reach = e_s.min(2).values < _FAR
-    votes = (((k_s - k[:, None]).abs() <= 1) & reach).sum(1)
-    mask = (best < _FAR) & (best < identity) & (best < uniqueness * second) & (votes >= agree)
-    # sub-plane refinement: the vertex of the parabola through planes k-1, k, k+1
-    km, kp = (k - 1).clamp(0, D - 1), (k + 1).clamp(0, D - 1)
-    em, ep = e.gather(1, km[:, None])[:, 0], e.gather(1, kp[:, None])[:, 0]
-    curv = em + ep - 2 * best
-    inner = (k > 0) & (k < D - 1) & (em < _FAR) & (ep < _FAR) & (curv > 1e-9)
-    delta = torch.where(inner, 0.5 * (em - ep) / curv.clamp_min(1e-9), torch.zeros_like(best)).clamp(-0.5, 0.5)
-    d = depths_d.to(e.dtype)
-    depth = dpvops.index_to_depth(k.to(e.dtype) + delta, float(d[0]), float(d[-1]), D)
-    return depth, mask
-
-
 def masked_mean(x_bhw: torch.Tensor, mask_bhw: torch.Tensor) -> torch.Tensor:
     """Mean of ``x`` over the mask (0 with a graph to ``x`` when the mask is empty)."""
     m = mask_bhw.to(x_bhw.dtype)

@@ -1,0 +1,140 @@
+"""The label-free losses of the adaptation (dpv_sensor.training.self_supervised) on scenes whose answer is known:
+a textured plane at a known depth seen from a translated and rotated source camera."""
+import math
+import os
+import sys
+
+import pytest
+import torch
+
+sys.path.insert(0, os.path.dirname(__file__))
+from synthetic_planes import intrinsics, render_plane_pair, rot_x, rot_y, se3  # noqa: E402
+
+from dpv_sensor.training import self_supervised as S  # noqa: E402
+
+H, W, Z = 48, 64, 2.5
+
+
+def _colour(gray_11hw):
+    """Three different channels from one grey image (every channel order matters to the error)."""
+    g = gray_11hw[:, 0]
+    return torch.stack([g, 0.6 * g + 0.2, 1.0 - g], 1).float()
+
+
+def _pair(T_src_ref, z=Z):
+    K = intrinsics(W, H, 55.0)
+    ref, src = render_plane_pair(K, K, T_src_ref, z, H, W, tex_scale=0.7)
+    return _colour(ref), _colour(src), K.float()
+
+
+T_MOVE = se3(rot_y(math.radians(1.5)) @ rot_x(math.radians(-1.0)), (0.12, -0.05, 0.04))
+
+
+def test_photometric_error_by_hand():
+    x = torch.rand(1, 3, 10, 12, generator=torch.Generator().manual_seed(0))
+    assert S.photometric_error(x, x).abs().max() < 1e-6
+    # a constant offset c: L1 = c everywhere; SSIM sees the mean shift only through its luminance term
+    c = 0.1
+    e = S.photometric_error(x, x + c, alpha=0.0)
+    assert torch.allclose(e, torch.full_like(e, c), atol=1e-6)
+    full = S.photometric_error(x, x + c)
+    assert (full > 0.15 * c - 1e-6).all() and (full < full.new_tensor(1.0)).all()
+    # the error of a swap of two channels counts once per channel: mean over 3 channels
+    y = x.clone()
+    y[:, [0, 1]] = x[:, [1, 0]]
+    l1 = S.photometric_error(x, y, alpha=0.0)
+    assert torch.allclose(l1, 2 * (x[:, 0] - x[:, 1]).abs() / 3, atol=1e-6)
+
+
+def test_the_true_depth_explains_the_source_and_a_wrong_one_does_not():
+    ref, src, K = _pair(T_MOVE)
+    T = T_MOVE.float()[:, None]
+    inner = (slice(None), slice(6, -6), slice(6, -6))
+    errs = {}
+    for scale in (1.0, 0.8, 1.25):
+        depth = torch.full((1, H, W), Z * scale)
+        err, mask = S.reprojection_error(ref, src[:, None], depth, K, T, automask=False)
+        errs[scale] = S.masked_mean(err[inner], mask[inner]).item()
+        assert mask[inner].float().mean() > 0.9
+    assert errs[1.0] < 0.01
+    assert errs[0.8] > 4 * errs[1.0] and errs[1.25] > 4 * errs[1.0]
+
+
+def test_per_pixel_minimum_over_sources_ignores_a_source_that_disagrees():
+    ref, src, K = _pair(T_MOVE)
+    noise = torch.rand(src.shape, generator=torch.Generator().manual_seed(1))
+    depth = torch.full((1, H, W), Z)
+    T = T_MOVE.float()[:, None].expand(1, 2, 4, 4)
+    both, mask = S.reprojection_error(ref, torch.stack([noise, src], 1), depth, K, T, automask=False)
+    alone, _ = S.reprojection_error(ref, src[:, None], depth, K, T[:, :1], automask=False)
+    inner = (slice(None), slice(6, -6), slice(6, -6))
+    assert torch.allclose(both[inner], torch.minimum(alone[inner], both[inner]))
+    assert S.masked_mean(both[inner], mask[inner]).item() < 0.01
+    # the noise alone is far worse: the minimum picked the source that agrees
+    bad, _ = S.reprojection_error(ref, noise[:, None], depth, K, T[:, :1], automask=False)
+    assert bad[inner].mean() > 10 * both[inner].mean()
+
+
+def test_a_source_out_of_view_is_skipped_and_a_pixel_no_source_reaches_is_masked():
+    ref, src, K = _pair(T_MOVE)
+    depth = torch.full((1, H, W), Z)
+    far = se3(t=(5.0, 0.0, 0.0)).float()          # 5 m sideways at 2.5 m depth: every pixel leaves the image
+    T = torch.stack([far[0], T_MOVE.float()[0]])[None]
+    err, mask = S.reprojection_error(ref, torch.stack([src, src], 1), depth, K, T, automask=False)
+    assert mask[:, 6:-6, 6:-6].all() and err[:, 6:-6, 6:-6].max() < 0.2
+    err_far, mask_far = S.reprojection_error(ref, src[:, None], depth, K, far[:, None], automask=False)
+    assert not mask_far.any()
+    assert S.masked_mean(err_far, mask_far).item() == 0.0
+
+
+def test_automask_drops_pixels_that_do_not_move():
+    ref, src, K = _pair(T_MOVE)
+    depth = torch.full((1, H, W), Z)
+    T = T_MOVE.float()[:, None]
+    _, moving = S.reprojection_error(ref, src[:, None], depth, K, T, automask=True)
+    assert moving[:, 6:-6, 6:-6].float().mean() > 0.8
+    # a camera that did not move: the unwarped source explains every pixel as well as any depth does
+    still = se3().float()[:, None]
+    _, static = S.reprojection_error(ref, ref[:, None], depth, K, still, automask=True)
+    assert not static.any()
+    # and the wrong depth on the moving pair is not rescued by the mask: it loses pixels, never gains them
+    _, wrong = S.reprojection_error(ref, src[:, None], depth * 1.3, K, T, automask=True)
+    assert wrong.sum() < moving.sum()
+
+
+def test_gradient_of_the_loss_points_towards_the_true_depth():
+    ref, src, K = _pair(T_MOVE)
+    T = T_MOVE.float()[:, None]
+    for start in (0.85 * Z, 1.15 * Z):
+        d = torch.full((1, H, W), start, requires_grad=True)
+        err, mask = S.reprojection_error(ref, src[:, None], d, K, T, automask=False)
+        S.masked_mean(err[:, 6:-6, 6:-6], mask[:, 6:-6, 6:-6]).backward()
+        step = -d.grad[0, 6:-6, 6:-6].sum()
+        assert (step > 0) == (start < Z), (start, step)
+
+
+def test_downsample_image_sits_on_the_quarter_grid():
+    x = torch.arange(16.0).repeat(16, 1)[None, None].repeat(1, 3, 1, 1)     # value = column index
+    q = S.downsample_image(x)
+    assert q.shape[-2:] == (4, 4)
+    # volume pixel j sits on image pixel 4j: the mean of columns 4j-2 .. 4j+2, clipped at the border (j = 0:
+    # columns 0, 1, 2); every row and channel the same
+    assert torch.allclose(q, torch.tensor([1.0, 4.0, 8.0, 12.0]).expand_as(q), atol=1e-5)
+
+
+def test_parameter_penalty_and_distillation_by_hand():
+    net = torch.nn.Linear(3, 2)
+    base = {k: v.detach().clone() for k, v in net.named_parameters()}
+    with torch.no_grad():
+        net.weight[0, 1] += 0.3
+        net.bias[1] -= 0.2
+    assert S.parameter_penalty(net.named_parameters(), base).item() == pytest.approx(0.3 ** 2 + 0.2 ** 2, rel=1e-5)
+    net.bias.requires_grad_(False)            # frozen parameters are not penalised
+    assert S.parameter_penalty(net.named_parameters(), base).item() == pytest.approx(0.09, rel=1e-5)
+    # KL(p_base || p) of two-plane DPVs: 0 for the same, sum p log(p / q) otherwise
+    p = torch.tensor([0.7, 0.3]).log().view(1, 2, 1, 1)
+    q = torch.tensor([0.4, 0.6]).log().view(1, 2, 1, 1)
+    assert S.distillation(p, p).item() == pytest.approx(0.0, abs=1e-7)
+    want = 0.7 * math.log(0.7 / 0.4) + 0.3 * math.log(0.3 / 0.6)
+    assert S.distillation(q, p).item() == pytest.approx(want, rel=1e-5)
+    assert S.distillation(p, q).item() != pytest.approx(want, rel=1e-3)      # not symmetric: the base is the target
