@@ -165,8 +165,13 @@ def test_the_pose_covariance_is_used_when_it_grows_else_the_twist_else_the_drift
     for pose in ((1e-3, 1e-3), (1e6, 1e6)):
         sig, source = PU.odometry_sigma(chain, _odom(pose, twist, 10.0), _odom(pose, twist, 10.5), 1.0)
         assert source == PU.TWIST and sig.rot_rad == pytest.approx(math.sqrt(4e-4 * 0.5))   # per axis, 0.5 s
-    # only the rotation grows, or the covariance shrinks (a correction): not a growth either
-    assert PU.odometry_sigma(chain, _odom((1e-4, 1e-6), twist, 10.0), _odom((1e-4, 2e-6), twist, 10.5),
+    # the rotation grows and the position variance shrinks (the path turned back towards where a heading error
+    # began): a growth, its translation the bound of the motion, (1.0 * 0.3)^2 / 3 + 1e-6 * 0.3^2 / 3
+    sig, source = PU.odometry_sigma(chain, _odom((2e-4, 1e-6), twist, 10.0), _odom((1e-4, 2e-6), twist, 10.5), 1.0)
+    assert source == PU.GROWTH and sig.rot_rad == pytest.approx(1e-3)
+    assert sig.trans_m == pytest.approx(math.sqrt(0.3 ** 2 / 3 + 1e-6 * 0.3 ** 2 / 3))
+    # only the position grows (an absolute orientation), or both shrink (a correction): not a growth
+    assert PU.odometry_sigma(chain, _odom((1e-4, 1e-6), twist, 10.0), _odom((2e-4, 1e-6), twist, 10.5),
                              1.0)[1] == PU.TWIST
     assert PU.odometry_sigma(chain, _odom((2e-4, 5e-6), twist, 10.0), _odom((1e-4, 1e-6), twist, 10.5),
                              1.0)[1] == PU.TWIST

@@ -18,13 +18,15 @@ default drift figures, is in docs/pose_uncertainty.md.
    * what the odometry says about itself (:func:`odometry_sigma`), used instead of the drift terms, from the first
      of these that applies:
 
-     - the growth of the pose covariance between the two views, when it grows (the mean translation variance and
-       the mean rotation variance are both larger at the later view): for integrated odometry the covariance of
-       the relative motion. Its translation growth also holds the heading error accumulated before the first view,
-       levered by the step (with its cross-covariance to the position), which does not enter the relative motion:
-       on a long path it overstates the relative translation by up to ten times. So the translation variance taken
-       from it is capped at what ``cov_trans_per_m`` of the path (the relative motion's own translation error) plus
-       the rotation growth's lever within the segment give: ``(cov_trans_per_m L)^2 / 3 + var_rot L^2 / 3``;
+     - the growth of the pose covariance between the two views, when it grows (the mean rotation variance is
+       larger at the later view): for integrated odometry the covariance of the relative motion. Its translation
+       growth also holds the heading error accumulated before the first view, levered by the step (with its
+       cross-covariance to the position), which does not enter the relative motion: on a long path it overstates
+       the relative translation by up to ten times, and where the path returns towards where a heading error began
+       the position variance even shrinks (so it is no test of growth). So the translation variance taken from it
+       is capped at what ``cov_trans_per_m`` of the path (the relative motion's own translation error) plus the
+       rotation growth's lever within the segment give, ``(cov_trans_per_m L)^2 / 3 + var_rot L^2 / 3``, and is
+       that bound where the position variance did not grow;
      - else the twist covariance integrated over the interval (a pose covariance that stays constant, as
        diff_drive_controller's ``pose_covariance_diagonal``, says nothing about the relative motion; the motion
        noise is then in ``twist.covariance``): the mean of the two views' twist covariances, read as a rate in the
@@ -120,9 +122,11 @@ def covariance_sigma(cov_a_66: Optional[np.ndarray], cov_b_66: Optional[np.ndarr
     """Per-axis std of the motion between two odometry poses from their pose covariances (ROS order: x, y, z, then
     rotation about x, y, z; ``a`` the earlier, ``b`` the later): the growth of the mean diagonal variance from a to b
     (integrated odometry: the covariance of the relative motion). None when either is missing or not filled (a
-    non-finite or negative diagonal, or none of it positive), or when the covariance does not grow (the mean
-    translation or the mean rotation variance is not larger at b: a constant covariance, or one that shrank after a
-    correction)."""
+    non-finite or negative diagonal, or none of it positive), or when the covariance does not grow: the mean rotation
+    variance is not larger at b (a constant covariance, or one that shrank after a correction). Integrated odometry's
+    rotation error only accumulates, while its position variance can shrink (the path returns towards where a heading
+    error began, and the error that heading levered shrinks with it), so the translation is no test: where it does
+    not grow, ``trans_m`` is NaN (the caller bounds it by the motion, :func:`odometry_sigma`)."""
     if cov_a_66 is None or cov_b_66 is None:
         return None
     da = np.diag(np.asarray(cov_a_66, np.float64).reshape(6, 6))
@@ -131,9 +135,9 @@ def covariance_sigma(cov_a_66: Optional[np.ndarray], cov_b_66: Optional[np.ndarr
         return None
     dt = float(db[:3].mean() - da[:3].mean())
     dr = float(db[3:].mean() - da[3:].mean())
-    if not (dt > 0 and dr > 0):
+    if not dr > 0:
         return None
-    return PoseSigma(rot_rad=math.sqrt(dr), trans_m=math.sqrt(dt))
+    return PoseSigma(rot_rad=math.sqrt(dr), trans_m=math.sqrt(dt) if dt > 0 else math.nan)
 
 
 def twist_sigma(twist_a_66: Optional[np.ndarray], twist_b_66: Optional[np.ndarray], T_a_44: np.ndarray,
@@ -160,7 +164,9 @@ def odometry_sigma(chain_44: Sequence[np.ndarray], first, last, cov_trans_per_m:
     first and last pose (:class:`~dpv_sensor.core.odometry_covariance.OdometryCovariance`, a bare 6x6 pose
     covariance, or None): (sigma, ``GROWTH``) from the pose covariance's growth, its translation capped (module
     docstring, item 1); else (sigma, ``TWIST``) from the twist covariance over the time between them; else (None,
-    ``DRIFT``). Two stamps in the wrong order are swapped first (the growth is read from the earlier to the later)."""
+    ``DRIFT``). Two stamps in the wrong order are swapped first (the growth is read from the earlier to the later).
+    The translation from the growth is at most what the motion can hold (module docstring, item 1), and that bound
+    where the position variance did not grow."""
     a, b = OdometryCovariance.of(first), OdometryCovariance.of(last)
     if a is None or b is None:
         return None, DRIFT
@@ -171,7 +177,8 @@ def odometry_sigma(chain_44: Sequence[np.ndarray], first, last, cov_trans_per_m:
     if cov is not None:
         L, _ = path_between(chain)
         var_r = cov.rot_rad ** 2
-        var_t = min(cov.trans_m ** 2, (cov_trans_per_m * L) ** 2 / 3.0 + var_r * L ** 2 / 3.0)
+        bound = (cov_trans_per_m * L) ** 2 / 3.0 + var_r * L ** 2 / 3.0
+        var_t = min(cov.trans_m ** 2, bound) if math.isfinite(cov.trans_m) else bound
         return PoseSigma(rot_rad=cov.rot_rad, trans_m=math.sqrt(var_t)), GROWTH
     dt = None if a.stamp is None or b.stamp is None else float(b.stamp) - float(a.stamp)
     tw = twist_sigma(a.twist_66, b.twist_66, chain[0], chain[-1], dt)
