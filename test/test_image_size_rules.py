@@ -16,22 +16,9 @@ from dpv_sensor.ros.receipt import ImageReceipt
 from dpv_sensor.stream.continuity import StreamSize, future_stamp
 from dpv_sensor.stream.estimator import Estimator
 from dpv_sensor.stream.frame import MIN_IMAGE_SIDE, Frame, image_too_small
+from log_lines import Lines
 
 NS = 1_000_000_000
-
-
-class Lines:
-    def __init__(self):
-        self.lines = []
-
-    def info(self, m):
-        self.lines.append(('info', m))
-
-    def warning(self, m):
-        self.lines.append(('warn', m))
-
-    def error(self, m):
-        self.lines.append(('error', m))
 
 
 def raw(w, h, stamp_ns=0):

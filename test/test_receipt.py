@@ -5,22 +5,9 @@ from types import SimpleNamespace
 
 from dpv_sensor.ros.node_support import FaultLog
 from dpv_sensor.ros.receipt import CameraFrame, ImageReceipt
+from log_lines import Lines
 
 NS = 1_000_000_000
-
-
-class Lines:
-    def __init__(self):
-        self.lines = []
-
-    def info(self, m):
-        self.lines.append(('info', m))
-
-    def warning(self, m):
-        self.lines.append(('warn', m))
-
-    def error(self, m):
-        self.lines.append(('error', m))
 
 
 def image(frame_id, stamp_ns, w=4, h=2):
