@@ -289,8 +289,10 @@ def window_sigma_planes(ref, sources: Sequence, depth_bhw: torch.Tensor, span_nb
                                           model.cov_trans_per_m))
     kinds = {k for _sig, k in figures}
     if covariance_only and kinds <= {DRIFT}:
-        return None, {'source': 'none (no odometry covariance: neither a pose covariance that grows nor a twist '
-                                'covariance)'}
+        filled = any(getattr(k, 'pose_cov_66', None) is not None or getattr(k, 'twist_cov_66', None) is not None
+                     for k in kfs)
+        return None, {'source': 'none (the pose covariance does not grow and there is no twist covariance)' if filled
+                      else 'none (no odometry covariance)'}
     to_proc = float(ref.K_b33[0, 0, 0] / K_vol_b33[0, 0, 0])     # volume -> processing pixels (as the spans)
     shifts, sig_r, sig_t = [], [], []
     for s, chain, (fig, kind) in zip(sources, chains, figures):
