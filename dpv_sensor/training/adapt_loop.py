@@ -16,8 +16,11 @@ filter, R-Net). Each unrolled step's depth warps the window's sources into the r
 ``supervised`` the loss is the trainer's instead (:func:`dpv_sensor.training.unrolled.run_unrolled`: NLL of the
 recording's depth), and the depth is read.
 
-**Held-out score**: the mean photometric reprojection error (no auto-mask) of the R-Net output over every held-out
-run, base and adapted weights scored on exactly the same runs (with ``supervised``: the NLL of the held-out depth).
+**Held-out score**: the mean photometric reprojection error of the R-Net output's depth over every pixel of every
+held-out run (one run starting at each held-out keyframe, at most ``max_holdout_runs`` of them), no auto-mask, a
+pixel sent out of every source counting with the unwarped sources' error
+(:func:`dpv_sensor.training.self_supervised.score_error`), so base and adapted weights are scored on exactly the
+same pixels (with ``supervised``: the NLL of the held-out depth).
 The adapted weights are kept only when their score is lower; :class:`AdaptResult` says which.
 
 **Time**: ``minutes`` caps the whole run (loading, both held-out scores, training): training stops when the
@@ -40,7 +43,8 @@ from dpv_sensor.core import dpv as dpvops
 from dpv_sensor.training.config import MODULES
 from dpv_sensor.training.dataset import WindowLayout, sample_from_sequence
 from dpv_sensor.training.self_supervised import (distillation, downsample_image, masked_mean, parameter_penalty,
-                                                 reprojection_error)
+                                                 photometric_evidence, plane_errors, reprojection_error,
+                                                 score_error)
 from dpv_sensor.training.unrolled import filter_steps, measure_steps, run_unrolled
 
 __all__ = ['AdaptConfig', 'AdaptResult', 'Adapter', 'select_keyframes', 'DEFAULT_MINUTES', 'LOSS_DESCRIPTION']
@@ -62,7 +66,7 @@ class AdaptConfig:
     height: int = P.default('processing_height')
     minutes: float = DEFAULT_MINUTES                # the whole run's time cap
     max_steps: int = 0                              # 0: as many as ``minutes`` allows
-    lr: float = 1e-4
+    lr: float = 1e-3
     warmup: int = 10
     clip: float = 1.0
     batch_size: int = 1
@@ -72,10 +76,13 @@ class AdaptConfig:
     holdout: float = 0.2                            # share of the frames held out (the last ones)
     max_holdout_runs: int = 16                      # held-out runs scored (evenly spread over the slice)
     train_modules: Tuple[str, ...] = ()             # sub-networks adapted (see training.config.MODULES); () = all
-    aux: float = 0.5                                # weight of the 1/4-res measurement's photometric term
+    photometric: float = 1.0                        # weight of the photometric reprojection term
+    evidence: float = 0.0                           # weight of the plane sweep's photometric evidence term
+    sigma: float = 0.02                             # its photometric error scale
+    aux: float = 0.5                                # weight of the 1/4-res measurement's terms
     penalty: float = 1.0                            # L2-SP weight
     distill: float = 0.0                            # weight of KL(base DPV || adapted DPV) (a second forward)
-    readout: str = 'mean'                           # the depth the photometric loss warps with
+    readout: str = 'relative'                       # the depth the photometric loss warps with (the node's)
     automask: bool = True
     supervised: bool = False                        # the trainer's NLL on the recording's depth instead
     seed: int = 0
@@ -92,8 +99,10 @@ class AdaptConfig:
             raise ValueError(f'train_modules: unknown {sorted(unknown)}; choose from {MODULES}')
         if self.readout not in dpvops.READOUTS:
             raise ValueError(f'readout must be one of {dpvops.READOUTS}, got {self.readout!r}')
-        if min(self.aux, self.penalty, self.distill) < 0:
-            raise ValueError('aux, penalty and distill must be >= 0')
+        if min(self.aux, self.penalty, self.distill, self.photometric, self.evidence) < 0 or self.sigma <= 0:
+            raise ValueError('loss weights must be >= 0 and sigma > 0')
+        if self.photometric == 0 and self.evidence == 0 and not self.supervised:
+            raise ValueError('photometric and evidence weights are both 0: nothing to adapt with')
         return self
 
     def layout(self) -> WindowLayout:
@@ -166,7 +175,7 @@ class Adapter:
                 raise ValueError(f'the recording is too short: its {name} has {len(kf)} keyframes (the node picks one '
                                  f'every {P.default("keyframe_translation")} m, {P.default("keyframe_rotation_deg")} '
                                  f'deg or {P.default("keyframe_max_interval")} frames), {M} are needed')
-        starts = list(range(0, len(self.held_kf) - M + 1, cfg.unroll))
+        starts = list(range(0, len(self.held_kf) - M + 1))
         if len(starts) > cfg.max_holdout_runs:
             starts = [starts[int(i)] for i in np.linspace(0, len(starts) - 1, cfg.max_holdout_runs).round()]
         self.held_runs = [self.held_kf[s:s + M] for s in starts]
@@ -211,6 +220,19 @@ class Adapter:
                 quarter.append(masked_mean(eq, mq))
         return full, quarter
 
+    def _evidence(self, batch, meas, res) -> Tuple[torch.Tensor, torch.Tensor]:
+        """The photometric evidence (mean over the unrolled steps) of the R-Net output on the DPV grid and of the
+        measurement."""
+        full, quarter = [], []
+        for m, r in zip(meas, res):
+            e, ident = plane_errors(m['image'], batch['images'][:, m['sources']], batch['K'], m['T_src_ref'],
+                                    self.depths_d)
+            h, w = e.shape[-2:]
+            full.append(photometric_evidence(r['logp_full'][:, :, ::4, ::4][..., :h, :w].float(), e, ident,
+                                             self.cfg.sigma))
+            quarter.append(photometric_evidence(m['logp_q'].float(), e, ident, self.cfg.sigma))
+        return torch.stack(full).mean(), torch.stack(quarter).mean()
+
     def loss(self, batch) -> Tuple[torch.Tensor, Dict[str, float]]:
         """The loss of one batch (see the module docstring) and its terms."""
         cfg = self.cfg
@@ -221,13 +243,22 @@ class Adapter:
             with torch.set_grad_enabled(self.measure_grad):
                 meas = measure_steps(self.model, batch)
             res = filter_steps(self.model, meas, self.depths_d, 'knet')
-            full, quarter = self._photometric(batch, meas, res, cfg.automask)
-            loss = torch.stack(full).mean()
-            stats = {'photometric': float(loss.detach())}
-            if quarter:
-                q = torch.stack(quarter).mean()
-                loss = loss + cfg.aux * q
-                stats['photometric_q'] = float(q.detach())
+            loss = torch.zeros(())
+            stats = {}
+            if cfg.photometric > 0:
+                full, quarter = self._photometric(batch, meas, res, cfg.automask)
+                ph = torch.stack(full).mean()
+                loss = loss + cfg.photometric * ph
+                stats['photometric'] = float(ph.detach())
+                if quarter:
+                    q = torch.stack(quarter).mean()
+                    loss = loss + cfg.photometric * cfg.aux * q
+                    stats['photometric_q'] = float(q.detach())
+            if cfg.evidence > 0:
+                ev, ev_q = self._evidence(batch, meas, res)
+                loss = loss + cfg.evidence * (ev + cfg.aux * ev_q)
+                stats['evidence'] = float(ev.detach())
+                stats['evidence_q'] = float(ev_q.detach())
             if self.base_model is not None:
                 with torch.no_grad():
                     bmeas = measure_steps(self.base_model, batch)
@@ -274,10 +305,9 @@ class Adapter:
                     for m, r in zip(meas, res):
                         depth = dpvops.depth_estimate(r['logp_full'].float(), self.depths_d, cfg.readout)
                         srcs = batch['images'][:, m['sources']]
-                        err, mask = reprojection_error(m['image'], srcs, depth, batch['K'], m['T_src_ref'],
-                                                       automask=False)
-                        num += float((err * mask).sum())
-                        den += float(mask.sum())
+                        err = score_error(m['image'], srcs, depth, batch['K'], m['T_src_ref'])
+                        num += float(err.sum())
+                        den += float(err.numel())
                 if i in pick:
                     logp = res[-1]['logp_full'].float()
                     d = dpvops.depth_estimate(logp, self.depths_d, readout)

@@ -1,0 +1,190 @@
+"""The adapt tool (dpv_sensor.tools.adapt) on rendered recordings: it never reads depth (a folder with depth/ and
+the same folder without give the same weights), refuses weights that score worse on its held-out slice, leaves
+no weights when interrupted, writes the metadata the node checks, and - the point of it - lowers the depth error
+on the rest of a recording of a world the shipped weights never saw."""
+import json
+import os
+import shutil
+
+import pytest
+import torch
+
+from dpv_sensor.core.nets.checkpoint import (CheckpointError, default_weights_path, load_checkpoint,
+                                             read_metadata)
+from dpv_sensor.data.sequence import Sequence, write_sequence
+from dpv_sensor.data.synthetic import render_sequence
+from dpv_sensor.tools import adapt as tool
+
+W, H = 160, 128
+# the tools' recording: a linear-response camera (no gamma) with strong lens vignetting
+SHIFT = {'vignetting': (0.6, 0.7), 'gamma': 1.0}
+SMALL_ROOM = {'room_size_x': (2.0, 2.8), 'room_size_y': (2.0, 2.8), 'room_height': (2.2, 2.4)}
+FAST = ['--width', str(W), '--height', str(H), '--threads', '1', '--quiet', '--holdout', '0.35', '--unroll', '1',
+        '--steps', '4', '--lr', '1e-3']
+
+
+@pytest.fixture(scope='module')
+def folders(tmp_path_factory):
+    """A 90-frame rendered recording at 160x128 written with depth/, and the same folder without depth/."""
+    root = tmp_path_factory.mktemp('adapt')
+    seq = render_sequence(61, 90, width=W, height=H, **SHIFT)
+    with_depth = write_sequence(root / 'with_depth', seq, lossless=True)
+    without = root / 'without_depth'
+    shutil.copytree(with_depth, without)
+    shutil.rmtree(without / 'depth')
+    return with_depth, without
+
+
+def _run(source, out, *extra, capsys=None):
+    code = tool.main([str(source), '--out', str(out), *FAST, *extra])
+    err = capsys.readouterr().err if capsys is not None else ''
+    return code, err
+
+
+def _files(folder):
+    return sorted(p.name for p in folder.iterdir()) if folder.exists() else []
+
+
+@pytest.fixture(scope='module')
+def adapted(folders, tmp_path_factory):
+    """The tool run on the folder without depth/: (out folder, exit code)."""
+    out = tmp_path_factory.mktemp('adapted')
+    return out, tool.main([str(folders[1]), '--out', str(out), *FAST])
+
+
+def test_writes_weights_report_and_metadata(adapted, folders):
+    out, code = adapted
+    assert code == tool.EXIT_WRITTEN
+    assert _files(out) == ['report.json', 'report.png', 'weights.safetensors']
+    report = json.loads((out / 'report.json').read_text())
+    assert report['written'] and report['steps'] == 4 and report['held_out']['score'] == 'photometric'
+    assert report['held_out']['adapted'] < report['held_out']['base']
+    assert [h['step'] for h in report['history']] == [1, 2, 3, 4]
+    meta = read_metadata(out / 'weights.safetensors')
+    ad = meta['adaptation']
+    base = default_weights_path('lite')
+    base_meta = read_metadata(base)
+    assert ad['base_weights']['tensors_sha256'] == base_meta['tensors_sha256']
+    import hashlib
+    assert ad['base_weights']['sha256'] == hashlib.sha256(base.read_bytes()).hexdigest()
+    assert ad['processing_size'] == [W, H] and meta['input_size'] == [W, H]
+    assert ad['steps'] == 4 and meta['steps'] == base_meta['steps'] + 4
+    assert ad['recording']['name'] == 'without_depth' and ad['recording']['frames'] == 90
+    assert ad['recording']['depth_read'] is False and 0 < ad['minutes'] < 5
+    assert ad['held_out']['adapted'] == report['held_out']['adapted']
+    # the weights moved, and they load for the size they were adapted at
+    model, _ = load_checkpoint(out / 'weights.safetensors', preset='lite', processing_size=(W, H))
+    shipped, _ = load_checkpoint(base, preset='lite')
+    assert any(not torch.equal(a, b) for a, b in zip(model.state_dict().values(), shipped.state_dict().values()))
+
+
+def test_depth_is_never_read_same_weights_with_and_without_depth_folder(adapted, folders, tmp_path):
+    out, code = adapted
+    assert code == tool.EXIT_WRITTEN
+    assert tool.main([str(folders[0]), '--out', str(tmp_path / 'with'), *FAST]) == tool.EXIT_WRITTEN
+    a = read_metadata(out / 'weights.safetensors')
+    b = read_metadata(tmp_path / 'with' / 'weights.safetensors')
+    assert a['tensors_sha256'] == b['tensors_sha256']
+    assert b['adaptation']['recording']['depth_read'] is False
+    # depth read (--supervised, the trainer's loss) does change them: the comparison above can fail
+    assert tool.main([str(folders[0]), '--out', str(tmp_path / 'sup'), *FAST, '--supervised', '--lr', '1e-4']) == \
+        tool.EXIT_WRITTEN
+    c = read_metadata(tmp_path / 'sup' / 'weights.safetensors')
+    assert c['tensors_sha256'] != a['tensors_sha256']
+    assert c['adaptation']['held_out']['score'] == 'nll' and c['adaptation']['recording']['depth_read'] is True
+
+
+def test_supervised_needs_depth(folders, tmp_path, capsys):
+    code, err = _run(folders[1], tmp_path / 'out', '--supervised', capsys=capsys)
+    assert code == tool.EXIT_BAD_INPUT and 'has no depth/' in err
+    assert _files(tmp_path / 'out') == []
+
+
+def test_refuses_weights_that_score_worse(folders, tmp_path, capsys):
+    # a learning rate far too high for the networks: the held-out score gets worse
+    code, err = _run(folders[1], tmp_path / 'out', '--lr', '1.0', '--penalty', '0', capsys=capsys)
+    assert code == tool.EXIT_REFUSED
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert len(lines) == 1 and lines[0].startswith('adapt: weights not written: the adapted weights scored no better')
+    assert _files(tmp_path / 'out') == ['report.json', 'report.png']
+    report = json.loads((tmp_path / 'out' / 'report.json').read_text())
+    assert not report['written'] and report['held_out']['adapted'] > report['held_out']['base']
+
+
+def test_no_step_within_minutes_writes_no_weights(folders, tmp_path, capsys):
+    code, err = _run(folders[1], tmp_path / 'out', '--minutes', '0.001', capsys=capsys)
+    assert code == tool.EXIT_REFUSED and 'no adaptation step fitted in --minutes 0.001' in err
+    assert 'weights.safetensors' not in _files(tmp_path / 'out')
+
+
+def test_interrupted_run_leaves_no_weights(folders, tmp_path, monkeypatch, capsys):
+    from dpv_sensor.training.adapt_loop import Adapter
+    calls = []
+    real = Adapter.loss
+
+    def interrupted(self, batch):
+        calls.append(1)
+        if len(calls) == 3:
+            raise KeyboardInterrupt
+        return real(self, batch)
+    monkeypatch.setattr(Adapter, 'loss', interrupted)
+    code, err = _run(folders[1], tmp_path / 'out', capsys=capsys)
+    assert code == tool.EXIT_INTERRUPTED and 'interrupted; no weights written' in err
+    assert len(calls) == 3 and _files(tmp_path / 'out') == []
+
+
+def test_interrupted_while_writing_leaves_no_half_written_weights(folders, tmp_path, monkeypatch, capsys):
+    import dpv_sensor.core.nets.checkpoint as C
+    real_replace = os.replace
+
+    def replace(src, dst):
+        if str(dst).endswith('weights.safetensors'):
+            assert os.path.getsize(src) > 100_000          # the temp file was complete; the rename never happens
+            raise KeyboardInterrupt
+        return real_replace(src, dst)
+    monkeypatch.setattr(C.os, 'replace', replace)
+    code, _ = _run(folders[1], tmp_path / 'out', capsys=capsys)
+    assert code == tool.EXIT_INTERRUPTED
+    assert _files(tmp_path / 'out') == []                  # neither the weights nor their temp file
+
+
+def test_adapted_weights_refused_at_another_processing_size(adapted):
+    from dpv_sensor.stream.estimator import Estimator, EstimatorConfig
+    out, code = adapted
+    assert code == tool.EXIT_WRITTEN
+    path = out / 'weights.safetensors'
+    with pytest.raises(CheckpointError, match=f'adapted to a recording at processing size {W}x{H}, but the nets '
+                                              'run at 320x256'):
+        load_checkpoint(path, preset='lite', processing_size=(320, 256))
+    with pytest.raises(CheckpointError, match=f'{W}x{H}.*{W}x{H + 4}'):
+        load_checkpoint(path, preset='lite', processing_size=(W, H + 4))
+    est = Estimator(EstimatorConfig(weights=str(path), processing_width=W, processing_height=H,
+                                    measurement='network', pose_refinement='off'))
+    assert est.status.measurement == 'network' and est.status.weights == str(path)
+    with pytest.raises(CheckpointError, match='adapted to a recording'):
+        Estimator(EstimatorConfig(weights=str(path), measurement='network', pose_refinement='off'))
+    # measurement auto: the node's fallback to the classical model, with the reason in its status
+    st = Estimator(EstimatorConfig(weights=str(path), measurement='auto', pose_refinement='off')).status
+    assert st.measurement == 'classical' and f'processing size {W}x{H}' in st.measurement_reason
+
+
+def test_adapting_on_the_first_half_lowers_the_second_half_abs_rel(tmp_path):
+    """A world the shipped weights never saw - a room 2-2.8 m across (they were trained in rooms of 3-7.5 m):
+    adapting on the first 80 frames (no depth) lowers abs_rel on the next 80, through the node's pipeline."""
+    from dpv_sensor.evaluation.offline import EvalOptions, evaluate_sequence
+    seq = render_sequence(65, 160, width=W, height=H, **SMALL_ROOM)
+    first = write_sequence(tmp_path / 'first', seq.subset(range(80)), lossless=True, write_depth=False)
+    out = tmp_path / 'out'
+    code = tool.main([str(first), '--out', str(out), '--width', str(W), '--height', str(H), '--threads', '1',
+                      '--quiet', '--holdout', '0.4', '--steps', '50', '--lr', '2e-3'])
+    assert code == tool.EXIT_WRITTEN
+    second = Sequence.from_arrays([seq.image(i) for i in range(80, 160)], [seq.depth(i) for i in range(80, 160)],
+                                  seq.poses[80:], seq.K, seq.stamps[80:])
+    scores = {}
+    for name, path in (('shipped', default_weights_path('lite')), ('adapted', out / 'weights.safetensors')):
+        s = evaluate_sequence(second, {'weights': str(path), 'processing_width': W, 'processing_height': H,
+                                       'pose_refinement': 'off'},
+                              options=EvalOptions(progress=False, consumer_odometry=False))
+        scores[name] = s['metric']['frame_mean']['abs_rel']
+    # measured: 0.104 -> 0.099
+    assert scores['adapted'] < scores['shipped'] - 0.003 and scores['adapted'] < 0.97 * scores['shipped'], scores
