@@ -16,8 +16,7 @@ from dpv_sensor.data.synthetic import render_sequence
 from dpv_sensor.tools import adapt as tool
 
 W, H = 160, 128
-# the tools' recording: a linear-response camera (no gamma) with strong lens vignetting
-SHIFT = {'vignetting': (0.6, 0.7), 'gamma': 1.0}
+# a room 2-2.8 m across: the shipped weights were trained in rooms of 3-7.5 m
 SMALL_ROOM = {'room_size_x': (2.0, 2.8), 'room_size_y': (2.0, 2.8), 'room_height': (2.2, 2.4)}
 FAST = ['--width', str(W), '--height', str(H), '--threads', '1', '--quiet', '--holdout', '0.35', '--unroll', '1',
         '--steps', '4', '--lr', '1e-3']
@@ -27,7 +26,7 @@ FAST = ['--width', str(W), '--height', str(H), '--threads', '1', '--quiet', '--h
 def folders(tmp_path_factory):
     """A 90-frame rendered recording at 160x128 written with depth/, and the same folder without depth/."""
     root = tmp_path_factory.mktemp('adapt')
-    seq = render_sequence(61, 90, width=W, height=H, **SHIFT)
+    seq = render_sequence(65, 90, width=W, height=H, **SMALL_ROOM)
     with_depth = write_sequence(root / 'with_depth', seq, lossless=True)
     without = root / 'without_depth'
     shutil.copytree(with_depth, without)
@@ -70,6 +69,7 @@ def test_writes_weights_report_and_metadata(adapted, folders):
     assert ad['processing_size'] == [W, H] and meta['input_size'] == [W, H]
     assert ad['steps'] == 4 and meta['steps'] == base_meta['steps'] + 4
     assert ad['recording']['name'] == 'without_depth' and ad['recording']['frames'] == 90
+    assert 'evidence' in ad['loss'] and ad['config']['evidence'] == 1.0 and ad['config']['readout'] == 'relative'
     assert ad['recording']['depth_read'] is False and 0 < ad['minutes'] < 5
     assert ad['held_out']['adapted'] == report['held_out']['adapted']
     # the weights moved, and they load for the size they were adapted at
@@ -169,14 +169,14 @@ def test_adapted_weights_refused_at_another_processing_size(adapted):
 
 
 def test_adapting_on_the_first_half_lowers_the_second_half_abs_rel(tmp_path):
-    """A world the shipped weights never saw - a room 2-2.8 m across (they were trained in rooms of 3-7.5 m):
-    adapting on the first 80 frames (no depth) lowers abs_rel on the next 80, through the node's pipeline."""
+    """A world the shipped weights never saw - a room 2-2.8 m across: adapting on the first 80 frames (no depth)
+    lowers abs_rel on the next 80, through the node's pipeline."""
     from dpv_sensor.evaluation.offline import EvalOptions, evaluate_sequence
     seq = render_sequence(65, 160, width=W, height=H, **SMALL_ROOM)
     first = write_sequence(tmp_path / 'first', seq.subset(range(80)), lossless=True, write_depth=False)
     out = tmp_path / 'out'
     code = tool.main([str(first), '--out', str(out), '--width', str(W), '--height', str(H), '--threads', '1',
-                      '--quiet', '--holdout', '0.4', '--steps', '50', '--lr', '2e-3'])
+                      '--quiet', '--holdout', '0.4', '--steps', '50'])
     assert code == tool.EXIT_WRITTEN
     second = Sequence.from_arrays([seq.image(i) for i in range(80, 160)], [seq.depth(i) for i in range(80, 160)],
                                   seq.poses[80:], seq.K, seq.stamps[80:])
@@ -186,5 +186,5 @@ def test_adapting_on_the_first_half_lowers_the_second_half_abs_rel(tmp_path):
                                        'pose_refinement': 'off'},
                               options=EvalOptions(progress=False, consumer_odometry=False))
         scores[name] = s['metric']['frame_mean']['abs_rel']
-    # measured: 0.104 -> 0.099
-    assert scores['adapted'] < scores['shipped'] - 0.003 and scores['adapted'] < 0.97 * scores['shipped'], scores
+    # measured: 0.104 -> 0.093
+    assert scores['adapted'] < scores['shipped'] - 0.006 and scores['adapted'] < 0.94 * scores['shipped'], scores

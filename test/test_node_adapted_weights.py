@@ -19,8 +19,9 @@ FRAMES = 10
 def adapted_weights(tmp_path_factory):
     """Weights adapted (4 steps) to a rendered 90-frame recording at the stream driver's size."""
     root = tmp_path_factory.mktemp('adapt_node')
-    folder = write_sequence(root / 'recording', render_sequence(62, 90, width=W, height=H), lossless=True,
-                            write_depth=False)
+    small_room = {'room_size_x': (2.0, 2.8), 'room_size_y': (2.0, 2.8), 'room_height': (2.2, 2.4)}
+    folder = write_sequence(root / 'recording', render_sequence(65, 90, width=W, height=H, **small_room),
+                            lossless=True, write_depth=False)
     out = root / 'out'
     code = tool.main([str(folder), '--out', str(out), '--width', str(W), '--height', str(H), '--threads', '1',
                       '--quiet', '--holdout', '0.35', '--unroll', '1', '--steps', '4', '--lr', '1e-3'])

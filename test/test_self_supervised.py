@@ -138,3 +138,39 @@ def test_parameter_penalty_and_distillation_by_hand():
     want = 0.7 * math.log(0.7 / 0.4) + 0.3 * math.log(0.3 / 0.6)
     assert S.distillation(q, p).item() == pytest.approx(want, rel=1e-5)
     assert S.distillation(p, q).item() != pytest.approx(want, rel=1e-3)      # not symmetric: the base is the target
+
+
+def test_plane_sweep_errors_are_lowest_on_the_plane_nearest_the_true_depth():
+    from dpv_sensor.core.dpv import depth_planes
+    depths = depth_planes(0.3, 8.0, 32)
+    for z in (1.0, 2.5):
+        ref, src, K = _pair(T_MOVE, z)
+        err, identity = S.plane_errors(ref, src[:, None], K, T_MOVE.float()[:, None], depths)
+        assert err.shape == (1, 32, H // 4, W // 4) and identity.shape == (1, H // 4, W // 4)
+        nearest = int((1.0 / depths - 1.0 / z).abs().argmin())          # planes are uniform in inverse depth
+        best = err[0, :, 2:-2, 2:-2].argmin(0)
+        assert (best == nearest).float().mean() > 0.6, (z, nearest, best.unique(return_counts=True))
+        assert ((best - nearest).abs() <= 1).float().mean() > 0.95
+        # the plane explains the pixel better than the unwarped source does
+        assert (err.min(1).values[0, 2:-2, 2:-2] < identity[0, 2:-2, 2:-2]).float().mean() > 0.95
+
+
+def test_photometric_evidence_by_hand():
+    sigma = 0.05
+    logp = torch.tensor([0.5, 0.5]).log().view(1, 2, 1, 1)
+    # plane 1 errs sigma * ln 3 more than plane 0: evidence 0.5 * 1 + 0.5 * 1/3 = 2/3
+    e = torch.tensor([0.01, 0.01 + sigma * math.log(3.0)]).view(1, 2, 1, 1)
+    identity = torch.full((1, 1, 1), 0.2)
+    assert S.photometric_evidence(logp, e, identity, sigma).item() == pytest.approx(-math.log(2 / 3), rel=1e-5)
+    # a pixel the unwarped sources explain as well (it does not move) does not count
+    assert S.photometric_evidence(logp, e, torch.full((1, 1, 1), 0.005), sigma).item() == 0.0
+    # flat errors (no texture): no gradient, the networks' prior stays
+    logits = torch.tensor([0.3, -0.2, 1.0]).view(1, 3, 1, 1).requires_grad_(True)
+    flat = torch.full((1, 3, 1, 1), 0.04)
+    S.photometric_evidence(torch.log_softmax(logits, 1), flat, identity, sigma).backward()
+    assert logits.grad.abs().max() < 1e-7
+    # one plane explains the patch: a gradient step moves mass towards it
+    logits.grad = None
+    sharp = torch.tensor([0.2, 0.02, 0.2]).view(1, 3, 1, 1)
+    S.photometric_evidence(torch.log_softmax(logits, 1), sharp, identity, sigma).backward()
+    assert logits.grad[0, 1] < 0 < logits.grad[0, 0] and logits.grad[0, 2] > 0

@@ -55,7 +55,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--minutes', type=float, default=d.minutes,
                    help=f'time cap of the whole run (default {DEFAULT_MINUTES:g})')
     p.add_argument('--steps', type=int, default=0, help='stop after this many steps (0: as many as --minutes allows)')
-    p.add_argument('--weights', default='', help='weights to start from (default: the packaged weights of --preset)')
+    p.add_argument('--weights', default=None, help='weights to start from (default: the packaged weights of --preset)')
     p.add_argument('--preset', default=P.default('preset'), choices=P.choices('preset'), help='network preset')
     p.add_argument('--width', type=int, default=d.width, help="processing width (the node's processing_width)")
     p.add_argument('--height', type=int, default=d.height, help="processing height (the node's processing_height)")
@@ -69,7 +69,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--unroll', type=int, default=d.unroll, help='filter steps unrolled per sample')
     p.add_argument('--penalty', type=float, default=d.penalty, help='weight of ||theta - theta_base||^2')
     p.add_argument('--distill', type=float, default=d.distill, help='weight of KL(base DPV || adapted DPV)')
-    p.add_argument('--aux', type=float, default=d.aux, help="weight of the 1/4-res measurement's photometric term")
+    p.add_argument('--photometric', type=float, default=d.photometric,
+                   help='weight of the photometric reprojection term')
+    p.add_argument('--evidence', type=float, default=d.evidence,
+                   help="weight of the plane sweep's photometric evidence term")
+    p.add_argument('--sigma', type=float, default=d.sigma, help='photometric error scale of the evidence term')
+    p.add_argument('--aux', type=float, default=d.aux, help="weight of the 1/4-res measurement's terms")
     p.add_argument('--readout', choices=('mean', 'median', 'relative'), default=d.readout,
                    help='the depth the photometric loss warps with (the DPV readout)')
     p.add_argument('--train-modules', nargs='+', choices=MODULES, default=list(d.train_modules), metavar='MODULE',
@@ -89,8 +94,8 @@ def build_parser() -> argparse.ArgumentParser:
 def _config(a) -> AdaptConfig:
     return AdaptConfig(width=a.width, height=a.height, minutes=a.minutes, max_steps=a.steps, lr=a.lr,
                        unroll=a.unroll, holdout=a.holdout, train_modules=tuple(a.train_modules), aux=a.aux,
-                       penalty=a.penalty, distill=a.distill, readout=a.readout, supervised=a.supervised,
-                       seed=a.seed).check()
+                       penalty=a.penalty, distill=a.distill, readout=a.readout, photometric=a.photometric,
+                       evidence=a.evidence, sigma=a.sigma, supervised=a.supervised, seed=a.seed).check()
 
 
 def _file_sha256(path) -> str:

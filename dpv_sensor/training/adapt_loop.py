@@ -9,12 +9,15 @@ trainer's unrolled stream (:func:`dpv_sensor.training.unrolled.measure_steps` an
 filter, R-Net). Each unrolled step's depth warps the window's sources into the reference
 (:mod:`.self_supervised`); the loss per batch is::
 
-    L = mean_j photo(R-Net output_j)  +  aux * mean_j photo(D-Net 1/4-res measurement_j)
+    L = photometric * mean_j [photo(R-Net output_j) + aux * photo(D-Net 1/4-res measurement_j)]
+        + evidence * mean_j [ev(R-Net output_j) + aux * ev(D-Net 1/4-res measurement_j)]
         + penalty * ||theta - theta_base||^2  +  distill * KL(p_base || p)
 
-``photo`` is the auto-masked photometric reprojection error (SSIM + L1, per-pixel minimum over the sources). With
-``supervised`` the loss is the trainer's instead (:func:`dpv_sensor.training.unrolled.run_unrolled`: NLL of the
-recording's depth), and the depth is read.
+``photo`` is the auto-masked photometric reprojection error of the DPV's depth (SSIM + L1, per-pixel minimum over
+the sources); ``ev`` the negative log photometric evidence of the whole DPV on its quarter-resolution grid
+(:func:`~dpv_sensor.training.self_supervised.photometric_evidence`: every plane's patch error from the plane sweep,
+likelihood ``exp(-e / sigma)``). With ``supervised`` the loss is the trainer's instead
+(:func:`dpv_sensor.training.unrolled.run_unrolled`: NLL of the recording's depth), and the depth is read.
 
 **Held-out score**: the mean photometric reprojection error of the R-Net output's depth over every pixel of every
 held-out run (one run starting at each held-out keyframe, at most ``max_holdout_runs`` of them), no auto-mask, a
@@ -53,10 +56,11 @@ __all__ = ['AdaptConfig', 'AdaptResult', 'Adapter', 'select_keyframes', 'DEFAULT
 # 20 minutes of a 2-core CPU with this (loading and resizing, two held-out scores, the report).
 DEFAULT_MINUTES = 18.0
 
-LOSS_DESCRIPTION = ('mean over the unrolled knet-filter steps of the auto-masked photometric reprojection error '
-                    "(0.85 SSIM + 0.15 L1, per-pixel minimum over the window's sources) of the R-Net output's depth, "
-                    '+ aux x the same for the D-Net 1/4-res measurement, + penalty x ||theta - theta_base||^2, '
-                    '+ distill x KL(base DPV || adapted DPV)')
+LOSS_DESCRIPTION = ('mean over the unrolled knet-filter steps of: photometric x the auto-masked photometric '
+                    "reprojection error (0.85 SSIM + 0.15 L1, per-pixel minimum over the window's sources) of the "
+                    "R-Net output's depth + evidence x the negative log photometric evidence of its DPV (plane sweep "
+                    'of 3x3 patches, likelihood exp(-error / sigma)), each + aux x the same for the D-Net 1/4-res '
+                    'measurement; + penalty x ||theta - theta_base||^2 + distill x KL(base DPV || adapted DPV)')
 
 
 @dataclasses.dataclass
@@ -77,8 +81,8 @@ class AdaptConfig:
     max_holdout_runs: int = 16                      # held-out runs scored (evenly spread over the slice)
     train_modules: Tuple[str, ...] = ()             # sub-networks adapted (see training.config.MODULES); () = all
     photometric: float = 1.0                        # weight of the photometric reprojection term
-    evidence: float = 0.0                           # weight of the plane sweep's photometric evidence term
-    sigma: float = 0.02                             # its photometric error scale
+    evidence: float = 1.0                           # weight of the plane sweep's photometric evidence term
+    sigma: float = 0.05                             # its photometric error scale
     aux: float = 0.5                                # weight of the 1/4-res measurement's terms
     penalty: float = 1.0                            # L2-SP weight
     distill: float = 0.0                            # weight of KL(base DPV || adapted DPV) (a second forward)
