@@ -72,6 +72,7 @@ class AdaptConfig:
     max_steps: int = 0                              # 0: as many as ``minutes`` allows
     lr: float = 1e-3
     warmup: int = 10
+    min_lr_ratio: float = 0.05                      # the cosine decay's end (see Adapter.learning_rate)
     clip: float = 1.0
     batch_size: int = 1
     unroll: int = 2                                 # filter steps per sample
@@ -323,6 +324,15 @@ class Adapter:
             self.model.train(was)
         return (num / den if den > 0 else float('nan')), out
 
+    def learning_rate(self, step: int, time_fraction: float) -> float:
+        """Linear warm-up over ``warmup`` steps, then a cosine decay to ``min_lr_ratio`` of ``lr`` over the run, so its
+        last steps only polish: the run's fraction done is ``step / max_steps`` when ``max_steps`` is set (the same
+        rates every time: the weights are reproducible), else the training time's share of the time left to it."""
+        cfg = self.cfg
+        frac = min(1.0, step / cfg.max_steps if cfg.max_steps else max(0.0, time_fraction))
+        warm = min(1.0, (step + 1) / max(1, cfg.warmup))
+        return cfg.lr * warm * (cfg.min_lr_ratio + (1 - cfg.min_lr_ratio) * 0.5 * (1 + math.cos(math.pi * frac)))
+
     # ------------------------------------------------------------------ the run
     def run(self, deadline: float, progress: bool = True, examples: int = 3,
             on_step: Optional[Callable[[int, Dict], None]] = None) -> AdaptResult:
@@ -342,14 +352,15 @@ class Adapter:
         step, step_s, stop = 0, 0.0, 'max_steps'
         bar = tqdm(total=cfg.max_steps or None, disable=not progress, desc='adapt', unit='step', dynamic_ncols=True)
         t_train = time.time()
+        reserve = seconds['base_score'] * 1.1 + 5.0          # the adapted weights' score, and a margin
         self.model.train()
         try:
             while not cfg.max_steps or step < cfg.max_steps:
-                if time.time() + step_s * 1.2 + seconds['base_score'] * 1.1 + 5.0 > deadline:
+                if time.time() + step_s * 1.2 + reserve > deadline:
                     stop = 'minutes'
                     break
                 ts = time.time()
-                lr = cfg.lr * min(1.0, (step + 1) / max(1, cfg.warmup))
+                lr = self.learning_rate(step, (ts - t_train) / max(1e-6, deadline - reserve - t_train))
                 for g in self.optimizer.param_groups:
                     g['lr'] = lr
                 batch = self.training_batch(rng)
