@@ -188,3 +188,22 @@ def test_adapting_on_the_first_half_lowers_the_second_half_abs_rel(tmp_path):
         scores[name] = s['metric']['frame_mean']['abs_rel']
     # measured: 0.104 -> 0.089
     assert scores['adapted'] < scores['shipped'] - 0.01 and scores['adapted'] < 0.92 * scores['shipped'], scores
+
+
+def test_gt_folder_adds_the_held_out_metrics_before_and_after(folders, tmp_path, capsys):
+    code, err = _run(folders[0], tmp_path / 'out', '--gt', str(folders[0]), capsys=capsys)
+    assert code == tool.EXIT_WRITTEN, err
+    gt = json.loads((tmp_path / 'out' / 'report.json').read_text())['ground_truth']
+    assert gt['frames'] == [58, 90]                  # the held-out slice: the last 35 % of 90 frames
+    for name in ('base', 'adapted'):
+        assert 0 < gt[name]['abs_rel'] < 1 and 0 < gt[name]['delta1'] <= 1 and 0 <= gt[name]['ece'] <= 1
+        assert gt[name]['keyframes'] >= 3
+    assert gt['base']['abs_rel'] != gt['adapted']['abs_rel']
+    meta = read_metadata(tmp_path / 'out' / 'weights.safetensors')
+    assert meta['adaptation']['ground_truth']['adapted']['abs_rel'] == gt['adapted']['abs_rel']
+    # a GT folder that does not match the recording is refused before any work
+    short = tmp_path / 'short'
+    write_sequence(short, Sequence(folders[0]).subset(range(40)), lossless=True)
+    code, err = _run(folders[1], tmp_path / 'out2', '--gt', str(short), capsys=capsys)
+    assert code == tool.EXIT_BAD_INPUT and 'has 40 frames, the recording 90' in err
+    assert _files(tmp_path / 'out2') == []
