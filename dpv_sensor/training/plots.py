@@ -128,7 +128,8 @@ def save_adapt_report(path: str, result, gt: Optional[Dict], d_min: float, d_max
     if hist:
         steps = np.array([h['step'] for h in hist])
         for key, colour in (('loss', 'k'), ('photometric', 'tab:blue'), ('photometric_q', 'tab:orange'),
-                            ('nll', 'tab:blue')):
+                            ('evidence', 'tab:green'), ('evidence_q', 'tab:olive'), ('penalty', 'tab:gray'),
+                            ('distill', 'tab:purple'), ('nll', 'tab:blue')):
             y = np.array([h.get(key, np.nan) for h in hist], np.float64)
             if not np.isfinite(y).any():
                 continue
