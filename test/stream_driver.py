@@ -7,6 +7,7 @@ import numpy as np
 
 from ros_helpers import start_node, stop_process, wait_for
 from dpv_sensor.ros import msgs as M
+from dpv_sensor.ros import pose_msgs as PM
 from dpv_sensor.stream.pose_buffer import NS
 
 W, H = 160, 128
@@ -77,7 +78,7 @@ class StreamDriver:
         """Odometry and camera_info at `stamp_ns`, then frame i's image (or `image`, or the message `image_msg`)."""
         k = i % len(self.seq)
         if 'odom' in self.pubs:
-            self.pubs['odom'].publish(M.matrix_to_odometry(self.seq.pose(k), stamp_ns, 'base_link', odom_frame))
+            self.pubs['odom'].publish(PM.matrix_to_odometry(self.seq.pose(k), stamp_ns, 'base_link', odom_frame))
         if 'camera_info' in self.pubs:
             self.pubs['camera_info'].publish(M.K_to_camera_info(self.seq.K, W, H, stamp_ns, frame_id))
         if image_msg is None:
@@ -86,7 +87,7 @@ class StreamDriver:
         self.pubs['image'].publish(image_msg)
 
     def send_odom(self, i: int, stamp_ns: int, odom_frame: str = 'odom') -> None:
-        self.pubs['odom'].publish(M.matrix_to_odometry(self.seq.pose(i % len(self.seq)), stamp_ns, 'base_link',
+        self.pubs['odom'].publish(PM.matrix_to_odometry(self.seq.pose(i % len(self.seq)), stamp_ns, 'base_link',
                                                        odom_frame))
 
     def wait_accounted(self, n: int, timeout: float = 60.0) -> bool:

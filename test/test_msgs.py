@@ -8,8 +8,10 @@ from sensor_msgs.msg import Image
 from std_msgs.msg import Header
 
 from dpv_sensor.ros import msgs as M
+from dpv_sensor.ros import pose_msgs as PM
 from dpv_sensor.ros import cloud_msgs as C
 from dpv_sensor.ros import compressed_depth as CD
+from dpv_sensor.core.odometry_covariance import NOT_FINITE
 from dpv_sensor.stream.pose_buffer import make_pose
 
 RNG = np.random.default_rng(7)
@@ -199,47 +201,47 @@ def test_unusable_camera_info_is_rejected_with_a_reason():
 def test_odometry_round_trip_and_rejections():
     a = math.radians(30)
     T = make_pose([1.0, -2.0, 0.5], [0.0, 0.0, math.sin(a / 2), math.cos(a / 2)])
-    odom = M.matrix_to_odometry(T, header(frame_id='odom'), 'base_link')
+    odom = PM.matrix_to_odometry(T, header(frame_id='odom'), 'base_link')
     assert odom.child_frame_id == 'base_link' and odom.header.frame_id == 'odom'
-    np.testing.assert_allclose(M.odometry_to_matrix(odom), T, atol=1e-12)
+    np.testing.assert_allclose(PM.odometry_to_matrix(odom), T, atol=1e-12)
     odom.pose.pose.position.x = float('nan')
     with pytest.raises(M.BadOdometry, match='NaN'):
-        M.odometry_to_matrix(odom)
+        PM.odometry_to_matrix(odom)
     odom.pose.pose.position.x = 1.0
     odom.pose.pose.orientation.w = 2.0
     with pytest.raises(M.BadOdometry, match='not a unit quaternion'):
-        M.odometry_to_matrix(odom)
+        PM.odometry_to_matrix(odom)
     odom.pose.pose.orientation.w = 0.0
     odom.pose.pose.orientation.z = 0.0
     with pytest.raises(M.BadOdometry, match='norm 0'):
-        M.odometry_to_matrix(odom)
+        PM.odometry_to_matrix(odom)
 
 
 def test_odometry_covariance_filled_or_not():
-    odom = M.matrix_to_odometry(np.eye(4), header(frame_id='odom'), 'base_link', position_sigma=0.1,
+    odom = PM.matrix_to_odometry(np.eye(4), header(frame_id='odom'), 'base_link', position_sigma=0.1,
                                 rotation_sigma=0.02)
-    cov = M.odometry_covariance(odom)
+    cov = PM.odometry_covariance(odom)
     np.testing.assert_allclose(np.diag(cov), [0.01] * 3 + [0.0004] * 3)
-    assert M.odometry_covariance(M.matrix_to_odometry(np.eye(4), header(frame_id='odom'), 'base_link')) is None
+    assert PM.odometry_covariance(PM.matrix_to_odometry(np.eye(4), header(frame_id='odom'), 'base_link')) is None
 
 
 def test_odometry_covariance_with_nan_anywhere_is_not_used_and_is_told_apart_from_an_unfilled_one():
-    odom = M.matrix_to_odometry(np.eye(4), header(frame_id='odom'), 'base_link', position_sigma=0.1,
+    odom = PM.matrix_to_odometry(np.eye(4), header(frame_id='odom'), 'base_link', position_sigma=0.1,
                                 rotation_sigma=0.02)
-    assert not M.covariance_not_finite(odom)
+    assert PM.odometry_covariance_checks(odom)[0].problem is None
     cov = list(odom.pose.covariance)
     cov[1] = float('nan')                      # off the diagonal: the diagonal alone looks filled
     odom.pose.covariance = cov
-    assert M.odometry_covariance(odom) is None and M.covariance_not_finite(odom)
-    unfilled = M.matrix_to_odometry(np.eye(4), header(frame_id='odom'), 'base_link')
-    assert not M.covariance_not_finite(unfilled)
+    assert PM.odometry_covariance(odom) is None and PM.odometry_covariance_checks(odom)[0].problem == NOT_FINITE
+    unfilled = PM.matrix_to_odometry(np.eye(4), header(frame_id='odom'), 'base_link')
+    assert PM.odometry_covariance_checks(unfilled)[0].problem is None
 
 
 def test_pose_stamped_round_trip():
     T = make_pose([0.1, 0.2, 0.3], [0.5, 0.5, 0.5, 0.5])
-    msg = M.matrix_to_pose_stamped(T, header(frame_id='odom'))
+    msg = PM.matrix_to_pose_stamped(T, header(frame_id='odom'))
     assert msg.header.frame_id == 'odom'
-    np.testing.assert_allclose(M.pose_msg_to_matrix(msg), T, atol=1e-12)
+    np.testing.assert_allclose(PM.pose_msg_to_matrix(msg), T, atol=1e-12)
 
 
 # ---------------------------------------------------------------- stamps

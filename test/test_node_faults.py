@@ -20,6 +20,7 @@ import pytest
 
 from ros_helpers import start_node, stop_process, wait_for
 from dpv_sensor.ros import msgs as M
+from dpv_sensor.ros import pose_msgs as PM
 from dpv_sensor.data import rosbag_io as R
 from dpv_sensor.stream.pose_buffer import NS
 from dpv_sensor.client.ros_io import BagPlayer, OutputCollector
@@ -69,7 +70,7 @@ def write_fault_bag(path, seq):
             if i >= TELEPORT:
                 pose = pose.copy()
                 pose[0, 3] += 0.5
-            msg = M.matrix_to_odometry(pose, header_ns(i), 'base_link', 'odom', types=T)
+            msg = PM.matrix_to_odometry(pose, header_ns(i), 'base_link', 'odom', types=T)
             if i == NAN_ODOM:
                 msg.pose.pose.position.x = float('nan')
             bag.write(R.ODOM_TOPIC, R.ODOMETRY, msg, log_ns(i))

@@ -13,6 +13,7 @@ import pytest
 
 from ros_helpers import start_node, stop_process, wait_for
 from dpv_sensor.ros import msgs as M
+from dpv_sensor.ros import pose_msgs as PM
 from dpv_sensor.stream.pose_buffer import NS
 
 W, H = 160, 128
@@ -85,12 +86,12 @@ def replay():
         for i in range(FRAMES):
             t = stamp_ns(i)
             pose = seq.pose(i)
-            pubs['odom'].publish(M.matrix_to_odometry(pose, t, 'base_link', 'odom'))
+            pubs['odom'].publish(PM.matrix_to_odometry(pose, t, 'base_link', 'odom'))
             if i in (DUPLICATE_ODOM, CONFLICT_ODOM):
                 other = pose.copy()
                 if i == CONFLICT_ODOM:
                     other[0, 3] += CONFLICT_OFFSET_M
-                pubs['odom'].publish(M.matrix_to_odometry(other, t, 'base_link', 'odom'))
+                pubs['odom'].publish(PM.matrix_to_odometry(other, t, 'base_link', 'odom'))
             frame_id = '' if i in EMPTY_FRAME_ID else 'cam'
             pubs['camera_info'].publish(M.K_to_camera_info(seq.K, W, H, t, frame_id))
             rgb = seq.image(i)

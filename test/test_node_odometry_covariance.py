@@ -5,7 +5,7 @@ import numpy as np
 
 from stream_driver import FAST_PARAMS, StreamDriver, params_args
 from dpv_sensor.core.odometry_covariance import PSD_TOL, SYMMETRY_TOL
-from dpv_sensor.ros import msgs as M
+from dpv_sensor.ros import pose_msgs as PM
 
 REMAPS = {'image': '/cam/image', 'camera_info': '/cam/camera_info', 'odom': '/odom'}
 STD = np.array([0.02, 0.01, 0.05, 0.002, 0.004, 0.03])       # m, m, m, rad, rad, rad
@@ -56,7 +56,7 @@ def test_each_invalid_covariance_kind_is_counted_and_logged_once_per_kind_and_fi
             stamp = drv.stamp_ns(i)
             if i in CASES:
                 pose, twist = CASES[i]
-                drv.pubs['odom'].publish(M.matrix_to_odometry(drv.seq.pose(i), stamp - 1_000_000, 'base_link',
+                drv.pubs['odom'].publish(PM.matrix_to_odometry(drv.seq.pose(i), stamp - 1_000_000, 'base_link',
                                                               'odom', pose_covariance_66=pose,
                                                               twist_covariance_66=twist))
             drv.send(i, stamp)

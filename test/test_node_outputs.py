@@ -25,6 +25,7 @@ import pytest
 from ros_helpers import assert_clean_exits, start_node, stop_all, stop_process, wait_for, write_rendered_bag
 from test_node_integration import COMMON, T_BASE_CAMERA, ros_args
 from dpv_sensor.ros import msgs as M
+from dpv_sensor.ros import pose_msgs as PM
 from dpv_sensor.ros import compressed_depth as CD
 from dpv_sensor.data import rosbag_io as R
 from dpv_sensor.core.rectify import RectifierCache
@@ -136,7 +137,7 @@ def _wait_rate_warning(node, b, seq, summary, spin, timeout=60.0):
     deadline = time.monotonic() + timeout
     while not warned() and time.monotonic() < deadline:
         stamp += 1_000_000_000 // 30
-        pub_odom.publish(M.matrix_to_odometry(T_world_base, stamp, 'base_link', 'odom'))
+        pub_odom.publish(PM.matrix_to_odometry(T_world_base, stamp, 'base_link', 'odom'))
         pub_img.publish(M.rgb_to_image(seq.image(len(seq) - 1), stamp, 'cam_optical'))
         wait_for(lambda: False, timeout=0.2, spin=spin)      # pacing of the slow stream, not a condition
     return warned()
@@ -302,7 +303,7 @@ def test_diagnostics_warn_when_the_share_of_faulty_images_is_too_high(observer):
                 msg = Image(header=header, height=4, width=4, encoding='rgb16', step=24, data=bytes(96))
             pub_info.publish(M.K_to_camera_info(np.array([[100.0, 0, 80], [0, 100.0, 64], [0, 0, 1]]), W, H, header))
             for t in (stamp[0] - 16_000_000, stamp[0] + 16_000_000):      # odometry around the image
-                pub_odom.publish(M.matrix_to_odometry(np.eye(4), t, 'base_link', frame_id='odom'))
+                pub_odom.publish(PM.matrix_to_odometry(np.eye(4), t, 'base_link', frame_id='odom'))
             pub_img.publish(msg)
             sent[0] += 1
             if wait:    # one at a time: no image is replaced while the node is busy

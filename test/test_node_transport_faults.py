@@ -10,6 +10,7 @@ import cv2
 from ros_helpers import wait_for
 from stream_driver import FAST_PARAMS, H, W, StreamDriver, params_args
 from dpv_sensor.ros import msgs as M
+from dpv_sensor.ros import pose_msgs as PM
 from dpv_sensor.stream.pose_buffer import NS
 
 REMAPS = {'image': '/cam/image', 'camera_info': '/cam/camera_info', 'odom': '/odom'}
@@ -149,14 +150,14 @@ def test_odometry_with_a_nan_covariance_or_a_zero_stamp_is_a_fault_of_its_own():
         for i in range(12):
             stamp = drv.stamp_ns(i)
             if i == 4:                       # its odometry first, with NaN in the pose covariance
-                odom = M.matrix_to_odometry(drv.seq.pose(i), stamp, 'base_link', 'odom', position_sigma=0.01,
+                odom = PM.matrix_to_odometry(drv.seq.pose(i), stamp, 'base_link', 'odom', position_sigma=0.01,
                                             rotation_sigma=0.01)
                 cov = list(odom.pose.covariance)
                 cov[7] = float('nan')
                 odom.pose.covariance = cov
                 drv.pubs['odom'].publish(odom)
             if i == 7:                       # an unstamped odometry message
-                drv.pubs['odom'].publish(M.matrix_to_odometry(drv.seq.pose(i), 0, 'base_link', 'odom'))
+                drv.pubs['odom'].publish(PM.matrix_to_odometry(drv.seq.pose(i), 0, 'base_link', 'odom'))
             drv.send(i, stamp)
             assert drv.wait_accounted(i + 1), drv.outputs.diagnostics
         diag = drv.wait_diagnostics()

@@ -281,7 +281,7 @@ def test_twist_variance_is_written_as_the_odometry_twist_covariance(tmp_path):
 def test_the_mount_on_tf_static_as_a_two_link_chain(tmp_path):
     """bag write --tf-static: odometry of base_link and the mount on /tf_static, latched, written first; the chain
     base_link -> camera_link -> camera frame composes to T_base_camera, so odometry @ chain = the camera poses."""
-    from dpv_sensor.ros.msgs import transform_to_matrix
+    from dpv_sensor.ros.pose_msgs import transform_to_matrix
     from dpv_sensor.stream.transform_tree import TransformTree
     seq = make_seq()
     R.write_sequence_bag(tmp_path / 'bag', seq, T_base_camera=T_BASE_CAM, tf_static=True, camera_link='camera_link',

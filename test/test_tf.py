@@ -60,6 +60,7 @@ def _feed_one_image_and_odometry(node, executor, proc):
     from rclpy.qos import QoSProfile, ReliabilityPolicy
     from sensor_msgs.msg import Image
     from dpv_sensor.ros import msgs as M
+    from dpv_sensor.ros import pose_msgs as PM
     spin = lambda t: executor.spin_once(timeout_sec=t)  # noqa: E731
     qos = QoSProfile(depth=5, reliability=ReliabilityPolicy.RELIABLE)
     pub_img = node.create_publisher(Image, '/image', qos)
@@ -68,7 +69,7 @@ def _feed_one_image_and_odometry(node, executor, proc):
                     timeout=60.0, spin=spin), 'the node never subscribed to its inputs'
     assert proc.poll() is None
     stamp = 1_700_000_000_000_000_000
-    pub_odom.publish(M.matrix_to_odometry(np.eye(4), stamp, 'base_link', frame_id='map'))
+    pub_odom.publish(PM.matrix_to_odometry(np.eye(4), stamp, 'base_link', frame_id='map'))
     pub_img.publish(M.rgb_to_image(np.zeros((8, 8, 3), np.uint8), M.make_header(stamp, 'cam_optical')))
 
 

@@ -79,7 +79,7 @@ def _camera_mount(path, topics: dict, odom_frames: set, image_frame: str, T_base
     if T_base_camera is not None:
         return R.as_T_base_camera(T_base_camera), 'given'
     if topics.get(R.TF_STATIC_TOPIC, ('',))[0] == R.TF_MESSAGE and len(odom_frames) == 1:
-        from dpv_sensor.ros.msgs import transform_to_matrix
+        from dpv_sensor.ros.pose_msgs import transform_to_matrix
         from dpv_sensor.stream.transform_tree import TransformTree
         tree = TransformTree()
         for _t, _ty, _log, msg in R.read_messages(path, [R.TF_STATIC_TOPIC]):

@@ -25,6 +25,7 @@ from typing import Any, Iterable, Iterator
 import numpy as np
 
 from dpv_sensor.ros import msgs as M
+from dpv_sensor.ros import pose_msgs as PM
 from dpv_sensor.ros.tf_publisher import tf_message, transform_stamped
 from dpv_sensor.stream.pose_buffer import interpolate_pose, make_pose, pose7_to_matrix
 
@@ -377,7 +378,7 @@ def write_sequence_bag(path: str | os.PathLike, seq, *, storage: str = 'mcap', r
                 bag.write(TF_STATIC_TOPIC, TF_MESSAGE, msg, t, qos_profile(True, 1, latched=True))
             elif kind == 'odom':
                 T_wb, (position_sigma, rotation_sigma), twist = payload
-                msg = M.matrix_to_odometry(T_wb, t, base_frame, frame_id=odom_frame, types=ROSBAGS,
+                msg = PM.matrix_to_odometry(T_wb, t, base_frame, frame_id=odom_frame, types=ROSBAGS,
                                            position_sigma=position_sigma, rotation_sigma=rotation_sigma,
                                            twist_covariance_66=twist)
                 bag.write(odom_topic, ODOMETRY, msg, t, reliable)
@@ -514,7 +515,7 @@ def read_odometry(path, topic: str = ODOM_TOPIC) -> list[Stamped]:
     """Odometry -> 4x4 T_world_base (extra['child_frame_id']); invalid messages give a NaN matrix."""
     def decode(m):
         try:
-            T = M.odometry_to_matrix(m)
+            T = PM.odometry_to_matrix(m)
         except M.BadOdometry:
             T = np.full((4, 4), np.nan)
         return T, {'child_frame_id': m.child_frame_id}
@@ -523,7 +524,7 @@ def read_odometry(path, topic: str = ODOM_TOPIC) -> list[Stamped]:
 
 def read_poses(path, topic: str) -> list[Stamped]:
     """PoseStamped -> 4x4."""
-    return _read(path, topic, POSE_STAMPED, lambda m: (M.pose_msg_to_matrix(m), {}))
+    return _read(path, topic, POSE_STAMPED, lambda m: (PM.pose_msg_to_matrix(m), {}))
 
 
 __all__ = ['BagError', 'BagSummary', 'BagWriter', 'ArraySequence', 'Stamped', 'ROSBAGS', 'typestore', 'qos_profile',

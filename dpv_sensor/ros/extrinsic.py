@@ -27,7 +27,7 @@ import threading
 import numpy as np
 
 from dpv_sensor.ros.fault_kinds import BAD_TRANSFORM, TF_CONFLICTING_PARENTS, TF_LOOP, TF_MOUNT_FLIP
-from dpv_sensor.ros.msgs import transform_to_matrix
+from dpv_sensor.ros.pose_msgs import transform_to_matrix
 from dpv_sensor.stream.pose_buffer import matrix_to_pose7
 from dpv_sensor.stream.transform_tree import CONFLICT_CLEAR_S, Conflict, TransformTree, frame_name, same_transform
 

@@ -26,6 +26,7 @@ from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 
 from dpv_sensor.core.rectify import RectifierCache, UnsupportedDistortion
 from dpv_sensor.ros import msgs as M
+from dpv_sensor.ros import pose_msgs as PM
 from dpv_sensor.ros import qos
 from dpv_sensor.ros.compressed_image import decode_message
 from dpv_sensor.ros.extrinsic import CameraExtrinsic
@@ -258,7 +259,7 @@ class NodeInputs:
                                'faults.odometry_zero_stamp counts them)', period_s=30.0)
             return
         try:
-            T = M.odometry_to_matrix(msg)
+            T = PM.odometry_to_matrix(msg)
         except M.BadOdometry as exc:
             self.faults.report(NAN_ODOMETRY, f'ignoring odometry at {stamp_ns / NS:.3f} s: {exc}; images '
                                'interpolated across it are dropped')

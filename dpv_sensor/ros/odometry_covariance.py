@@ -9,7 +9,7 @@ from __future__ import annotations
 import time
 
 from dpv_sensor.core.odometry_covariance import ASYMMETRIC, NEGATIVE_DIAGONAL, NOT_FINITE, NOT_PSD
-from dpv_sensor.ros import msgs as M
+from dpv_sensor.ros import pose_msgs as PM
 from dpv_sensor.ros.fault_kinds import (ODOM_COVARIANCE_ASYMMETRIC, ODOM_COVARIANCE_NAN, ODOM_COVARIANCE_NEGATIVE,
                                         ODOM_COVARIANCE_NOT_PSD)
 from dpv_sensor.stream.pose_buffer import CovarianceTrack
@@ -48,7 +48,7 @@ class OdometryCovariances:
 
     def add(self, msg, stamp_ns: int) -> None:
         """Check a nav_msgs/Odometry's two covariances and keep them at `stamp_ns` (an invalid one as not filled)."""
-        for field, check, track in zip(('pose', 'twist'), M.odometry_covariance_checks(msg), (self.pose, self.twist)):
+        for field, check, track in zip(('pose', 'twist'), PM.odometry_covariance_checks(msg), (self.pose, self.twist)):
             track.add(stamp_ns, check.matrix_66)
             if check.problem is not None:
                 self._fault(field, check, stamp_ns)

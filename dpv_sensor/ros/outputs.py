@@ -19,6 +19,7 @@ from geometry_msgs.msg import PoseStamped
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image, PointCloud2
 
 from dpv_sensor.ros import msgs as M
+from dpv_sensor.ros import pose_msgs as PM
 from dpv_sensor.ros import cloud_msgs as C
 from dpv_sensor.ros import compressed_depth as CD
 from dpv_sensor.ros import qos
@@ -156,7 +157,7 @@ class NodeOutputs:
         if self.points.get_subscription_count() > 0 and rgb is not None:
             self._publish_points(depth, rgb, K_out, header, meta.stamp_ns)
         if self.pose is not None and out.T_world_cam_44 is not None:
-            self.pose.publish(M.matrix_to_pose_stamped(out.T_world_cam_44, M.make_header(meta.stamp_ns, odom_frame)))
+            self.pose.publish(PM.matrix_to_pose_stamped(out.T_world_cam_44, M.make_header(meta.stamp_ns, odom_frame)))
             if self.tf is not None:
                 self.tf.publish_refined(out.T_world_cam_44, meta.stamp_ns, odom_frame, meta.frame_id)
         self._count(out, meta)
