@@ -1,7 +1,7 @@
 """Calibration of the depth probability volumes: NLL of the GT depth before / after the filter, and
 whether the confidence ranks the errors.
 
-    .venv/bin/python -m dpv_sensor.benchmarks.calibration --threads 1 \
+    .venv/bin/python -m dpv_sensor.benchmarks.calibration --threads 1 [--data DATA] \
         [--weights dpv_sensor/weights/lite.safetensors] [--synthetic-seeds 0-5] [--sun3d-windows 2] \
         [--width 320 --height 256] [--json out/calibration/calibration.json] [--out out/calibration] [--skip-sun3d]
 
@@ -69,7 +69,6 @@ from dpv_sensor.common import to_jsonable
 __all__ = ['run', 'main', 'sun3d_batches', 'tune_temperature', 'format_table', 'DEFAULT_TEMPERATURES',
            'SUN3D_SEQUENCES', 'CONFIDENT_HALF_TARGET']
 
-DATA = pathlib.Path(__file__).resolve().parents[2].parent / 'shared' / 'data'
 SUN3D_SEQUENCES = ('sun3d_3dmatch_frag1', 'sun3d_3dmatch_frag2')
 DEFAULT_TEMPERATURE = ClassicalMeasurement().temperature              # 0.07
 # 0.02 .. 0.3 log-spaced, plus the default, so the tuned value is never worse than it on training data
@@ -228,7 +227,7 @@ def run(model, *, synthetic_seeds: Seq[int] = tuple(range(6)), sun3d_windows: in
         width: int = P.default('processing_width'), height: int = P.default('processing_height'),
         tune_seeds: Seq[int] = DEFAULT_TUNE_SEEDS,
         temperatures: Seq[float] = DEFAULT_TEMPERATURES, num_keyframes: Optional[int] = None,
-        gap: Optional[int] = None, skip_sun3d: bool = False, data_dir=DATA, out: Optional[str] = None,
+        gap: Optional[int] = None, skip_sun3d: bool = False, data_dir=None, out: Optional[str] = None,
         progress: bool = True, quiet: bool = False, readout: str = dpvops.DEFAULT_READOUT,
         confidence: str = dpvops.DEFAULT_CONFIDENCE) -> Dict:
     """Run the whole benchmark (see the module docstring); returns a JSON-ready dict with ``rows``,
@@ -260,7 +259,9 @@ def run(model, *, synthetic_seeds: Seq[int] = tuple(range(6)), sun3d_windows: in
                                                                       height, lay),
                                  'what': f'held-out synthetic seeds {list(synthetic_seeds)}, '
                                          f'keyframes {gap} frames apart'}
-    if not skip_sun3d:
+    if not skip_sun3d and data_dir is None:
+        print('no --data folder given: the SUN3D part is skipped', file=sys.stderr)
+    elif not skip_sun3d:
         folders = [pathlib.Path(data_dir) / n for n in SUN3D_SEQUENCES
                    if (pathlib.Path(data_dir) / n / 'poses.txt').is_file()]
         if not folders:
@@ -375,7 +376,7 @@ def main(argv: Optional[List[str]] = None) -> Dict:
     ap.add_argument('--synthetic-seeds', default='0-5', help="held-out seeds, e.g. '0-5' or '0,3,7' ('' = none)")
     ap.add_argument('--sun3d-windows', type=int, default=2, help='windows per SUN3D fragment')
     ap.add_argument('--skip-sun3d', action='store_true')
-    ap.add_argument('--data', default=str(DATA), help='folder holding the SUN3D sequences')
+    ap.add_argument('--data', default=None, help='folder holding the SUN3D sequences (none: SUN3D skipped)')
     add_setting(ap, 'processing_width', '--width', dest='width')
     add_setting(ap, 'processing_height', '--height', dest='height')
     ap.add_argument('--keyframes', type=int, default=None,

@@ -97,7 +97,7 @@ def collect(seq_name: str, seq_dir: pathlib.Path, pose_source: str, out: pathlib
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(description=__doc__.split('\n\n')[0], epilog=__doc__.split('\n\n', 1)[1],
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument('--data', default='../shared/data', help='folder of sequence folders')
+    p.add_argument('--data', default=None, help='folder of sequence folders (none: the rendered seeds only)')
     p.add_argument('--seeds', default=','.join(map(str, DEFAULT_SEEDS)),
                    help='rendered seeds ("" = none; 60 and 61 are fit-only in the analysis)')
     p.add_argument('--sources', default=','.join(DEFAULT_SOURCES), help='pose sources (stream table names)')
@@ -116,9 +116,10 @@ def main(argv: Optional[List[str]] = None) -> int:
     from dpv_sensor.benchmarks import stream_table as ST
     out = pathlib.Path(a.out)
     sequences: Dict[str, pathlib.Path] = {}
-    data = pathlib.Path(a.data)
-    if data.is_dir():
-        sequences.update({p.name: p for p in ST.sequence_folders(data)})
+    if a.data is not None:
+        if not pathlib.Path(a.data).is_dir():
+            raise SystemExit(f'--data {a.data}: not a folder')
+        sequences.update({p.name: p for p in ST.sequence_folders(pathlib.Path(a.data))})
     for s in [int(x) for x in a.seeds.split(',') if x.strip()]:
         sequences[f'synthetic_seed{s}'] = ST.rendered_sequence(out, s, ST.RENDER_FRAMES, not a.quiet)
     sources = [s for s in a.sources.split(',') if s]
