@@ -19,6 +19,9 @@ import pytest
 
 from ros_helpers import REPO
 from dpv_sensor.benchmarks import stream_table as ST
+from dpv_sensor.benchmarks import stream_table_inputs as SI
+from dpv_sensor.benchmarks import stream_table_markdown as SM
+from dpv_sensor.benchmarks import stream_table_runs as SR
 from dpv_sensor.client.replay import parse_params
 
 NODE = ['measurement=classical', 'processing_width=96', 'processing_height=72', 'num_planes=32', 'window_mode=causal']
@@ -39,7 +42,7 @@ def table_run(tmp_path_factory):
 
 
 def _run_json(out):
-    key = ST.run_key('synthetic_seed50', 'noisy0', parse_params(NODE))
+    key = SI.run_key('synthetic_seed50', 'noisy0', parse_params(NODE))
     return json.loads((out / 'runs' / f'{key}.json').read_text()), key
 
 
@@ -80,7 +83,7 @@ def test_table_fields_match_independent_values(table_run):
     assert co['ratio_trans'] == pytest.approx(co['hybrid']['predicted']['trans_m_median'] /
                                               co['hybrid']['gt_depth']['trans_m_median'])
     # the table: one noisy row with these numbers
-    md = (out / f'stream_table_{ST.params_tag(parse_params(NODE))}.md').read_text()
+    md = (out / f'stream_table_{SI.params_tag(parse_params(NODE))}.md').read_text()
     row = [ln for ln in md.splitlines() if ln.startswith('| synthetic_seed50 |')]
     assert len(row) == 1 and '| noisy ×1 |' in row[0] and f"| {run['abs_rel']:.3f} |" in row[0], md
     # calibration of the run: ECE and the kept share recomputed from the recorded depth and confidence images
@@ -122,10 +125,10 @@ def test_odometry_noise_is_two_percent_of_each_step_and_a_tenth_of_a_degree():
     from dpv_sensor.data.synthetic import render_sequence
     from dpv_sensor.evaluation.offline import relative_pose_error
     seq = render_sequence(50, 6, width=32, height=24, lazy=True)
-    gt = ST.odometry_poses(seq, 'gt')
-    noisy = ST.odometry_poses(seq, 'noisy1')
+    gt = SI.odometry_poses(seq, 'gt')
+    noisy = SI.odometry_poses(seq, 'noisy1')
     assert np.allclose(noisy[0], gt[0]) and not np.allclose(noisy[3], gt[3])
-    assert ST.odometry_poses(seq, 'noisy1')[5].tolist() == noisy[5].tolist()    # seeded
+    assert SI.odometry_poses(seq, 'noisy1')[5].tolist() == noisy[5].tolist()    # seeded
     for i in range(1, 6):
         rel_gt = np.linalg.inv(gt[i - 1]) @ gt[i]
         rel_n = np.linalg.inv(noisy[i - 1]) @ noisy[i]
@@ -134,19 +137,19 @@ def test_odometry_noise_is_two_percent_of_each_step_and_a_tenth_of_a_degree():
         rot_err = relative_pose_error(_rot(rel_n) @ np.linalg.inv(_rot(rel_gt)), np.eye(4))[1]
         assert rot_err == pytest.approx(0.1, abs=1e-6)
     with pytest.raises(ValueError):
-        ST.odometry_poses(seq, 'drift')
+        SI.odometry_poses(seq, 'drift')
 
 
 def test_time_offset_source_is_the_gt_pose_later_by_the_offset():
     from dpv_sensor.data.synthetic import render_sequence
     seq = render_sequence(50, 6, width=32, height=24, lazy=True)
-    gt = ST.odometry_poses(seq, 'gt')
+    gt = SI.odometry_poses(seq, 'gt')
     dt = seq.stamp(1) - seq.stamp(0)
-    half = ST.odometry_poses(seq, f'offset{1000 * dt / 2:g}ms')
+    half = SI.odometry_poses(seq, f'offset{1000 * dt / 2:g}ms')
     # half a frame later: half way between the frames (linear translation), the last pose held
     np.testing.assert_allclose(half[2][:3, 3], 0.5 * (gt[2][:3, 3] + gt[3][:3, 3]), atol=1e-9)
     np.testing.assert_allclose(half[5], gt[5], atol=1e-12)
-    assert ST.noise_description('offset10ms') == {'time_offset_ms': 10.0}
+    assert SI.noise_description('offset10ms') == {'time_offset_ms': 10.0}
 
 
 def _rot(T):
@@ -219,33 +222,33 @@ def test_corruption_twist_variance_by_hand_integrates_to_the_noise_models_varian
 def test_the_diff_drive_source_has_the_noisy_poses_a_constant_pose_and_a_twist_covariance():
     from dpv_sensor.data.synthetic import render_sequence
     seq = render_sequence(50, 6, width=32, height=24, lazy=True)
-    assert [T.tolist() for T in ST.odometry_poses(seq, 'noisy1twist')] == \
-        [T.tolist() for T in ST.odometry_poses(seq, 'noisy1')]
-    pose = ST.odometry_variance(seq, 'noisy1twist')
-    assert pose.shape == (6, 2) and np.all(pose == ST.CONSTANT_POSE_VARIANCE)
-    twist = ST.odometry_twist_variance(seq, 'noisy1twist')
+    assert [T.tolist() for T in SI.odometry_poses(seq, 'noisy1twist')] == \
+        [T.tolist() for T in SI.odometry_poses(seq, 'noisy1')]
+    pose = SI.odometry_variance(seq, 'noisy1twist')
+    assert pose.shape == (6, 2) and np.all(pose == SI.CONSTANT_POSE_VARIANCE)
+    twist = SI.odometry_twist_variance(seq, 'noisy1twist')
     assert twist.shape == (6, 2) and np.all(twist > 0)
-    assert ST.odometry_twist_variance(seq, 'noisy1cov') is None and ST.odometry_twist_variance(seq, 'noisy1') is None
-    assert ST.noise_description('noisy1twist')['twist_covariance']
-    assert not ST.noise_description('noisy1twist')['covariance']
+    assert SI.odometry_twist_variance(seq, 'noisy1cov') is None and SI.odometry_twist_variance(seq, 'noisy1') is None
+    assert SI.noise_description('noisy1twist')['twist_covariance']
+    assert not SI.noise_description('noisy1twist')['covariance']
     table = ST._Table(out=pathlib.Path('.'), params={}, folders={'a': None}, noise_seeds=[0, 1],
                       single_sources=('gt',), command='', covariance=True, twist=True)
     assert table.sources == ['gt', 'noisy0', 'noisy1', 'noisy0cov', 'noisy1cov', 'noisy0twist', 'noisy1twist']
-    runs = [{'key': ST.run_key('a', src, {}), 'abs_rel': v, 'output_resets': 0}
+    runs = [{'key': SI.run_key('a', src, {}), 'abs_rel': v, 'output_resets': 0}
             for src, v in (('noisy0cov', 0.2), ('noisy0twist', 0.3))]
-    rows = ST.table_rows(runs, ['a'], [0], {}, single_sources=())
+    rows = SM.table_rows(runs, ['a'], [0], {}, single_sources=())
     assert [(r['poses'], r['abs_rel']) for r in rows] == [('noisy+cov ×1', 0.2), ('noisy+twist cov ×1', 0.3)]
 
 
 def test_the_honest_odometry_source_has_the_noisy_poses_and_a_covariance():
     from dpv_sensor.data.synthetic import render_sequence
     seq = render_sequence(50, 6, width=32, height=24, lazy=True)
-    assert [T.tolist() for T in ST.odometry_poses(seq, 'noisy1cov')] == \
-        [T.tolist() for T in ST.odometry_poses(seq, 'noisy1')]
-    assert ST.odometry_variance(seq, 'noisy1') is None and ST.odometry_variance(seq, 'gt') is None
-    var = ST.odometry_variance(seq, 'noisy1cov')
+    assert [T.tolist() for T in SI.odometry_poses(seq, 'noisy1cov')] == \
+        [T.tolist() for T in SI.odometry_poses(seq, 'noisy1')]
+    assert SI.odometry_variance(seq, 'noisy1') is None and SI.odometry_variance(seq, 'gt') is None
+    var = SI.odometry_variance(seq, 'noisy1cov')
     assert var.shape == (6, 2) and np.all(np.diff(var[:, 1]) > 0)
-    assert ST.noise_description('noisy1cov')['covariance'] and not ST.noise_description('noisy1')['covariance']
+    assert SI.noise_description('noisy1cov')['covariance'] and not SI.noise_description('noisy1')['covariance']
     table = ST._Table(out=pathlib.Path('.'), params={}, folders={'a': None}, noise_seeds=[0, 1],
                       single_sources=('gt',), command='', covariance=True)
     assert table.sources == ['gt', 'noisy0', 'noisy1', 'noisy0cov', 'noisy1cov']
@@ -259,14 +262,14 @@ def test_offline_runs_agree_with_the_node_and_carry_the_covariance(table_run):
     node_run, _ = _run_json(out)
     folder = out / 'sequences' / 'synthetic_seed50'
     params = parse_params(NODE)
-    plain = ST.run_one_offline('synthetic_seed50', folder, 'noisy0', params, out, progress=False)
-    honest = ST.run_one_offline('synthetic_seed50', folder, 'noisy0cov', params, out, progress=False)
+    plain = SR.run_one_offline('synthetic_seed50', folder, 'noisy0', params, out, progress=False)
+    honest = SR.run_one_offline('synthetic_seed50', folder, 'noisy0cov', params, out, progress=False)
     assert plain['keyframes_scored'] == node_run['keyframes_scored']
     assert plain['abs_rel'] == pytest.approx(node_run['abs_rel'], abs=0.005)
     assert honest['calibration']['mean_confidence'] < plain['calibration']['mean_confidence']
     table = ST._Table(out=out, params=params, folders={'synthetic_seed50': folder}, noise_seeds=[0],
                       single_sources=(), command='', offline=True)
     assert 'offline=True' in table.run_file('synthetic_seed50', 'noisy0').name
-    rows = ST.table_rows([plain, honest], table.sequences, [0], table.tag_params, single_sources=())
+    rows = SM.table_rows([plain, honest], table.sequences, [0], table.tag_params, single_sources=())
     assert [r['poses'] for r in rows] == ['noisy ×1', 'noisy+cov ×1']        # the offline table has its rows
     assert rows[0]['abs_rel'] == pytest.approx(plain['abs_rel'])

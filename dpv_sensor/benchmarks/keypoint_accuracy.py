@@ -243,7 +243,7 @@ def binned(rows: List[PairError]) -> Dict[str, List[PairError]]:
 
 def _sequences(data: Optional[pathlib.Path], names: Seq[str], seeds: Seq[int], frames: int):
     """(name, sequence) of the data folder's sequences and the rendered seeds."""
-    from dpv_sensor.benchmarks.stream_table import RENDER_SIZE, sequence_folders
+    from dpv_sensor.benchmarks.stream_table_inputs import RENDER_SIZE, sequence_folders
     from dpv_sensor.data.sequence import Sequence
     if data is not None:
         for folder in sequence_folders(data):

@@ -30,7 +30,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     a = p.parse_args(argv)
     import torch
     torch.set_num_threads(a.threads)
-    from dpv_sensor.benchmarks import stream_table as ST
+    from dpv_sensor.benchmarks import stream_table_inputs as ST
     from dpv_sensor.data.sequence import Sequence
     from dpv_sensor.evaluation import runner as RN
     from dpv_sensor.evaluation.plots import window_graph_plot
