@@ -67,7 +67,7 @@ def sample_keyframe(record, rng: np.random.Generator, pixels: int, min_depth: fl
 def collect(seq_name: str, seq_dir: pathlib.Path, pose_source: str, out: pathlib.Path, pixels: int,
             progress: bool) -> pathlib.Path:
     """Run one sequence with one pose source and write its samples (npz); cached."""
-    from dpv_sensor.benchmarks import stream_table as ST
+    from dpv_sensor.benchmarks import stream_table_inputs as ST
     from dpv_sensor.data.sequence import Sequence
     from dpv_sensor.evaluation import runner as RN
     path = out / 'samples' / f'{seq_name}__{pose_source}.npz'
@@ -113,7 +113,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     a = build_parser().parse_args(argv)
     import torch
     torch.set_num_threads(a.threads)
-    from dpv_sensor.benchmarks import stream_table as ST
+    from dpv_sensor.benchmarks import stream_table_inputs as ST
     out = pathlib.Path(a.out)
     sequences: Dict[str, pathlib.Path] = {}
     if a.data is not None:
