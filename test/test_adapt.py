@@ -98,6 +98,24 @@ def test_supervised_needs_depth(folders, tmp_path, capsys):
     code, err = _run(folders[1], tmp_path / 'out', '--supervised', capsys=capsys)
     assert code == tool.EXIT_BAD_INPUT and 'has no depth/' in err
     assert _files(tmp_path / 'out') == []
+    code, err = _run(folders[0], tmp_path / 'out', '--depth-topic', '/depth', capsys=capsys)
+    assert code == tool.EXIT_BAD_INPUT and '--depth-topic is read only with --supervised' in err
+
+
+def test_supervised_on_a_bag_reads_its_depth_topic(folders, tmp_path, capsys):
+    from dpv_sensor.data import rosbag_io as R
+    bag = tmp_path / 'fleet.mcap'
+    R.write_sequence_bag(bag, Sequence(folders[0]), depth_topic='/camera/aligned_depth/image', progress=False)
+    code, err = _run(bag, tmp_path / 'none', '--supervised', capsys=capsys)
+    assert code == tool.EXIT_BAD_INPUT and '--supervised on a bag needs --depth-topic' in err
+    code = tool.main([str(bag), '--out', str(tmp_path / 'out'), *FAST, '--supervised', '--lr', '1e-4',
+                      '--depth-topic', '/camera/aligned_depth/image'])
+    assert code == tool.EXIT_WRITTEN
+    ad = read_metadata(tmp_path / 'out' / 'weights.safetensors')['adaptation']
+    rec = ad['recording']
+    assert rec['kind'] == 'bag' and rec['depth_read'] is True and rec['frames'] == 90
+    assert rec['depth_topic'] == '/camera/aligned_depth/image' and rec['topics']['image'] == '/image'
+    assert ad['held_out']['score'] == 'nll'
 
 
 def test_refuses_weights_that_score_worse(folders, tmp_path, capsys):

@@ -81,3 +81,38 @@ def test_neither_a_folder_nor_a_bag(tmp_path):
     (tmp_path / 'empty').mkdir()
     with pytest.raises(SequenceFormatError, match='poses.txt is missing'):
         load_recording(tmp_path / 'empty')
+
+
+def test_a_bag_depth_topic_is_read_only_when_asked_and_paired_by_stamp(rendered, tmp_path):
+    bag = tmp_path / 'run.mcap'
+    R.write_sequence_bag(bag, rendered, T_base_camera=MOUNT, tf_static=True, depth_topic='/camera/aligned_depth/image',
+                         progress=False, start_ns=1_700_000_000 * R.NS)
+    # the depth topic is one more sensor_msgs/Image topic: named, it is never taken for the colour image
+    rec = load_recording(bag, size=(48, 36), depth_topic='/camera/aligned_depth/image')
+    seq = rec.sequence
+    assert seq.has_depth and rec.source['depth_read'] is True and len(seq) == len(rendered)
+    assert rec.source['depth_topic'] == '/camera/aligned_depth/image' and rec.source['depth_offset_ms_max'] == 0
+    from dpv_sensor.data.sequence import resize_nearest
+    want = resize_nearest(np.round(rendered.depth(7) * 1000) / 1000, 48, 36)      # 16UC1: millimetres
+    np.testing.assert_allclose(seq.depth(7), want, atol=1e-6)
+    assert not load_recording(bag, image_topic='/image').sequence.has_depth       # not asked: never read
+
+
+def test_depth_pairs_take_the_nearest_within_20_ms_and_refuse_another_size(tmp_path):
+    from dpv_sensor.data import recording
+    from dpv_sensor.ros import msgs as M
+    ms = R.NS // 1000
+    with R.BagWriter(tmp_path / 'bag') as bag:
+        for t_ms, value, size in ((0, 1.0, (4, 3)), (33, 2.0, (4, 3)), (91, 3.0, (4, 3)), (200, 4.0, (8, 6))):
+            d = np.full((size[1], size[0]), value, np.float32)
+            bag.write('/depth', R.IMAGE, M.depth_to_image(d, t_ms * ms, 'cam', types=R.ROSBAGS), t_ms * ms)
+    pairs = recording._DepthPairs(tmp_path / 'bag', '/depth')
+    assert pairs.at(10 * ms, (4, 3))[0, 0] == 1.0            # 10 ms from 0, 23 ms from 33
+    assert pairs.at(50 * ms, (4, 3))[0, 0] == 2.0            # 17 ms: an unsynchronised 30 Hz depth camera
+    assert pairs.at(62 * ms, (4, 3)) is None                 # 29 ms from both: no pair
+    assert pairs.worst_offset_s == pytest.approx(0.017)
+    with pytest.raises(R.BagError, match='depth images are 8x6 but the colour images 4x3: record the depth '
+                                         'registered'):
+        pairs.at(200 * ms, (4, 3))
+    with pytest.raises(SequenceFormatError, match='a depth topic is read from a bag'):
+        load_recording(tmp_path, depth_topic='/depth')

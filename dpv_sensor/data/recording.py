@@ -1,5 +1,5 @@
 """A user's own recording, read as the networks' adaptation needs it: colour images, intrinsics and camera poses,
-**never depth**.
+**never depth** unless asked for (``depth_topic``: the adapt tool's ``--supervised`` on a bag).
 
 :func:`load_recording` takes a sequence folder (images/ as PNG or JPEG, poses.txt, K.txt; its depth/ is never
 looked at) or a rosbag2 (MCAP or sqlite3). In a bag the camera image (raw or image_transport compressed),
@@ -13,7 +13,11 @@ counted. With ``size`` the images are resized as they are read (K scaled with th
 recording is held in memory at the processing size only.
 
 The result is a :class:`Recording`: a depth-free :class:`~dpv_sensor.data.sequence.Sequence` (asking it for depth
-raises) and a ``source`` dict that says what was read.
+raises) and a ``source`` dict that says what was read. With ``depth_topic`` (a bag; a fleet where one robot carries
+a depth camera) each image is paired with the depth image on that topic nearest its stamp within
+``DEPTH_PAIRING_S``: a depth registered to the colour camera (same size, same intrinsics: a driver's
+aligned_depth_to_color), 16UC1 millimetres or 32FC1 metres, resized by nearest neighbour; images without one are
+dropped and counted.
 """
 from __future__ import annotations
 
@@ -26,9 +30,13 @@ import numpy as np
 
 from dpv_sensor import params as P
 from dpv_sensor.core.geometry import scale_intrinsics_np
-from dpv_sensor.data.sequence import Sequence, SequenceFormatError
+from dpv_sensor.data.sequence import Sequence, SequenceFormatError, resize_nearest
 
-__all__ = ['Recording', 'load_recording', 'is_bag']
+__all__ = ['Recording', 'load_recording', 'is_bag', 'DEPTH_PAIRING_S']
+
+#: an image and a depth image further apart than this (s) are not a pair (a 30 Hz depth camera that is not
+#: synchronised with the colour camera is at most half a frame, 17 ms, from the nearest colour image)
+DEPTH_PAIRING_S = 0.02
 
 
 @dataclasses.dataclass
@@ -50,8 +58,9 @@ def is_bag(path) -> bool:
 
 def load_recording(path, *, size: Optional[Tuple[int, int]] = None, image_topic: Optional[str] = None,
                    camera_info_topic: Optional[str] = None, odom_topic: Optional[str] = None, T_base_camera=None,
-                   max_odom_gap: float = P.default('max_odom_gap')) -> Recording:
-    """Read a sequence folder or a rosbag2 (see the module docstring). ``size`` = (width, height) to resize to.
+                   max_odom_gap: float = P.default('max_odom_gap'), depth_topic: Optional[str] = None) -> Recording:
+    """Read a sequence folder or a rosbag2 (see the module docstring). ``size`` = (width, height) to resize to;
+    ``depth_topic`` (bags only) the registered depth to pair with the images.
 
     Raises SequenceFormatError (a folder) or ``rosbag_io.BagError`` (a bag) naming what is wrong, FileNotFoundError
     when ``path`` is neither."""
@@ -59,7 +68,10 @@ def load_recording(path, *, size: Optional[Tuple[int, int]] = None, image_topic:
     if not p.exists():
         raise FileNotFoundError(f'{p}: no such sequence folder or bag')
     if is_bag(p):
-        return _load_bag(p, size, image_topic, camera_info_topic, odom_topic, T_base_camera, max_odom_gap)
+        return _load_bag(p, size, image_topic, camera_info_topic, odom_topic, T_base_camera, max_odom_gap,
+                         depth_topic)
+    if depth_topic:
+        raise SequenceFormatError(f'{p}: a depth topic is read from a bag; a sequence folder has depth/')
     if not p.is_dir():
         raise SequenceFormatError(f'{p}: neither a sequence folder (images/, poses.txt, K.txt) nor a rosbag2')
     seq = Sequence(p, depth=False)
@@ -94,11 +106,14 @@ def _camera_mount(path, topics: dict, odom_frames: set, image_frame: str, T_base
 
 
 def _load_bag(path: pathlib.Path, size, image_topic, camera_info_topic, odom_topic, T_base_camera,
-              max_odom_gap: float) -> Recording:
+              max_odom_gap: float, depth_topic: Optional[str]) -> Recording:
     from dpv_sensor.data import rosbag_io as R
     from dpv_sensor.data.topic_detection import describe_choice, detect_input_topics
     from dpv_sensor.stream.pose_buffer import PoseBuffer
     topics = R.bag_topics(path)
+    depths = _DepthPairs(path, depth_topic) if depth_topic else None
+    if depth_topic:
+        topics = {t: v for t, v in topics.items() if t != depth_topic}    # never taken for the colour image
     chosen, how = detect_input_topics(topics, image=image_topic, camera_info=camera_info_topic, odom=odom_topic,
                                       options={'image': '--image-topic', 'camera_info': '--camera-info-topic',
                                                'odom': '--odom-topic'})
@@ -122,7 +137,7 @@ def _load_bag(path: pathlib.Path, size, image_topic, camera_info_topic, odom_top
         raise R.BagError(f'{path}: images are {w0}x{h0} but camera_info says {info_size[0]}x{info_size[1]}')
     out_wh = (w0, h0) if size is None else (int(size[0]), int(size[1]))
     K = scale_intrinsics_np(K_native, out_wh[0] / w0, out_wh[1] / h0)
-    kept, poses, stamps, dropped = [], [], [], {}
+    kept, kept_depth, poses, stamps, dropped = [], [], [], [], {}
     for s in images:
         if s.data.shape[:2] != (h0, w0):
             dropped['size_changed'] = dropped.get('size_changed', 0) + 1
@@ -132,14 +147,56 @@ def _load_bag(path: pathlib.Path, size, image_topic, camera_info_topic, odom_top
             key = f'no_pose ({q.reason})'
             dropped[key] = dropped.get(key, 0) + 1
             continue
+        if depths is not None:
+            d = depths.at(s.stamp_ns, (w0, h0))
+            if d is None:
+                dropped['no_depth'] = dropped.get('no_depth', 0) + 1
+                continue
+            kept_depth.append(d if out_wh == (w0, h0) else resize_nearest(d, *out_wh))
         im = s.data if out_wh == (w0, h0) else cv2.resize(s.data, out_wh, interpolation=cv2.INTER_AREA)
         kept.append(im)
         poses.append(q.T_world_cam_44)
         stamps.append(s.stamp_ns / R.NS)
     if not kept:
-        raise R.BagError(f'{path}: no image of {chosen["image"]} has an odometry pose ({dropped})')
-    seq = Sequence.from_arrays(kept, None, np.stack(poses), K, np.asarray(stamps), name=path.stem)
+        raise R.BagError(f'{path}: no image of {chosen["image"]} has an odometry pose'
+                         f'{" and a depth image" if depths else ""} ({dropped})')
+    seq = Sequence.from_arrays(kept, kept_depth if depths else None, np.stack(poses), K, np.asarray(stamps),
+                               name=path.stem)
     source = {'kind': 'bag', 'path': str(path.resolve()), 'name': path.stem, 'frames': len(seq),
               'native_size': [w0, h0], 'topics': chosen, 'topics_chosen': describe_choice(chosen, how),
-              'camera_mount': mount_from, 'images_dropped': dropped, 'depth_read': False}
+              'camera_mount': mount_from, 'images_dropped': dropped, 'depth_read': depths is not None}
+    if depths is not None:
+        source['depth_topic'] = depth_topic
+        source['depth_offset_ms_max'] = round(depths.worst_offset_s * 1e3, 3)
     return Recording(seq, source)
+
+
+class _DepthPairs:
+    """The depth images of a bag topic, looked up by the colour image's stamp (nearest within DEPTH_PAIRING_S)."""
+
+    def __init__(self, path: pathlib.Path, topic: str):
+        from dpv_sensor.data import rosbag_io as R
+        self._depths = sorted(R.read_depth_images(path, topic), key=lambda s: s.stamp_ns)
+        if not self._depths:
+            raise R.BagError(f'{path}: {topic} holds no depth image')
+        self._stamps = np.array([s.stamp_ns for s in self._depths], dtype=np.int64)
+        self.topic = topic
+        self.worst_offset_s = 0.0
+
+    def at(self, stamp_ns: int, size_wh: Tuple[int, int]) -> Optional[np.ndarray]:
+        """The depth (HxW float32 metres, NaN none) nearest ``stamp_ns`` within DEPTH_PAIRING_S, else None; a depth
+        of another size than the colour image is an error (it is not registered to the colour camera)."""
+        from dpv_sensor.data import rosbag_io as R
+        j = int(np.searchsorted(self._stamps, stamp_ns))
+        near = [k for k in (j - 1, j) if 0 <= k < len(self._stamps)]
+        k = min(near, key=lambda k: abs(int(self._stamps[k]) - stamp_ns))
+        offset_s = abs(int(self._stamps[k]) - stamp_ns) / R.NS
+        if offset_s > DEPTH_PAIRING_S:
+            return None
+        d = self._depths[k].data
+        if (d.shape[1], d.shape[0]) != tuple(size_wh):
+            raise R.BagError(f'{self.topic}: depth images are {d.shape[1]}x{d.shape[0]} but the colour images '
+                             f'{size_wh[0]}x{size_wh[1]}: record the depth registered to the colour camera (e.g. '
+                             'aligned_depth_to_color)')
+        self.worst_offset_s = max(self.worst_offset_s, offset_s)
+        return d

@@ -292,8 +292,8 @@ def write_sequence_bag(path: str | os.PathLike, seq, *, storage: str = 'mcap', r
                        odom_frame: str = 'odom', base_frame: str = 'base_link', T_base_camera=None,
                        encoding: str = 'rgb8', frames: Iterable[int] | None = None, with_odometry: bool = True,
                        pose_variance=None, twist_variance=None, compressed: str | None = None, jpeg_quality: int = 90,
-                       tf_static: bool = False, camera_link: str = '', overwrite: bool = False,
-                       progress: bool = True) -> BagSummary:
+                       tf_static: bool = False, camera_link: str = '', depth_topic: str | None = None,
+                       overwrite: bool = False, progress: bool = True) -> BagSummary:
     """Write a posed image sequence as a rosbag2 and return what was written.
 
     seq: anything with len(), .K, image(i) (uint8 RGB), pose(i) (4x4 T_world_cam) and stamp(i) (s); e.g. a
@@ -316,7 +316,9 @@ def write_sequence_bag(path: str | os.PathLike, seq, *, storage: str = 'mcap', r
     every message is its header stamp; at equal stamps odometry is written before camera_info, camera_info before
     the image. tf_static: also write the mount (T_base_camera) on /tf_static, one latched message before everything
     else: base_frame -> camera_frame, or with `camera_link` a chain of two as a URDF has it: base_frame -> camera_link
-    (the mount's translation) -> camera_frame (its rotation).
+    (the mount's translation) -> camera_frame (its rotation). depth_topic: also write the sequence's depth there,
+    16UC1 millimetres at each image's stamp in the camera frame (a depth camera registered to the colour camera,
+    e.g. a driver's aligned_depth_to_color).
     """
     idx = list(range(len(seq))) if frames is None else [int(i) for i in frames]
     _check_write_options(storage, idx, rate, odom_dropout)
@@ -388,6 +390,9 @@ def write_sequence_bag(path: str | os.PathLike, seq, *, storage: str = 'mcap', r
                 bag.write(camera_info_topic, CAMERA_INFO, info, t, reliable)
                 msgtype, img = image_writer(rgb, t, camera_frame)
                 bag.write(image_topic, msgtype, img, t, reliable)
+                if depth_topic:
+                    bag.write(depth_topic, IMAGE, M.depth_to_image(seq.depth(idx[payload]), t, camera_frame,
+                                                                   encoding='16UC1', types=ROSBAGS), t, reliable)
                 image_format = str(getattr(img, 'format', ''))
     return BagSummary(pathlib.Path(path), storage, len(idx), odom_count, odom_dropped, int(min(e[0] for e in events)),
                       int(max(e[0] for e in events)), img_ns.tolist(), image_topic, image_format)

@@ -502,20 +502,12 @@ class Sequence:
         def load_image(i):
             return cv2.resize(base.image(i), (width, height), interpolation=interp)
 
-        def resize_nearest(a):
-            a = np.asarray(a)
-            dtype = a.dtype
-            if dtype == np.bool_:
-                a = a.astype(np.uint8)
-            out = cv2.resize(a, (width, height), interpolation=cv2.INTER_NEAREST_EXACT)
-            return out.astype(dtype)
-
         load_depth = None
         if self.has_depth:
             def load_depth(i):
-                return resize_nearest(base.depth(i))
+                return resize_nearest(base.depth(i), width, height)
 
-        extras = {n: (lambda i, n=n: resize_nearest(base.extra(n, i))) for n in self._extras}
+        extras = {n: (lambda i, n=n: resize_nearest(base.extra(n, i), width, height)) for n in self._extras}
         return Sequence._from_loaders(K=K, size=(width, height), poses=self._poses, stamps=self._stamps,
                                       load_image=load_image, load_depth=load_depth, meta=self.meta,
                                       extras=extras, name=f'{self.name}@{width}x{height}', folder=self.folder)
@@ -555,6 +547,16 @@ class Sequence:
         extras = {name: [self.extra(name, i) for i in range(n)] for name in self._extras}
         return Sequence.from_arrays(images, depths, self._poses, self._K, self._stamps, meta=self.meta,
                                     extras=extras, name=self.name)
+
+
+def resize_nearest(a, width: int, height: int) -> np.ndarray:
+    """A depth map or mask at ``width x height`` by centre-aligned nearest neighbour (invalid pixels stay invalid,
+    nothing is interpolated across edges); the dtype kept (booleans too)."""
+    a = np.asarray(a)
+    dtype = a.dtype
+    if dtype == np.bool_:
+        a = a.astype(np.uint8)
+    return cv2.resize(a, (int(width), int(height)), interpolation=cv2.INTER_NEAREST_EXACT).astype(dtype)
 
 
 def write_sequence(folder: PathLike, seq, lossless: bool = False, jpeg_quality: int = 95,

@@ -20,7 +20,8 @@ Writes to --out: weights.safetensors (only when better; with metadata: base weig
 recording, steps, losses, minutes, scores), report.json and report.png (loss curve and a before/after montage of
 held-out frames). --gt FOLDER (a sequence folder with depth/ whose frames are the recording's) adds abs_rel,
 delta<1.25 and ECE of the held-out slice through the node's pipeline at its defaults, before and after (not
-counted in --minutes). --supervised fine-tunes with the trainer's loss on a recording folder that has depth/.
+counted in --minutes). --supervised fine-tunes with the trainer's loss on a recording that has depth: a folder's
+depth/, or a bag's --depth-topic (a depth camera registered to the colour camera).
 
 Exit status: 0 weights written; 1 not written (adapted weights scored no better, or no step fitted in --minutes;
 one line says why); 2 bad input; 130 interrupted (nothing written).
@@ -64,7 +65,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help='a sequence folder with depth/ matching the recording frame for frame: adds abs_rel, '
                         'delta<1.25 and ECE of the held-out slice before and after')
     p.add_argument('--supervised', action='store_true',
-                   help="fine-tune with the trainer's loss on the recording's depth (a sequence folder with depth/)")
+                   help="fine-tune with the trainer's loss on the recording's depth (a sequence folder with depth/, "
+                        'or a bag with --depth-topic)')
     p.add_argument('--lr', type=float, default=d.lr, help='learning rate (AdamW)')
     p.add_argument('--unroll', type=int, default=d.unroll, help='filter steps unrolled per sample')
     p.add_argument('--penalty', type=float, default=d.penalty, help='weight of ||theta - theta_base||^2')
@@ -84,6 +86,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--image-topic', default=None, help='bag: the image topic (needed only among several)')
     p.add_argument('--camera-info-topic', default=None, help='bag: the camera_info topic')
     p.add_argument('--odom-topic', default=None, help='bag: the odometry topic')
+    p.add_argument('--depth-topic', default=None,
+                   help='bag, with --supervised: the depth image topic, registered to the colour camera (same size '
+                        'and intrinsics, e.g. aligned_depth_to_color); each image takes the depth nearest its stamp '
+                        'within 20 ms')
     p.add_argument('--T-base-camera', type=float, nargs=7, default=None,
                    metavar=('X', 'Y', 'Z', 'QX', 'QY', 'QZ', 'QW'),
                    help='bag: the camera mount in the odometry child frame (default: /tf_static, else identity)')
@@ -110,22 +116,26 @@ def _load(a, log):
     """(recording sequence at the processing size, in memory; its source dict)."""
     from dpv_sensor.data.recording import is_bag, load_recording
     size = (a.width, a.height)
-    if a.supervised:
+    if a.depth_topic and not a.supervised:
+        raise ValueError('--depth-topic is read only with --supervised (the default never reads depth)')
+    if a.supervised and not is_bag(a.source):
         from dpv_sensor.data.sequence import Sequence
-        if is_bag(a.source):
-            raise ValueError('--supervised reads depth from a sequence folder with depth/; a bag is not supported')
         seq = Sequence(a.source)
         if not seq.has_depth:
             raise ValueError(f'--supervised needs depth: {a.source} has no depth/')
         source = {'kind': 'folder', 'path': str(pathlib.Path(a.source).resolve()), 'name': pathlib.Path(a.source).name,
                   'frames': len(seq), 'native_size': list(seq.size), 'depth_read': True}
-        seq = seq.resized(*size)
-    else:
-        rec = load_recording(a.source, size=size, image_topic=a.image_topic, camera_info_topic=a.camera_info_topic,
-                             odom_topic=a.odom_topic, T_base_camera=a.T_base_camera)
-        seq, source = rec.sequence, rec.source
-        if source['kind'] == 'bag':
-            log(f"bag topics: {source['topics_chosen']}; camera mount: {source['camera_mount']}")
+        return seq.resized(*size).materialize(), source
+    if a.supervised and not a.depth_topic:
+        raise ValueError('--supervised on a bag needs --depth-topic (the depth image topic registered to the colour '
+                         'camera)')
+    rec = load_recording(a.source, size=size, image_topic=a.image_topic, camera_info_topic=a.camera_info_topic,
+                         odom_topic=a.odom_topic, T_base_camera=a.T_base_camera, depth_topic=a.depth_topic)
+    seq, source = rec.sequence, rec.source
+    if source['kind'] == 'bag':
+        depth = (f"; depth: {a.depth_topic} (pairs at most {source['depth_offset_ms_max']:g} ms apart)"
+                 if a.depth_topic else '')
+        log(f"bag topics: {source['topics_chosen']}{depth}; camera mount: {source['camera_mount']}")
     return seq.materialize(), source
 
 
