@@ -225,3 +225,21 @@ def test_gt_folder_adds_the_held_out_metrics_before_and_after(folders, tmp_path,
     code, err = _run(folders[1], tmp_path / 'out2', '--gt', str(short), capsys=capsys)
     assert code == tool.EXIT_BAD_INPUT and 'has 40 frames, the recording 90' in err
     assert _files(tmp_path / 'out2') == []
+
+
+def test_held_out_split_by_hand():
+    from dpv_sensor.training.adapt_loop import split_keyframes
+    from dpv_sensor.training.dataset import WindowLayout
+    layout = WindowLayout(steps=2, window=5)                  # M = 6 keyframes a run, references at slots 2 and 3
+    # a long recording: the last 30 % (6 keyframes) held out, its runs inside it
+    split, train, held, runs = split_keyframes(list(range(0, 100, 5)), 100, 0.3, layout)
+    assert split == 70 and held == [70, 75, 80, 85, 90, 95] and len(train) == 14 and runs == [held]
+    # a 50-frame fragment (11 keyframes): 20 % would hold 2, so the last 4 are held out and the one run borrows its
+    # first two sources from the training part; its references (34, 38) and later keyframes are all held out
+    kfs = [0, 5, 9, 14, 19, 24, 29, 34, 38, 42, 47]
+    split, train, held, runs = split_keyframes(kfs, 50, 0.2, layout)
+    assert split == 34 and train == kfs[:7] and held == [34, 38, 42, 47]
+    assert runs == [[24, 29, 34, 38, 42, 47]]
+    # 6 keyframes cannot be split into 6 to adapt on and 4 to score
+    with pytest.raises(ValueError, match='training part has 5 keyframes .*6 are needed \\(10 in all\\)'):
+        split_keyframes(kfs[:6], 25, 0.2, layout)

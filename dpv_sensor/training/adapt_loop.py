@@ -20,7 +20,7 @@ likelihood ``exp(-e / sigma)``). With ``supervised`` the loss is the trainer's i
 (:func:`dpv_sensor.training.unrolled.run_unrolled`: NLL of the recording's depth), and the depth is read.
 
 **Held-out score**: the mean photometric reprojection error of the R-Net output's depth over every pixel of every
-held-out run (one run starting at each held-out keyframe, at most ``max_holdout_runs`` of them), no auto-mask, a
+held-out run (the runs of :func:`split_keyframes`, at most ``max_holdout_runs`` of them), no auto-mask, a
 pixel sent out of every source counting with the unwarped sources' error
 (:func:`dpv_sensor.training.self_supervised.score_error`), so base and adapted weights are scored on exactly the
 same pixels (with ``supervised``: the NLL of the held-out depth).
@@ -141,6 +141,38 @@ class AdaptResult:
         return self.steps > 0 and math.isfinite(self.adapted_score) and self.adapted_score < self.base_score
 
 
+def split_keyframes(kfs: List[int], frames: int, holdout: float, layout: WindowLayout
+                    ) -> Tuple[int, List[int], List[int], List[List[int]]]:
+    """(split frame, training keyframes, held-out keyframes, held-out runs) of a recording's keyframes ``kfs``.
+
+    The frames from the split on are held out: the last ``holdout`` share, or where that holds fewer than the
+    ``M - ref_slot`` keyframes one run needs from its first reference on (4 for the default M = 6), the last that
+    many keyframes, as long as the training part keeps M. Training samples are runs of M training keyframes. The
+    held-out runs are the M-keyframe runs inside the held-out slice; in a slice of fewer than M keyframes (a short
+    recording), the runs whose references are all held out, their first ``ref_slot`` sources borrowed from the
+    training part (their images, never a scored pixel). ValueError names the part that is too short."""
+    M, r = layout.num_keyframes, layout.ref_slot
+    need = M - r
+    split = int(round(frames * (1.0 - holdout)))
+    if sum(k >= split for k in kfs) < need and len(kfs) >= M + need:
+        split = kfs[-need]
+    train = [k for k in kfs if k < split]
+    held = [k for k in kfs if k >= split]
+    rule = (f"(the node picks one every {P.default('keyframe_translation')} m, {P.default('keyframe_rotation_deg')} "
+            f"deg or {P.default('keyframe_max_interval')} frames)")
+    if len(train) < M:
+        raise ValueError(f'the recording is too short: its training part has {len(train)} keyframes {rule}, {M} are '
+                         f'needed ({M + need} in all)')
+    if len(held) < need:
+        raise ValueError(f'the recording is too short: its held-out slice has {len(held)} keyframes {rule}, {need} '
+                         f'are needed ({M + need} in all)')
+    if len(held) >= M:
+        runs = [held[s:s + M] for s in range(len(held) - M + 1)]
+    else:
+        runs = [kfs[s:s + M] for s in range(len(train) - r, len(kfs) - M + 1)]
+    return split, train, held, runs
+
+
 def select_keyframes(poses: Seq[np.ndarray]) -> List[int]:
     """Frame indices the node's keyframe rule picks along ``poses`` (its defaults: baseline, rotation, interval)."""
     from dpv_sensor.stream.keyframes import KeyframeSelector
@@ -170,20 +202,11 @@ class Adapter:
             import copy
             self.base_model = copy.deepcopy(model).eval().requires_grad_(False)
         frames = len(sequence)
-        self.split = int(round(frames * (1.0 - cfg.holdout)))
         kfs = select_keyframes([sequence.pose(i) for i in range(frames)])
-        self.train_kf = [k for k in kfs if k < self.split]
-        self.held_kf = [k for k in kfs if k >= self.split]
-        M = cfg.layout().num_keyframes
-        for name, kf in (('training part', self.train_kf), ('held-out slice', self.held_kf)):
-            if len(kf) < M:
-                raise ValueError(f'the recording is too short: its {name} has {len(kf)} keyframes (the node picks one '
-                                 f'every {P.default("keyframe_translation")} m, {P.default("keyframe_rotation_deg")} '
-                                 f'deg or {P.default("keyframe_max_interval")} frames), {M} are needed')
-        starts = list(range(0, len(self.held_kf) - M + 1))
-        if len(starts) > cfg.max_holdout_runs:
-            starts = [starts[int(i)] for i in np.linspace(0, len(starts) - 1, cfg.max_holdout_runs).round()]
-        self.held_runs = [self.held_kf[s:s + M] for s in starts]
+        self.split, self.train_kf, self.held_kf, runs = split_keyframes(kfs, frames, cfg.holdout, cfg.layout())
+        if len(runs) > cfg.max_holdout_runs:
+            runs = [runs[int(i)] for i in np.linspace(0, len(runs) - 1, cfg.max_holdout_runs).round()]
+        self.held_runs = runs
         for name, child in model.named_children():
             child.requires_grad_(cfg.trains(name))
         self.measure_grad = cfg.trains('features') or cfg.trains('cost_volume')
