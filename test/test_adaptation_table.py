@@ -43,6 +43,20 @@ def test_halves_have_no_depth_to_adapt_on_and_the_other_half_with_depth_to_score
     assert len(Sequence(evals[2].recording, depth=False)) == 10 and not (evals[2].recording / 'depth').exists()
     assert len(Sequence(evals[2].scored)) == 7 and np.allclose(Sequence(evals[2].scored).depth(0), 3.0)
     assert evals[3].recording.name == 'b_all' and evals[3].scored.name == 'a_all'
+    # cached results of a folder's old content go when it is written anew (here: the source grew)
+    runs = tmp_path / 'out' / 'stream' / 'runs'
+    runs.mkdir(parents=True)
+    (runs / 'a_second__gt__defaults.json').write_text('{}')
+    (runs / 'b_second__gt__defaults.json').write_text('{}')
+    (tmp_path / 'out' / 'weights' / 'a_first').mkdir(parents=True)
+    AT.evaluations(data, ['b'], [], [], tmp_path / 'out', 60)              # unchanged: nothing goes
+    assert (runs / 'b_second__gt__defaults.json').is_file()
+    _folder(data / 'a', 12, 2.0)
+    AT.evaluations(data, ['a'], [], [], tmp_path / 'out', 60)
+    assert not (runs / 'a_second__gt__defaults.json').exists()
+    assert not (tmp_path / 'out' / 'weights' / 'a_first').exists()
+    assert (runs / 'b_second__gt__defaults.json').is_file()
+    assert len(Sequence(tmp_path / 'out' / 'scored' / 'a_second')) == 6
     with pytest.raises(ValueError, match='no sequence folder'):
         AT.evaluations(data, ['c'], [], [], tmp_path / 'out', 60)
     with pytest.raises(ValueError, match='--pairs'):

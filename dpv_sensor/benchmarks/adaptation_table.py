@@ -55,15 +55,25 @@ class Evaluation:
 
 
 def _write_part(src: pathlib.Path, dst: pathlib.Path, frames: range, depth: bool) -> pathlib.Path:
-    """Frames of a sequence folder as a folder of their own (PNG images: no second JPEG loss), once."""
+    """Frames of a sequence folder as a folder of their own (PNG images: no second JPEG loss), once. A folder
+    written anew (other frames, or a source that changed: a seed rendered with another frame count) takes the
+    cached results made from its old content with it: the tool's run on it, the stream-table runs of its name."""
+    import shutil
     from dpv_sensor.data.sequence import Sequence, write_sequence
     done = dst / '.complete'
-    tag = f'{src.resolve()} {frames.start}-{frames.stop} depth={depth}'
+    src_done = src / '.complete'
+    tag = (f'{src.resolve()} {frames.start}-{frames.stop} depth={depth} '
+           f'{src_done.read_text().strip() if src_done.is_file() else ""}')
     if done.is_file() and done.read_text() == tag:
         return dst
     seq = Sequence(src, depth=depth)
     if len(frames) < 2 or frames.stop > len(seq):
         raise ValueError(f'{src.name}: frames {frames.start}-{frames.stop} of {len(seq)}')
+    out = dst.parent.parent
+    shutil.rmtree(dst, ignore_errors=True)
+    shutil.rmtree(out / 'weights' / dst.name, ignore_errors=True)
+    for stale in (out / 'stream' / 'runs').glob(f'{dst.name}__*'):
+        stale.unlink()
     write_sequence(dst, seq.subset(list(frames)), lossless=True, write_depth=depth, write_extras=False)
     done.write_text(tag)
     return dst
