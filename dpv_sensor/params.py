@@ -196,6 +196,11 @@ SPECS: tuple[ParamSpec, ...] = (
     ParamSpec('refine_gate_chi2', 0.0, "Pose refinement: keep the odometry when a keypoint rotation differs from the "
               "odometry's by more than this chi-square under both covariances (3 dof; 16.27 = 99.9 %). 0 disables.",
               min_value=0.0, max_value=1e6),
+    ParamSpec('refine_photometric_gate_chi2', 0.0, "Pose refinement with refine_photometric_sources: use a "
+              "photometric alignment only when the rotation it moves the source by is one the odometry's own "
+              "covariance allows (chi-square of the correction under the odometry step's rotation covariance, 3 dof; "
+              "16.27 = 99.9 %); a larger one follows the depth it aligns against and is dropped (counted in "
+              "/diagnostics pose_refinement_factors). 0 disables.", min_value=0.0, max_value=1e6),
     ParamSpec('refine_gate_min_inliers', 0, 'Pose refinement with refine_keypoints: keep the odometry when no '
               'keypoint pair has this many inliers (a textureless window). 0 disables.', min_value=0, max_value=100000),
     # --- camera -------------------------------------------------------------------------------------------

@@ -156,3 +156,32 @@ def test_a_huge_odometry_covariance_trusts_the_images_and_refinement_still_corre
         (math.radians(cfg.max_jump_rotation_deg), cfg.max_jump_translation_m))
     assert res.refined and res.gate == 'refined'
     assert _rot_err(res.T_world_cam[1], pair[4]) < 0.5 and res.correction[1] > 1.0
+
+
+def test_photometric_gate_drops_an_alignment_the_odometry_covariance_rules_out(pair):
+    """refine_photometric_gate_chi2: an alignment that moves the source by 2 deg is used where the odometry admits 2
+    deg per axis (chi-square about 1) and dropped, alone and counted, where it claims 0.01 deg (about 40000)."""
+    from dpv_sensor import params as P
+    from dpv_sensor.data.synthetic import render_sequence
+    depth = np.asarray(render_sequence(seed=7, num_frames=1, width=320, height=240, plain_wall_prob=0.0).depth(0),
+                       np.float32)
+    values = P.validate(dict(P.defaults(), refine_keypoints=False, refine_photometric_sources=1,
+                             refine_photometric_gate_chi2=16.27))
+    config = PoseRefinerConfig.from_params(values)
+    assert config.photometric_gate_chi2 == 16.27
+    ref, src = _window(pair, 2.0)
+    refiner = WindowPoseRefiner(config)
+    res = refiner.refine(ref, [src], depth_ref=depth)
+    assert res.refined and res.factors['photometric'] == [(0, 1)]
+    assert _rot_err(res.T_world_cam[1], pair[4]) < 0.3
+    assert refiner.factor_counts == {'photometric_used': 1}
+    ref, src = _window(pair, 0.01)
+    refiner = WindowPoseRefiner(config)
+    res = refiner.refine(ref, [src], depth_ref=depth)
+    assert res.tracking_ok and not res.refined and res.alignments[0].converged
+    np.testing.assert_array_equal(res.T_world_cam[1], src.T_world_cam_odom_44)
+    assert refiner.factor_counts == {'photometric_inconsistent': 1}
+    # without the gate the same alignment is used against the odometry's 0.01 deg
+    refiner = WindowPoseRefiner(PoseRefinerConfig.from_params(dict(values, refine_photometric_gate_chi2=0.0)))
+    res = refiner.refine(ref, [src], depth_ref=depth)
+    assert res.refined and refiner.factor_counts == {'photometric_used': 1}

@@ -70,6 +70,9 @@ def estimator_values(st: EstimatorStatus | None, settings, starting: bool, reset
         values['pose_refinement_last_fallback'] = st.last_pose_refinement_fallback_reason or ''
     if st.pose_refinement_gate:
         values['pose_refinement_gate'] = ', '.join(f'{k} {v}' for k, v in sorted(st.pose_refinement_gate.items()))
+    if st.pose_refinement_factors:
+        values['pose_refinement_factors'] = ', '.join(f'{k} {v}'
+                                                      for k, v in sorted(st.pose_refinement_factors.items()))
         values['pose_refinement_correction'] = (f'{1000 * st.pose_refinement_correction[0]:.1f} mm / '
                                                 f'{st.pose_refinement_correction[1]:.3f} deg')
     if st.pose_refinement_odometry is not None:

@@ -334,6 +334,7 @@ class Estimator:
             last_timings_ms=dict(self._last_timings),
             notes=list(self._notes),
             pose_refinement_gate=dict(getattr(self.pose_refiner, 'gate_counts', None) or {}),
+            pose_refinement_factors=dict(getattr(self.pose_refiner, 'factor_counts', None) or {}),
             pose_refinement_correction=tuple(getattr(self._refinement_result(), 'correction', (0.0, 0.0))),
             pose_refinement_odometry=_odometry_steps(self._refinement_result()),
             confidence_calibration=None if self.calibration is None else self.calibration.path,

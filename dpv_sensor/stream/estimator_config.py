@@ -102,6 +102,7 @@ class EstimatorStatus:
     # the window refiner's gate: windows per outcome (refined, kept_few_inliers, rejected_chi2, skipped, lost, none)
     # and the last window's largest step correction (m, deg); empty / zeros without a refiner that reports them
     pose_refinement_gate: Dict[str, int] = dataclasses.field(default_factory=dict)
+    pose_refinement_factors: Dict[str, int] = dataclasses.field(default_factory=dict)
     pose_refinement_correction: Tuple[float, float] = (0.0, 0.0)
     # the last window's odometry factors: (median per-axis std of a step: rotation rad, translation m; where their
     # covariance came from: fixed sigmas, published covariance, drift figures); None without them

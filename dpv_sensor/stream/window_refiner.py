@@ -158,6 +158,7 @@ class PoseRefinerConfig:
     keypoint_direction: str = _params.default('refine_keypoint_direction')
     marginals: bool = _params.default('refine_marginals')
     gate_chi2: float = _params.default('refine_gate_chi2')
+    photometric_gate_chi2: float = _params.default('refine_photometric_gate_chi2')
     gate_min_inliers: int = _params.default('refine_gate_min_inliers')
 
     # Pose-error model of the window (defaults from the parameter table: odometry covariance and keypoints on,
@@ -178,6 +179,10 @@ class PoseRefinerConfig:
     # gate_chi2 > 0: keep the odometry when a keypoint rotation differs from the odometry's by d with
     #     d^T (S_odom + S_kp)^-1 d above this (3 dof; 16.27 = 99.9 %). gate_min_inliers > 0 (with keypoint
     #     factors): keep the odometry when no keypoint pair has this many inliers (e.g. a textureless window).
+    # photometric_gate_chi2 > 0: a photometric alignment enters only when its rotation correction d (from the
+    #     odometry-chained pose) has d^T S^-1 d at most this, S the rotation covariance of the odometry between the
+    #     source and the reference (odometry_step_covariance): a correction the odometry's own uncertainty cannot
+    #     explain follows the depth being aligned against. Decided per alignment, not per window.
 
     #: node parameters (dpv_sensor.params) that set fields of this class: parameter name -> field name
     PARAMS = {'odom_sigma_rot_deg': 'odom_sigma_rot_deg', 'odom_sigma_trans_m': 'odom_sigma_trans_m',
@@ -185,7 +190,8 @@ class PoseRefinerConfig:
               'refine_photometric_sources': 'max_sources', 'refine_keypoints': 'keypoint_factors',
               'refine_keypoint_direction': 'keypoint_direction',
               'refine_marginals': 'marginals',
-              'refine_gate_chi2': 'gate_chi2', 'refine_gate_min_inliers': 'gate_min_inliers'}
+              'refine_gate_chi2': 'gate_chi2', 'refine_gate_min_inliers': 'gate_min_inliers',
+              'refine_photometric_gate_chi2': 'photometric_gate_chi2'}
 
     @classmethod
     def photometric(cls, **kw) -> 'PoseRefinerConfig':
@@ -346,6 +352,9 @@ class WindowPoseRefiner:
         self.losses = 0
         if not hasattr(self, 'gate_counts'):
             self.gate_counts: Dict[str, int] = {}   # windows per gate outcome since construction (not reset)
+            # photometric alignments per decision since construction (not reset): used, inconsistent (beyond
+            # photometric_gate_chi2), not_converged, jump
+            self.factor_counts: Dict[str, int] = {}
 
     @property
     def tracking_lost(self) -> bool:
@@ -541,18 +550,36 @@ class WindowPoseRefiner:
             out.alignments[i] = res
             if not res.converged:
                 out.failed[i] = res.reason
+                self._count('photometric_not_converged')
                 continue
             # A converged alignment that lands far from the odometry prediction is a pose jump.
             dt, dr = pose_error(T_src_ref0, res.T_src_ref_44)
             if dt > cfg.max_jump_translation_m or dr > cfg.max_jump_rotation_deg:
                 out.failed[i] = (f'pose jump: the alignment moved {dt:.3f} m / {dr:.2f} deg away from the odometry '
                                  f'(limits {cfg.max_jump_translation_m} m / {cfg.max_jump_rotation_deg} deg)')
+                self._count('photometric_jump')
                 continue
+            if cfg.photometric_gate_chi2 > 0 and not self._consistent_with_odometry(ref, s, T_src_ref0, res):
+                self._count('photometric_inconsistent')
+                continue
+            self._count('photometric_used')
             out.new_factors.append((ref.key, s.key, res.T_ref_src_44,
                                     res.between_covariance_gtsam(cfg.depth_scale_sigma, cfg.translation_sigma_rel,
                                                                  offset_sigma)))
         out.nearest = order[0] if order else None
         return out
+
+    def _count(self, decision: str) -> None:
+        self.factor_counts[decision] = self.factor_counts.get(decision, 0) + 1
+
+    def _consistent_with_odometry(self, ref: WindowKeyframe, src: WindowKeyframe, T_src_ref0: np.ndarray,
+                                  res: AlignmentResult) -> bool:
+        """Whether the rotation an alignment moves the source by is within ``photometric_gate_chi2`` of what the
+        odometry's rotation covariance between the two keyframes allows (3 dof)."""
+        d = gtsam.Pose3.Logmap(pose3_from_matrix(T_src_ref0).between(pose3_from_matrix(res.T_src_ref_44)))[:3]
+        a, b = (src.key, ref.key) if src.key <= ref.key else (ref.key, src.key)     # in time order
+        S = odometry_step_covariance(self._odom[a], self._odom[b], self._cov.get(a), self._cov.get(b), self.config)
+        return float(d @ np.linalg.solve(S[:3, :3], d)) <= self.config.photometric_gate_chi2
 
     def _alignment_failure(self, aligned: '_WindowAlignments') -> Optional[str]:
         """Why the window's alignments are not enough to refine it (None: they are, or none was tried)."""
