@@ -141,7 +141,7 @@ def score(scored: List[pathlib.Path], out: pathlib.Path, weights: Optional[str],
           offline: bool) -> Dict[str, Dict[str, Dict[str, Any]]]:
     """Stream-table rows of the scored folders: {folder name: {pose row: row}} (weights None: the shipped)."""
     from dpv_sensor.benchmarks import stream_table
-    from dpv_sensor.benchmarks.stream_table_markdown import _suffix
+    from dpv_sensor.benchmarks.stream_table_markdown import table_stem
     data = scored[0].parent
     params = {} if weights is None else {'weights': weights}
     argv = ['--data', str(data), '--sequences', *[p.name for p in scored], '--seeds', '', '--noise-seeds',
@@ -151,8 +151,8 @@ def score(scored: List[pathlib.Path], out: pathlib.Path, weights: Optional[str],
         argv += ['--params', f'weights={weights}']
     if stream_table.main(argv) != 0:
         raise RuntimeError(f'stream table failed: {argv}')
-    table = json.loads((out / 'stream' / f'stream_table{_suffix(dict(params, offline=True) if offline else params)}'
-                        '.json').read_text())
+    stem = table_stem(dict(params, offline=True) if offline else params)
+    table = json.loads((out / 'stream' / f'{stem}.json').read_text())
     rows: Dict[str, Dict[str, Dict[str, Any]]] = {}
     for r in table['rows']:
         rows.setdefault(r['sequence'], {})[r['poses'].split(' ×')[0]] = r

@@ -151,14 +151,16 @@ def write_table(out: pathlib.Path, runs, sequences, noise_seeds, params, command
     text = head + '\n\n' + md + '\n\n' + LEGEND + '\n\n' + run_details(runs) + '\n'
     if failures:
         text += '\nFailed runs:\n' + ''.join(f'- {k}: {v}\n' for k, v in failures.items())
-    (out / f'stream_table{_suffix(params)}.md').write_text(text)
+    (out / f'{table_stem(params)}.md').write_text(text)
     data = {'command': command, 'params': params, 'sequences': sequences, 'noise_seeds': noise_seeds,
             'rows': rows, 'runs': {r['key']: r for r in runs}, 'failures': failures}
     from dpv_sensor.evaluation.offline import to_jsonable
-    with open(out / f'stream_table{_suffix(params)}.json', 'w') as fh:
+    with open(out / f'{table_stem(params)}.json', 'w') as fh:
         json.dump(to_jsonable(data), fh, indent=1)
     return text, data
 
 
-def _suffix(params: Dict[str, Any]) -> str:
-    return '' if not params else '_' + params_tag(params)
+def table_stem(params: Dict[str, Any]) -> str:
+    """The table files' name without extension: ``stream_table``, ``stream_table_<params>`` with parameters (offline
+    runs carry ``offline=True`` among them)."""
+    return 'stream_table' + ('' if not params else '_' + params_tag(params))
