@@ -86,3 +86,20 @@ def test_a_published_covariance_reaches_the_window_refiner_and_the_widening(tmp_
     else:
         assert odometry.endswith('(drift figures)'), odometry
         assert diag['pose_uncertainty'].startswith('none'), diag['pose_uncertainty']
+
+
+def test_the_photometric_gate_decisions_reach_the_diagnostics(tmp_path, sequence):
+    """refine_photometric_gate_chi2 through the node: with a threshold no real correction meets, every alignment that
+    converged is dropped as inconsistent and /diagnostics pose_refinement_factors counts it; none is used."""
+    from dpv_sensor.data.trajectory import corruption_variance
+    bag = tmp_path / 'input'
+    gt = [sequence.pose(i) for i in range(len(sequence))]
+    R.write_sequence_bag(bag, sequence, pose_variance=corruption_variance(gt, trans_noise_rel=0.02, rot_noise_deg=0.1),
+                         progress=False)
+    res = _replay(tmp_path, bag, pose_refinement='window', refine_photometric_sources=1,
+                  refine_photometric_gate_chi2=1e-9)
+    assert res.node_exit_code == 0
+    factors = res.diagnostics.get('pose_refinement_factors', '')
+    counts = {k: int(v) for k, v in (item.rsplit(' ', 1) for item in factors.split(', ') if item)}
+    assert counts.get('photometric_inconsistent', 0) >= 1, factors
+    assert 'photometric_used' not in counts, factors
