@@ -231,9 +231,12 @@ def test_held_out_split_by_hand():
     from dpv_sensor.training.adapt_loop import split_keyframes
     from dpv_sensor.training.dataset import WindowLayout
     layout = WindowLayout(steps=2, window=5)                  # M = 6 keyframes a run, references at slots 2 and 3
-    # a long recording: the last 30 % (6 keyframes) held out, its runs inside it
+    # a long recording: the last 30 % (6 keyframes) held out; each of them that can be a reference is one: three runs,
+    # the first two borrowing their first sources (60, 65) from the training part
     split, train, held, runs = split_keyframes(list(range(0, 100, 5)), 100, 0.3, layout)
-    assert split == 70 and held == [70, 75, 80, 85, 90, 95] and len(train) == 14 and runs == [held]
+    assert split == 70 and held == [70, 75, 80, 85, 90, 95] and len(train) == 14
+    assert runs == [[60, 65, 70, 75, 80, 85], [65, 70, 75, 80, 85, 90], held]
+    assert all(run[2] in held and run[3] in held for run in runs)        # the references (slots 2, 3): held out
     # a 50-frame fragment (11 keyframes): 20 % would hold 2, so the last 4 are held out and the one run borrows its
     # first two sources from the training part; its references (34, 38) and later keyframes are all held out
     kfs = [0, 5, 9, 14, 19, 24, 29, 34, 38, 42, 47]

@@ -148,9 +148,9 @@ def split_keyframes(kfs: List[int], frames: int, holdout: float, layout: WindowL
     The frames from the split on are held out: the last ``holdout`` share, or where that holds fewer than the
     ``M - ref_slot`` keyframes one run needs from its first reference on (4 for the default M = 6), the last that
     many keyframes, as long as the training part keeps M. Training samples are runs of M training keyframes. The
-    held-out runs are the M-keyframe runs inside the held-out slice; in a slice of fewer than M keyframes (a short
-    recording), the runs whose references are all held out, their first ``ref_slot`` sources borrowed from the
-    training part (their images, never a scored pixel). ValueError names the part that is too short."""
+    held-out runs are every M-keyframe run whose references are all held out, so every held-out keyframe that can be
+    a reference is scored as one: the first runs borrow their first ``ref_slot`` sources from the training part (their
+    images, never a scored pixel). ValueError names the part that is too short."""
     M, r = layout.num_keyframes, layout.ref_slot
     need = M - r
     split = int(round(frames * (1.0 - holdout)))
@@ -166,10 +166,7 @@ def split_keyframes(kfs: List[int], frames: int, holdout: float, layout: WindowL
     if len(held) < need:
         raise ValueError(f'the recording is too short: its held-out slice has {len(held)} keyframes {rule}, {need} '
                          f'are needed ({M + need} in all)')
-    if len(held) >= M:
-        runs = [held[s:s + M] for s in range(len(held) - M + 1)]
-    else:
-        runs = [kfs[s:s + M] for s in range(len(train) - r, len(kfs) - M + 1)]
+    runs = [kfs[s:s + M] for s in range(len(train) - r, len(kfs) - M + 1)]
     return split, train, held, runs
 
 
