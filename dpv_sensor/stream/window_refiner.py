@@ -576,10 +576,21 @@ class WindowPoseRefiner:
                                   res: AlignmentResult) -> bool:
         """Whether the rotation an alignment moves the source by is within ``photometric_gate_chi2`` of what the
         odometry's rotation covariance between the two keyframes allows (3 dof)."""
-        d = gtsam.Pose3.Logmap(pose3_from_matrix(T_src_ref0).between(pose3_from_matrix(res.T_src_ref_44)))[:3]
-        a, b = (src.key, ref.key) if src.key <= ref.key else (ref.key, src.key)     # in time order
-        S = odometry_step_covariance(self._odom[a], self._odom[b], self._cov.get(a), self._cov.get(b), self.config)
-        return float(d @ np.linalg.solve(S[:3, :3], d)) <= self.config.photometric_gate_chi2
+        chi2 = self._rotation_chi2(src.key, ref.key, T_src_ref0, res.T_src_ref_44)
+        return chi2 <= self.config.photometric_gate_chi2
+
+    def _rotation_chi2(self, key_a: Hashable, key_b: Hashable, T_from_44: np.ndarray, T_to_44: np.ndarray,
+                       extra_rot_cov_33: Optional[np.ndarray] = None) -> float:
+        """``d^T (S + extra)^-1 d`` of the rotation ``d`` that takes relative pose ``T_from`` to ``T_to``, ``S`` the
+        odometry's rotation covariance between keyframes ``key_a`` and ``key_b`` (either order) and ``extra`` the
+        other estimate's, if any: how far a correction is from what the odometry's uncertainty allows (3 dof)."""
+        d = gtsam.Pose3.Logmap(pose3_from_matrix(T_from_44).between(pose3_from_matrix(T_to_44)))[:3]
+        a, b = (key_a, key_b) if key_a <= key_b else (key_b, key_a)     # in time order (keys order keyframes)
+        S = odometry_step_covariance(self._odom[a], self._odom[b], self._cov.get(a), self._cov.get(b),
+                                     self.config)[:3, :3]
+        if extra_rot_cov_33 is not None:
+            S = S + extra_rot_cov_33
+        return float(d @ np.linalg.solve(S, d))
 
     def _alignment_failure(self, aligned: '_WindowAlignments') -> Optional[str]:
         """Why the window's alignments are not enough to refine it (None: they are, or none was tried)."""
@@ -640,10 +651,7 @@ class WindowPoseRefiner:
         if cfg.gate_chi2 > 0:
             for s, r, T_src_ref, cov in kp_factors:
                 T_odom = relative_pose(self._odom[s], self._odom[r])
-                d = gtsam.Pose3.Logmap(pose3_from_matrix(T_odom).between(pose3_from_matrix(T_src_ref)))[:3]
-                a, b = (s, r) if s <= r else (r, s)           # in time order (keys order keyframes in time)
-                S = odometry_step_covariance(self._odom[a], self._odom[b], self._cov.get(a), self._cov.get(b), cfg)
-                if float(d @ np.linalg.solve(S[:3, :3] + cov[:3, :3], d)) > cfg.gate_chi2:
+                if self._rotation_chi2(s, r, T_odom, T_src_ref, cov[:3, :3]) > cfg.gate_chi2:
                     return 'rejected_chi2'
         return 'none'
 
