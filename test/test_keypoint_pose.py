@@ -142,3 +142,42 @@ def test_the_true_direction_sharpens_the_rotation_on_a_rendered_pair():
     marginal, conditional = _rot_err_deg(kp.R_b_a, T_b_a), _rot_err_deg(R_cond, T_b_a)
     assert conditional < 0.5 * marginal, (marginal, conditional)
     assert np.trace(cov_cond) < np.trace(kp.rotation_covariance())
+
+
+def _opencv_ratio_matches(desc_a, desc_b, ratio):
+    pairs = cv2.BFMatcher(cv2.NORM_L2).knnMatch(desc_a, desc_b, k=2)
+    good = [p[0] for p in pairs if len(p) == 2 and p[0].distance < ratio * p[1].distance]
+    return [(m.queryIdx, m.trainIdx) for m in good]
+
+
+def test_l2_matching_is_opencvs_brute_force_match_for_match(pair):
+    """The matrix-product matcher returns exactly the pairs OpenCV's brute-force knnMatch + ratio test does, on
+    the SIFT descriptors of rendered views (both directions, two ratios)."""
+    from dpv_sensor.core.keypoint_pose import _match_l2, detect_features
+    fa, fb = (detect_features(im) for im in pair[:2])
+    assert len(fa.keypoints) > 100 and len(fb.keypoints) > 100
+    for da, db in ((fa.descriptors, fb.descriptors), (fb.descriptors, fa.descriptors)):
+        for ratio in (0.8, 0.6):
+            ia, ib = _match_l2(da, db, ratio)
+            want = _opencv_ratio_matches(da, db, ratio)
+            assert len(want) > 20
+            assert list(zip(ia.tolist(), ib.tolist())) == want
+
+
+def test_l2_matching_ratio_test_by_hand():
+    """Distances by hand: a0 is 3 from b0 and sqrt(73) from b1 (b2 is far), so it passes a ratio just above
+    3 / sqrt(73) and fails at exactly that ratio; a1 is 4 from both b0 and b1 and never passes."""
+    from dpv_sensor.core.keypoint_pose import _match_l2
+    b = np.zeros((3, 128), np.float32)
+    b[1, 0] = 8.0
+    b[2, :] = 100.0
+    a = np.zeros((2, 128), np.float32)
+    a[0, 1] = 3.0
+    a[1, 0] = 4.0
+    ia, ib = _match_l2(a, b, 0.8)
+    assert ia.tolist() == [0] and ib.tolist() == [0]
+    ia, ib = _match_l2(a, b, 3.0 / math.sqrt(73.0))       # exactly the ratio: not below it
+    assert ia.tolist() == []
+    ia, ib = _match_l2(a, b, 3.0 / math.sqrt(73.0) + 1e-6)
+    assert ia.tolist() == [0] and ib.tolist() == [0]
+    assert _match_l2(a, b[:1], 0.8)[0].tolist() == []     # one descriptor: no second neighbour
