@@ -79,3 +79,16 @@ def test_the_tool_measures_a_rendered_scene(tmp_path, capsys):
     rot_deg = np.degrees([np.linalg.norm(p.err[:3]) for p in pairs])
     assert np.median(rot_deg) < 2.0                                          # keypoints, not noise
     assert data['tried']['synthetic_seed7'] >= len(pairs)
+
+
+def test_the_tool_measures_the_detector_it_is_given(tmp_path, capsys):
+    """--detector orb matches ORB keypoints (other pairs and inlier counts than SIFT's on the same scene)."""
+    import json
+    runs = {}
+    for det in ('sift', 'orb'):
+        out = tmp_path / f'{det}.json'
+        assert KA.main(['--seeds', '7', '--frames', '40', '--detector', det, '--json', str(out)]) == 0
+        runs[det] = json.loads(out.read_text())
+        assert runs[det]['detector'] == det
+    inliers = {d: [(p['ref'], p['src'], p['inliers']) for p in r['pairs']] for d, r in runs.items()}
+    assert inliers['orb'] and inliers['orb'] != inliers['sift']

@@ -1,6 +1,7 @@
 """How far the window refiner's keypoint relative poses really err, against what their covariance says.
 
     .venv/bin/python -m dpv_sensor.benchmarks.keypoint_accuracy --data DATA [--seeds 60,61,62,63] [--json OUT]
+        [--detector orb]
 
 The refiner's keypoint factors (``core.keypoint_pose``) carry the Gauss-Newton covariance of the inliers' Sampson
 distances. This tool measures whether that covariance is honest on the pairs the node actually builds: keyframes
@@ -270,6 +271,8 @@ def main(argv: Optional[List[str]] = None) -> int:
     p.add_argument('--frames', type=int, default=120, help='frames of each rendered scene')
     p.add_argument('--sources', type=int, default=2, help="pairs per keyframe (the refiner's keypoint_sources)")
     p.add_argument('--size', help="match at this WxH (default: the node's processing size; 'full': the images' own)")
+    p.add_argument('--detector', choices=('sift', 'orb'), default=KeypointConfig().detector,
+                   help="keypoints and descriptors (default: the refiner's)")
     p.add_argument('--loso', action='store_true', help='also fit leaving each sequence out')
     p.add_argument('--json', type=pathlib.Path, help='write every pair and the fits here')
     a = p.parse_args(argv)
@@ -278,7 +281,8 @@ def main(argv: Optional[List[str]] = None) -> int:
     if a.size:
         size = None if a.size == 'full' else tuple(int(v) for v in a.size.lower().split('x'))
     seeds = [int(s) for s in a.seeds.split(',') if s.strip()]
-    config = dataclasses.replace(KeypointConfig(), rotation_floor_deg=0.0, direction_floor_deg=0.0)  # S_kp raw
+    config = dataclasses.replace(KeypointConfig(), rotation_floor_deg=0.0, direction_floor_deg=0.0,  # S_kp raw
+                                 detector=a.detector)
     rows: Dict[str, List[PairError]] = {}
     tried: Dict[str, int] = {}
     for name, seq in _sequences(a.data, a.sequences, seeds, a.frames):
@@ -316,7 +320,8 @@ def main(argv: Optional[List[str]] = None) -> int:
                   f"{_fmt(s, 'fit_cond_nees_median', '.2f')}, beyond 95 % {_fmt(s, 'fit_cond_beyond95', '.0%')}")
     if a.json:
         a.json.parent.mkdir(parents=True, exist_ok=True)
-        a.json.write_text(json.dumps(to_jsonable({'pairs': [asdict(r) for r in every], 'tried': tried,
+        a.json.write_text(json.dumps(to_jsonable({'detector': a.detector, 'pairs': [asdict(r) for r in every],
+                                                  'tried': tried,
                                                   'floors_rendered_deg': fitted, 'loso': loso}), indent=1))
         print(f'\nwritten: {a.json}')
     return 0
