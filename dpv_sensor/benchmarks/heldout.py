@@ -9,7 +9,7 @@ dpv_sensor.evaluation.metrics (metric, frame means). Constant depth = the median
 oracle constant, i.e. a strong constant baseline), scored on the same keyframes.
 
     .venv/bin/python -m dpv_sensor.benchmarks.heldout --weights dpv_sensor/weights/lite.safetensors \
-        --out results.json [--seqs sun3d_3dmatch_frag1 sun3d_3dmatch_frag2] [--synthetic-seeds 0-9] \
+        --out results.json --data DATA [--seqs sun3d_3dmatch_frag1 sun3d_3dmatch_frag2] [--synthetic-seeds 0-9] \
         [--readout auto|relative|median|mean] [--pose-noise 0.01 0.15]
 """
 import argparse
@@ -28,10 +28,6 @@ from dpv_sensor.evaluation.metrics import MetricAccumulator
 from dpv_sensor.evaluation.runner import EvalOptions, depth_limits, run_sequence
 from dpv_sensor.evaluation.scoring import score_records
 from dpv_sensor import params as P
-
-# the shared development data folder, a sibling of the checkout (development machines only)
-DATA = str(pathlib.Path(__file__).resolve().parents[2].parent / 'shared' / 'data')
-
 
 def load_model(path):
     from safetensors.torch import load_file
@@ -89,6 +85,8 @@ def main():
     ap = argparse.ArgumentParser()
     ap.add_argument('--weights', required=True)
     ap.add_argument('--out', required=True)
+    ap.add_argument('--data', type=pathlib.Path, default=None,
+                    help='the folder that holds the --seqs sequence folders (needed unless --seqs is empty)')
     ap.add_argument('--seqs', nargs='*', default=['sun3d_3dmatch_frag1', 'sun3d_3dmatch_frag2'])
     ap.add_argument('--synthetic-seeds', default='', help="e.g. '0-9' (held-out synthetic seeds)")
     ap.add_argument('--synthetic-frames', type=int, default=60)
@@ -104,10 +102,12 @@ def main():
                          'seeded per sequence); depth is still scored against GT')
     ap.add_argument('--threads', type=int, default=2)
     a = ap.parse_args()
+    if a.seqs and a.data is None:
+        ap.error('--data is needed for --seqs (the folder that holds them); --seqs with no names for none')
     torch.set_num_threads(a.threads)
     model, meta = load_model(a.weights)
     D = model.preset.num_planes
-    seqs = [(n, Sequence(f'{DATA}/{n}')) for n in a.seqs]
+    seqs = [(n, Sequence(str(a.data / n))) for n in a.seqs]
     if a.synthetic_seeds:
         from dpv_sensor.data.synthetic import render_sequence
         from dpv_sensor.training.dataset import check_heldout_seeds, parse_seeds
