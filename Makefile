@@ -25,13 +25,11 @@ venv:
 	@scripts/ensure_venv.sh
 
 demo: venv
-	$(PY) -m dpv_sensor.core.compiled_readout
 	$(PY) -m dpv_sensor.tools.demo --out $(OUT) $(if $(BAG),--bag $(BAG)) \
 	  $(if $(IMAGE_TOPIC),--image-topic $(IMAGE_TOPIC)) $(if $(CAMERA_INFO_TOPIC),--camera-info-topic $(CAMERA_INFO_TOPIC)) \
 	  $(if $(ODOM_TOPIC),--odom-topic $(ODOM_TOPIC)) $(if $(GT),--gt $(GT)) $(if $(PARAMS),--params $(PARAMS)) $(DEMO_ARGS)
 
 test: venv
-	$(PY) -m dpv_sensor.core.compiled_readout
 	$(PY) -m pytest -q -ra $(if $(filter-out 1,$(TEST_WORKERS)),-n $(TEST_WORKERS) --dist loadfile) test
 
 bench: venv

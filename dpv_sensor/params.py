@@ -67,11 +67,6 @@ SPECS: tuple[ParamSpec, ...] = (
               'files are exported from the loaded weights at start and cached (~/.cache/dpv_sensor/onnx); a runtime '
               'that is not installed or fails its check against PyTorch (1e-4) is reported once and PyTorch runs.',
               choices=('torch', 'onnxruntime', 'openvino')),
-    ParamSpec('compile_readout', True, 'Compile the default full-size depth and confidence readout (relative depth, '
-              'ratio confidence) with torch.compile (CPU: about 2.5x faster, within 1e-5 m of the eager readout). '
-              'The first keyframe compiles it: about 16 s the first time on a machine, a few seconds in a later '
-              'process (on-disk cache; python -m dpv_sensor.core.compiled_readout fills it ahead). Where compiling '
-              'fails (e.g. no C++ compiler) the node says so once and reads out eagerly.'),
     ParamSpec('processing_width', 320, 'Width the images are resized to for estimation (pixels).',
               min_value=32, max_value=4096),
     ParamSpec('processing_height', 256, 'Height the images are resized to for estimation (pixels).',

@@ -19,7 +19,6 @@ import torch
 
 from dpv_sensor import params as P
 from dpv_sensor.core import confidence_calibration, dpv as dpv_ops, geometry, image_quality, parallax, pose_uncertainty
-from dpv_sensor.core.compiled_readout import CompiledReadout
 from dpv_sensor.core.confidence_calibration import ConfidenceCalibration
 from dpv_sensor.core.edge_filter import joint_weighted_median
 from dpv_sensor.core.geometry import resample_to_camera, scale_intrinsics_np
@@ -87,7 +86,6 @@ class Estimator:
         if cfg.torch_threads > 0 and torch.get_num_threads() != cfg.torch_threads:
             torch.set_num_threads(int(cfg.torch_threads))
         self.pose_refiner = pose_refiner
-        self._readout_compiled: Optional[CompiledReadout] = None   # the compiled full-size readout, built on first use
         self._notes: List[str] = []
         self.model = None
         self.nets = None                   # where the networks run (core.nets.runtime), with the network
@@ -628,15 +626,11 @@ class Estimator:
         the two parts are timed there as ``<stage>.readout`` and ``<stage>.edge_filter``."""
         cfg = self.config
         t = time.perf_counter()
-        compiled = self._compiled_readout() if guide_b3hw is not None and sigma_planes_bhw is None else None
-        if compiled is not None:
-            depth, conf = compiled(logp_bdhw)
-        else:
-            depth = dpv_ops.depth_estimate(logp_bdhw, self.depths_d, self.readout)
-            if cfg.depth_subplane:
-                depth = dpv_ops.subplane_depth(logp_bdhw, self.depths_d, depth)
-            conf = dpv_ops.published_confidence(logp_bdhw, self.depths_d, depth, cfg.confidence,
-                                                cfg.confidence_ratio, sigma_planes_bhw)
+        depth = dpv_ops.depth_estimate(logp_bdhw, self.depths_d, self.readout)
+        if cfg.depth_subplane:
+            depth = dpv_ops.subplane_depth(logp_bdhw, self.depths_d, depth)
+        conf = dpv_ops.published_confidence(logp_bdhw, self.depths_d, depth, cfg.confidence, cfg.confidence_ratio,
+                                            sigma_planes_bhw)
         if timings is not None:
             timings[f'{stage}.readout'] = self._ms(t)
         if guide_b3hw is not None and cfg.edge_filter_radius > 0 and guide_b3hw.shape[-2:] == depth.shape[-2:]:
@@ -646,17 +640,6 @@ class Estimator:
             if timings is not None:
                 timings[f'{stage}.edge_filter'] = self._ms(t)
         return depth, conf
-
-    def _compiled_readout(self) -> Optional[CompiledReadout]:
-        """The compiled full-size readout (``compile_readout``; CPU, without ``depth_subplane``), built on first use;
-        None where the eager readout runs."""
-        cfg = self.config
-        if not cfg.compile_readout or cfg.depth_subplane or self.device.type != 'cpu' or self.readout != 'relative':
-            return None
-        if self._readout_compiled is None:
-            self._readout_compiled = CompiledReadout(self.depths_d, self.readout, cfg.confidence,
-                                                     cfg.confidence_ratio, note=self._note)
-        return self._readout_compiled
 
     @staticmethod
     def _ms(t: float) -> float:
