@@ -15,7 +15,7 @@ and translation direction; the covariance then says so (large, correlated), wher
 :func:`keypoint_covariance` is the isotropic figure for ``n`` well-spread inliers (``pixel_sigma / (f sqrt(n))``
 rad about each axis, ``pixel_sigma / (p sqrt(n))`` for the direction at median parallax ``p``), a lower bound.
 
-Fewer inliers give a larger covariance (``1 / n``). numpy and OpenCV only; no ROS.
+Fewer inliers give a larger covariance (``1 / n``). numpy, OpenCV and torch (the matcher's matrix product); no ROS.
 """
 from __future__ import annotations
 
@@ -25,6 +25,7 @@ from typing import Optional, Tuple
 
 import cv2
 import numpy as np
+import torch
 
 __all__ = ['KeypointConfig', 'KeypointPose', 'Features', 'detect_features', 'keypoint_relative_pose',
            'keypoint_covariance', 'rotation_given_direction_gain', 'to_gray_u8']
@@ -221,7 +222,6 @@ def _match_l2(desc_a: np.ndarray, desc_b: np.ndarray, ratio: float) -> Tuple[np.
     networks: SIFT descriptors hold whole numbers (0..255), so every product and sum here is an integer below
     2^24 and float32 holds it exactly; the square roots are then OpenCV's distances to the bit, and the ratio
     test compares them in float64 as the DMatch distances were."""
-    import torch
     a = torch.from_numpy(np.ascontiguousarray(desc_a, np.float32))
     b = torch.from_numpy(np.ascontiguousarray(desc_b, np.float32))
     if len(b) < 2 or len(a) == 0:
