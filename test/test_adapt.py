@@ -205,7 +205,7 @@ def test_adapting_on_the_first_half_lowers_the_second_half_abs_rel(tmp_path):
                                        'pose_refinement': 'off'},
                               options=EvalOptions(progress=False, consumer_odometry=False))
         scores[name] = s['metric']['frame_mean']['abs_rel']
-    # measured: 0.104 -> 0.089
+    # measured with the evidence at sigma 0.05: 0.104 -> 0.089 (at the default 0.02 it passes too)
     assert scores['adapted'] < scores['shipped'] - 0.01 and scores['adapted'] < 0.92 * scores['shipped'], scores
 
 

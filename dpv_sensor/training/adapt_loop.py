@@ -85,7 +85,7 @@ class AdaptConfig:
     train_modules: Tuple[str, ...] = ()             # sub-networks adapted (see training.config.MODULES); () = all
     photometric: float = 1.0                        # weight of the photometric reprojection term
     evidence: float = 1.0                           # weight of the plane sweep's photometric evidence term
-    sigma: float = 0.05                             # its photometric error scale
+    sigma: float = 0.02                             # its photometric error scale
     aux: float = 0.5                                # weight of the 1/4-res measurement's terms
     penalty: float = 1.0                            # L2-SP weight
     distill: float = 0.0                            # weight of KL(base DPV || adapted DPV) (a second forward)
