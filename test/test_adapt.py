@@ -6,7 +6,6 @@ import json
 import os
 import shutil
 
-import numpy as np
 import pytest
 import torch
 
@@ -205,7 +204,7 @@ def test_adapting_on_the_first_half_lowers_the_second_half_abs_rel(tmp_path):
                                        'pose_refinement': 'off'},
                               options=EvalOptions(progress=False, consumer_odometry=False))
         scores[name] = s['metric']['frame_mean']['abs_rel']
-    # measured with the evidence at sigma 0.05: 0.104 -> 0.089 (at the default 0.02 it passes too)
+    # measured: 0.104 -> 0.089
     assert scores['adapted'] < scores['shipped'] - 0.01 and scores['adapted'] < 0.92 * scores['shipped'], scores
 
 
@@ -247,30 +246,3 @@ def test_held_out_split_by_hand():
     # 6 keyframes cannot be split into 6 to adapt on and 4 to score
     with pytest.raises(ValueError, match='training part has 5 keyframes .*6 are needed \\(10 in all\\)'):
         split_keyframes(kfs[:6], 25, 0.2, layout)
-
-
-def test_a_short_recording_is_cut_into_finer_keyframes_by_hand():
-    from dpv_sensor.training.adapt_loop import adaptation_keyframes, split_keyframes
-    from dpv_sensor.training.dataset import WindowLayout
-    layout = WindowLayout(steps=2, window=5)                  # one run of 6 to adapt on and 4 held out: 10 needed
-
-    def track(n, step_m):
-        poses = [np.eye(4) for _ in range(n)]
-        for i, T in enumerate(poses):
-            T[0, 3] = i * step_m
-        return poses
-
-    # 1.2 cm a frame: the node's rule (5 cm, or 5 frames) takes every 5th frame, 5 of 25: too few; at half its
-    # spacing (2.5 cm, or round(2.5) = 2 frames) every 2nd frame: 13 keyframes
-    kfs, spacing = adaptation_keyframes(track(25, 0.012), layout)
-    assert spacing == 0.5 and kfs == list(range(0, 25, 2))
-    split, train, held, runs = split_keyframes(kfs, 25, 0.2, layout)
-    assert held == [18, 20, 22, 24] and train == list(range(0, 17, 2)) and runs == [[14, 16, 18, 20, 22, 24]]
-    # a long recording keeps the node's own keyframes
-    kfs, spacing = adaptation_keyframes(track(100, 0.012), layout)
-    assert spacing == 1.0 and kfs == list(range(0, 100, 5))
-    # 8 frames stay too short even with every frame a keyframe
-    kfs, spacing = adaptation_keyframes(track(8, 0.012), layout)
-    assert spacing == 0.0 and kfs == list(range(8))
-    with pytest.raises(ValueError, match='too short'):
-        split_keyframes(kfs, 8, 0.2, layout)

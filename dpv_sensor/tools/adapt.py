@@ -230,10 +230,8 @@ def run(a, argv: List[str], log) -> int:
     gt_seq = _gt_sequence(a.gt, len(seq)) if a.gt else None
     log(f'{source["name"]}: {len(seq)} frames at {cfg.width}x{cfg.height} ({time.time() - t0:.0f} s to load)')
     adapter = Adapter(cfg, model, seq, log=log)
-    finer = (f"; too short for the node's keyframe spacing, cut at {adapter.keyframe_spacing:.2g} of it"
-             if adapter.keyframe_spacing < 1.0 else '')
     log(f'keyframes: {len(adapter.train_kf)} to adapt on, {len(adapter.held_kf)} held out (frames {adapter.split}..'
-        f'{len(seq) - 1}){finer}')
+        f'{len(seq) - 1})')
     result = adapter.run(deadline, progress=not a.quiet)
     minutes = (time.time() - t0) / 60.0
     gt = None

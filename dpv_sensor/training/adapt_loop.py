@@ -1,10 +1,9 @@
 """Adapting the networks to one recording without depth labels: the loop behind the ``adapt`` tool.
 
-The recording (images, intrinsics, camera poses; :mod:`dpv_sensor.data.recording`) is resized to the node's processing
-size and cut into keyframes with the node's own keyframe rule (:class:`~dpv_sensor.stream.keyframes.KeyframeSelector`
-at its defaults; a recording too short for one training run and the held-out runs at that spacing is cut at a finer
-one, :func:`adaptation_keyframes`). The last ``holdout`` share of its frames is held out; training samples are runs of
-``unroll + window - 1`` consecutive keyframes from the rest (played forwards or backwards), laid out in five-frame
+The recording (images, intrinsics, camera poses; :mod:`dpv_sensor.data.recording`) is resized to the node's
+processing size and cut into keyframes with the node's own keyframe rule (:class:`~dpv_sensor.stream.keyframes.
+KeyframeSelector` at its defaults). The last ``holdout`` share of its frames is held out; training samples are runs
+of ``unroll + window - 1`` consecutive keyframes from the rest (played forwards or backwards), laid out in five-frame
 windows as the trainer lays them (:func:`dpv_sensor.training.dataset.sample_from_sequence`), and go through the
 trainer's unrolled stream (:func:`dpv_sensor.training.unrolled.measure_steps` and ``filter_steps``: D-Net, the K-Net
 filter, R-Net). Each unrolled step's depth warps the window's sources into the reference
@@ -51,8 +50,7 @@ from dpv_sensor.training.self_supervised import (distillation, downsample_image,
                                                  score_error)
 from dpv_sensor.training.unrolled import filter_steps, measure_steps, run_unrolled
 
-__all__ = ['AdaptConfig', 'AdaptResult', 'Adapter', 'select_keyframes', 'adaptation_keyframes', 'DEFAULT_MINUTES',
-           'LOSS_DESCRIPTION']
+__all__ = ['AdaptConfig', 'AdaptResult', 'Adapter', 'select_keyframes', 'DEFAULT_MINUTES', 'LOSS_DESCRIPTION']
 
 # The default time cap of a whole run: a 700-image 640x480 recording at the 320x256 processing size fits the
 # 20 minutes of a 2-core CPU with this (loading and resizing, two held-out scores, the report).
@@ -85,7 +83,7 @@ class AdaptConfig:
     train_modules: Tuple[str, ...] = ()             # sub-networks adapted (see training.config.MODULES); () = all
     photometric: float = 1.0                        # weight of the photometric reprojection term
     evidence: float = 1.0                           # weight of the plane sweep's photometric evidence term
-    sigma: float = 0.02                             # its photometric error scale
+    sigma: float = 0.05                             # its photometric error scale
     aux: float = 0.5                                # weight of the 1/4-res measurement's terms
     penalty: float = 1.0                            # L2-SP weight
     distill: float = 0.0                            # weight of KL(base DPV || adapted DPV) (a second forward)
@@ -172,30 +170,13 @@ def split_keyframes(kfs: List[int], frames: int, holdout: float, layout: WindowL
     return split, train, held, runs
 
 
-def select_keyframes(poses: Seq[np.ndarray], spacing: float = 1.0) -> List[int]:
-    """Frame indices the node's keyframe rule picks along ``poses`` (its defaults: baseline, rotation, interval),
-    each threshold scaled by ``spacing`` (the interval rounded, at least 1 frame)."""
+def select_keyframes(poses: Seq[np.ndarray]) -> List[int]:
+    """Frame indices the node's keyframe rule picks along ``poses`` (its defaults: baseline, rotation, interval)."""
     from dpv_sensor.stream.keyframes import KeyframeSelector
-    sel = KeyframeSelector(translation=P.default('keyframe_translation') * spacing,
-                           rotation_deg=P.default('keyframe_rotation_deg') * spacing,
-                           max_interval=max(1, int(round(P.default('keyframe_max_interval') * spacing))))
+    sel = KeyframeSelector(translation=P.default('keyframe_translation'),
+                           rotation_deg=P.default('keyframe_rotation_deg'),
+                           max_interval=P.default('keyframe_max_interval'))
     return [i for i, T in enumerate(poses) if sel.decide(np.asarray(T, np.float64)).is_keyframe]
-
-
-# finer keyframe spacings a recording too short for the node's own is cut with (the last: every frame a keyframe)
-SHORT_SPACINGS = (1.0, 0.5, 1.0 / 3.0, 0.25, 0.0)
-
-
-def adaptation_keyframes(poses: Seq[np.ndarray], layout: WindowLayout) -> Tuple[List[int], float]:
-    """(keyframes, spacing): the node's keyframes, or where they are too few for one training run and the held-out
-    runs (``2 M - ref_slot``), the keyframes of the first finer spacing of :data:`SHORT_SPACINGS` that has enough
-    (a short recording: its windows then span less motion than the node's)."""
-    need = 2 * layout.num_keyframes - layout.ref_slot
-    for spacing in SHORT_SPACINGS:
-        kfs = select_keyframes(poses, spacing)
-        if len(kfs) >= need:
-            return kfs, spacing
-    return kfs, spacing
 
 
 def _collate(samples: List[Dict[str, torch.Tensor]]) -> Dict[str, torch.Tensor]:
@@ -218,7 +199,7 @@ class Adapter:
             import copy
             self.base_model = copy.deepcopy(model).eval().requires_grad_(False)
         frames = len(sequence)
-        kfs, self.keyframe_spacing = adaptation_keyframes([sequence.pose(i) for i in range(frames)], cfg.layout())
+        kfs = select_keyframes([sequence.pose(i) for i in range(frames)])
         self.split, self.train_kf, self.held_kf, runs = split_keyframes(kfs, frames, cfg.holdout, cfg.layout())
         if len(runs) > cfg.max_holdout_runs:
             runs = [runs[int(i)] for i in np.linspace(0, len(runs) - 1, cfg.max_holdout_runs).round()]
@@ -432,5 +413,4 @@ class Adapter:
                            score_kind='nll' if cfg.supervised else 'photometric', stop_reason=stop, seconds=seconds,
                            history=history, examples=ex,
                            keyframes={'training': len(self.train_kf), 'held_out': len(self.held_kf),
-                                      'spacing': self.keyframe_spacing,
                                       'held_out_runs': len(self.held_runs), 'split_frame': self.split})
