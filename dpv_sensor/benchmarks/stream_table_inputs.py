@@ -132,6 +132,24 @@ def sequence_folders(data: pathlib.Path) -> List[pathlib.Path]:
     return sorted(p for p in data.iterdir() if p.is_dir() and (p / 'poses.txt').is_file() and (p / 'K.txt').is_file())
 
 
+def add_folder_args(parser) -> None:
+    """The ``--data`` / ``--sequences`` options of a benchmark over sequence folders (see :func:`chosen_folders`)."""
+    parser.add_argument('--data', type=pathlib.Path, required=True, help='folder of sequence folders')
+    parser.add_argument('--sequences', nargs='*', help='only these sequence folders of --data')
+
+
+def chosen_folders(parser, args) -> Dict[str, pathlib.Path]:
+    """{name: folder} of the sequence folders ``args.data`` / ``args.sequences`` name (all of ``--data`` without
+    ``--sequences``); ``parser.error`` names a missing folder."""
+    if not args.data.is_dir():
+        parser.error(f'--data {args.data}: not a folder')
+    folders = {f.name: f for f in sequence_folders(args.data)}
+    for n in args.sequences or []:
+        if n not in folders:
+            parser.error(f'no sequence folder {n!r} in {args.data}')
+    return {n: folders[n] for n in (args.sequences or folders)}
+
+
 def rendered_sequence(out: pathlib.Path, seed: int, frames: int, progress: bool,
                       size: Tuple[int, int] = RENDER_SIZE) -> pathlib.Path:
     """The held-out rendered scene `seed` as a sequence folder under OUT/sequences (rendered once; rendered again

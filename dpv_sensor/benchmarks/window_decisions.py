@@ -228,28 +228,22 @@ def markdown(summ: List[Dict[str, Any]]) -> str:
 
 
 def main(argv: Optional[List[str]] = None) -> int:
-    from dpv_sensor.benchmarks.stream_table_inputs import sequence_folders
+    from dpv_sensor.benchmarks.stream_table_inputs import add_folder_args, chosen_folders
     from dpv_sensor.cli import tool_argv
     argv = tool_argv(argv)
     p = argparse.ArgumentParser(prog='window_decisions', description=__doc__.split('\n\n')[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument('--data', type=pathlib.Path, required=True, help='folder of sequence folders')
-    p.add_argument('--sequences', nargs='*', help='only these sequence folders of --data')
+    add_folder_args(p)
     p.add_argument('--poses', nargs='*', default=['noisy0cov'], help='pose sources (stream table names)')
     p.add_argument('--frames', type=int, default=0, help='first frames of each sequence (0: all)')
     p.add_argument('--threads', type=int, default=2)
     p.add_argument('--out', type=pathlib.Path, default=pathlib.Path('out/window_decisions'))
     p.add_argument('--quiet', action='store_true')
     a = p.parse_args(argv)
-    if not a.data.is_dir():
-        p.error(f'--data {a.data}: not a folder')
+    folders = chosen_folders(p, a)
+    names = list(folders)
     import torch
     torch.set_num_threads(a.threads)
-    folders = {f.name: f for f in sequence_folders(a.data)}
-    names = a.sequences or list(folders)
-    for n in names:
-        if n not in folders:
-            p.error(f'no sequence folder {n!r} in {a.data}')
     a.out.mkdir(parents=True, exist_ok=True)
     rows_by_run = {}
     for n in names:
