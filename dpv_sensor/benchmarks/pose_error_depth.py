@@ -119,9 +119,9 @@ class ErrorLog:
         return out
 
     def means(self) -> Dict[str, float]:
-        a = np.asarray(self.rows, np.float64).reshape(-1, 6)
         keys = ('rot', 'rot_along', 'rot_across', 'odo_rot', 'odo_rot_along', 'odo_rot_across')
-        return {k: (float(v) if len(a) else float('nan')) for k, v in zip(keys, a.mean(0) if len(a) else [0] * 6)}
+        mean = np.mean(self.rows, axis=0) if self.rows else np.full(len(keys), np.nan)
+        return {k: float(v) for k, v in zip(keys, mean)}
 
 
 def _parse_scale(text: str) -> Tuple[float, float]:
