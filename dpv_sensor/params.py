@@ -190,6 +190,12 @@ SPECS: tuple[ParamSpec, ...] = (
               "the odometry; keypoints: the rotation and the translation's direction of the matched keypoints, "
               "whose direction errs by several degrees on small indoor baselines.",
               choices=('keypoints', 'odometry')),
+    ParamSpec('refine_rotation_evidence', 'keypoints', "Pose refinement with refine_keypoints: what the rotation "
+              "factors are measured from. keypoints: SIFT matches at the processing size (refine_keypoint_direction "
+              "says what they hold); flow: dense optical flow at the camera's resolution (up to 640 pixels wide), "
+              "the rotation solved with the odometry's translation direction held fixed, between the reference and "
+              "every source of the window, evidence that does not depend on the depth being estimated.",
+              choices=('keypoints', 'flow')),
     ParamSpec('refine_marginals', False, "Pose refinement: after a refined window, each source's pose covariance "
               "relative to the reference (gtsam marginals) widens the measurement and the confidence in place of "
               "the odometry's covariance and drift figures."),

@@ -41,6 +41,7 @@ import numpy as np
 
 from dpv_sensor import params as P
 from dpv_sensor.common import to_jsonable
+from dpv_sensor.core.flow_rotation import FlowConfig, flow_matches, match_image, rotation_given_direction
 from dpv_sensor.core.keypoint_pose import (KeypointConfig, KeypointPose, detect_features, keypoint_relative_pose,
                                            rotation_given_direction_gain)
 
@@ -115,24 +116,52 @@ def pair_error(name: str, ref: int, src: int, kp: KeypointPose, T_src_ref_gt: np
 
 
 def sequence_pairs(name: str, images: Iterable[np.ndarray], K_33: np.ndarray, poses_n44: np.ndarray,
-                   sources: int, config: KeypointConfig) -> Tuple[List[PairError], int]:
+                   sources: int, config: KeypointConfig, flow: Optional[FlowConfig] = None
+                   ) -> Tuple[List[PairError], int]:
     """Every keyframe paired with its ``sources`` nearest earlier keyframes; (errors of the estimates, pairs tried).
-    ``images`` yields the keyframes' images in order, at the size ``K_33`` belongs to."""
+    ``images`` yields the keyframes' images in order, at the size ``K_33`` belongs to. With ``flow`` the pairs'
+    rotations come from :mod:`dpv_sensor.core.flow_rotation` given the true direction instead (:func:`flow_pair`)."""
     kfs = keyframe_indices(poses_n44)
     feats, out, tried = [], [], 0
     for j, (i, img) in enumerate(zip(kfs, images)):
-        feats.append(detect_features(img, config))
+        feats.append(match_image(img, K_33, flow) if flow is not None else detect_features(img, config))
         for g in range(1, sources + 1):
             if j - g < 0:
                 break
             s = kfs[j - g]
             tried += 1
+            T_src_ref = np.linalg.inv(poses_n44[s]) @ poses_n44[i]
+            if flow is not None:
+                row = flow_pair(name, i, s, feats[j], feats[j - g], T_src_ref, flow)
+                if row is not None:
+                    out.append(row)
+                continue
             kp = keypoint_relative_pose(feats[j], feats[j - g], K_33, config)
             if not kp.ok:
                 continue
-            T_src_ref = np.linalg.inv(poses_n44[s]) @ poses_n44[i]
             out.append(pair_error(name, i, s, kp, T_src_ref))
     return out, tried
+
+
+#: the rotation error (deg) the flow pairs start from, about an axis drawn per pair: the odometry's, roughly
+FLOW_START_ERROR_DEG = 0.5
+
+
+def flow_pair(name: str, ref: int, src: int, ref_image, src_image, T_src_ref_gt: np.ndarray,
+              config: FlowConfig) -> Optional[PairError]:
+    """The flow rotation of one pair (views a = ref, b = src; ``(grey, K)`` from ``match_image``) given the true
+    translation direction, started :data:`FLOW_START_ERROR_DEG` off the truth, as a 3-dof :class:`PairError`; None
+    when it gives no estimate."""
+    rng = np.random.default_rng(ref * 100003 + src)
+    axis = rng.normal(size=3)
+    start = cv2.Rodrigues(axis / np.linalg.norm(axis) * math.radians(FLOW_START_ERROR_DEG))[0] @ T_src_ref_gt[:3, :3]
+    matches = flow_matches(ref_image[0], src_image[0], ref_image[1], config)
+    est = rotation_given_direction(matches, T_src_ref_gt[:3, 3], start, config)
+    if not est.ok:
+        return None
+    err = _log_so3(est.R_b_a @ T_src_ref_gt[:3, :3].T)
+    return PairError(name, ref, src, est.inliers, 0.0, float(np.linalg.norm(T_src_ref_gt[:3, 3])), err.tolist(),
+                     np.asarray(est.cov_33).tolist())
 
 
 # ------------------------------------------------------------------------------------------------------------------
@@ -273,11 +302,18 @@ def main(argv: Optional[List[str]] = None) -> int:
     p.add_argument('--size', help="match at this WxH (default: the node's processing size; 'full': the images' own)")
     p.add_argument('--detector', choices=('sift', 'orb'), default=KeypointConfig().detector,
                    help="keypoints and descriptors (default: the refiner's)")
+    p.add_argument('--matcher', choices=('keypoints', 'flow'), default='keypoints',
+                   help="keypoints (the detector's), or flow: the window's flow rotation given the true direction "
+                        "(at the camera's resolution unless --size; its rotation column is that rotation) and the "
+                        "covariance_scale that makes its median NEES honest on the rendered sequences")
     p.add_argument('--loso', action='store_true', help='also fit leaving each sequence out')
     p.add_argument('--json', type=pathlib.Path, help='write every pair and the fits here')
     a = p.parse_args(argv)
     from tqdm import tqdm
     size = (P.default('processing_width'), P.default('processing_height'))
+    flow = FlowConfig() if a.matcher == 'flow' else None
+    if flow is not None:
+        size = None
     if a.size:
         size = None if a.size == 'full' else tuple(int(v) for v in a.size.lower().split('x'))
     seeds = [int(s) for s in a.seeds.split(',') if s.strip()]
@@ -291,9 +327,11 @@ def main(argv: Optional[List[str]] = None) -> int:
         poses = np.asarray(seq.poses, np.float64)
         kfs = keyframe_indices(poses)
         images = (seq.image(i) for i in tqdm(kfs, desc=name, unit='keyframe', leave=False))
-        rows[name], tried[name] = sequence_pairs(name, images, seq.K, poses, a.sources, config)
+        rows[name], tried[name] = sequence_pairs(name, images, seq.K, poses, a.sources, config, flow)
     if not rows:
         p.error('no sequences: give --data or --seeds')
+    if flow is not None:
+        return _flow_report(rows, tried, flow, a.json)
     every = [r for v in rows.values() for r in v]
     rendered = [r for r in every if is_rendered(r.sequence)]
     fitted = fit_floors(rendered) if rendered else None
@@ -324,6 +362,29 @@ def main(argv: Optional[List[str]] = None) -> int:
                                                   'tried': tried,
                                                   'floors_rendered_deg': fitted, 'loso': loso}), indent=1))
         print(f'\nwritten: {a.json}')
+    return 0
+
+
+def _flow_report(rows: Dict[str, List[PairError]], tried: Dict[str, int], flow: FlowConfig,
+                 json_out: Optional[pathlib.Path]) -> int:
+    """The flow rotations' table and the covariance scale fitted on the rendered sequences."""
+    print(f"## Flow rotation given the true direction (covariance_scale {flow.covariance_scale:g}); NEES: honest "
+          f"median 2.37 (3 dof)\n")
+    print(table(rows, tried))
+    rendered = [r for v in rows.values() for r in v if is_rendered(r.sequence)]
+    fitted = None
+    if rendered:
+        med = float(np.median([nees(r.err, r.cov) for r in rendered]))
+        fitted = flow.covariance_scale * med / CHI2_MEDIAN[3]
+        print(f'\ncovariance_scale that gives the rendered sequences ({len(rendered)} pairs) the honest median NEES: '
+              f'{fitted:.3g}')
+    if json_out:
+        json_out.parent.mkdir(parents=True, exist_ok=True)
+        json_out.write_text(json.dumps(to_jsonable({'matcher': 'flow', 'covariance_scale': flow.covariance_scale,
+                                                    'fitted_covariance_scale': fitted, 'tried': tried,
+                                                    'pairs': [asdict(r) for v in rows.values() for r in v]}),
+                                       indent=1))
+        print(f'\nwritten: {json_out}')
     return 0
 
 

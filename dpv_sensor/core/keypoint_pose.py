@@ -28,7 +28,8 @@ import numpy as np
 import torch
 
 __all__ = ['KeypointConfig', 'KeypointPose', 'Features', 'detect_features', 'keypoint_relative_pose',
-           'keypoint_covariance', 'rotation_given_direction_gain', 'to_gray_u8']
+           'keypoint_covariance', 'rotation_given_direction_gain', 'rotation_factor_covariance_gtsam',
+           'to_gray_u8']
 
 
 @dataclass
@@ -117,10 +118,18 @@ class KeypointPose:
         """6x6 covariance (gtsam order) of a Pose3 between factor ``T_b_a`` that holds only a rotation with
         covariance ``cov_33`` (frame b's axes): the translation gets ``free_translation_var`` on each axis, so
         it is left to the other factors."""
-        cov = np.zeros((6, 6))
-        cov[:3, :3] = cov_33
-        cov[3:, 3:] = np.eye(3) * free_translation_var
-        return _gtsam_tangent(cov, self.R_b_a)
+        return rotation_factor_covariance_gtsam(cov_33, self.R_b_a, free_translation_var)
+
+
+def rotation_factor_covariance_gtsam(cov_33: np.ndarray, R_b_a: np.ndarray, free_translation_var: float
+                                     ) -> np.ndarray:
+    """6x6 covariance (gtsam order) of a Pose3 between factor ``T_b_a`` with rotation ``R_b_a`` that holds only
+    the rotation, with covariance ``cov_33`` about frame b's axes: the translation gets ``free_translation_var`` on
+    each axis, so it is left to the other factors."""
+    cov = np.zeros((6, 6))
+    cov[:3, :3] = cov_33
+    cov[3:, 3:] = np.eye(3) * free_translation_var
+    return _gtsam_tangent(cov, R_b_a)
 
 
 def rotation_given_direction_gain(cov_55: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:

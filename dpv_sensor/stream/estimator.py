@@ -22,6 +22,7 @@ from dpv_sensor.core import confidence_calibration, dpv as dpv_ops, geometry, im
 from dpv_sensor.core.confidence_calibration import ConfidenceCalibration
 from dpv_sensor.core.edge_filter import joint_weighted_median
 from dpv_sensor.core.geometry import resample_to_camera, scale_intrinsics_np
+from dpv_sensor.core.keypoint_pose import to_gray_u8
 from dpv_sensor.core.nets.model import cpu_bf16_fast
 from dpv_sensor.stream.continuity import DUPLICATE, stream_break, time_order
 from dpv_sensor.stream.frame import DepthOutput, Frame, image_too_small
@@ -478,7 +479,8 @@ class Estimator:
                       input_size=size, input_K_33=K_in, frame_id=frame.frame_id, odom_T_world_cam_44=T,
                       twist_world_6=self._twist,
                       pose_cov_66=window_pose_uncertainty.frame_covariance(self.config, frame),
-                      twist_cov_66=window_pose_uncertainty.frame_covariance(self.config, frame, 'twist'))
+                      twist_cov_66=window_pose_uncertainty.frame_covariance(self.config, frame, 'twist'),
+                      camera_gray_u8=None if self.pose_refiner is None else to_gray_u8(image))
         self._kf_counter += 1
         self._keyframes += 1
         self.window.append(kf)

@@ -117,7 +117,8 @@ class Keyframe:
     reset; ``frame_index`` counts accepted frames. ``twist_world_6`` is the camera's world-frame velocity
     (vx, vy, vz, wx, wy, wz) when the frame arrived, ``pose_cov_66`` and ``twist_cov_66`` the odometry's pose
     and twist covariance (ROS order), when known: what the pose uncertainty of the measurement is computed from
-    (``dpv_sensor.core.pose_uncertainty``).
+    (``dpv_sensor.core.pose_uncertainty``). ``camera_gray_u8`` is the image as received, in grey (uint8, at
+    ``input_K_33``), kept for the pose refiner's flow matches when a refiner is set.
     """
     index: int
     frame_index: int
@@ -133,6 +134,7 @@ class Keyframe:
     twist_world_6: Optional[np.ndarray] = None
     pose_cov_66: Optional[np.ndarray] = None
     twist_cov_66: Optional[np.ndarray] = None
+    camera_gray_u8: Optional[np.ndarray] = None
 
     def __post_init__(self):
         self.T_world_cam_44 = np.array(self.T_world_cam_44, dtype=np.float64, copy=True)

@@ -54,8 +54,10 @@ import numpy as np
 
 from dpv_sensor import params as _params
 from dpv_sensor.core import pose_uncertainty
+from dpv_sensor.core.flow_rotation import (FlowConfig, FlowMatches, RotationEstimate, flow_matches, match_image,
+                                           rotation_given_direction)
 from dpv_sensor.core.keypoint_pose import (Features, KeypointConfig, KeypointPose, detect_features,
-                                           keypoint_relative_pose)
+                                           keypoint_relative_pose, rotation_factor_covariance_gtsam)
 from dpv_sensor.core.geometry import rotation_angle_np
 from dpv_sensor.core.odometry_covariance import OdometryCovariance
 from dpv_sensor.core.photometric import (AlignmentConfig, AlignmentResult, Aligner, ImagePyramid,
@@ -156,6 +158,9 @@ class PoseRefinerConfig:
     keypoint_huber_k: float = 1.345
     keypoint_scale_sigma_rel: float = 0.5
     keypoint_direction: str = _params.default('refine_keypoint_direction')
+    rotation_evidence: str = _params.default('refine_rotation_evidence')
+    flow: FlowConfig = field(default_factory=FlowConfig)
+    flow_huber_k: float = 10.0
     marginals: bool = _params.default('refine_marginals')
     gate_chi2: float = _params.default('refine_gate_chi2')
     photometric_gate_chi2: float = _params.default('refine_photometric_gate_chi2')
@@ -173,6 +178,12 @@ class PoseRefinerConfig:
     #     rotation given the odometry's translation direction, the translation free (left to the odometry
     #     factors); 'keypoints': rotation and direction from the images, the translation's length from the
     #     odometry (``keypoint_scale_sigma_rel`` of it along the baseline).
+    # rotation_evidence: what the rotation factors (keypoint_factors on) are measured from. 'keypoints': SIFT at
+    #     the processing size, as above. 'flow': dense optical flow at the camera's resolution
+    #     (core.flow_rotation), the rotation solved with the odometry's translation direction held fixed, between
+    #     the reference and every source; the factors of pairs that stay in the window are kept, so every
+    #     keyframe pair of the window is tied. Huber ``flow_huber_k``: their stds are a few hundredths of a
+    #     degree, so a kernel at 1.345 sigmas would hand most of a 0.3 degree drift back to the odometry.
     # marginals: after the solve, each source's pose covariance relative to the reference (gtsam Marginals) in
     #     ``RefinementResult.source_sigma``, the pose uncertainty the estimator widens with in place of the
     #     odometry's.
@@ -188,7 +199,7 @@ class PoseRefinerConfig:
     PARAMS = {'odom_sigma_rot_deg': 'odom_sigma_rot_deg', 'odom_sigma_trans_m': 'odom_sigma_trans_m',
               'odom_sigma_trans_rel': 'odom_sigma_trans_rel', 'refine_odom_covariance': 'odom_covariance',
               'refine_photometric_sources': 'max_sources', 'refine_keypoints': 'keypoint_factors',
-              'refine_keypoint_direction': 'keypoint_direction',
+              'refine_keypoint_direction': 'keypoint_direction', 'refine_rotation_evidence': 'rotation_evidence',
               'refine_marginals': 'marginals',
               'refine_gate_chi2': 'gate_chi2', 'refine_gate_min_inliers': 'gate_min_inliers',
               'refine_photometric_gate_chi2': 'photometric_gate_chi2'}
@@ -224,6 +235,8 @@ class WindowKeyframe:
     pose_cov_66 / twist_cov_66: the odometry's pose and twist covariance there (ROS order; None: not filled) and
     stamp its time (s; the twist covariance is integrated over the time between keyframes): what the odometry
     factors' covariance is read from (``odom_covariance='odometry'``); only their first values per key are used.
+    camera_image / camera_K_33: the image at the camera's own resolution and its intrinsics, what the flow
+    rotation factors (``rotation_evidence='flow'``) match; None: ``image`` and ``K_33``.
     """
     key: Hashable
     image: object
@@ -232,6 +245,8 @@ class WindowKeyframe:
     pose_cov_66: Optional[np.ndarray] = None
     twist_cov_66: Optional[np.ndarray] = None
     stamp: Optional[float] = None
+    camera_image: object = None
+    camera_K_33: Optional[np.ndarray] = None
 
     def odometry_covariance(self) -> Optional[OdometryCovariance]:
         """What the odometry says about itself at this keyframe (None when it says nothing)."""
@@ -344,6 +359,9 @@ class WindowPoseRefiner:
         self._factors: List[Tuple[Hashable, Hashable, np.ndarray, np.ndarray]] = []  # (ref, src, T_ref_src, cov)
         self._pyramids: Dict[Hashable, ImagePyramid] = {}   # per keyframe, reused while it stays in the window
         self._features: Dict[Hashable, Features] = {}       # keypoints per keyframe, likewise
+        self._match_images: Dict[Hashable, Tuple[np.ndarray, np.ndarray]] = {}   # flow's (grey, K), likewise
+        self._flow: Dict[Tuple[Hashable, Hashable], FlowMatches] = {}   # flow matches per pair in the window
+        self._rotation_factors: Dict[Tuple[Hashable, Hashable], tuple] = {}  # flow factors (src, ref) kept
         self._depth_refs = 0                                 # references with a predicted depth since the start
         self._cov: Dict[Hashable, Optional[OdometryCovariance]] = {}   # first odometry covariances seen per key
         self._graph = None                                   # (graph, result, index) of the last solve
@@ -385,7 +403,8 @@ class WindowPoseRefiner:
             frames.append(WindowKeyframe(float(kf.stamp), img.detach().float().cpu() if hasattr(img, 'detach')
                                          else img, K, np.asarray(odom, dtype=np.float64),
                                          getattr(kf, 'pose_cov_66', None), getattr(kf, 'twist_cov_66', None),
-                                         float(kf.stamp)))
+                                         float(kf.stamp), getattr(kf, 'camera_gray_u8', None),
+                                         getattr(kf, 'input_K_33', None)))
         r = int(request.reference)
         depth = request.depth_hw
         conf = request.confidence_hw
@@ -461,7 +480,10 @@ class WindowPoseRefiner:
         kp_factors, kps = [], []
         t_kp = time.perf_counter()
         if self.config.keypoint_factors and sources and skipped is None and reason is None:
-            kp_factors, kps = self._keypoint_factors(ref, sources, init)
+            if self.config.rotation_evidence == 'flow':
+                kp_factors = self._flow_factors(ref, sources, init)
+            else:
+                kp_factors, kps = self._keypoint_factors(ref, sources, init)
         keypoints_ms = 1e3 * (time.perf_counter() - t_kp)
         factors = self._factors + aligned.new_factors
         gate = self._evidence_gate(kps, kp_factors, skipped)
@@ -507,10 +529,14 @@ class WindowPoseRefiner:
             if f.key not in self._odom:
                 self._odom[f.key] = np.asarray(f.T_world_cam_odom_44, dtype=np.float64).copy()
                 self._cov[f.key] = f.odometry_covariance()
-        for store in (self._est, self._odom, self._pyramids, self._features, self._cov):
+        for store in (self._est, self._odom, self._pyramids, self._features, self._cov, self._match_images):
             for k in list(store):
                 if k not in keys:
                     del store[k]
+        for store in (self._flow, self._rotation_factors):
+            for a, b in list(store):
+                if a not in keys or b not in keys:
+                    del store[(a, b)]
         if self.config.keep_old_factors:
             self._factors = [f for f in self._factors if f[0] in keys and f[1] in keys]
         else:
@@ -637,6 +663,41 @@ class WindowPoseRefiner:
                                  f"{cfg.keypoint_direction!r}")
             factors.append((s.key, ref.key, T, cov))
         return factors, kps
+
+    def _flow_factors(self, ref: WindowKeyframe, sources: Sequence[WindowKeyframe],
+                      init: Dict[Hashable, np.ndarray]) -> list:
+        """Flow rotation factors (src, ref, T_src_ref, cov) between the reference and every source, the rotation
+        given the odometry's direction and the translation left free, plus the kept factors of earlier windows
+        between keyframes still in the window (:attr:`PoseRefinerConfig.rotation_evidence`)."""
+        cfg = self.config
+        for s in sources:
+            T0 = relative_pose(init[s.key], init[ref.key])                # T_src_ref from the odometry
+            est = rotation_given_direction(self._flow_matches(ref, s), T0[:3, 3], T0[:3, :3], cfg.flow)
+            self._count('flow_used' if est.ok else 'flow_failed')
+            if not est.ok:
+                self._rotation_factors.pop((s.key, ref.key), None)
+                continue
+            T = np.eye(4)
+            T[:3, :3], T[:3, 3] = est.R_b_a, T0[:3, 3]
+            cov = rotation_factor_covariance_gtsam(est.cov_33, est.R_b_a, _FREE_TRANSLATION_VAR)
+            self._rotation_factors[(s.key, ref.key)] = (s.key, ref.key, T, cov)
+        return list(self._rotation_factors.values())
+
+    def _flow_matches(self, ref: WindowKeyframe, src: WindowKeyframe) -> FlowMatches:
+        """The flow matches from the reference into a source (computed once per pair while both stay in the
+        window; the pair seen the other way round is the same matches swapped)."""
+        if (ref.key, src.key) not in self._flow:
+            if (src.key, ref.key) in self._flow:
+                return self._flow[(src.key, ref.key)].swapped()
+            (ga, K), (gb, _) = self._match_image(ref), self._match_image(src)
+            self._flow[(ref.key, src.key)] = flow_matches(ga, gb, K, self.config.flow)
+        return self._flow[(ref.key, src.key)]
+
+    def _match_image(self, f: WindowKeyframe) -> Tuple[np.ndarray, np.ndarray]:
+        if f.key not in self._match_images:
+            image, K = (f.image, f.K_33) if f.camera_image is None else (f.camera_image, f.camera_K_33)
+            self._match_images[f.key] = match_image(image, K, self.config.flow)
+        return self._match_images[f.key]
 
     def _evidence_gate(self, kps: List[KeypointPose], kp_factors: list, skipped) -> str:
         """Before the solve: 'kept_few_inliers' when keypoint evidence is required and no pair has enough inliers;
