@@ -368,8 +368,8 @@ def main(argv: Optional[List[str]] = None) -> int:
 def _flow_report(rows: Dict[str, List[PairError]], tried: Dict[str, int], flow: FlowConfig,
                  json_out: Optional[pathlib.Path]) -> int:
     """The flow rotations' table and the covariance scale fitted on the rendered sequences."""
-    print(f"## Flow rotation given the true direction (covariance_scale {flow.covariance_scale:g}); NEES: honest "
-          f"median 2.37 (3 dof)\n")
+    print(f'## Flow rotation given the true direction (covariance_scale {flow.covariance_scale:g}); NEES: honest '
+          f'median 2.37 (3 dof)\n')
     print(table(rows, tried))
     rendered = [r for v in rows.values() for r in v if is_rendered(r.sequence)]
     fitted = None

@@ -47,31 +47,33 @@ _PRESETS = {'ultrafast': cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST, 'fast': cv2.DISOP
 
 @dataclass(frozen=True)
 class FlowConfig:
-    """preset: DIS optical flow preset ('ultrafast', 'fast', 'medium'); grid_px: spacing of the sampled pixels;
+    """dis_preset: DIS optical flow preset ('ultrafast', 'fast', 'medium'); grid_px: spacing of the sampled pixels;
     texture_quantile: keep the grid pixels whose structure-tensor eigenvalue is above this quantile over the grid;
     forward_backward_px: > 0 also computes the flow back and drops pixels whose round trip misses by more (0: one
     flow; the trimmed fit drops wrong vectors); max_width: images wider than this are matched shrunk to it
     (``match_image``); inlier_px: the final inlier threshold on the Sampson distance (pixels); iterations:
-    Gauss-Newton steps; min_inliers: fewer is no estimate; min_inlier_fraction: a smaller share of the matches
-    agreeing is no estimate either (where the flow is wrong in many places, e.g. large displacements and
-    occlusions, what agrees is not the scene's motion: on the rendered hospital pairs below a half the rotation
-    errs by 0.5 degrees at the median, above 0.7 by 0.03); pixel_sigma: the smallest per-match std (pixels) the
-    covariance assumes; covariance_scale: the covariance's factor for the matches' shared errors (module doc)."""
-    preset: str = 'medium'
+    Gauss-Newton steps at most (fewer once a step is below converged_rad); min_inliers: fewer is no estimate;
+    min_inlier_fraction: a smaller share of the matches agreeing is no estimate either (where the flow is wrong in
+    many places, e.g. large displacements and occlusions, what agrees is not the scene's motion: on the rendered
+    hospital pairs below a half the rotation errs by 0.5 degrees at the median, above 0.7 by 0.03); pixel_sigma:
+    the smallest per-match std (pixels) the covariance assumes; covariance_scale: the covariance's factor for the
+    matches' shared errors (module doc)."""
+    dis_preset: str = 'medium'
     grid_px: int = 8
     texture_quantile: float = 0.5
     forward_backward_px: float = 0.0
     max_width: int = 640
     inlier_px: float = 0.5
     iterations: int = 8
+    converged_rad: float = 1e-6
     min_inliers: int = 20
     min_inlier_fraction: float = 0.5
     pixel_sigma: float = 0.1
     covariance_scale: float = 52.0
 
     def __post_init__(self):
-        if self.preset not in _PRESETS:
-            raise ValueError(f"preset must be one of {sorted(_PRESETS)}, not {self.preset!r}")
+        if self.dis_preset not in _PRESETS:
+            raise ValueError(f'preset must be one of {sorted(_PRESETS)}, not {self.dis_preset!r}')
 
 
 @dataclass
@@ -129,7 +131,7 @@ def flow_matches(gray_a: np.ndarray, gray_b: np.ndarray, K_33: np.ndarray,
     """Textured grid pixels of grey image a and where the flow puts them in grey image b (same size, uint8)."""
     if gray_a.shape != gray_b.shape:
         raise ValueError(f'flow between images of different sizes: {gray_a.shape} and {gray_b.shape}')
-    flow_ab = _dis(config.preset).calc(gray_a, gray_b, None)
+    flow_ab = _dis(config.dis_preset).calc(gray_a, gray_b, None)
     h, w = gray_a.shape
     g = int(config.grid_px)
     ys, xs = np.mgrid[g // 2:h:g, g // 2:w:g]
@@ -140,7 +142,7 @@ def flow_matches(gray_a: np.ndarray, gray_b: np.ndarray, K_33: np.ndarray,
     keep = (texture > np.quantile(texture, config.texture_quantile)) & (xb >= 0) & (xb <= w - 1) & \
         (yb >= 0) & (yb <= h - 1)
     if config.forward_backward_px > 0:
-        flow_ba = _dis(config.preset).calc(gray_b, gray_a, None)
+        flow_ba = _dis(config.dis_preset).calc(gray_b, gray_a, None)
         back = cv2.remap(flow_ba, xb.astype(np.float32)[None], yb.astype(np.float32)[None],
                          cv2.INTER_LINEAR)[0].astype(np.float64)
         keep &= np.hypot(f[:, 0] + back[:, 0], f[:, 1] + back[:, 1]) < config.forward_backward_px
@@ -203,7 +205,10 @@ def rotation_given_direction(matches: FlowMatches, t_dir_b: np.ndarray, R0_b_a: 
             d[k] = eps
             J[:, k] = (residual(a, b, _rotate(R, d), t, f) - residual(a, b, _rotate(R, -d), t, f)) / (2 * eps)
         JtJ = J.T @ J
-        R = _rotate(R, np.linalg.lstsq(JtJ, -J.T @ r_in, rcond=None)[0])
+        step = np.linalg.lstsq(JtJ, -J.T @ r_in, rcond=None)[0]
+        R = _rotate(R, step)
+        if float(np.linalg.norm(step)) < config.converged_rad:
+            break
     dist = np.abs(residual(xa, xb, R, t, f)).reshape(-1, per_match).max(axis=1)
     sel = dist < config.inlier_px
     n_in = int(sel.sum())

@@ -54,7 +54,7 @@ import numpy as np
 
 from dpv_sensor import params as _params
 from dpv_sensor.core import pose_uncertainty
-from dpv_sensor.core.flow_rotation import (FlowConfig, FlowMatches, RotationEstimate, flow_matches, match_image,
+from dpv_sensor.core.flow_rotation import (FlowConfig, FlowMatches, flow_matches, match_image,
                                            rotation_given_direction)
 from dpv_sensor.core.keypoint_pose import (Features, KeypointConfig, KeypointPose, detect_features,
                                            keypoint_relative_pose, rotation_factor_covariance_gtsam)
@@ -181,9 +181,10 @@ class PoseRefinerConfig:
     # rotation_evidence: what the rotation factors (keypoint_factors on) are measured from. 'keypoints': SIFT at
     #     the processing size, as above. 'flow': dense optical flow at the camera's resolution
     #     (core.flow_rotation), the rotation solved with the odometry's translation direction held fixed, between
-    #     the reference and every source; the factors of pairs that stay in the window are kept, so every
-    #     keyframe pair of the window is tied. Huber ``flow_huber_k``: their stds are a few hundredths of a
-    #     degree, so a kernel at 1.345 sigmas would hand most of a 0.3 degree drift back to the odometry.
+    #     the reference and its ``keypoint_sources`` nearest sources; the factors of pairs that stay in the window
+    #     are kept, so every pair of neighbouring keyframes is tied. Huber ``flow_huber_k``: their stds are a few
+    #     hundredths of a degree, so a kernel at 1.345 sigmas would hand most of a 0.3 degree drift back to the
+    #     odometry.
     # marginals: after the solve, each source's pose covariance relative to the reference (gtsam Marginals) in
     #     ``RefinementResult.source_sigma``, the pose uncertainty the estimator widens with in place of the
     #     odometry's.
@@ -666,11 +667,14 @@ class WindowPoseRefiner:
 
     def _flow_factors(self, ref: WindowKeyframe, sources: Sequence[WindowKeyframe],
                       init: Dict[Hashable, np.ndarray]) -> list:
-        """Flow rotation factors (src, ref, T_src_ref, cov) between the reference and every source, the rotation
-        given the odometry's direction and the translation left free, plus the kept factors of earlier windows
-        between keyframes still in the window (:attr:`PoseRefinerConfig.rotation_evidence`)."""
+        """Flow rotation factors (src, ref, T_src_ref, cov) between the reference and its ``keypoint_sources``
+        nearest sources, the rotation given the odometry's direction and the translation left free, plus the kept
+        factors of earlier windows between keyframes still in the window
+        (:attr:`PoseRefinerConfig.rotation_evidence`): with a centred window every pair of neighbours is tied, at
+        one new flow per keyframe."""
         cfg = self.config
-        for s in sources:
+        nearest = sorted(sources, key=lambda f: _key_distance(f.key, ref.key))[:cfg.keypoint_sources]
+        for s in nearest:
             T0 = relative_pose(init[s.key], init[ref.key])                # T_src_ref from the odometry
             est = rotation_given_direction(self._flow_matches(ref, s), T0[:3, 3], T0[:3, :3], cfg.flow)
             self._count('flow_used' if est.ok else 'flow_failed')
