@@ -85,7 +85,21 @@ def test_no_translation_fits_a_pure_rotation():
 def test_too_few_matches_give_no_estimate_and_say_why():
     m = _matches(np.eye(3), np.array([0.05, 0.0, 0.0]), n=10)
     est = rotation_given_direction(m, np.array([1.0, 0.0, 0.0]), np.eye(3))
-    assert not est.ok and 'too few textured flow matches (10 < 20)' in est.reason
+    assert not est.ok and 'too few textured flow matches (10 < 20)' in est.reason and est.kind == 'no_texture'
+
+
+def test_a_share_of_agreeing_matches_below_the_limit_gives_no_estimate():
+    """Where the flow is wrong in many places, what agrees is not the scene's motion: 60 % agreeing passes the
+    default limit (a half) and is refused under a limit of 0.7."""
+    R_true, t = _rot([0.0, 1.0, 0.0]), np.array([0.05, 0.0, 0.0])
+    m = _matches(R_true, t, n=400, seed=4)
+    rng = np.random.default_rng(5)
+    m.pb_n2[:160] += rng.uniform(3.0, 30.0, (160, 2)) * rng.choice([-1.0, 1.0], (160, 2))     # 40 % wrong
+    est = rotation_given_direction(m, t, _rot([0.2, 0.0, 0.1]) @ R_true)
+    assert est.ok and _err_deg(est.R_b_a, R_true) < 0.01
+    strict = rotation_given_direction(m, t, R_true, FlowConfig(min_inlier_fraction=0.7))
+    assert not strict.ok and strict.kind == 'disagree'
+    assert strict.reason.startswith('only ') and 'of 400 flow matches agree' in strict.reason
 
 
 def _texture(h=240, w=320, seed=3) -> np.ndarray:

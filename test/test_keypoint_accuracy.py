@@ -92,3 +92,19 @@ def test_the_tool_measures_the_detector_it_is_given(tmp_path, capsys):
         assert runs[det]['detector'] == det
     inliers = {d: [(p['ref'], p['src'], p['inliers']) for p in r['pairs']] for d, r in runs.items()}
     assert inliers['orb'] and inliers['orb'] != inliers['sift']
+
+
+def test_the_tool_measures_the_flow_rotations_and_fits_their_covariance_scale(tmp_path, capsys):
+    """--matcher flow: 3-dof rotation errors (given the true direction) of the window's flow factors, and the
+    covariance_scale that makes the rendered scene's median NEES the honest 2.37."""
+    import json
+    out = tmp_path / 'flow.json'
+    assert KA.main(['--seeds', '7', '--frames', '40', '--matcher', 'flow', '--json', str(out)]) == 0
+    text = capsys.readouterr().out
+    assert 'Flow rotation given the true direction' in text and 'covariance_scale that gives' in text
+    data = json.loads(out.read_text())
+    pairs = [KA.PairError(**p) for p in data['pairs']]
+    assert len(pairs) >= 5 and all(len(p.err) == 3 and np.shape(p.cov) == (3, 3) for p in pairs)
+    assert np.median(np.degrees([np.linalg.norm(p.err) for p in pairs])) < 0.3     # started 0.5 deg off
+    nees = np.median([KA.nees(p.err, p.cov) for p in pairs])
+    assert data['fitted_covariance_scale'] == pytest.approx(data['covariance_scale'] * nees / 2.366, rel=1e-6)

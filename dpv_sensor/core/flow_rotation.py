@@ -92,10 +92,12 @@ class FlowMatches:
 
 @dataclass
 class RotationEstimate:
-    """ok: False when there is no estimate (reason says why); R_b_a: the rotation; cov_33: its covariance (rad^2,
-    left increment about frame b's axes); inliers / matches: counts; rms_px: the inliers' rms distance."""
+    """ok: False when there is no estimate (reason says why, kind in a word: 'no_texture', 'disagree',
+    'undetermined'); R_b_a: the rotation; cov_33: its covariance (rad^2, left increment about frame b's axes);
+    inliers / matches: counts; rms_px: the inliers' rms distance."""
     ok: bool
     reason: Optional[str] = None
+    kind: str = 'ok'
     R_b_a: np.ndarray = None
     cov_33: Optional[np.ndarray] = None
     inliers: int = 0
@@ -176,7 +178,7 @@ def rotation_given_direction(matches: FlowMatches, t_dir_b: np.ndarray, R0_b_a: 
     n = len(matches.pa_n2)
     if n < config.min_inliers:
         return RotationEstimate(False, f'too few textured flow matches ({n} < {config.min_inliers})',
-                                matches=n)
+                                'no_texture', matches=n)
     K = matches.K_33
     Kinv = np.linalg.inv(K)
     xa = np.c_[matches.pa_n2, np.ones(n)] @ Kinv.T
@@ -214,10 +216,10 @@ def rotation_given_direction(matches: FlowMatches, t_dir_b: np.ndarray, R0_b_a: 
     n_in = int(sel.sum())
     if JtJ is None or n_in < config.min_inliers:
         return RotationEstimate(False, f'too few flow matches agree on a rotation ({n_in} < {config.min_inliers})',
-                                inliers=n_in, matches=n)
+                                'disagree', inliers=n_in, matches=n)
     if n_in < config.min_inlier_fraction * n:
         return RotationEstimate(False, f'only {n_in} of {n} flow matches agree on a rotation (less than '
-                                       f'{config.min_inlier_fraction:g})', inliers=n_in, matches=n)
+                                       f'{config.min_inlier_fraction:g})', 'disagree', inliers=n_in, matches=n)
     r_in = residual(xa[sel], xb[sel], R, t, f)
     rms = float(np.sqrt(np.mean(r_in ** 2)))
     J = np.empty((len(r_in), 3))
@@ -228,8 +230,9 @@ def rotation_given_direction(matches: FlowMatches, t_dir_b: np.ndarray, R0_b_a: 
                    - residual(xa[sel], xb[sel], _rotate(R, -d), t, f)) / (2 * eps)
     info = J.T @ J
     if not np.all(np.isfinite(info)) or np.linalg.cond(info) > 1e12:
-        return RotationEstimate(False, 'the flow matches do not determine the rotation', inliers=n_in, matches=n)
+        return RotationEstimate(False, 'the flow matches do not determine the rotation', 'undetermined',
+                                inliers=n_in, matches=n)
     cov = max(config.pixel_sigma, rms) ** 2 * np.linalg.inv(info) * config.covariance_scale
     if not math.isfinite(float(np.trace(cov))):
-        return RotationEstimate(False, 'non-finite rotation covariance', inliers=n_in, matches=n)
-    return RotationEstimate(True, None, R, 0.5 * (cov + cov.T), n_in, n, rms)
+        return RotationEstimate(False, 'non-finite rotation covariance', 'undetermined', inliers=n_in, matches=n)
+    return RotationEstimate(True, None, 'ok', R, 0.5 * (cov + cov.T), n_in, n, rms)

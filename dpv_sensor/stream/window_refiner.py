@@ -371,8 +371,9 @@ class WindowPoseRefiner:
         self.losses = 0
         if not hasattr(self, 'gate_counts'):
             self.gate_counts: Dict[str, int] = {}   # windows per gate outcome since construction (not reset)
-            # photometric alignments per decision since construction (not reset): used, inconsistent (beyond
-            # photometric_gate_chi2), not_converged, jump
+            # factors per decision since construction (not reset): photometric alignments used, inconsistent
+            # (beyond photometric_gate_chi2), not_converged, jump; flow rotations used, no_texture, disagree (too
+            # few matches agree on a rotation), undetermined
             self.factor_counts: Dict[str, int] = {}
 
     @property
@@ -677,7 +678,7 @@ class WindowPoseRefiner:
         for s in nearest:
             T0 = relative_pose(init[s.key], init[ref.key])                # T_src_ref from the odometry
             est = rotation_given_direction(self._flow_matches(ref, s), T0[:3, 3], T0[:3, :3], cfg.flow)
-            self._count('flow_used' if est.ok else 'flow_failed')
+            self._count('flow_used' if est.ok else f'flow_{est.kind}')
             if not est.ok:
                 self._rotation_factors.pop((s.key, ref.key), None)
                 continue
