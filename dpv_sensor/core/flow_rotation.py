@@ -171,6 +171,19 @@ def _rotation_px(xa: np.ndarray, xb: np.ndarray, R: np.ndarray, t, f: float) -> 
     return (f * (p[:, :2] / p[:, 2:3] - xb[:, :2] / xb[:, 2:3])).ravel()
 
 
+def _linearised(residual, xa: np.ndarray, xb: np.ndarray, R: np.ndarray, t, f: float, eps: float = 1e-6
+                ) -> Tuple[np.ndarray, np.ndarray]:
+    """The residuals of the matches at ``R`` and their Jacobian with respect to a left rotation increment (central
+    differences)."""
+    r = residual(xa, xb, R, t, f)
+    J = np.empty((len(r), 3))
+    for k in range(3):
+        d = np.zeros(3)
+        d[k] = eps
+        J[:, k] = (residual(xa, xb, _rotate(R, d), t, f) - residual(xa, xb, _rotate(R, -d), t, f)) / (2 * eps)
+    return r, J
+
+
 def rotation_given_direction(matches: FlowMatches, t_dir_b: np.ndarray, R0_b_a: np.ndarray,
                              config: FlowConfig = FlowConfig()) -> RotationEstimate:
     """The rotation ``R_b_a`` of the matches given the translation direction ``t_dir_b`` (of ``t_b_a``; a zero
@@ -191,7 +204,6 @@ def rotation_given_direction(matches: FlowMatches, t_dir_b: np.ndarray, R0_b_a: 
     else:
         residual, per_match = _rotation_px, 2
     R = np.asarray(R0_b_a, np.float64).copy()
-    eps = 1e-6
     JtJ = None
     for _ in range(config.iterations):
         r = residual(xa, xb, R, t, f)
@@ -199,13 +211,7 @@ def rotation_given_direction(matches: FlowMatches, t_dir_b: np.ndarray, R0_b_a: 
         sel = dist < max(config.inlier_px, 2.5 * float(np.median(dist)))
         if sel.sum() < config.min_inliers:
             break
-        a, b = xa[sel], xb[sel]
-        r_in = residual(a, b, R, t, f)
-        J = np.empty((len(r_in), 3))
-        for k in range(3):
-            d = np.zeros(3)
-            d[k] = eps
-            J[:, k] = (residual(a, b, _rotate(R, d), t, f) - residual(a, b, _rotate(R, -d), t, f)) / (2 * eps)
+        r_in, J = _linearised(residual, xa[sel], xb[sel], R, t, f)
         JtJ = J.T @ J
         step = np.linalg.lstsq(JtJ, -J.T @ r_in, rcond=None)[0]
         R = _rotate(R, step)
@@ -220,14 +226,8 @@ def rotation_given_direction(matches: FlowMatches, t_dir_b: np.ndarray, R0_b_a: 
     if n_in < config.min_inlier_fraction * n:
         return RotationEstimate(False, f'only {n_in} of {n} flow matches agree on a rotation (less than '
                                        f'{config.min_inlier_fraction:g})', 'disagree', inliers=n_in, matches=n)
-    r_in = residual(xa[sel], xb[sel], R, t, f)
+    r_in, J = _linearised(residual, xa[sel], xb[sel], R, t, f)
     rms = float(np.sqrt(np.mean(r_in ** 2)))
-    J = np.empty((len(r_in), 3))
-    for k in range(3):
-        d = np.zeros(3)
-        d[k] = eps
-        J[:, k] = (residual(xa[sel], xb[sel], _rotate(R, d), t, f)
-                   - residual(xa[sel], xb[sel], _rotate(R, -d), t, f)) / (2 * eps)
     info = J.T @ J
     if not np.all(np.isfinite(info)) or np.linalg.cond(info) > 1e12:
         return RotationEstimate(False, 'the flow matches do not determine the rotation', 'undetermined',

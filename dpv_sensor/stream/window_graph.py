@@ -151,7 +151,7 @@ def solve_window(window: Sequence[Hashable], init: Mapping[Hashable, np.ndarray]
         graph.add(gtsam.BetweenFactorPose3(idx[r], idx[s], pose3_from_matrix(T_ref_src), noise))
     # Keypoint relative poses (rotation and direction; length from the odometry), robustified.
     kp_huber = gtsam.noiseModel.mEstimator.Huber.Create(
-        cfg.flow_huber_k if getattr(cfg, 'rotation_evidence', 'keypoints') == 'flow' else cfg.keypoint_huber_k)
+        cfg.flow_huber_k if cfg.rotation_evidence == 'flow' else cfg.keypoint_huber_k)
     for s, r, T_src_ref, c in kp_factors:
         noise = gtsam.noiseModel.Robust.Create(kp_huber, gtsam.noiseModel.Gaussian.Covariance(c))
         graph.add(gtsam.BetweenFactorPose3(idx[s], idx[r], pose3_from_matrix(T_src_ref), noise))
