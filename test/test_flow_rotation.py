@@ -151,6 +151,10 @@ def test_the_window_refiner_takes_flow_factors_from_the_camera_images():
     ref = WindowKeyframe(0, small[0], K_proc, T_wa, camera_image=seq.image(0), camera_K_33=K_cam)
     src = WindowKeyframe(1, small[1], K_proc, T_odom_b, camera_image=seq.image(8), camera_K_33=K_cam)
     refiner = WindowPoseRefiner(PoseRefinerConfig(rotation_evidence='flow', odom_covariance='fixed'))
+    assert refiner.uses_camera_images                                    # the estimator keeps them for it
+    assert not WindowPoseRefiner(PoseRefinerConfig()).uses_camera_images
+    assert not WindowPoseRefiner(PoseRefinerConfig(rotation_evidence='flow', keypoint_factors=False)) \
+        .uses_camera_images
     res = refiner.refine(ref, [src])
     assert res.refined and res.factors['keypoint'] == [(1, 0)]
     T_src_ref_true = np.linalg.inv(T_wb) @ T_wa

@@ -480,7 +480,8 @@ class Estimator:
                       twist_world_6=self._twist,
                       pose_cov_66=window_pose_uncertainty.frame_covariance(self.config, frame),
                       twist_cov_66=window_pose_uncertainty.frame_covariance(self.config, frame, 'twist'),
-                      camera_gray_u8=None if self.pose_refiner is None else to_gray_u8(image))
+                      camera_gray_u8=to_gray_u8(image) if getattr(self.pose_refiner, 'uses_camera_images',
+                                                                   False) else None)
         self._kf_counter += 1
         self._keyframes += 1
         self.window.append(kf)

@@ -118,7 +118,7 @@ class Keyframe:
     (vx, vy, vz, wx, wy, wz) when the frame arrived, ``pose_cov_66`` and ``twist_cov_66`` the odometry's pose
     and twist covariance (ROS order), when known: what the pose uncertainty of the measurement is computed from
     (``dpv_sensor.core.pose_uncertainty``). ``camera_gray_u8`` is the image as received, in grey (uint8, at
-    ``input_K_33``), kept for the pose refiner's flow matches when a refiner is set.
+    ``input_K_33``), kept only for a pose refiner whose ``uses_camera_images`` is true (its flow matches).
     """
     index: int
     frame_index: int

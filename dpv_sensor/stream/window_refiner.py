@@ -158,6 +158,12 @@ class WindowPoseRefiner:
             self.factor_counts: Dict[str, int] = {}
 
     @property
+    def uses_camera_images(self) -> bool:
+        """Whether the refiner matches the keyframes' images at the camera's resolution (flow rotation factors):
+        only then does the estimator keep them (``Keyframe.camera_gray_u8``)."""
+        return bool(self.config.keypoint_factors and self.config.rotation_evidence == 'flow')
+
+    @property
     def tracking_lost(self) -> bool:
         """True when the last :meth:`refine` flagged tracking loss (reason in ``last_result.reason``)."""
         return self.last_result is not None and not self.last_result.tracking_ok
