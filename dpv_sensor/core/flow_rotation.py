@@ -36,7 +36,7 @@ from typing import Optional, Tuple
 import cv2
 import numpy as np
 
-from dpv_sensor.core.keypoint_pose import to_gray_u8
+from dpv_sensor.core.keypoint_pose import sampson_px, to_gray_u8
 
 __all__ = ['FlowConfig', 'FlowMatches', 'RotationEstimate', 'flow_matches', 'rotation_given_direction',
            'match_image']
@@ -156,15 +156,6 @@ def _rotate(R: np.ndarray, w: np.ndarray) -> np.ndarray:
     return cv2.Rodrigues(np.asarray(w, np.float64).reshape(3, 1))[0] @ R
 
 
-def _epipolar_px(xa: np.ndarray, xb: np.ndarray, R: np.ndarray, t: np.ndarray, f: float) -> np.ndarray:
-    """Sampson distances (pixels at focal ``f``) of normalised matches to the epipolar geometry ``E = [t]x R``."""
-    E = np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]]) @ R
-    Ea = xa @ E.T
-    Eb = xb @ E
-    num = np.sum(xb * Ea, axis=1)
-    return f * num / (np.sqrt(Ea[:, 0] ** 2 + Ea[:, 1] ** 2 + Eb[:, 0] ** 2 + Eb[:, 1] ** 2) + 1e-15)
-
-
 def _rotation_px(xa: np.ndarray, xb: np.ndarray, R: np.ndarray, t, f: float) -> np.ndarray:
     """Per match the x and y displacement (pixels) between b's point and a's rotated by ``R`` (no translation)."""
     p = xa @ R.T
@@ -200,7 +191,7 @@ def rotation_given_direction(matches: FlowMatches, t_dir_b: np.ndarray, R0_b_a: 
     t = np.asarray(t_dir_b, np.float64).ravel()
     norm = float(np.linalg.norm(t))
     if norm > 1e-9:
-        t, residual, per_match = t / norm, _epipolar_px, 1
+        t, residual, per_match = t / norm, sampson_px, 1
     else:
         residual, per_match = _rotation_px, 2
     R = np.asarray(R0_b_a, np.float64).copy()

@@ -29,7 +29,7 @@ import torch
 
 __all__ = ['KeypointConfig', 'KeypointPose', 'Features', 'detect_features', 'keypoint_relative_pose',
            'keypoint_covariance', 'rotation_given_direction_gain', 'rotation_factor_covariance_gtsam',
-           'to_gray_u8']
+           'to_gray_u8', 'sampson_px', 'refine_relative_pose']
 
 
 @dataclass
@@ -269,7 +269,7 @@ def keypoint_relative_pose(image_a, image_b, K_33: np.ndarray, config: Optional[
     if T_b_a_prior_44 is not None and prior_gate_px > 0:
         T0 = np.asarray(T_b_a_prior_44, np.float64)
         t0 = T0[:3, 3] / max(float(np.linalg.norm(T0[:3, 3])), 1e-12)
-        keep = np.abs(_sampson_px(_normalised(pa, K), _normalised(pb, K), T0[:3, :3], t0, K[0, 0])) <= prior_gate_px
+        keep = np.abs(sampson_px(_normalised(pa, K), _normalised(pb, K), T0[:3, :3], t0, K[0, 0])) <= prior_gate_px
         pa, pb = pa[keep], pb[keep]
         if len(pa) < cfg.min_inliers:
             return KeypointPose(False, f'too few matches agree with the prior ({len(pa)} < {cfg.min_inliers})',
@@ -291,7 +291,7 @@ def keypoint_relative_pose(image_a, image_b, K_33: np.ndarray, config: Optional[
     t_dir = t_dir / np.linalg.norm(t_dir)
     xa = _normalised(pa[sel], K)
     xb = _normalised(pb[sel], K)
-    R, t_dir, cov, B, rms = _refine(xa, xb, R, t_dir, f, cfg.pixel_sigma)
+    R, t_dir, cov, B, rms = refine_relative_pose(xa, xb, R, t_dir, f, cfg.pixel_sigma)
     cov = cov + np.diag(np.radians([cfg.rotation_floor_deg] * 3 + [cfg.direction_floor_deg] * 2)) ** 2
     if parallax < cfg.min_parallax_px:
         s_rot = math.hypot(s_rot, math.radians(cfg.rotation_floor_deg))
@@ -323,7 +323,8 @@ def _apply(R: np.ndarray, t: np.ndarray, B: np.ndarray, d: np.ndarray) -> Tuple[
     return R2, t2 / np.linalg.norm(t2)
 
 
-def _sampson_px(xa: np.ndarray, xb: np.ndarray, R: np.ndarray, t: np.ndarray, f: float) -> np.ndarray:
+def sampson_px(xa: np.ndarray, xb: np.ndarray, R: np.ndarray, t: np.ndarray, f: float) -> np.ndarray:
+    """Sampson distances (pixels at focal ``f``) of normalised matches to the epipolar geometry ``E = [t]x R``."""
     E = _skew(t) @ R
     Ea = xa @ E.T
     Eb = xb @ E
@@ -332,24 +333,25 @@ def _sampson_px(xa: np.ndarray, xb: np.ndarray, R: np.ndarray, t: np.ndarray, f:
     return f * num / den
 
 
-def _refine(xa, xb, R, t, f, pixel_sigma, iterations: int = 5):
-    """Gauss-Newton on the Sampson distances; returns (R, t, 5x5 covariance, basis, rms px)."""
+def refine_relative_pose(xa, xb, R, t, f, pixel_sigma, iterations: int = 5):
+    """Gauss-Newton on the Sampson distances of normalised matches over the rotation and the translation's direction
+    (5 dof) from ``(R, t)``; returns (R, t, 5x5 covariance, basis, rms px)."""
     eps = 1e-6
     for it in range(iterations + 1):
         B = _basis(t)
-        r0 = _sampson_px(xa, xb, R, t, f)
+        r0 = sampson_px(xa, xb, R, t, f)
         J = np.empty((len(r0), 5))
         for k in range(5):
             d = np.zeros(5)
             d[k] = eps
-            J[:, k] = (_sampson_px(xa, xb, *_apply(R, t, B, d), f) - _sampson_px(xa, xb, *_apply(R, t, B, -d), f)) \
+            J[:, k] = (sampson_px(xa, xb, *_apply(R, t, B, d), f) - sampson_px(xa, xb, *_apply(R, t, B, -d), f)) \
                 / (2 * eps)
         JtJ = J.T @ J
         if it == iterations:
             break
         step = np.linalg.lstsq(JtJ, -J.T @ r0, rcond=None)[0]
         R_new, t_new = _apply(R, t, B, step)
-        if np.sum(_sampson_px(xa, xb, R_new, t_new, f) ** 2) >= np.sum(r0 ** 2):
+        if np.sum(sampson_px(xa, xb, R_new, t_new, f) ** 2) >= np.sum(r0 ** 2):
             break
         R, t = R_new, t_new
     n = len(r0)
