@@ -194,8 +194,15 @@ SPECS: tuple[ParamSpec, ...] = (
               "factors are measured from. keypoints: SIFT matches at the processing size (refine_keypoint_direction "
               "says what they hold); flow: dense optical flow at the camera's resolution (up to 640 pixels wide), "
               "the rotation solved with the odometry's translation direction held fixed, between the reference and "
-              "every source of the window, evidence that does not depend on the depth being estimated.",
-              choices=('keypoints', 'flow')),
+              "its two nearest sources, evidence that does not depend on the depth being estimated; auto: flow while "
+              "the images agree with the odometry's translation directions (refine_flow_direction_ratio), keypoints "
+              "where they do not (a camera whose calibration, mount or timing does not match the odometry).",
+              choices=('keypoints', 'flow', 'auto')),
+    ParamSpec('refine_flow_direction_ratio', 1.05, "Pose refinement with refine_rotation_evidence auto: the flow "
+              "factors are used while the median, over the last 50 flow pairs, of the matches' rms epipolar "
+              "distance with the odometry's translation direction held over that with the direction fitted to the "
+              "images stays at most this (about 1.02 where camera and odometry agree, 1.10 where they do not).",
+              min_value=1.0, max_value=10.0),
     ParamSpec('refine_marginals', False, "Pose refinement: after a refined window, each source's pose covariance "
               "relative to the reference (gtsam marginals) widens the measurement and the confidence in place of "
               "the odometry's covariance and drift figures."),

@@ -36,7 +36,7 @@ from typing import Optional, Tuple
 import cv2
 import numpy as np
 
-from dpv_sensor.core.keypoint_pose import sampson_px, to_gray_u8
+from dpv_sensor.core.keypoint_pose import refine_relative_pose, sampson_px, to_gray_u8
 
 __all__ = ['FlowConfig', 'FlowMatches', 'RotationEstimate', 'flow_matches', 'rotation_given_direction',
            'match_image']
@@ -57,7 +57,8 @@ class FlowConfig:
     many places, e.g. large displacements and occlusions, what agrees is not the scene's motion: on the rendered
     hospital pairs below a half the rotation errs by 0.5 degrees at the median, above 0.7 by 0.03); pixel_sigma:
     the smallest per-match std (pixels) the covariance assumes; covariance_scale: the covariance's factor for the
-    matches' shared errors (module doc)."""
+    matches' shared errors (module doc); direction_iterations: Gauss-Newton steps of the free fit that
+    ``RotationEstimate.direction_ratio`` compares with."""
     dis_preset: str = 'medium'
     grid_px: int = 8
     texture_quantile: float = 0.5
@@ -70,6 +71,7 @@ class FlowConfig:
     min_inlier_fraction: float = 0.5
     pixel_sigma: float = 0.1
     covariance_scale: float = 52.0
+    direction_iterations: int = 10
 
     def __post_init__(self):
         if self.dis_preset not in _PRESETS:
@@ -94,7 +96,9 @@ class FlowMatches:
 class RotationEstimate:
     """ok: False when there is no estimate (reason says why, kind in a word: 'no_texture', 'disagree',
     'undetermined'); R_b_a: the rotation; cov_33: its covariance (rad^2, left increment about frame b's axes);
-    inliers / matches: counts; rms_px: the inliers' rms distance."""
+    inliers / matches: counts; rms_px: the inliers' rms distance; direction_ratio: that rms over the inliers' rms
+    distance once the translation's direction is fitted too (5 dof from the held solution): near 1 where the given
+    direction fits the images, above it where it does not (None without a translation)."""
     ok: bool
     reason: Optional[str] = None
     kind: str = 'ok'
@@ -103,6 +107,7 @@ class RotationEstimate:
     inliers: int = 0
     matches: int = 0
     rms_px: float = 0.0
+    direction_ratio: Optional[float] = None
 
 
 def match_image(image, K_33: np.ndarray, config: FlowConfig = FlowConfig()) -> Tuple[np.ndarray, np.ndarray]:
@@ -226,4 +231,14 @@ def rotation_given_direction(matches: FlowMatches, t_dir_b: np.ndarray, R0_b_a: 
     cov = max(config.pixel_sigma, rms) ** 2 * np.linalg.inv(info) * config.covariance_scale
     if not math.isfinite(float(np.trace(cov))):
         return RotationEstimate(False, 'non-finite rotation covariance', 'undetermined', inliers=n_in, matches=n)
-    return RotationEstimate(True, None, 'ok', R, 0.5 * (cov + cov.T), n_in, n, rms)
+    ratio = _direction_ratio(xa[sel], xb[sel], R, t, f, rms, config) if per_match == 1 else None
+    return RotationEstimate(True, None, 'ok', R, 0.5 * (cov + cov.T), n_in, n, rms, ratio)
+
+
+def _direction_ratio(xa: np.ndarray, xb: np.ndarray, R: np.ndarray, t: np.ndarray, f: float, rms_held: float,
+                     config: FlowConfig) -> float:
+    """The inliers' rms distance with the direction held over the same once rotation and direction are both fitted
+    (:attr:`RotationEstimate.direction_ratio`)."""
+    R5, t5 = refine_relative_pose(xa, xb, R, t, f, 0.0, iterations=config.direction_iterations)[:2]
+    rms_free = float(np.sqrt(np.mean(sampson_px(xa, xb, R5, t5, f) ** 2)))
+    return rms_held / rms_free if rms_free > 0.0 else math.inf

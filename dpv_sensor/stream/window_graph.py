@@ -117,13 +117,15 @@ def relative_pose(T_world_a: np.ndarray, T_world_b: np.ndarray) -> np.ndarray:
 
 def solve_window(window: Sequence[Hashable], init: Mapping[Hashable, np.ndarray], odom: Mapping[Hashable, np.ndarray],
                  cov: Mapping[Hashable, object], anchor: Hashable, factors: Sequence = (),
-                 kp_factors: Sequence = (), cfg=None) -> Tuple[Dict[Hashable, np.ndarray], tuple]:
+                 kp_factors: Sequence = (), cfg=None, kp_huber_k: Optional[float] = None
+                 ) -> Tuple[Dict[Hashable, np.ndarray], tuple]:
     """Optimise the window's poses: returns (``T_world_cam`` by key, (graph, result, index) for the marginals).
 
     window: the keys in time order; init: the starting poses; odom / cov: each keyframe's odometry pose and what
     the odometry says about itself there (``odometry_step_covariance``'s ``cov_a``, or None); anchor: the keyframe
     the gauge prior holds at its starting pose; factors: photometric ``(ref, src, T_ref_src, cov)``; kp_factors:
-    keypoint ``(src, ref, T_src_ref, cov)``. Raises RuntimeError for a non-finite solution (gtsam raises it for an
+    keypoint or flow rotation ``(src, ref, T_src_ref, cov)``, Huber at ``kp_huber_k`` sigmas (None: the config's
+    ``keypoint_huber_k``). Raises RuntimeError for a non-finite solution (gtsam raises it for an
     indeterminate system)."""
     idx = {k: i for i, k in enumerate(window)}
     graph = gtsam.NonlinearFactorGraph()
@@ -150,8 +152,7 @@ def solve_window(window: Sequence[Hashable], init: Mapping[Hashable, np.ndarray]
         noise = gtsam.noiseModel.Robust.Create(huber, gtsam.noiseModel.Gaussian.Covariance(c))
         graph.add(gtsam.BetweenFactorPose3(idx[r], idx[s], pose3_from_matrix(T_ref_src), noise))
     # Keypoint relative poses (rotation and direction; length from the odometry), robustified.
-    kp_huber = gtsam.noiseModel.mEstimator.Huber.Create(
-        cfg.flow_huber_k if cfg.rotation_evidence == 'flow' else cfg.keypoint_huber_k)
+    kp_huber = gtsam.noiseModel.mEstimator.Huber.Create(cfg.keypoint_huber_k if kp_huber_k is None else kp_huber_k)
     for s, r, T_src_ref, c in kp_factors:
         noise = gtsam.noiseModel.Robust.Create(kp_huber, gtsam.noiseModel.Gaussian.Covariance(c))
         graph.add(gtsam.BetweenFactorPose3(idx[s], idx[r], pose3_from_matrix(T_src_ref), noise))

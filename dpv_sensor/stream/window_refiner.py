@@ -46,10 +46,11 @@ Poses are float64 numpy 4x4 ``T_world_cam`` (camera-to-world, OpenCV axes). No R
 """
 from __future__ import annotations
 
+import collections
 import math
 import time
 from dataclasses import dataclass, field
-from typing import Dict, Hashable, List, Optional, Sequence, Tuple
+from typing import Deque, Dict, Hashable, List, Optional, Sequence, Tuple
 
 import gtsam
 import numpy as np
@@ -154,14 +155,19 @@ class WindowPoseRefiner:
             self.gate_counts: Dict[str, int] = {}   # windows per gate outcome since construction (not reset)
             # factors per decision since construction (not reset): photometric alignments used, inconsistent
             # (beyond photometric_gate_chi2), not_converged, jump; flow rotations used, no_texture, disagree (too
-            # few matches agree on a rotation), undetermined
+            # few matches agree on a rotation), undetermined; with rotation_evidence 'auto' windows whose rotation
+            # factors came from the flow (evidence_flow) or from SIFT (evidence_keypoints: the images disagree with
+            # the odometry's directions, or no pair has said yet)
             self.factor_counts: Dict[str, int] = {}
+            # the last flow pairs' direction_ratio (rotation_evidence 'auto'): a property of the camera and the
+            # odometry, so kept across resets
+            self._direction_ratios: Deque[float] = collections.deque(maxlen=self.config.flow_direction_pairs)
 
     @property
     def uses_camera_images(self) -> bool:
         """Whether the refiner matches the keyframes' images at the camera's resolution (flow rotation factors):
         only then does the estimator keep them (``Keyframe.camera_gray_u8``)."""
-        return bool(self.config.keypoint_factors and self.config.rotation_evidence == 'flow')
+        return bool(self.config.keypoint_factors and self.config.rotation_evidence != 'keypoints')
 
     @property
     def tracking_lost(self) -> bool:
@@ -266,11 +272,12 @@ class WindowPoseRefiner:
         if skipped is not None:
             # a fallback, not a loss: the odometry-chained poses, and no photometric history across the turn
             self._factors = []
-        kp_factors, kps = [], []
+        kp_factors, kps, kp_huber_k = [], [], self.config.keypoint_huber_k
         t_kp = time.perf_counter()
         if self.config.keypoint_factors and sources and skipped is None and reason is None:
-            if self.config.rotation_evidence == 'flow':
-                kp_factors = self._flow_factors(ref, sources, init)
+            flow = self._flow_factors(ref, sources, init) if self.config.rotation_evidence != 'keypoints' else None
+            if flow is not None:
+                kp_factors, kp_huber_k = flow, self.config.flow_huber_k
             else:
                 kp_factors, kps = self._keypoint_factors(ref, sources, init)
         keypoints_ms = 1e3 * (time.perf_counter() - t_kp)
@@ -279,7 +286,7 @@ class WindowPoseRefiner:
         if gate != 'none':
             factors, kp_factors = [], []
         self._graph = None
-        poses, refined, reason = self._solve(window, init, factors, reason, kp_factors)
+        poses, refined, reason = self._solve(window, init, factors, reason, kp_factors, kp_huber_k)
         tracking_ok = reason is None
         if not tracking_ok:
             self.losses += 1
@@ -454,17 +461,30 @@ class WindowPoseRefiner:
         return factors, kps
 
     def _flow_factors(self, ref: WindowKeyframe, sources: Sequence[WindowKeyframe],
-                      init: Dict[Hashable, np.ndarray]) -> list:
+                      init: Dict[Hashable, np.ndarray]) -> Optional[list]:
         """Flow rotation factors (src, ref, T_src_ref, cov) between the reference and its ``keypoint_sources``
         nearest sources, the rotation given the odometry's direction and the translation left free, plus the kept
         factors of earlier windows between keyframes still in the window
         (:attr:`PoseRefinerConfig.rotation_evidence`): with a centred window every pair of neighbours is tied, at
-        one new flow per keyframe."""
+        one new flow per keyframe. None with rotation_evidence 'auto' when the recent pairs' median
+        ``direction_ratio`` is above ``flow_direction_ratio`` (or no pair has one yet): the caller takes SIFT's."""
         cfg = self.config
         nearest = sorted(sources, key=lambda f: _key_distance(f.key, ref.key))[:cfg.keypoint_sources]
+        estimates = []
         for s in nearest:
             T0 = relative_pose(init[s.key], init[ref.key])                # T_src_ref from the odometry
             est = rotation_given_direction(self._flow_matches(ref, s), T0[:3, 3], T0[:3, :3], cfg.flow)
+            if est.direction_ratio is not None:
+                self._direction_ratios.append(est.direction_ratio)
+            estimates.append((s, T0, est))
+        if cfg.rotation_evidence == 'auto':
+            agree = bool(self._direction_ratios) and \
+                float(np.median(self._direction_ratios)) <= cfg.flow_direction_ratio
+            self._count('evidence_flow' if agree else 'evidence_keypoints')
+            if not agree:
+                self._rotation_factors.clear()
+                return None
+        for s, T0, est in estimates:
             self._count('flow_used' if est.ok else f'flow_{est.kind}')
             if not est.ok:
                 self._rotation_factors.pop((s.key, ref.key), None)
@@ -523,13 +543,14 @@ class WindowPoseRefiner:
         return relative_marginal_sigmas(self._graph, ref.key, [s.key for s in sources])
 
     def _solve(self, window: List[Hashable], init: Dict[Hashable, np.ndarray], factors: list,
-               reason: Optional[str], kp_factors: Sequence = ()) -> Tuple[Dict[Hashable, np.ndarray], bool,
-                                                                        Optional[str]]:
-        """Optimise the window over its factors unless a reason says not to; returns (poses, refined, reason)."""
+               reason: Optional[str], kp_factors: Sequence = (), kp_huber_k: Optional[float] = None
+               ) -> Tuple[Dict[Hashable, np.ndarray], bool, Optional[str]]:
+        """Optimise the window over its factors unless a reason says not to; returns (poses, refined, reason).
+        ``kp_huber_k``: the rotation factors' Huber threshold (None: ``keypoint_huber_k``)."""
         if reason is not None or not (factors or kp_factors):
             return init, False, reason
         try:
-            poses = self._optimize(window, init, factors, kp_factors)
+            poses = self._optimize(window, init, factors, kp_factors, kp_huber_k)
         except RuntimeError as e:      # gtsam raises on indeterminate systems
             return init, False, f'window optimisation failed: {e}'
         return poses, True, self._jump_check(window, poses)
@@ -595,10 +616,11 @@ class WindowPoseRefiner:
                 'photometric': [(r, s) for r, s, _T, _c in factors if r in keys and s in keys],
                 'keypoint': [(s, r) for s, r, _T, _c in kp_factors]}
 
-    def _optimize(self, window, init, factors, kp_factors=()) -> Dict[Hashable, np.ndarray]:
+    def _optimize(self, window, init, factors, kp_factors=(), kp_huber_k: Optional[float] = None
+                  ) -> Dict[Hashable, np.ndarray]:
         anchor = self._anchor_key = self._anchor(window)
         poses, self._graph = solve_window(window, init, self._odom, self._cov, anchor, factors, kp_factors,
-                                          self.config)
+                                          self.config, kp_huber_k)
         return poses
 
     def _jump_check(self, window, poses) -> Optional[str]:

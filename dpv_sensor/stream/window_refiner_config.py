@@ -105,6 +105,8 @@ class PoseRefinerConfig:
     rotation_evidence: str = _params.default('refine_rotation_evidence')
     flow: FlowConfig = field(default_factory=FlowConfig)
     flow_huber_k: float = 10.0
+    flow_direction_ratio: float = _params.default('refine_flow_direction_ratio')
+    flow_direction_pairs: int = 50
     marginals: bool = _params.default('refine_marginals')
     gate_chi2: float = _params.default('refine_gate_chi2')
     photometric_gate_chi2: float = _params.default('refine_photometric_gate_chi2')
@@ -128,7 +130,10 @@ class PoseRefinerConfig:
     #     the reference and its ``keypoint_sources`` nearest sources; the factors of pairs that stay in the window
     #     are kept, so every pair of neighbouring keyframes is tied. Huber ``flow_huber_k``: their stds are a few
     #     hundredths of a degree, so a kernel at 1.345 sigmas would hand most of a 0.3 degree drift back to the
-    #     odometry.
+    #     odometry. 'auto': the flow factors while the median of the last ``flow_direction_pairs`` flow pairs'
+    #     ``direction_ratio`` (core.flow_rotation) is at most ``flow_direction_ratio``, i.e. while the images agree
+    #     with the odometry's translation directions, else the SIFT factors (decided per window; before any pair
+    #     has a ratio, SIFT).
     # marginals: after the solve, each source's pose covariance relative to the reference (gtsam Marginals) in
     #     ``RefinementResult.source_sigma``, the pose uncertainty the estimator widens with in place of the
     #     odometry's.
@@ -145,6 +150,7 @@ class PoseRefinerConfig:
               'odom_sigma_trans_rel': 'odom_sigma_trans_rel', 'refine_odom_covariance': 'odom_covariance',
               'refine_photometric_sources': 'max_sources', 'refine_keypoints': 'keypoint_factors',
               'refine_keypoint_direction': 'keypoint_direction', 'refine_rotation_evidence': 'rotation_evidence',
+              'refine_flow_direction_ratio': 'flow_direction_ratio',
               'refine_marginals': 'marginals',
               'refine_gate_chi2': 'gate_chi2', 'refine_gate_min_inliers': 'gate_min_inliers',
               'refine_photometric_gate_chi2': 'photometric_gate_chi2'}
