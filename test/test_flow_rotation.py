@@ -82,6 +82,19 @@ def test_no_translation_fits_a_pure_rotation():
     assert _err_deg(est.R_b_a, R_true) < 1e-4
 
 
+def test_the_direction_ratio_is_one_where_the_direction_fits_and_grows_where_it_does_not():
+    """Matches with 0.1 px of noise: with the true direction held, freeing it lowers the rms by the noise's share
+    of two more parameters only; a direction 2 or 5 degrees off leaves residuals that the free fit removes."""
+    R_true, t = _rot([1.0, -2.0, 0.5]), np.array([0.05, 0.01, 0.02])
+    m = _matches(R_true, t, n=600, seed=3)
+    m.pb_n2 += np.random.default_rng(9).normal(0.0, 0.1, m.pb_n2.shape)
+    ratios = [rotation_given_direction(m, _rot([0.0, deg, 0.0]) @ t, R_true).direction_ratio for deg in (0, 2, 5)]
+    assert 1.0 <= ratios[0] < 1.01
+    assert 1.2 < ratios[1] < ratios[2]
+    # no translation: a pure rotation has no direction to compare with
+    assert rotation_given_direction(_matches(R_true, np.zeros(3)), np.zeros(3), R_true).direction_ratio is None
+
+
 def test_too_few_matches_give_no_estimate_and_say_why():
     m = _matches(np.eye(3), np.array([0.05, 0.0, 0.0]), n=10)
     est = rotation_given_direction(m, np.array([1.0, 0.0, 0.0]), np.eye(3))
@@ -135,21 +148,36 @@ def test_wide_images_are_matched_shrunk_with_their_intrinsics():
     assert same.shape == (480, 640) and np.array_equal(K3, K)
 
 
-def test_the_window_refiner_takes_flow_factors_from_the_camera_images():
-    """A rendered pair with 2 deg of odometry rotation error: the flow factor (camera images at twice the
-    processing size) corrects it, and the decisions are counted."""
+@pytest.fixture(scope='module')
+def rendered_pair():
+    """Frames 0 and 8 of a render at 640x480 (camera images) and 320x240 (processing size), with their poses."""
     from dpv_sensor.data.synthetic import render_sequence
-    from dpv_sensor.stream.window_refiner import PoseRefinerConfig, WindowKeyframe, WindowPoseRefiner
     seq = render_sequence(seed=7, num_frames=9, width=640, height=480, plain_wall_prob=0.0)
     K_cam = np.asarray(seq.K, np.float64)
     K_proc = K_cam.copy()
     K_proc[:2] *= 0.5
-    T_wa, T_wb = seq.pose(0), seq.pose(8)
+    small = [cv2.resize(seq.image(i), (320, 240), interpolation=cv2.INTER_AREA) for i in (0, 8)]
+    return dict(K_cam=K_cam, K_proc=K_proc, T_wa=seq.pose(0), T_wb=seq.pose(8), small=small,
+                big=[seq.image(0), seq.image(8)])
+
+
+def _window(pair, T_odom_b):
+    from dpv_sensor.stream.window_refiner import WindowKeyframe
+    ref = WindowKeyframe(0, pair['small'][0], pair['K_proc'], pair['T_wa'], camera_image=pair['big'][0],
+                         camera_K_33=pair['K_cam'])
+    src = WindowKeyframe(1, pair['small'][1], pair['K_proc'], T_odom_b, camera_image=pair['big'][1],
+                         camera_K_33=pair['K_cam'])
+    return ref, src
+
+
+def test_the_window_refiner_takes_flow_factors_from_the_camera_images(rendered_pair):
+    """A rendered pair with 2 deg of odometry rotation error: the flow factor (camera images at twice the
+    processing size) corrects it, and the decisions are counted."""
+    from dpv_sensor.stream.window_refiner import PoseRefinerConfig, WindowPoseRefiner
+    T_wa, T_wb = rendered_pair['T_wa'], rendered_pair['T_wb']
     T_odom_b = T_wb.copy()
     T_odom_b[:3, :3] = T_wb[:3, :3] @ _rot([2.0, 0.0, 0.0])
-    small = [cv2.resize(seq.image(i), (320, 240), interpolation=cv2.INTER_AREA) for i in (0, 8)]
-    ref = WindowKeyframe(0, small[0], K_proc, T_wa, camera_image=seq.image(0), camera_K_33=K_cam)
-    src = WindowKeyframe(1, small[1], K_proc, T_odom_b, camera_image=seq.image(8), camera_K_33=K_cam)
+    ref, src = _window(rendered_pair, T_odom_b)
     refiner = WindowPoseRefiner(PoseRefinerConfig(rotation_evidence='flow', odom_covariance='fixed'))
     assert refiner.uses_camera_images                                    # the estimator keeps them for it
     assert not WindowPoseRefiner(PoseRefinerConfig()).uses_camera_images
@@ -160,3 +188,43 @@ def test_the_window_refiner_takes_flow_factors_from_the_camera_images():
     T_src_ref_true = np.linalg.inv(T_wb) @ T_wa
     assert _err_deg(res.T_src_ref[0][:3, :3], T_src_ref_true[:3, :3]) < 0.1
     assert refiner.factor_counts == {'flow_used': 1}
+
+
+def test_auto_evidence_takes_the_flow_only_where_the_odometry_direction_fits_the_images(rendered_pair):
+    """rotation_evidence 'auto': with the odometry's relative rotation 2 deg off and its translation direction right
+    the flow factor is used; with the direction 20 deg off as well the images disagree with it (a camera whose
+    mount or timing does not match the odometry), so the window takes SIFT's factor; the ratios are a property of
+    the camera and the odometry and outlive a reset."""
+    from dpv_sensor.stream.window_refiner import PoseRefinerConfig, WindowPoseRefiner
+    T_wa, T_wb = rendered_pair['T_wa'], rendered_pair['T_wb']
+    T_src_ref_true = np.linalg.inv(T_wb) @ T_wa
+
+    def odometry_b(rot_err_deg, dir_err_deg):
+        T = T_src_ref_true.copy()
+        T[:3, :3] = _rot(rot_err_deg) @ T[:3, :3]
+        T[:3, 3] = _rot(dir_err_deg) @ T[:3, 3]
+        return T_wa @ np.linalg.inv(T)
+
+    cfg = PoseRefinerConfig(rotation_evidence='auto', odom_covariance='fixed')
+    agreeing = WindowPoseRefiner(cfg)
+    assert agreeing.uses_camera_images
+    ref, src = _window(rendered_pair, odometry_b([2.0, 0.0, 0.0], [0.0, 0.0, 0.0]))
+    res = agreeing.refine(ref, [src])
+    assert res.refined and res.factors['keypoint'] == [(1, 0)]
+    assert agreeing.factor_counts == {'evidence_flow': 1, 'flow_used': 1}
+    assert list(agreeing._direction_ratios)[0] < cfg.flow_direction_ratio
+    assert _err_deg(res.T_src_ref[0][:3, :3], T_src_ref_true[:3, :3]) < 0.1
+
+    disagreeing = WindowPoseRefiner(cfg)
+    ref, src = _window(rendered_pair, odometry_b([2.0, 0.0, 0.0], [0.0, 5.0, 0.0]))
+    res = disagreeing.refine(ref, [src])
+    assert list(disagreeing._direction_ratios)[0] > cfg.flow_direction_ratio
+    assert disagreeing.factor_counts['evidence_keypoints'] == 1 and 'flow_used' not in disagreeing.factor_counts
+    assert res.keypoints and res.keypoints[0].inliers > 0          # SIFT's pair was matched instead
+    disagreeing.reset()
+    assert len(disagreeing._direction_ratios) == 1
+    # the threshold is the parameter's: a looser one lets the same window take the flow
+    loose = WindowPoseRefiner(PoseRefinerConfig(rotation_evidence='auto', odom_covariance='fixed',
+                                                flow_direction_ratio=100.0))
+    loose.refine(ref, [src])
+    assert loose.factor_counts.get('evidence_flow') == 1
