@@ -3,6 +3,7 @@ worked out by projection, outliers, a pure rotation, too few matches, the flow o
 wide images, and the window refiner's flow factors on a rendered pair."""
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import cv2
@@ -228,3 +229,20 @@ def test_auto_evidence_takes_the_flow_only_where_the_odometry_direction_fits_the
                                                 flow_direction_ratio=100.0))
     loose.refine(ref, [src])
     assert loose.factor_counts.get('evidence_flow') == 1
+
+
+def test_auto_evidence_measures_the_flow_only_now_and_then_once_the_images_disagree(rendered_pair):
+    """Once a fifth of flow_direction_pairs say the odometry's directions do not fit the images, the flow is
+    measured on every flow_probe_every-th window only: SIFT's factors plus an occasional flow."""
+    from dpv_sensor.stream.window_refiner import PoseRefinerConfig, WindowPoseRefiner
+    T_wa, T_wb = rendered_pair['T_wa'], rendered_pair['T_wb']
+    T = np.linalg.inv(T_wb) @ T_wa
+    T[:3, 3] = _rot([0.0, 5.0, 0.0]) @ T[:3, 3]
+    T_odom_b = T_wa @ np.linalg.inv(T)
+    refiner = WindowPoseRefiner(PoseRefinerConfig(rotation_evidence='auto', odom_covariance='fixed',
+                                                  flow_direction_pairs=5, flow_probe_every=4))
+    ref, src = _window(rendered_pair, T_odom_b)
+    for i in range(5):                                   # windows 1..5: the flow on the first and the fourth
+        refiner.refine(dataclasses.replace(ref, key=2 * i), [dataclasses.replace(src, key=2 * i + 1)])
+    assert len(refiner._direction_ratios) == 2
+    assert refiner.factor_counts == {'evidence_keypoints': 5}

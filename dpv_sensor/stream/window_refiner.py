@@ -469,6 +469,10 @@ class WindowPoseRefiner:
         one new flow per keyframe. None with rotation_evidence 'auto' when the recent pairs' median
         ``direction_ratio`` is above ``flow_direction_ratio`` (or no pair has one yet): the caller takes SIFT's."""
         cfg = self.config
+        if cfg.rotation_evidence == 'auto' and not self._probe_flow():
+            self._count('evidence_keypoints')
+            self._rotation_factors.clear()
+            return None
         nearest = sorted(sources, key=lambda f: _key_distance(f.key, ref.key))[:cfg.keypoint_sources]
         estimates = []
         for s in nearest:
@@ -494,6 +498,16 @@ class WindowPoseRefiner:
             cov = rotation_factor_covariance_gtsam(est.cov_33, est.R_b_a, _FREE_TRANSLATION_VAR)
             self._rotation_factors[(s.key, ref.key)] = (s.key, ref.key, T, cov)
         return list(self._rotation_factors.values())
+
+    def _probe_flow(self) -> bool:
+        """rotation_evidence 'auto': whether this window measures the flow. Once ``flow_direction_pairs // 5``
+        pairs or more say the images disagree with the odometry's directions, only every ``flow_probe_every``-th
+        window does (what SIFT's factors cost, plus a flow now and then to notice if that changes)."""
+        cfg = self.config
+        ratios = self._direction_ratios
+        settled = len(ratios) >= max(1, cfg.flow_direction_pairs // 5) and \
+            float(np.median(ratios)) > cfg.flow_direction_ratio
+        return not settled or self.calls % max(1, cfg.flow_probe_every) == 0
 
     def _flow_matches(self, ref: WindowKeyframe, src: WindowKeyframe) -> FlowMatches:
         """The flow matches from the reference into a source (computed once per pair while both stay in the

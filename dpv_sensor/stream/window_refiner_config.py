@@ -107,6 +107,7 @@ class PoseRefinerConfig:
     flow_huber_k: float = 10.0
     flow_direction_ratio: float = _params.default('refine_flow_direction_ratio')
     flow_direction_pairs: int = 50
+    flow_probe_every: int = 4
     marginals: bool = _params.default('refine_marginals')
     gate_chi2: float = _params.default('refine_gate_chi2')
     photometric_gate_chi2: float = _params.default('refine_photometric_gate_chi2')
@@ -133,7 +134,8 @@ class PoseRefinerConfig:
     #     odometry. 'auto': the flow factors while the median of the last ``flow_direction_pairs`` flow pairs'
     #     ``direction_ratio`` (core.flow_rotation) is at most ``flow_direction_ratio``, i.e. while the images agree
     #     with the odometry's translation directions, else the SIFT factors (decided per window; before any pair
-    #     has a ratio, SIFT).
+    #     has a ratio, SIFT). Once a fifth of ``flow_direction_pairs`` say they disagree, the flow is measured on
+    #     every ``flow_probe_every``-th window only.
     # marginals: after the solve, each source's pose covariance relative to the reference (gtsam Marginals) in
     #     ``RefinementResult.source_sigma``, the pose uncertainty the estimator widens with in place of the
     #     odometry's.
