@@ -16,6 +16,13 @@ degrees, far better than what two views of an indoor scene a few centimetres apa
    is well posed however small the baseline: only the component of a match across its epipolar line counts, and
    that is what a rotation error moves and a depth error does not. When the odometry has no translation at all
    the rotation is fitted to the matches' full displacement (a pure rotation maps them by ``K R K^-1``).
+3. ``RotationEstimate.direction_ratio``: whether the held direction fits the images at all. The inliers' rms
+   distance with it held over their rms once the direction is fitted too (5 dof, from the held solution): noise
+   alone leaves this near 1 (two parameters more), a direction a degree or two off raises it well above. It is
+   the evidence for trusting the images' rotation given the odometry's direction: where the camera's
+   calibration, mount or timing does not match the odometry, the direction is off on every pair and the ratio's
+   median stays high (the window refiner's ``rotation_evidence='auto'``). The inliers are those of the held fit,
+   so a direction so far off that under half the matches fit it gives no estimate, not a ratio.
 
 The covariance is the Gauss-Newton one, ``s^2 (J^T J)^-1`` with ``s`` the inliers' rms distance, times
 ``covariance_scale``: neighbouring flow vectors share their errors (the flow is smooth over patches), so the
