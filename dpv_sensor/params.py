@@ -190,13 +190,14 @@ SPECS: tuple[ParamSpec, ...] = (
               "the odometry; keypoints: the rotation and the translation's direction of the matched keypoints, "
               "whose direction errs by several degrees on small indoor baselines.",
               choices=('keypoints', 'odometry')),
-    ParamSpec('refine_rotation_evidence', 'keypoints', "Pose refinement with refine_keypoints: what the rotation "
+    ParamSpec('refine_rotation_evidence', 'auto', "Pose refinement with refine_keypoints: what the rotation "
               "factors are measured from. keypoints: SIFT matches at the processing size (refine_keypoint_direction "
               "says what they hold); flow: dense optical flow at the camera's resolution (up to 640 pixels wide), "
               "the rotation solved with the odometry's translation direction held fixed, between the reference and "
-              "its two nearest sources, evidence that does not depend on the depth being estimated; auto: flow while "
-              "the images agree with the odometry's translation directions (refine_flow_direction_ratio), keypoints "
-              "where they do not (a camera whose calibration, mount or timing does not match the odometry).",
+              "its two nearest sources, evidence that does not depend on the depth being estimated; auto (the "
+              "default): flow while the images agree with the odometry's translation directions "
+              "(refine_flow_direction_ratio), keypoints where they do not (a camera whose calibration, mount or "
+              "timing does not match the odometry).",
               choices=('keypoints', 'flow', 'auto')),
     ParamSpec('refine_flow_direction_ratio', 1.05, "Pose refinement with refine_rotation_evidence auto: the flow "
               "factors are used while the median, over the last 50 flow pairs, of the matches' rms epipolar "

@@ -181,7 +181,7 @@ def test_the_window_refiner_takes_flow_factors_from_the_camera_images(rendered_p
     ref, src = _window(rendered_pair, T_odom_b)
     refiner = WindowPoseRefiner(PoseRefinerConfig(rotation_evidence='flow', odom_covariance='fixed'))
     assert refiner.uses_camera_images                                    # the estimator keeps them for it
-    assert not WindowPoseRefiner(PoseRefinerConfig()).uses_camera_images
+    assert not WindowPoseRefiner(PoseRefinerConfig(rotation_evidence='keypoints')).uses_camera_images
     assert not WindowPoseRefiner(PoseRefinerConfig(rotation_evidence='flow', keypoint_factors=False)) \
         .uses_camera_images
     res = refiner.refine(ref, [src])

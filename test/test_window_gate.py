@@ -40,6 +40,8 @@ def _window(pair, src_rot_deg: float, ref_img=None, src_img=None):
 
 
 def _config(max_features=2000, **kw):
+    """The SIFT keypoint factors (these tests are about them; the default evidence may be the flow's)."""
+    kw.setdefault('rotation_evidence', 'keypoints')
     return PoseRefinerConfig(odom_covariance='odometry', keypoint_factors=True, marginals=True,
                              keypoint=KeypointConfig(max_features=max_features, ratio=0.75), **kw)
 
