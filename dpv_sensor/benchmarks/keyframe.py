@@ -4,10 +4,12 @@
     python -m dpv_sensor.benchmarks.keyframe --backends torch,onnxruntime --keyframes 30 --json out/keyframe.json
     python -m dpv_sensor.benchmarks.keyframe --precisions float32 --set pose_refinement=off
     python -m dpv_sensor.benchmarks.keyframe --variant default: --variant no-window:pose_refinement=off
+    python -m dpv_sensor.benchmarks.keyframe --sequence DATA/tum_fr1_rpy --precisions float32 --keyframes 30
 
 What is timed: ``Pipeline.push(frame)`` of the frames that become keyframes, with the node's defaults (the
 settings table's: centred window, refinement window, K-Net, the readout, the edge filter, the output at the
-input's size), on a rendered 30 Hz camera at ``--input`` size (default 640x480, as the node gets it). Variants
+input's size), on a rendered 30 Hz camera at ``--input`` size (default 640x480, as the node gets it), or on a
+recorded sequence folder (``--sequence``: its images at their own size, its poses as the odometry). Variants
 are every backend x precision asked for (``inference_backend`` x ``cpu_precision``); each has its own pipeline
 and every frame is pushed into all of them in turn (the order rotating per frame), so on a shared machine each
 variant sees the same load and the ratios between variants hold even where the absolute times are noisy.
@@ -70,12 +72,17 @@ SHAPING = ('preset', 'processing_width', 'processing_height', 'window_mode', 'po
            'depth_readout', 'edge_filter_radius', 'output_resolution')
 
 
-def _frames(size: Tuple[int, int], seed: int, count: int):
-    """``count`` frames of a rendered 30 Hz camera (lazily rendered: only the frames pushed are drawn)."""
-    from dpv_sensor.data.synthetic import render_sequence
+def _frames(size: Tuple[int, int], seed: int, count: int, sequence: Optional[str] = None):
+    """``count`` frames of a rendered 30 Hz camera (lazily rendered: only the frames pushed are drawn), or the
+    first ``count`` of a sequence folder (read as pushed; its depth is not read)."""
     from dpv_sensor.stream.frame import Frame
-    seq = render_sequence(seed=seed, num_frames=count, width=size[0], height=size[1], lazy=True, cache_frames=2)
-    for i in range(count):
+    if sequence:
+        from dpv_sensor.data.sequence import Sequence
+        seq = Sequence(sequence, depth=False)
+    else:
+        from dpv_sensor.data.synthetic import render_sequence
+        seq = render_sequence(seed=seed, num_frames=count, width=size[0], height=size[1], lazy=True, cache_frames=2)
+    for i in range(min(count, len(seq))):
         yield Frame(stamp=seq.stamp(i), image=seq.image(i), K_33=seq.K, T_world_cam_44=seq.pose(i), frame_id='camera')
 
 
@@ -124,11 +131,12 @@ def _summary(values: Sequence[float]) -> Dict[str, float]:
 
 def run(variant_settings: Optional[Dict[str, Dict]] = None, input_size: Tuple[int, int] = (640, 480),
         keyframes: int = 12, warmup: int = 4, seed: int = 3, max_frames: int = 600, settings: Optional[Dict] = None,
-        threads: Optional[int] = None, progress: bool = False) -> Dict:
+        threads: Optional[int] = None, progress: bool = False, sequence: Optional[str] = None) -> Dict:
     """Time ``keyframes`` keyframes per variant; returns a dict (see the module docstring).
 
     ``variant_settings``: name -> estimator settings (default :func:`variants`: torch in float32 and bfloat16);
-    ``settings``: estimator settings over the node's defaults for every variant."""
+    ``settings``: estimator settings over the node's defaults for every variant; ``sequence``: a sequence folder
+    to push instead of the render (``input_size`` and ``seed`` then unused)."""
     import torch
     if threads:
         torch.set_num_threads(int(threads))
@@ -142,7 +150,7 @@ def run(variant_settings: Optional[Dict[str, Dict]] = None, input_size: Tuple[in
     depth_diff: Dict[str, List[float]] = {n: [] for n in names}
     frames_pushed = 0
     t_start = time.perf_counter()
-    for i, frame in enumerate(_frames(input_size, seed, max_frames)):
+    for i, frame in enumerate(_frames(input_size, seed, max_frames, sequence)):
         frames_pushed += 1
         order = names[i % len(names):] + names[:i % len(names)]
         outputs = {}
@@ -181,7 +189,9 @@ def run(variant_settings: Optional[Dict[str, Dict]] = None, input_size: Tuple[in
             'notes': list(dict.fromkeys(notes[n] + list(status.notes))),
         }
     defaults = {k: settings.get(k, P.default(k)) for k in SHAPING}
-    return {'input': f'{input_size[0]}x{input_size[1]}', 'seed': seed, 'frames_pushed': frames_pushed,
+    source = {'sequence': os.path.basename(os.path.normpath(sequence))} if sequence else \
+        {'input': f'{input_size[0]}x{input_size[1]}', 'seed': seed}
+    return {**source, 'frames_pushed': frames_pushed,
             'warmup_keyframes': warmup, 'threads': torch.get_num_threads(), 'torch': torch.__version__,
             'cpu_count': os.cpu_count(), 'load_average': list(os.getloadavg()), 'settings': settings,
             'defaults': defaults, 'wall_s': round(time.perf_counter() - t_start, 1), 'variants': results}
@@ -195,7 +205,8 @@ def markdown(result: Dict) -> str:
     pairs = pairs or [(n, names[0]) for n in names[1:]]
     d = result['defaults']
     shown = ', '.join(f'{k} {v}' for k, v in d.items() if k not in ('processing_width', 'processing_height'))
-    lines = [f"Keyframe of `Pipeline.push`, input {result['input']} -> {d.get('processing_width')}x"
+    source = f"sequence {result['sequence']}" if 'sequence' in result else f"input {result['input']}"
+    lines = [f"Keyframe of `Pipeline.push`, {source} -> {d.get('processing_width')}x"
              f"{d.get('processing_height')}; settings {shown}; {result['threads']} torch threads, load average "
              f"{result['load_average'][0]:.1f}; the variants pushed the same frames in turn. ms, median / p95.", '']
     hdr = ['stage'] + [f"{n} ({result['variants'][n]['keyframes_timed']} kf)" for n in names] + \
@@ -238,6 +249,8 @@ def main(argv=None) -> int:
     ap.add_argument('--keyframes', type=int, default=12, help='timed keyframes per variant (default 12)')
     ap.add_argument('--warmup', type=int, default=4, help='keyframe outputs not timed at the start (default 4)')
     ap.add_argument('--seed', type=int, default=3, help='rendered scene (default 3)')
+    ap.add_argument('--sequence', default=None, help='a sequence folder to push instead of the rendered camera (its '
+                                                      'images at their size, its poses as the odometry)')
     ap.add_argument('--threads', type=int, default=None, help='torch.set_num_threads (default: torch default)')
     ap.add_argument('--set', nargs='*', default=[], metavar='KEY=VALUE', help='estimator settings over the defaults')
     ap.add_argument('--variant', action='append', default=[], metavar='NAME:KEY=VALUE,...',
@@ -255,7 +268,7 @@ def main(argv=None) -> int:
         name, _, assignments = item.partition(':')
         extra[name] = P.parse_assignments(_csv(assignments))
     result = run(variants(a.backends, a.precisions, extra or None), a.input, a.keyframes, a.warmup, a.seed,
-                 settings=P.parse_assignments(a.set), threads=a.threads, progress=True)
+                 settings=P.parse_assignments(a.set), threads=a.threads, progress=True, sequence=a.sequence)
     md = markdown(result)
     print(md)
     for path, text in ((a.json, json.dumps(result, indent=1)), (a.markdown, md)):
