@@ -75,6 +75,11 @@ def estimator_values(st: EstimatorStatus | None, settings, starting: bool, reset
                                                       for k, v in sorted(st.pose_refinement_factors.items()))
         values['pose_refinement_correction'] = (f'{1000 * st.pose_refinement_correction[0]:.1f} mm / '
                                                 f'{st.pose_refinement_correction[1]:.3f} deg')
+    if st.pose_refinement_direction_ratio is not None:
+        median, limit = st.pose_refinement_direction_ratio
+        values['pose_refinement_direction_ratio'] = (
+            f'{median:.3f} (images {"agree" if median <= limit else "disagree"} with the odometry\'s directions; '
+            f'flow rotations at most {limit:g})')
     if st.pose_refinement_odometry is not None:
         rot, trans, source = st.pose_refinement_odometry
         values['pose_refinement_odometry'] = (f'{math.degrees(rot):.3f} deg / {1000 * trans:.2f} mm per keyframe '

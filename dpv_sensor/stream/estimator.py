@@ -338,6 +338,7 @@ class Estimator:
             pose_refinement_factors=dict(getattr(self.pose_refiner, 'factor_counts', None) or {}),
             pose_refinement_correction=tuple(getattr(self._refinement_result(), 'correction', (0.0, 0.0))),
             pose_refinement_odometry=_odometry_steps(self._refinement_result()),
+            pose_refinement_direction_ratio=getattr(self.pose_refiner, 'direction_ratio', None),
             confidence_calibration=None if self.calibration is None else self.calibration.path,
         )
 

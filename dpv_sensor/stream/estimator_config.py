@@ -107,6 +107,9 @@ class EstimatorStatus:
     # the last window's odometry factors: (median per-axis std of a step: rotation rad, translation m; where their
     # covariance came from: fixed sigmas, published covariance, drift figures); None without them
     pose_refinement_odometry: Optional[Tuple[float, float, str]] = None
+    # the median over the window refiner's last flow pairs of their direction ratio and the threshold below which
+    # rotation_evidence 'auto' takes the flow (core.flow_rotation); None before a pair has one or without the flow
+    pose_refinement_direction_ratio: Optional[Tuple[float, float]] = None
     # the confidence calibration file in use (the confidence_calibration setting), None without one
     confidence_calibration: Optional[str] = None
 

@@ -170,6 +170,14 @@ class WindowPoseRefiner:
         return bool(self.config.keypoint_factors and self.config.rotation_evidence != 'keypoints')
 
     @property
+    def direction_ratio(self) -> Optional[Tuple[float, float]]:
+        """(the median of the last flow pairs' direction ratio, the threshold of rotation_evidence 'auto'); None
+        before any flow pair has one."""
+        if not self._direction_ratios:
+            return None
+        return float(np.median(self._direction_ratios)), float(self.config.flow_direction_ratio)
+
+    @property
     def tracking_lost(self) -> bool:
         """True when the last :meth:`refine` flagged tracking loss (reason in ``last_result.reason``)."""
         return self.last_result is not None and not self.last_result.tracking_ok
@@ -477,13 +485,15 @@ class WindowPoseRefiner:
         estimates = []
         for s in nearest:
             T0 = relative_pose(init[s.key], init[ref.key])                # T_src_ref from the odometry
-            est = rotation_given_direction(self._flow_matches(ref, s), T0[:3, 3], T0[:3, :3], cfg.flow)
+            # the direction ratio once per pair (the first time its flow is computed) and only where it decides
+            new_pair = not self._has_flow(ref, s)
+            est = rotation_given_direction(self._flow_matches(ref, s), T0[:3, 3], T0[:3, :3], cfg.flow,
+                                           direction_ratio=new_pair and cfg.rotation_evidence == 'auto')
             if est.direction_ratio is not None:
                 self._direction_ratios.append(est.direction_ratio)
             estimates.append((s, T0, est))
         if cfg.rotation_evidence == 'auto':
-            agree = bool(self._direction_ratios) and \
-                float(np.median(self._direction_ratios)) <= cfg.flow_direction_ratio
+            agree = self.direction_ratio is not None and self.direction_ratio[0] <= cfg.flow_direction_ratio
             self._count('evidence_flow' if agree else 'evidence_keypoints')
             if not agree:
                 self._rotation_factors.clear()
@@ -505,9 +515,12 @@ class WindowPoseRefiner:
         window does (what SIFT's factors cost, plus a flow now and then to notice if that changes)."""
         cfg = self.config
         ratios = self._direction_ratios
-        settled = len(ratios) >= max(1, cfg.flow_direction_pairs // 5) and \
-            float(np.median(ratios)) > cfg.flow_direction_ratio
+        settled = len(ratios) >= max(1, cfg.flow_direction_pairs // 5) and self.direction_ratio[0] > \
+            cfg.flow_direction_ratio
         return not settled or self.calls % max(1, cfg.flow_probe_every) == 0
+
+    def _has_flow(self, a: WindowKeyframe, b: WindowKeyframe) -> bool:
+        return (a.key, b.key) in self._flow or (b.key, a.key) in self._flow
 
     def _flow_matches(self, ref: WindowKeyframe, src: WindowKeyframe) -> FlowMatches:
         """The flow matches from the reference into a source (computed once per pair while both stay in the
