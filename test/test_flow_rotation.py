@@ -267,3 +267,17 @@ def test_the_direction_ratio_reaches_the_diagnostics():
     disagree = estimator_values(dataclasses.replace(st, pose_refinement_direction_ratio=(1.1, 1.05)), settings,
                                 False, 0)
     assert 'images disagree' in disagree['pose_refinement_direction_ratio']
+
+
+def test_the_pure_rotation_jacobian_is_the_central_difference_of_the_displacement():
+    from dpv_sensor.core.flow_rotation import _rotate, _rotation_px, _rotation_px_jacobian
+    rng = np.random.default_rng(1)
+    n = 30
+    xa = np.c_[rng.normal(size=(n, 2)) * 0.5, np.ones(n)]
+    xb = np.c_[rng.normal(size=(n, 2)) * 0.5, np.ones(n)]
+    R = _rot([3.0, -2.0, 1.0])
+    r, J = _rotation_px_jacobian(xa, xb, R, None, 500.0)
+    assert J.shape == (2 * n, 3) and np.allclose(r, _rotation_px(xa, xb, R, None, 500.0))
+    J_fd = np.stack([(_rotation_px(xa, xb, _rotate(R, e * 1e-6), None, 500.0)
+                      - _rotation_px(xa, xb, _rotate(R, -e * 1e-6), None, 500.0)) / 2e-6 for e in np.eye(3)], 1)
+    assert np.abs(J - J_fd).max() < 1e-5 * np.abs(J_fd).max()

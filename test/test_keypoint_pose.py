@@ -181,3 +181,27 @@ def test_l2_matching_ratio_test_by_hand():
     ia, ib = _match_l2(a, b, 3.0 / math.sqrt(73.0) + 1e-6)
     assert ia.tolist() == [0] and ib.tolist() == [0]
     assert _match_l2(a, b[:1], 0.8)[0].tolist() == []     # one descriptor: no second neighbour
+
+
+def test_the_sampson_jacobian_is_the_central_difference_of_the_distance():
+    """float64: the analytic Jacobian of the Sampson distance with respect to a left rotation increment and a move
+    of the direction in its tangent plane, against central differences of the distance itself."""
+    from dpv_sensor.core.keypoint_pose import _apply, _basis, sampson_jacobian, sampson_px
+    rng = np.random.default_rng(0)
+    n = 40
+    xa = np.c_[rng.normal(size=(n, 2)) * 0.5, np.ones(n)]
+    xb = np.c_[rng.normal(size=(n, 2)) * 0.5, np.ones(n)]
+    R = cv2.Rodrigues(np.array([[0.1], [-0.2], [0.05]]))[0]
+    t = np.array([0.3, -0.1, 0.9])
+    t /= np.linalg.norm(t)
+    B = _basis(t)
+    r, J = sampson_jacobian(xa, xb, R, t, 500.0, B)
+    assert np.allclose(r, sampson_px(xa, xb, R, t, 500.0), rtol=1e-12, atol=1e-9)
+    J_fd = np.empty((n, 5))
+    for k in range(5):
+        d = np.zeros(5)
+        d[k] = 1e-6
+        J_fd[:, k] = (sampson_px(xa, xb, *_apply(R, t, B, d), 500.0) - sampson_px(xa, xb, *_apply(R, t, B, -d), 500.0)) \
+            / 2e-6
+    assert np.abs(J - J_fd).max() < 1e-5 * np.abs(J_fd).max()
+    assert np.allclose(sampson_jacobian(xa, xb, R, t, 500.0)[1], J[:, :3])      # rotation only

@@ -43,7 +43,7 @@ from typing import Optional, Tuple
 import cv2
 import numpy as np
 
-from dpv_sensor.core.keypoint_pose import refine_relative_pose, sampson_px, to_gray_u8
+from dpv_sensor.core.keypoint_pose import refine_relative_pose, sampson_jacobian, sampson_px, to_gray_u8
 
 __all__ = ['FlowConfig', 'FlowMatches', 'RotationEstimate', 'flow_matches', 'rotation_given_direction',
            'match_image']
@@ -176,17 +176,15 @@ def _rotation_px(xa: np.ndarray, xb: np.ndarray, R: np.ndarray, t, f: float) -> 
     return (f * (p[:, :2] / p[:, 2:3] - xb[:, :2] / xb[:, 2:3])).ravel()
 
 
-def _linearised(residual, xa: np.ndarray, xb: np.ndarray, R: np.ndarray, t, f: float, eps: float = 1e-6
-                ) -> Tuple[np.ndarray, np.ndarray]:
-    """The residuals of the matches at ``R`` and their Jacobian with respect to a left rotation increment (central
-    differences)."""
-    r = residual(xa, xb, R, t, f)
-    J = np.empty((len(r), 3))
-    for k in range(3):
-        d = np.zeros(3)
-        d[k] = eps
-        J[:, k] = (residual(xa, xb, _rotate(R, d), t, f) - residual(xa, xb, _rotate(R, -d), t, f)) / (2 * eps)
-    return r, J
+def _rotation_px_jacobian(xa: np.ndarray, xb: np.ndarray, R: np.ndarray, t, f: float
+                          ) -> Tuple[np.ndarray, np.ndarray]:
+    """:func:`_rotation_px` and its Jacobian (2n, 3) with respect to a left rotation increment (``p = R xa`` moves
+    by ``d x p``)."""
+    p = xa @ R.T
+    z = np.zeros(len(p))
+    dp = np.stack([np.c_[z, p[:, 2], -p[:, 1]], np.c_[-p[:, 2], z, p[:, 0]], np.c_[p[:, 1], -p[:, 0], z]], 1)
+    J = (dp[:, :2] * p[:, 2, None, None] - p[:, :2, None] * dp[:, 2:3]) / (p[:, 2] ** 2)[:, None, None]
+    return _rotation_px(xa, xb, R, t, f), f * J.reshape(-1, 3)
 
 
 def rotation_given_direction(matches: FlowMatches, t_dir_b: np.ndarray, R0_b_a: np.ndarray,
@@ -206,25 +204,34 @@ def rotation_given_direction(matches: FlowMatches, t_dir_b: np.ndarray, R0_b_a: 
     t = np.asarray(t_dir_b, np.float64).ravel()
     norm = float(np.linalg.norm(t))
     if norm > 1e-9:
-        t, residual, per_match = t / norm, sampson_px, 1
+        t, linearised, per_match = t / norm, sampson_jacobian, 1
     else:
-        residual, per_match = _rotation_px, 2
+        linearised, per_match = _rotation_px_jacobian, 2
+
+    def distances(r: np.ndarray) -> np.ndarray:
+        return np.abs(r).reshape(-1, per_match).max(axis=1)
+
+    def inliers(dist: np.ndarray, threshold_px: float) -> Tuple[np.ndarray, np.ndarray]:
+        """(per match: within the threshold, per residual row: the same)."""
+        sel = dist < threshold_px
+        return sel, np.repeat(sel, per_match)
+
     R = np.asarray(R0_b_a, np.float64).copy()
     JtJ = None
     for _ in range(config.iterations):
-        r = residual(xa, xb, R, t, f)
-        dist = np.abs(r).reshape(-1, per_match).max(axis=1)
-        sel = dist < max(config.inlier_px, 2.5 * float(np.median(dist)))
+        r, J = linearised(xa, xb, R, t, f)
+        dist = distances(r)
+        sel, rows = inliers(dist, max(config.inlier_px, 2.5 * float(np.median(dist))))
         if sel.sum() < config.min_inliers:
             break
-        r_in, J = _linearised(residual, xa[sel], xb[sel], R, t, f)
+        J = J[rows]
         JtJ = J.T @ J
-        step = np.linalg.lstsq(JtJ, -J.T @ r_in, rcond=None)[0]
+        step = np.linalg.lstsq(JtJ, -J.T @ r[rows], rcond=None)[0]
         R = _rotate(R, step)
         if float(np.linalg.norm(step)) < config.converged_rad:
             break
-    dist = np.abs(residual(xa, xb, R, t, f)).reshape(-1, per_match).max(axis=1)
-    sel = dist < config.inlier_px
+    r, J = linearised(xa, xb, R, t, f)
+    sel, rows = inliers(distances(r), config.inlier_px)
     n_in = int(sel.sum())
     if JtJ is None or n_in < config.min_inliers:
         return RotationEstimate(False, f'too few flow matches agree on a rotation ({n_in} < {config.min_inliers})',
@@ -232,7 +239,7 @@ def rotation_given_direction(matches: FlowMatches, t_dir_b: np.ndarray, R0_b_a: 
     if n_in < config.min_inlier_fraction * n:
         return RotationEstimate(False, f'only {n_in} of {n} flow matches agree on a rotation (less than '
                                        f'{config.min_inlier_fraction:g})', 'disagree', inliers=n_in, matches=n)
-    r_in, J = _linearised(residual, xa[sel], xb[sel], R, t, f)
+    r_in, J = r[rows], J[rows]
     rms = float(np.sqrt(np.mean(r_in ** 2)))
     info = J.T @ J
     if not np.all(np.isfinite(info)) or np.linalg.cond(info) > 1e12:

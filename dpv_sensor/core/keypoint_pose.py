@@ -29,7 +29,7 @@ import torch
 
 __all__ = ['KeypointConfig', 'KeypointPose', 'Features', 'detect_features', 'keypoint_relative_pose',
            'keypoint_covariance', 'rotation_given_direction_gain', 'rotation_factor_covariance_gtsam',
-           'to_gray_u8', 'sampson_px', 'refine_relative_pose']
+           'to_gray_u8', 'sampson_px', 'sampson_jacobian', 'refine_relative_pose']
 
 
 @dataclass
@@ -333,19 +333,54 @@ def sampson_px(xa: np.ndarray, xb: np.ndarray, R: np.ndarray, t: np.ndarray, f: 
     return f * num / den
 
 
+def sampson_jacobian(xa: np.ndarray, xb: np.ndarray, R: np.ndarray, t: np.ndarray, f: float,
+                     B_32: Optional[np.ndarray] = None) -> Tuple[np.ndarray, np.ndarray]:
+    """:func:`sampson_px` and its Jacobian (n, 3) with respect to a left rotation increment ``R <- exp([d]x) R``,
+    or (n, 5) with the translation's direction moved in the plane of ``B_32`` too (``t <- t + B d``, to first order
+    the normalised direction's move as well, ``B`` being normal to ``t``).
+
+    With ``u = R xa`` and ``w = xb x t`` the distance is ``f u.w / |(Ea_0, Ea_1, Eb_0, Eb_1)|`` for the epipolar
+    lines ``Ea = t x u`` (in b) and ``Eb = R^T w`` (in a); a rotation increment moves ``u`` by ``d x u`` and ``w``'s
+    image in a by ``R^T (w x d)``, a direction increment moves ``t``."""
+    u = xa @ R.T
+    St = _skew(t)
+    w = xb @ St                                         # xb x t
+    Ea = u @ St.T                                       # t x u
+    Eb = w @ R
+    num = np.sum(u * w, axis=1)
+    den = np.sqrt(Ea[:, 0] ** 2 + Ea[:, 1] ** 2 + Eb[:, 0] ** 2 + Eb[:, 1] ** 2) + 1e-15
+    r = f * num / den
+
+    def chain(dnum, dEa0, dEa1, dEb0, dEb1):
+        dden = (Ea[:, :1] * dEa0 + Ea[:, 1:2] * dEa1 + Eb[:, :1] * dEb0 + Eb[:, 1:2] * dEb1) / den[:, None]
+        return f * (dnum / den[:, None] - (num / den ** 2)[:, None] * dden)
+
+    tu = u @ t
+    dEa0, dEa1 = -u[:, :1] * t, -u[:, 1:2] * t          # d(t x (d x u)) = ((t.u) I - u t^T) d, rows 0 and 1
+    dEa0[:, 0] += tu
+    dEa1[:, 1] += tu
+    # R[:, i] x w, row-wise: w @ [R[:, i]]x^T
+    J = chain(_cross_rows(u, w), dEa0, dEa1, w @ _skew(R[:, 0]).T, w @ _skew(R[:, 1]).T)
+    if B_32 is not None:
+        z = np.zeros(len(u))
+        Jt = chain(_cross_rows(u, xb), np.c_[z, u[:, 2], -u[:, 1]], np.c_[-u[:, 2], z, u[:, 0]],
+                   xb @ _skew(R[:, 0]).T, xb @ _skew(R[:, 1]).T)
+        J = np.c_[J, Jt @ B_32]
+    return r, J
+
+
+def _cross_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Row-wise cross products of two (n, 3) arrays."""
+    return np.c_[a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1], a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2],
+                 a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]]
+
+
 def refine_relative_pose(xa, xb, R, t, f, pixel_sigma, iterations: int = 5):
     """Gauss-Newton on the Sampson distances of normalised matches over the rotation and the translation's direction
     (5 dof) from ``(R, t)``; returns (R, t, 5x5 covariance, basis, rms px)."""
-    eps = 1e-6
     for it in range(iterations + 1):
         B = _basis(t)
-        r0 = sampson_px(xa, xb, R, t, f)
-        J = np.empty((len(r0), 5))
-        for k in range(5):
-            d = np.zeros(5)
-            d[k] = eps
-            J[:, k] = (sampson_px(xa, xb, *_apply(R, t, B, d), f) - sampson_px(xa, xb, *_apply(R, t, B, -d), f)) \
-                / (2 * eps)
+        r0, J = sampson_jacobian(xa, xb, R, t, f, B)
         JtJ = J.T @ J
         if it == iterations:
             break
