@@ -36,6 +36,7 @@ takes. No ROS, no torch.
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 from typing import Optional, Tuple
@@ -96,10 +97,6 @@ class FlowMatches:
     K_33: np.ndarray
     sampled: int = 0
 
-    def swapped(self) -> 'FlowMatches':
-        """The same matches seen from view b."""
-        return FlowMatches(self.pb_n2, self.pa_n2, self.K_33, self.sampled)
-
 
 @dataclass
 class RotationEstimate:
@@ -117,6 +114,15 @@ class RotationEstimate:
     matches: int = 0
     rms_px: float = 0.0
     direction_ratio: Optional[float] = None
+
+    def inverse(self) -> 'RotationEstimate':
+        """The same estimate seen from view b: ``R_a_b`` and its covariance about frame a's axes (a left increment
+        ``d`` on ``R_b_a`` is ``-R_b_a^T d`` on ``R_a_b``); counts, rms and ratio are the pair's."""
+        if self.R_b_a is None:
+            return dataclasses.replace(self)
+        R = self.R_b_a
+        cov = None if self.cov_33 is None else R.T @ self.cov_33 @ R
+        return dataclasses.replace(self, R_b_a=R.T.copy(), cov_33=cov)
 
 
 def match_image(image, K_33: np.ndarray, config: FlowConfig = FlowConfig()) -> Tuple[np.ndarray, np.ndarray]:

@@ -56,7 +56,7 @@ import gtsam
 import numpy as np
 
 from dpv_sensor.core import pose_uncertainty
-from dpv_sensor.core.flow_rotation import FlowMatches, flow_matches, match_image, rotation_given_direction
+from dpv_sensor.core.flow_rotation import RotationEstimate, flow_matches, match_image, rotation_given_direction
 from dpv_sensor.core.keypoint_pose import (Features, KeypointPose, detect_features, keypoint_relative_pose,
                                            rotation_factor_covariance_gtsam)
 from dpv_sensor.core.geometry import rotation_angle_np
@@ -143,7 +143,7 @@ class WindowPoseRefiner:
         self._pyramids: Dict[Hashable, ImagePyramid] = {}   # per keyframe, reused while it stays in the window
         self._features: Dict[Hashable, Features] = {}       # keypoints per keyframe, likewise
         self._match_images: Dict[Hashable, Tuple[np.ndarray, np.ndarray]] = {}   # flow's (grey, K), likewise
-        self._flow: Dict[Tuple[Hashable, Hashable], FlowMatches] = {}   # flow matches per pair in the window
+        self._flow: Dict[Tuple[Hashable, Hashable], RotationEstimate] = {}   # flow rotation per pair in the window
         self._rotation_factors: Dict[Tuple[Hashable, Hashable], tuple] = {}  # flow factors (src, ref) kept
         self._depth_refs = 0                                 # references with a predicted depth since the start
         self._cov: Dict[Hashable, Optional[OdometryCovariance]] = {}   # first odometry covariances seen per key
@@ -162,6 +162,13 @@ class WindowPoseRefiner:
             # the last flow pairs' direction_ratio (rotation_evidence 'auto'): a property of the camera and the
             # odometry, so kept across resets
             self._direction_ratios: Deque[float] = collections.deque(maxlen=self.config.flow_direction_pairs)
+
+    @property
+    def aligns_photometrically(self) -> bool:
+        """Whether the refiner aligns keyframes photometrically against the reference's predicted depth: only then
+        does the estimator predict it (``PoseRefinementRequest.depth_hw``); else a typical depth of the scene is all
+        the window needs (``nominal_depth_m``: the turning-in-place test)."""
+        return self.config.max_sources is None or self.config.max_sources > 0
 
     @property
     def uses_camera_images(self) -> bool:
@@ -219,7 +226,7 @@ class WindowPoseRefiner:
             rho_std = inverse_depth_std_from_confidence(conf, depths_d.detach().cpu()
                                                         if hasattr(depths_d, 'detach') else depths_d)
         res = self.refine(frames[r], [f for i, f in enumerate(frames) if i != r], depth, conf,
-                          request.K_depth_33, rho_std)
+                          request.K_depth_33, rho_std, getattr(request, 'nominal_depth_m', None))
         return [res.T_world_cam[f.key] for f in frames]
 
     # ---------------------------------------------------------------------------------------------------------
@@ -245,7 +252,7 @@ class WindowPoseRefiner:
 
     # ---------------------------------------------------------------------------------------------------------
     def refine(self, ref: WindowKeyframe, sources: Sequence[WindowKeyframe], depth_ref=None, conf_ref=None,
-               K_depth_33=None, inv_depth_std_ref=None) -> RefinementResult:
+               K_depth_33=None, inv_depth_std_ref=None, nominal_depth: Optional[float] = None) -> RefinementResult:
         """Refine the window's keyframe poses (see the class doc).
 
         Args:
@@ -258,6 +265,9 @@ class WindowPoseRefiner:
                 resolution volume); must be ``ref.K_33`` scaled.
             inv_depth_std_ref: optional per-pixel std of the inverse depth (1/m) on the depth grid: uncertain depth
                 then weighs less in the alignment and widens its covariance.
+            nominal_depth: a typical depth of the scene (m) where no ``depth_ref`` is given (a refiner that does not
+                align photometrically): the scale of the turning-in-place test; None with no depth_ref either =
+                the filter has no belief yet.
         """
         t0 = time.perf_counter()
         c0 = time.process_time()
@@ -266,10 +276,11 @@ class WindowPoseRefiner:
         window = self._admit_window([ref] + list(sources))
         init = self._initial_values(window)
         t_align = time.perf_counter()
-        warm = self._count_depth_ref(keys, depth_ref)
+        scene_depth = self._scene_depth(depth_ref, nominal_depth)
+        warm = self._count_depth_ref(keys, depth_ref if depth_ref is not None else scene_depth)
         skipped = None
-        if depth_ref is not None and sources and warm:
-            skipped = self._turning_in_place(ref, sources, init, depth_ref)
+        if scene_depth is not None and sources and warm:
+            skipped = self._turning_in_place(ref, sources, init, scene_depth)
         if skipped is None and depth_ref is not None and sources and warm:
             depth = _DepthReference(depth_ref, conf_ref, K_depth_33, inv_depth_std_ref)
             aligned = self._align_sources(ref, sources, init, depth)
@@ -348,7 +359,8 @@ class WindowPoseRefiner:
         return sorted(keys)
 
     def _count_depth_ref(self, keys: List[Hashable], depth_ref) -> bool:
-        """Count a window with a depth to align against; whether enough came in a row to align (the warm-up)."""
+        """Count a window with a depth (a map to align against, or the scene's nominal depth); whether enough came in
+        a row to align (the warm-up)."""
         if depth_ref is not None:
             if not set(keys) & set(self._est):
                 self._depth_refs = 0                         # a new stream: the window shares nothing with ours
@@ -485,13 +497,7 @@ class WindowPoseRefiner:
         estimates = []
         for s in nearest:
             T0 = relative_pose(init[s.key], init[ref.key])                # T_src_ref from the odometry
-            # the direction ratio once per pair (the first time its flow is computed) and only where it decides
-            new_pair = not self._has_flow(ref, s)
-            est = rotation_given_direction(self._flow_matches(ref, s), T0[:3, 3], T0[:3, :3], cfg.flow,
-                                           direction_ratio=new_pair and cfg.rotation_evidence == 'auto')
-            if est.direction_ratio is not None:
-                self._direction_ratios.append(est.direction_ratio)
-            estimates.append((s, T0, est))
+            estimates.append((s, T0, self._pair_rotation(ref, s, T0)))
         if cfg.rotation_evidence == 'auto':
             agree = self.direction_ratio is not None and self.direction_ratio[0] <= cfg.flow_direction_ratio
             self._count('evidence_flow' if agree else 'evidence_keypoints')
@@ -519,18 +525,23 @@ class WindowPoseRefiner:
             cfg.flow_direction_ratio
         return not settled or self.calls % max(1, cfg.flow_probe_every) == 0
 
-    def _has_flow(self, a: WindowKeyframe, b: WindowKeyframe) -> bool:
-        return (a.key, b.key) in self._flow or (b.key, a.key) in self._flow
-
-    def _flow_matches(self, ref: WindowKeyframe, src: WindowKeyframe) -> FlowMatches:
-        """The flow matches from the reference into a source (computed once per pair while both stay in the
-        window; the pair seen the other way round is the same matches swapped)."""
-        if (ref.key, src.key) not in self._flow:
-            if (src.key, ref.key) in self._flow:
-                return self._flow[(src.key, ref.key)].swapped()
-            (ga, K), (gb, _) = self._match_image(ref), self._match_image(src)
-            self._flow[(ref.key, src.key)] = flow_matches(ga, gb, K, self.config.flow)
-        return self._flow[(ref.key, src.key)]
+    def _pair_rotation(self, ref: WindowKeyframe, src: WindowKeyframe, T0_src_ref: np.ndarray) -> RotationEstimate:
+        """The flow rotation ``R_src_ref`` of a pair, given the direction of ``T0_src_ref``: measured once per pair
+        while both keyframes stay in the window (the flow from the reference into the source, and with
+        rotation_evidence 'auto' its direction ratio), the pair seen the other way round is the same estimate
+        inverted."""
+        if (ref.key, src.key) in self._flow:
+            return self._flow[(ref.key, src.key)]
+        if (src.key, ref.key) in self._flow:
+            return self._flow[(src.key, ref.key)].inverse()
+        (ga, K), (gb, _) = self._match_image(ref), self._match_image(src)
+        cfg = self.config
+        est = rotation_given_direction(flow_matches(ga, gb, K, cfg.flow), T0_src_ref[:3, 3], T0_src_ref[:3, :3],
+                                       cfg.flow, direction_ratio=cfg.rotation_evidence == 'auto')
+        if est.direction_ratio is not None:
+            self._direction_ratios.append(est.direction_ratio)
+        self._flow[(ref.key, src.key)] = est
+        return est
 
     def _match_image(self, f: WindowKeyframe) -> Tuple[np.ndarray, np.ndarray]:
         if f.key not in self._match_images:
@@ -593,18 +604,25 @@ class WindowPoseRefiner:
             self._factors = []
             self._depth_refs = 0
 
-    def _turning_in_place(self, ref, sources, init, depth_ref) -> Optional[str]:
+    @staticmethod
+    def _scene_depth(depth_ref, nominal_depth: Optional[float]) -> Optional[float]:
+        """The median of the reference's predicted depth where it has one, else the nominal depth (m); None for
+        neither (or no valid pixel)."""
+        if depth_ref is None:
+            return nominal_depth if nominal_depth is not None and math.isfinite(nominal_depth) and nominal_depth > 0 \
+                else None
+        d = np.asarray(depth_ref.numpy() if hasattr(depth_ref, 'numpy') else depth_ref, dtype=np.float64)
+        d = d[np.isfinite(d) & (d > 0)]
+        return float(np.median(d)) if d.size else None
+
+    def _turning_in_place(self, ref, sources, init, scene_depth: float) -> Optional[str]:
         """Why the window is not refined (``PoseRefinerConfig.max_rotation_parallax``), or None."""
         limit = self.config.max_rotation_parallax
         if not limit > 0:
             return None
-        d = np.asarray(depth_ref.numpy() if hasattr(depth_ref, 'numpy') else depth_ref, dtype=np.float64)
-        d = d[np.isfinite(d) & (d > 0)]
-        if d.size == 0:
-            return None
         nearest = min(sources, key=lambda s: _key_distance(s.key, ref.key))
         rel = relative_pose(init[nearest.key], init[ref.key])
-        parallax = float(np.linalg.norm(rel[:3, 3])) / float(np.median(d))
+        parallax = float(np.linalg.norm(rel[:3, 3])) / scene_depth
         angle = rotation_angle_np(rel[:3, :3])
         if angle > limit * parallax:
             return (f'turning in place: {math.degrees(angle):.1f} deg to the nearest keyframe against a baseline of '
