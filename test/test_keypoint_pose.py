@@ -201,7 +201,7 @@ def test_the_sampson_jacobian_is_the_central_difference_of_the_distance():
     for k in range(5):
         d = np.zeros(5)
         d[k] = 1e-6
-        J_fd[:, k] = (sampson_px(xa, xb, *_apply(R, t, B, d), 500.0) - sampson_px(xa, xb, *_apply(R, t, B, -d), 500.0)) \
-            / 2e-6
+        plus, minus = _apply(R, t, B, d), _apply(R, t, B, -d)
+        J_fd[:, k] = (sampson_px(xa, xb, *plus, 500.0) - sampson_px(xa, xb, *minus, 500.0)) / 2e-6
     assert np.abs(J - J_fd).max() < 1e-5 * np.abs(J_fd).max()
     assert np.allclose(sampson_jacobian(xa, xb, R, t, 500.0)[1], J[:, :3])      # rotation only

@@ -534,7 +534,7 @@ def test_turning_in_place_keeps_the_odometry(yaw, x, skipped):
         np.testing.assert_allclose(res.T_world_ref_44, ref.T_world_cam_odom_44, atol=1e-12)
         assert all(a is None for a in res.alignments)
         # a window without photometric factors gets no depth map, only the scene's nominal depth: same decision
-        keypoints_only = WindowPoseRefiner(PoseRefinerConfig(rotation_evidence='keypoints'))
+        keypoints_only = WindowPoseRefiner(PoseRefinerConfig(rotation_evidence='keypoints', max_sources=0))
         assert not keypoints_only.aligns_photometrically and refiner.aligns_photometrically
         res = keypoints_only.refine(ref, [src], nominal_depth=2.0)
         assert res.tracking_ok and not res.refined and res.skipped == why

@@ -55,9 +55,10 @@ _PRESETS = {'ultrafast': cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST, 'fast': cv2.DISOP
 
 @dataclass(frozen=True)
 class FlowConfig:
-    """dis_preset: DIS optical flow preset ('ultrafast', 'fast', 'medium'); variational_iterations: DIS's variational
-    refinement iterations per scale (None: the preset's, 5; the smoothing costs medium 40 % of its time); grid_px: spacing of the sampled pixels;
-    texture_quantile: keep the grid pixels whose structure-tensor eigenvalue is above this quantile over the grid;
+    """dis_preset: DIS optical flow preset ('ultrafast', 'fast', 'medium'); variational_iterations: DIS's
+    variational refinement iterations per scale (None: the preset's; medium's 5 cost 40 % of its time); grid_px:
+    spacing of the sampled pixels; texture_quantile: keep the grid pixels whose structure-tensor eigenvalue is
+    above this quantile over the grid;
     forward_backward_px: > 0 also computes the flow back and drops pixels whose round trip misses by more (0: one
     flow; the trimmed fit drops wrong vectors); max_width: images wider than this are matched shrunk to it
     (``match_image``); inlier_px: the final inlier threshold on the Sampson distance (pixels); iterations:
@@ -88,6 +89,8 @@ class FlowConfig:
     def __post_init__(self):
         if self.dis_preset not in _PRESETS:
             raise ValueError(f'preset must be one of {sorted(_PRESETS)}, not {self.dis_preset!r}')
+        if self.variational_iterations is not None and self.variational_iterations < 0:
+            raise ValueError(f'variational_iterations must be >= 0 or None, not {self.variational_iterations}')
 
 
 @dataclass

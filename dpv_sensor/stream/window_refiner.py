@@ -13,7 +13,8 @@ window.
 
 The refiner, :class:`WindowPoseRefiner` (``pose_refinement: window``): the estimator calls
 :meth:`WindowPoseRefiner.refine` once per keyframe with the window's keyframes (their images and odometry poses) and
-the reference's predicted depth/confidence; it returns refined ``T_world_cam`` of every window keyframe, the refined
+the reference's predicted depth/confidence where it aligns photometrically (else the scene's nominal depth); it
+returns refined ``T_world_cam`` of every window keyframe, the refined
 ``T_src_ref`` for the plane sweep, and a ``tracking_ok`` flag with a reason. It keeps its own state between calls
 (refined poses, earlier alignment factors whose keyframes are still in the window). Visual odometry
 (:mod:`dpv_sensor.stream.visual_odometry`, ``odometry: none``) produces poses that the same refiner refines.
@@ -145,7 +146,7 @@ class WindowPoseRefiner:
         self._match_images: Dict[Hashable, Tuple[np.ndarray, np.ndarray]] = {}   # flow's (grey, K), likewise
         self._flow: Dict[Tuple[Hashable, Hashable], RotationEstimate] = {}   # flow rotation per pair in the window
         self._rotation_factors: Dict[Tuple[Hashable, Hashable], tuple] = {}  # flow factors (src, ref) kept
-        self._depth_refs = 0                                 # references with a predicted depth since the start
+        self._depth_refs = 0                                 # references with a depth since the start
         self._cov: Dict[Hashable, Optional[OdometryCovariance]] = {}   # first odometry covariances seen per key
         self._graph = None                                   # (graph, result, index) of the last solve
         self._anchor_key: Optional[Hashable] = None          # the gauge keyframe of the last solve
@@ -163,12 +164,16 @@ class WindowPoseRefiner:
             # odometry, so kept across resets
             self._direction_ratios: Deque[float] = collections.deque(maxlen=self.config.flow_direction_pairs)
 
+    #: a caller that needs the reference's predicted depth maps whatever the factors (the shadow refiners of
+    #: ``benchmarks.window_decisions``) sets this: :attr:`aligns_photometrically` is then true
+    wants_depth_maps: bool = False
+
     @property
     def aligns_photometrically(self) -> bool:
         """Whether the refiner aligns keyframes photometrically against the reference's predicted depth: only then
         does the estimator predict it (``PoseRefinementRequest.depth_hw``); else a typical depth of the scene is all
         the window needs (``nominal_depth_m``: the turning-in-place test)."""
-        return self.config.max_sources is None or self.config.max_sources > 0
+        return self.wants_depth_maps or self.config.max_sources is None or self.config.max_sources > 0
 
     @property
     def uses_camera_images(self) -> bool:
@@ -195,7 +200,8 @@ class WindowPoseRefiner:
 
         ``request`` has ``keyframes`` (time order; each with ``stamp``, ``image_b3hw`` (1, 3, H, W) in [0, 1],
         ``K_b33``, ``odom_T_world_cam_44``), ``reference`` (index), ``depth_hw`` / ``confidence_hw`` (torch,
-        volume resolution, or None) and ``K_depth_33``. Keyframes are keyed by their stamp. Returns one
+        volume resolution, or None) and ``K_depth_33``, ``nominal_depth_m`` (the scene's typical depth, where the
+        refiner does not align photometrically and gets no maps). Keyframes are keyed by their stamp. Returns one
         ``T_world_cam`` per keyframe in the request's order: refined, or after tracking loss the odometry
         motion chained onto the last refined poses (never a diverged pose). The outcome (``tracking_ok``,
         ``reason``, alignments, timings) is in :attr:`last_result` / :attr:`tracking_lost`.
@@ -529,7 +535,8 @@ class WindowPoseRefiner:
         """The flow rotation ``R_src_ref`` of a pair, given the direction of ``T0_src_ref``: measured once per pair
         while both keyframes stay in the window (the flow from the reference into the source, and with
         rotation_evidence 'auto' its direction ratio), the pair seen the other way round is the same estimate
-        inverted."""
+        inverted: fitted with the direction and start of the window that first saw the pair (the next window's
+        refined direction would move it to second order only), and a pair without an estimate stays without."""
         if (ref.key, src.key) in self._flow:
             return self._flow[(ref.key, src.key)]
         if (src.key, ref.key) in self._flow:
