@@ -702,30 +702,6 @@ def test_pose_refiner_hook_gets_the_window_and_its_poses_are_used():
     assert est.status.pose_refiner is True
 
 
-def test_a_refiner_that_does_not_align_photometrically_gets_the_scene_depth_not_the_prediction():
-    """The predicted depth maps cost a warp of the belief per window; a refiner whose aligns_photometrically is
-    false gets only the scene's nominal depth (the last posterior's median), the same figure the maps' median is
-    close to."""
-    class Refiner:
-        def __init__(self, aligns):
-            self.aligns_photometrically = aligns
-            self.requests = []
-
-        def __call__(self, req):
-            self.requests.append(req)
-            return [kf.T_world_cam_44 for kf in req.keyframes]
-
-    with_maps, without = Refiner(True), Refiner(False)
-    push_all(Estimator(small_config(pose_refinement='window'), pose_refiner=with_maps), sideways(4))
-    push_all(Estimator(small_config(pose_refinement='window'), pose_refiner=without), sideways(4))
-    assert with_maps.requests[0].nominal_depth_m is None is without.requests[0].nominal_depth_m  # no belief yet
-    a, b = with_maps.requests[-1], without.requests[-1]
-    assert a.depth_hw is not None and b.depth_hw is None and b.confidence_hw is None and b.K_depth_33 is None
-    assert a.nominal_depth_m == pytest.approx(b.nominal_depth_m) and b.nominal_depth_m > 0
-    d = a.depth_hw.numpy()
-    assert b.nominal_depth_m == pytest.approx(float(np.median(d[np.isfinite(d) & (d > 0)])), rel=0.5)
-
-
 def test_new_keyframes_start_from_the_refined_trajectory_and_tracking_loss_restarts():
     offset = pose(y=0.02)
 

@@ -66,13 +66,11 @@ class Recorder:
         self.rows: List[Dict[str, Any]] = []
         self._refine = main.refine
         main.refine = self.refine
-        main.wants_depth_maps = True          # the photometric shadows align against the predicted depth
 
-    def refine(self, ref, sources, depth_ref=None, conf_ref=None, K_depth_33=None, inv_depth_std_ref=None,
-               nominal_depth=None):
+    def refine(self, ref, sources, depth_ref=None, conf_ref=None, K_depth_33=None, inv_depth_std_ref=None):
         before = {name: (dict(getattr(self.main, name))) for name in _STATE}
         depth_refs, anchor = self.main._depth_refs, self.main._anchor_key
-        res = self._refine(ref, sources, depth_ref, conf_ref, K_depth_33, inv_depth_std_ref, nominal_depth)
+        res = self._refine(ref, sources, depth_ref, conf_ref, K_depth_33, inv_depth_std_ref)
         if depth_ref is None or not sources or not res.tracking_ok:
             for s in self.shadows.values():
                 s.reset()
@@ -85,8 +83,7 @@ class Recorder:
                     state.update(getattr(self.main, field))      # caches: pure functions of the images
                 setattr(sh, field, state)
             sh._depth_refs, sh._anchor_key = depth_refs, anchor
-            shadow_res[name] = sh.refine(ref, sources, depth_ref, conf_ref, K_depth_33, inv_depth_std_ref,
-                                         nominal_depth)
+            shadow_res[name] = sh.refine(ref, sources, depth_ref, conf_ref, K_depth_33, inv_depth_std_ref)
         self.rows.append(self._row(ref, sources, depth_ref, res, shadow_res))
         return res
 

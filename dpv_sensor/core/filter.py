@@ -142,18 +142,13 @@ class DPVFilter:
         """Time stamp (s) of the current belief, or None."""
         return self._stamp
 
-    @property
-    def can_predict(self) -> bool:
-        """Whether there is a belief whose pose is known (what :meth:`predict` needs)."""
-        return self._logp is not None and self._T_world_cam is not None and bool(self._pose_ok.all())
-
     def predict(self, T_world_cam_b44: torch.Tensor) -> Optional[torch.Tensor]:
         """The current belief warped into another camera (eq. 5) without changing the state.
 
         Returns None when there is no belief or its pose is unknown. Used e.g. to get a depth and
         confidence for a new frame before its own measurement exists (pose refinement).
         """
-        if not self.can_predict:
+        if self._logp is None or self._T_world_cam is None or not bool(self._pose_ok.all()):
             return None
         T_b_a = invert_se3(T_world_cam_b44.to(self._logp)) @ self._T_world_cam
         pred = warp_volume(self._logp, self._K, T_b_a, self._depths)

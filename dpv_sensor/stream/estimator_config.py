@@ -140,10 +140,7 @@ class PoseRefinementRequest:
     posterior warped into the reference pose); the confidence is always the +-1-plane mass
     (``dpv.confidence``, what ``photometric.inverse_depth_std_from_confidence`` expects), whatever the
     published ``confidence`` is; torch (h, w) at the volume resolution with intrinsics
-    ``K_depth_33`` (numpy); None when the filter has no state yet (first window after a reset), and None too
-    when the refiner does not align against them (its ``aligns_photometrically`` is false), which saves the
-    prediction. nominal_depth_m: a typical depth of the scene (the median depth of the filter's last posterior,
-    metres), None when the filter has no state yet.
+    ``K_depth_33`` (numpy); None when the filter has no state yet (first window after a reset).
     The refiner returns a list of ``T_world_cam`` 4x4 arrays, one per keyframe (same order), or None.
     """
     keyframes: List[Keyframe]
@@ -152,7 +149,6 @@ class PoseRefinementRequest:
     confidence_hw: Optional[torch.Tensor]
     K_depth_33: Optional[np.ndarray]
     depths_d: torch.Tensor
-    nominal_depth_m: Optional[float] = None
 
 
 PoseRefiner = Callable[[PoseRefinementRequest], Optional[Sequence[np.ndarray]]]

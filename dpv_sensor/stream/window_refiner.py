@@ -13,8 +13,7 @@ window.
 
 The refiner, :class:`WindowPoseRefiner` (``pose_refinement: window``): the estimator calls
 :meth:`WindowPoseRefiner.refine` once per keyframe with the window's keyframes (their images and odometry poses) and
-the reference's predicted depth/confidence where it aligns photometrically (else the scene's nominal depth); it
-returns refined ``T_world_cam`` of every window keyframe, the refined
+the reference's predicted depth/confidence; it returns refined ``T_world_cam`` of every window keyframe, the refined
 ``T_src_ref`` for the plane sweep, and a ``tracking_ok`` flag with a reason. It keeps its own state between calls
 (refined poses, earlier alignment factors whose keyframes are still in the window). Visual odometry
 (:mod:`dpv_sensor.stream.visual_odometry`, ``odometry: none``) produces poses that the same refiner refines.
@@ -146,7 +145,7 @@ class WindowPoseRefiner:
         self._match_images: Dict[Hashable, Tuple[np.ndarray, np.ndarray]] = {}   # flow's (grey, K), likewise
         self._flow: Dict[Tuple[Hashable, Hashable], RotationEstimate] = {}   # flow rotation per pair in the window
         self._rotation_factors: Dict[Tuple[Hashable, Hashable], tuple] = {}  # flow factors (src, ref) kept
-        self._depth_refs = 0                                 # references with a depth since the start
+        self._depth_refs = 0                                 # references with a predicted depth since the start
         self._cov: Dict[Hashable, Optional[OdometryCovariance]] = {}   # first odometry covariances seen per key
         self._graph = None                                   # (graph, result, index) of the last solve
         self._anchor_key: Optional[Hashable] = None          # the gauge keyframe of the last solve
@@ -163,17 +162,6 @@ class WindowPoseRefiner:
             # the last flow pairs' direction_ratio (rotation_evidence 'auto'): a property of the camera and the
             # odometry, so kept across resets
             self._direction_ratios: Deque[float] = collections.deque(maxlen=self.config.flow_direction_pairs)
-
-    #: a caller that needs the reference's predicted depth maps whatever the factors (the shadow refiners of
-    #: ``benchmarks.window_decisions``) sets this: :attr:`aligns_photometrically` is then true
-    wants_depth_maps: bool = False
-
-    @property
-    def aligns_photometrically(self) -> bool:
-        """Whether the refiner aligns keyframes photometrically against the reference's predicted depth: only then
-        does the estimator predict it (``PoseRefinementRequest.depth_hw``); else a typical depth of the scene is all
-        the window needs (``nominal_depth_m``: the turning-in-place test)."""
-        return self.wants_depth_maps or self.config.max_sources is None or self.config.max_sources > 0
 
     @property
     def uses_camera_images(self) -> bool:
@@ -200,8 +188,7 @@ class WindowPoseRefiner:
 
         ``request`` has ``keyframes`` (time order; each with ``stamp``, ``image_b3hw`` (1, 3, H, W) in [0, 1],
         ``K_b33``, ``odom_T_world_cam_44``), ``reference`` (index), ``depth_hw`` / ``confidence_hw`` (torch,
-        volume resolution, or None) and ``K_depth_33``, ``nominal_depth_m`` (the scene's typical depth, where the
-        refiner does not align photometrically and gets no maps). Keyframes are keyed by their stamp. Returns one
+        volume resolution, or None) and ``K_depth_33``. Keyframes are keyed by their stamp. Returns one
         ``T_world_cam`` per keyframe in the request's order: refined, or after tracking loss the odometry
         motion chained onto the last refined poses (never a diverged pose). The outcome (``tracking_ok``,
         ``reason``, alignments, timings) is in :attr:`last_result` / :attr:`tracking_lost`.
@@ -232,7 +219,7 @@ class WindowPoseRefiner:
             rho_std = inverse_depth_std_from_confidence(conf, depths_d.detach().cpu()
                                                         if hasattr(depths_d, 'detach') else depths_d)
         res = self.refine(frames[r], [f for i, f in enumerate(frames) if i != r], depth, conf,
-                          request.K_depth_33, rho_std, getattr(request, 'nominal_depth_m', None))
+                          request.K_depth_33, rho_std)
         return [res.T_world_cam[f.key] for f in frames]
 
     # ---------------------------------------------------------------------------------------------------------
@@ -258,7 +245,7 @@ class WindowPoseRefiner:
 
     # ---------------------------------------------------------------------------------------------------------
     def refine(self, ref: WindowKeyframe, sources: Sequence[WindowKeyframe], depth_ref=None, conf_ref=None,
-               K_depth_33=None, inv_depth_std_ref=None, nominal_depth: Optional[float] = None) -> RefinementResult:
+               K_depth_33=None, inv_depth_std_ref=None) -> RefinementResult:
         """Refine the window's keyframe poses (see the class doc).
 
         Args:
@@ -271,9 +258,6 @@ class WindowPoseRefiner:
                 resolution volume); must be ``ref.K_33`` scaled.
             inv_depth_std_ref: optional per-pixel std of the inverse depth (1/m) on the depth grid: uncertain depth
                 then weighs less in the alignment and widens its covariance.
-            nominal_depth: a typical depth of the scene (m) where no ``depth_ref`` is given (a refiner that does not
-                align photometrically): the scale of the turning-in-place test; None with no depth_ref either =
-                the filter has no belief yet.
         """
         t0 = time.perf_counter()
         c0 = time.process_time()
@@ -282,11 +266,10 @@ class WindowPoseRefiner:
         window = self._admit_window([ref] + list(sources))
         init = self._initial_values(window)
         t_align = time.perf_counter()
-        scene_depth = self._scene_depth(depth_ref, nominal_depth)
-        warm = self._count_depth_ref(keys, depth_ref if depth_ref is not None else scene_depth)
+        warm = self._count_depth_ref(keys, depth_ref)
         skipped = None
-        if scene_depth is not None and sources and warm:
-            skipped = self._turning_in_place(ref, sources, init, scene_depth)
+        if depth_ref is not None and sources and warm:
+            skipped = self._turning_in_place(ref, sources, init, depth_ref)
         if skipped is None and depth_ref is not None and sources and warm:
             depth = _DepthReference(depth_ref, conf_ref, K_depth_33, inv_depth_std_ref)
             aligned = self._align_sources(ref, sources, init, depth)
@@ -365,8 +348,7 @@ class WindowPoseRefiner:
         return sorted(keys)
 
     def _count_depth_ref(self, keys: List[Hashable], depth_ref) -> bool:
-        """Count a window with a depth (a map to align against, or the scene's nominal depth); whether enough came in
-        a row to align (the warm-up)."""
+        """Count a window with a depth to align against; whether enough came in a row to align (the warm-up)."""
         if depth_ref is not None:
             if not set(keys) & set(self._est):
                 self._depth_refs = 0                         # a new stream: the window shares nothing with ours
@@ -611,25 +593,18 @@ class WindowPoseRefiner:
             self._factors = []
             self._depth_refs = 0
 
-    @staticmethod
-    def _scene_depth(depth_ref, nominal_depth: Optional[float]) -> Optional[float]:
-        """The median of the reference's predicted depth where it has one, else the nominal depth (m); None for
-        neither (or no valid pixel)."""
-        if depth_ref is None:
-            return nominal_depth if nominal_depth is not None and math.isfinite(nominal_depth) and nominal_depth > 0 \
-                else None
-        d = np.asarray(depth_ref.numpy() if hasattr(depth_ref, 'numpy') else depth_ref, dtype=np.float64)
-        d = d[np.isfinite(d) & (d > 0)]
-        return float(np.median(d)) if d.size else None
-
-    def _turning_in_place(self, ref, sources, init, scene_depth: float) -> Optional[str]:
+    def _turning_in_place(self, ref, sources, init, depth_ref) -> Optional[str]:
         """Why the window is not refined (``PoseRefinerConfig.max_rotation_parallax``), or None."""
         limit = self.config.max_rotation_parallax
         if not limit > 0:
             return None
+        d = np.asarray(depth_ref.numpy() if hasattr(depth_ref, 'numpy') else depth_ref, dtype=np.float64)
+        d = d[np.isfinite(d) & (d > 0)]
+        if d.size == 0:
+            return None
         nearest = min(sources, key=lambda s: _key_distance(s.key, ref.key))
         rel = relative_pose(init[nearest.key], init[ref.key])
-        parallax = float(np.linalg.norm(rel[:3, 3])) / scene_depth
+        parallax = float(np.linalg.norm(rel[:3, 3])) / float(np.median(d))
         angle = rotation_angle_np(rel[:3, :3])
         if angle > limit * parallax:
             return (f'turning in place: {math.degrees(angle):.1f} deg to the nearest keyframe against a baseline of '

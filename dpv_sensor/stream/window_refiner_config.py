@@ -61,14 +61,12 @@ class PoseRefinerConfig:
         further than this from its odometry initialisation is not used (a jump); and tracking is lost when the
         refined relative motion between consecutive keyframes differs from the odometry's by more than this.
     lm_max_iterations: Levenberg-Marquardt iterations of the window optimisation.
-    warmup_keyframes: after a (re)start, the first this many references that come with a depth (the predicted
-        maps, or without photometric factors the scene's nominal depth) are not aligned (odometry only): that
-        depth has integrated few measurements, and aligning against a wrong depth makes the rotation consistent
-        with it (rotation-translation ambiguity), locking the error in.
+    warmup_keyframes: after a (re)start, the first this many references that come with a predicted depth are
+        not aligned (odometry only): that depth has integrated few measurements, and aligning against a wrong
+        depth makes the rotation consistent with it (rotation-translation ambiguity), locking the error in.
     max_rotation_parallax: a window is not refined (the odometry poses are kept, ``RefinementResult.skipped``
         says why) when the camera turns in place: the rotation to the nearest source (radians) is more than this
-        many times the parallax its baseline gives at the scene's depth (baseline / depth: the predicted depth's
-        median, or without photometric factors the last posterior's median, ``nominal_depth_m``). There the
+        many times the parallax its baseline gives at the predicted depth's median (baseline / depth). There the
         predicted depth carries little information and aligning against it moves the rotation away from the
         truth: on tum_fr1_rpy (median ratio 14.5 between keyframes) refinement doubled the rotation RPE against the
         motion-capture poses (0.16 -> 0.34 deg). The rendered selection scenes stay below 4.4, the SUN3D
