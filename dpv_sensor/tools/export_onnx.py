@@ -14,6 +14,7 @@ provider. The cost volume (a plane sweep in float32 geometry) and the filter sta
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import json
 import pathlib
 import sys
@@ -61,6 +62,10 @@ def main(argv: Optional[List[str]] = None) -> int:
         w, h = (int(v) for v in a.size.lower().split('x'))
     except ValueError:
         print(f'export_onnx: --size must look like 320x256, got {a.size!r}', file=sys.stderr)
+        return 2
+    if importlib.util.find_spec('onnx') is None:
+        print('export_onnx: PyTorch writes ONNX files with the onnx package, which this environment does not have '
+              '(pip install onnx)', file=sys.stderr)
         return 2
     report = export(a.weights, a.preset, (w, h), a.out)
     for entry in report['parts'].values():
