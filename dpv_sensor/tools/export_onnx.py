@@ -14,7 +14,6 @@ provider. The cost volume (a plane sweep in float32 geometry) and the filter sta
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import json
 import pathlib
 import sys
@@ -63,11 +62,12 @@ def main(argv: Optional[List[str]] = None) -> int:
     except ValueError:
         print(f'export_onnx: --size must look like 320x256, got {a.size!r}', file=sys.stderr)
         return 2
-    if importlib.util.find_spec('onnx') is None:
-        print('export_onnx: PyTorch writes ONNX files with the onnx package, which this environment does not have '
-              '(pip install onnx)', file=sys.stderr)
+    from dpv_sensor.core.nets.runtime import RuntimeUnavailable
+    try:
+        report = export(a.weights, a.preset, (w, h), a.out)
+    except RuntimeUnavailable as exc:
+        print(f'export_onnx: {exc}', file=sys.stderr)
         return 2
-    report = export(a.weights, a.preset, (w, h), a.out)
     for entry in report['parts'].values():
         diff = entry['max_diff_vs_torch']
         print(f"{a.out / entry['file']}: " + ('not checked (no onnxruntime)' if diff is None

@@ -33,6 +33,7 @@ from __future__ import annotations
 import contextlib
 import copy
 import hashlib
+import importlib.util
 import json
 import os
 import pathlib
@@ -146,7 +147,11 @@ def _cache_key(digest: str, model, part: str, inputs: Sequence[torch.Tensor]) ->
 
 
 def export_onnx(model, part: str, image_hw: Tuple[int, int], path) -> pathlib.Path:
-    """Export one part of ``model`` at an image size (H, W) to ``path`` (written atomically); returns the path."""
+    """Export one part of ``model`` at an image size (H, W) to ``path`` (written atomically); returns the path.
+    Raises RuntimeUnavailable where the onnx package PyTorch's exporter writes with is not installed."""
+    if importlib.util.find_spec('onnx') is None:
+        raise RuntimeUnavailable('exporting ONNX files needs the onnx package, which this environment does not '
+                                 'have (pip install onnx)')
     path = pathlib.Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     m = _float_model(model)
