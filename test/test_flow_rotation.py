@@ -137,15 +137,21 @@ def test_flow_matches_follow_a_known_shift():
     assert 0 < len(back.pa_n2) <= len(m.pa_n2)
     with pytest.raises(ValueError, match='different sizes'):
         flow_matches(a, b[:-2], K)
-    # without DIS's variational refinement: other flow vectors, the same shift
+    # without DIS's variational refinement, or with a wider patch stride: other flow vectors, the same shift
     from dpv_sensor.core.flow_rotation import _dis
     assert _dis(FlowConfig(variational_iterations=0)).getVariationalRefinementIterations() == 0
     assert _dis(FlowConfig()).getVariationalRefinementIterations() == 5                 # medium's own
-    raw = flow_matches(a, b, K, FlowConfig(variational_iterations=0))
-    inner = (raw.pa_n2[:, 0] > 16) & (raw.pa_n2[:, 0] < 304) & (raw.pa_n2[:, 1] > 16) & (raw.pa_n2[:, 1] < 224)
-    assert np.median(np.abs((raw.pb_n2 - raw.pa_n2)[inner] - [3.0, -2.0])) < 0.1
+    assert _dis(FlowConfig(patch_stride=4)).getPatchStride() == 4
+    assert _dis(FlowConfig()).getPatchStride() == 3                                      # medium's
+    for cfg in (FlowConfig(variational_iterations=0), FlowConfig(patch_stride=4)):
+        other = flow_matches(a, b, K, cfg)
+        inner = (other.pa_n2[:, 0] > 16) & (other.pa_n2[:, 0] < 304) & (other.pa_n2[:, 1] > 16) & \
+            (other.pa_n2[:, 1] < 224)
+        assert np.median(np.abs((other.pb_n2 - other.pa_n2)[inner] - [3.0, -2.0])) < 0.1
     with pytest.raises(ValueError, match='variational_iterations'):
         FlowConfig(variational_iterations=-1)
+    with pytest.raises(ValueError, match='patch_stride'):
+        FlowConfig(patch_stride=0)
 
 
 def test_wide_images_are_matched_shrunk_with_their_intrinsics():

@@ -224,6 +224,26 @@ def test_warp_volume_moves_peak_to_reprojected_voxel(case):
     assert torch.allclose(out[0, :, 0, W - 1].exp(), torch.full((D,), 1.0 / D, dtype=DT), atol=1e-6)
 
 
+@pytest.mark.parametrize('stride', [2, 3, 4])
+def test_warp_volume_stride_is_the_full_warp_subsampled(stride):
+    # every stride-th pixel of B (0, s, 2s, ...), odd sizes included: the same voxels as the whole warp, in float64
+    torch.manual_seed(2)
+    D, H, W = 8, 11, 13
+    K = intrinsics(W, H, 9.0).expand(2, 3, 3)
+    planes = depth_planes(0.5, 4.0, D, dtype=DT)
+    logp = torch.log_softmax(torch.randn(2, D, H, W, dtype=DT) * 3, 1)
+    T_b_a = torch.stack([se3(rot_y(0.04) @ rot_z(-0.02), (0.1, -0.05, 0.08))[0], se3()[0]])   # moved, static
+    full, valid = G.warp_volume(logp, K, T_b_a, planes, return_valid=True)
+    sub, sub_valid = G.warp_volume(logp, K, T_b_a, planes, return_valid=True, stride=stride)
+    assert sub.shape == (2, D, -(-H // stride), -(-W // stride))
+    assert torch.allclose(sub, full[..., ::stride, ::stride], atol=1e-9)
+    assert torch.equal(sub_valid, valid[..., ::stride, ::stride])
+    static = G.warp_volume(logp, K, se3().expand(2, 4, 4), planes, stride=stride)
+    assert torch.equal(static, torch.log_softmax(logp, 1)[..., ::stride, ::stride])
+    with pytest.raises(ValueError, match='stride'):
+        G.warp_volume(logp, K, T_b_a, planes, stride=0)
+
+
 def test_warp_volume_outside_frustum_is_uniform():
     D, H, W = 8, 12, 16
     K = intrinsics(W, H, 15.0)

@@ -214,7 +214,7 @@ def run_one_offline(seq_name: str, seq_dir: pathlib.Path, pose_source: str, user
     t_all = time.perf_counter()
     seq = Sequence(seq_dir)
     config, values = RN.build_config(user_params)
-    records, _ = RN.run_sequence(seq, config, E.EvalOptions(progress=progress), keep_images=False,
+    records, status = RN.run_sequence(seq, config, E.EvalOptions(progress=progress), keep_images=False,
                                  poses=odometry_poses(seq, pose_source),
                                  pose_variance=odometry_variance(seq, pose_source),
                                  twist_variance=odometry_twist_variance(seq, pose_source))
@@ -237,6 +237,10 @@ def run_one_offline(seq_name: str, seq_dir: pathlib.Path, pose_source: str, user
         'mean_confidence': get_path(summary, 'confidence', 'mean_confidence'),
         'calibration': summary.get('calibration'),
         'output_resets': len(resets), 'output_reset_reasons': resets,
+        # what the window refiner used (factor decisions) and, with rotation evidence auto, the flow pairs' last
+        # median direction ratio against its threshold
+        'pose_refinement_factors': dict(getattr(status, 'pose_refinement_factors', None) or {}),
+        'pose_refinement_direction_ratio': getattr(status, 'pose_refinement_direction_ratio', None),
         'keyframe_ms_median': float(np.median(times)) if times else None,
         'constant': constant_on_same_pixels(records, oracle_constant(seq, min_depth, max_depth), min_depth,
                                             max_depth),

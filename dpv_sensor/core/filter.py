@@ -142,16 +142,17 @@ class DPVFilter:
         """Time stamp (s) of the current belief, or None."""
         return self._stamp
 
-    def predict(self, T_world_cam_b44: torch.Tensor) -> Optional[torch.Tensor]:
+    def predict(self, T_world_cam_b44: torch.Tensor, stride: int = 1) -> Optional[torch.Tensor]:
         """The current belief warped into another camera (eq. 5) without changing the state.
 
         Returns None when there is no belief or its pose is unknown. Used e.g. to get a depth and
-        confidence for a new frame before its own measurement exists (pose refinement).
+        confidence for a new frame before its own measurement exists (pose refinement). ``stride``: only
+        every ``stride``-th pixel of each axis (``geometry.warp_volume``), for a caller that needs a statistic.
         """
         if self._logp is None or self._T_world_cam is None or not bool(self._pose_ok.all()):
             return None
         T_b_a = invert_se3(T_world_cam_b44.to(self._logp)) @ self._T_world_cam
-        pred = warp_volume(self._logp, self._K, T_b_a, self._depths)
+        pred = warp_volume(self._logp, self._K, T_b_a, self._depths, stride=stride)
         return clamp_log(pred, self.log_floor)
 
     # ------------------------------------------------------------------ step

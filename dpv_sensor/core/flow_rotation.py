@@ -56,7 +56,8 @@ _PRESETS = {'ultrafast': cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST, 'fast': cv2.DISOP
 @dataclass(frozen=True)
 class FlowConfig:
     """dis_preset: DIS optical flow preset ('ultrafast', 'fast', 'medium'); variational_iterations: DIS's
-    variational refinement iterations per scale (None: the preset's; medium's 5 cost 40 % of its time); grid_px:
+    variational refinement iterations per scale (None: the preset's; medium's 5 cost 40 % of its time);
+    patch_stride: DIS's step between patches in pixels (None: the preset's; medium's 3); grid_px:
     spacing of the sampled pixels; texture_quantile: keep the grid pixels whose structure-tensor eigenvalue is
     above this quantile over the grid;
     forward_backward_px: > 0 also computes the flow back and drops pixels whose round trip misses by more (0: one
@@ -72,6 +73,7 @@ class FlowConfig:
     the ratio is a statistic of the pair, not an estimate, and the fit is most of a pair's fitting time)."""
     dis_preset: str = 'medium'
     variational_iterations: Optional[int] = None
+    patch_stride: Optional[int] = None
     grid_px: int = 8
     texture_quantile: float = 0.5
     forward_backward_px: float = 0.0
@@ -91,6 +93,8 @@ class FlowConfig:
             raise ValueError(f'preset must be one of {sorted(_PRESETS)}, not {self.dis_preset!r}')
         if self.variational_iterations is not None and self.variational_iterations < 0:
             raise ValueError(f'variational_iterations must be >= 0 or None, not {self.variational_iterations}')
+        if self.patch_stride is not None and self.patch_stride < 1:
+            raise ValueError(f'patch_stride must be >= 1 or None, not {self.patch_stride}')
 
 
 @dataclass
@@ -148,11 +152,13 @@ _DIS = {}
 
 
 def _dis(config: FlowConfig):
-    key = (config.dis_preset, config.variational_iterations)
+    key = (config.dis_preset, config.variational_iterations, config.patch_stride)
     if key not in _DIS:
         dis = cv2.DISOpticalFlow_create(_PRESETS[config.dis_preset])
         if config.variational_iterations is not None:
             dis.setVariationalRefinementIterations(int(config.variational_iterations))
+        if config.patch_stride is not None:
+            dis.setPatchStride(int(config.patch_stride))
         _DIS[key] = dis
     return _DIS[key]
 

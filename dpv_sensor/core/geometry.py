@@ -285,7 +285,7 @@ def plane_sweep_warp(src_bchw: torch.Tensor, K_ref_b33: torch.Tensor, K_src_b33:
 
 
 def warp_volume(logp_bdhw: torch.Tensor, K_b33: torch.Tensor, T_b_a_b44: torch.Tensor,
-                depths_d: torch.Tensor, return_valid: bool = False):
+                depths_d: torch.Tensor, return_valid: bool = False, stride: int = 1):
     """Predict step of the DPV filter (paper eq. 5): resample camera A's DPV into camera B's frustum.
 
     Every voxel (plane k, pixel u, v) of camera B is mapped to camera A with ``T_a_b = T_b_a^-1``,
@@ -306,10 +306,16 @@ def warp_volume(logp_bdhw: torch.Tensor, K_b33: torch.Tensor, T_b_a_b44: torch.T
         T_b_a_b44: (B, 4, 4) maps camera-A points into camera B (relative pose A -> B).
         depths_d: (D,) plane depths (uniform in inverse depth, ascending).
         return_valid: also return (B, D, H, W) bool, True where the voxel was seen by A.
+        stride: B's volume only at every ``stride``-th pixel of each axis (pixels 0, s, 2s, ...; shape
+            (B, D, ceil(H / s), ceil(W / s))): the full warp subsampled, at 1/s^2 of its cost.
     Returns:
         logp_bdhw of camera B (and the valid mask when asked).
     """
     B, D, H, W = logp_bdhw.shape
+    stride = int(stride)
+    if stride < 1:
+        raise ValueError(f'stride must be >= 1, got {stride}')
+    Hb, Wb = -(-H // stride), -(-W // stride)
     dt = logp_bdhw.dtype
     T_b_a_b44 = T_b_a_b44.expand(B, 4, 4)
     K = K_b33.to(dt).expand(B, 3, 3)
@@ -318,27 +324,31 @@ def warp_volume(logp_bdhw: torch.Tensor, K_b33: torch.Tensor, T_b_a_b44: torch.T
     eye = torch.eye(4, dtype=T_b_a_b44.dtype, device=T_b_a_b44.device)
     is_identity = (T_b_a_b44 == eye).reshape(B, 16).all(1)
     if bool(is_identity.all()):
-        out = torch.log_softmax(logp_bdhw, dim=1)
+        out = torch.log_softmax(logp_bdhw, dim=1)[..., ::stride, ::stride]
         return (out, torch.ones_like(out, dtype=torch.bool)) if return_valid else out
     depths = torch.as_tensor(depths_d, dtype=dt, device=logp_bdhw.device)
     d_bd = depths[None].expand(B, -1) if depths.dim() == 1 else depths
     T_a_b = invert_se3(T_b_a_b44.to(dt))
-    grid_xy, z, front = _sweep_grid(K, K, T_a_b, d_bd, H, W, H, W)
+    K_b = K
+    if stride > 1:                                   # B's pixel s*i is pixel i of a grid with K's rows 1-2 / s
+        K_b = K.clone()
+        K_b[:, :2] /= stride
+    grid_xy, z, front = _sweep_grid(K_b, K, T_a_b, d_bd, Hb, Wb, H, W)
     # normalised plane coordinate, linear in 1/z: index 0 at d_min -> -1, index D-1 at d_max -> +1
     inv_min, inv_max = 1.0 / d_bd[:, :1, None], 1.0 / d_bd[:, -1:, None]
     gz = torch.where(front, (2.0 / z.where(front, torch.ones_like(z)) - inv_min - inv_max) / (inv_max - inv_min),
                      torch.full_like(z, -2.0))
     half = 1.0 / max(D - 1, 1)                       # half a plane in normalised units
     inside = front & _grid_inside(grid_xy, H, W, 0.5) & (gz.abs() <= 1.0 + half)
-    grid = torch.cat([grid_xy, gz[..., None]], -1).reshape(B, D, H, W, 3)
+    grid = torch.cat([grid_xy, gz[..., None]], -1).reshape(B, D, Hb, Wb, 3)
     prob = torch.exp(logp_bdhw)[:, None]                                   # B,1,D,H,W
     sampled = F.grid_sample(prob, grid, mode='bilinear', padding_mode='border', align_corners=True)[:, 0]
-    inside = inside.reshape(B, D, H, W)
+    inside = inside.reshape(B, D, Hb, Wb)
     sampled = torch.where(inside, sampled, torch.full_like(sampled, 1.0 / D))
     out = torch.log_softmax(torch.log(sampled.clamp_min(1e-30)), dim=1)
     if bool(is_identity.any()):
         keep = is_identity.reshape(B, 1, 1, 1)
-        out = torch.where(keep, torch.log_softmax(logp_bdhw, dim=1), out)
+        out = torch.where(keep, torch.log_softmax(logp_bdhw, dim=1)[..., ::stride, ::stride], out)
         inside = inside | keep
     return (out, inside) if return_valid else out
 
