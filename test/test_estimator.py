@@ -702,6 +702,33 @@ def test_pose_refiner_hook_gets_the_window_and_its_poses_are_used():
     assert est.status.pose_refiner is True
 
 
+def test_a_refiner_that_reads_only_the_median_gets_every_second_pixel_of_the_predicted_depth():
+    """``predicted_depth_stride``: the estimator predicts the reference's depth only at every stride-th volume pixel,
+    with the intrinsics of that grid; the window refiner asks for 2 without photometric factors, 1 with them."""
+    from dpv_sensor.stream.window_refiner import PoseRefinerConfig, WindowPoseRefiner
+    assert WindowPoseRefiner(PoseRefinerConfig(max_sources=0)).predicted_depth_stride == 2
+    assert WindowPoseRefiner(PoseRefinerConfig(max_sources=2)).predicted_depth_stride == 1
+    class Recorder:
+        def __init__(self, stride):
+            self.predicted_depth_stride, self.requests = stride, []
+
+        def __call__(self, req: PoseRefinementRequest):
+            self.requests.append(req)
+            return None                                        # keep the poses
+
+    requests = {}
+    for stride in (1, 2):
+        hook = Recorder(stride)
+        push_all(Estimator(small_config(pose_refinement='window'), pose_refiner=hook), sideways(4))
+        requests[stride] = hook.requests
+    full, half = requests[1][-1], requests[2][-1]
+    assert full.depth_hw.shape == (12, 16) and half.depth_hw.shape == half.confidence_hw.shape == (6, 8)
+    np.testing.assert_allclose(half.depth_hw.numpy(), full.depth_hw.numpy()[::2, ::2], rtol=1e-5)
+    K_half = full.K_depth_33.copy()
+    K_half[:2] /= 2
+    np.testing.assert_allclose(half.K_depth_33, K_half)
+
+
 def test_new_keyframes_start_from_the_refined_trajectory_and_tracking_loss_restarts():
     offset = pose(y=0.02)
 

@@ -137,13 +137,13 @@ def test_flow_matches_follow_a_known_shift():
     assert 0 < len(back.pa_n2) <= len(m.pa_n2)
     with pytest.raises(ValueError, match='different sizes'):
         flow_matches(a, b[:-2], K)
-    # without DIS's variational refinement, or with a wider patch stride: other flow vectors, the same shift
+    # with DIS's variational refinement (the medium preset's own 5 iterations): other flow vectors, the same shift
     from dpv_sensor.core.flow_rotation import _dis
-    assert _dis(FlowConfig(variational_iterations=0)).getVariationalRefinementIterations() == 0
-    assert _dis(FlowConfig()).getVariationalRefinementIterations() == 5                 # medium's own
+    assert _dis(FlowConfig()).getVariationalRefinementIterations() == 0                 # the default: none
+    assert _dis(FlowConfig(variational_iterations=None)).getVariationalRefinementIterations() == 5   # medium's
     assert _dis(FlowConfig(patch_stride=4)).getPatchStride() == 4
     assert _dis(FlowConfig()).getPatchStride() == 3                                      # medium's
-    for cfg in (FlowConfig(variational_iterations=0), FlowConfig(patch_stride=4)):
+    for cfg in (FlowConfig(variational_iterations=None), FlowConfig(patch_stride=4)):
         other = flow_matches(a, b, K, cfg)
         inner = (other.pa_n2[:, 0] > 16) & (other.pa_n2[:, 0] < 304) & (other.pa_n2[:, 1] > 16) & \
             (other.pa_n2[:, 1] < 224)
@@ -208,9 +208,10 @@ def test_the_window_refiner_takes_flow_factors_from_the_camera_images(rendered_p
 
 def test_auto_evidence_takes_the_flow_only_where_the_odometry_direction_fits_the_images(rendered_pair):
     """rotation_evidence 'auto': with the odometry's relative rotation 2 deg off and its translation direction right
-    the flow factor is used; with the direction 20 deg off as well the images disagree with it (a camera whose
+    the flow factor is used; with the direction 15 deg off as well the images disagree with it (a camera whose
     mount or timing does not match the odometry), so the window takes SIFT's factor; the ratios are a property of
-    the camera and the odometry and outlive a reset."""
+    the camera and the odometry and outlive a reset. (On this one pair the ratio is 1.015 with the true direction,
+    1.04 from 3 to 8 deg off and 1.08 at 10: one pair is a noisy statistic, hence the median over many.)"""
     from dpv_sensor.stream.window_refiner import PoseRefinerConfig, WindowPoseRefiner
     T_wa, T_wb = rendered_pair['T_wa'], rendered_pair['T_wb']
     T_src_ref_true = np.linalg.inv(T_wb) @ T_wa
@@ -233,7 +234,7 @@ def test_auto_evidence_takes_the_flow_only_where_the_odometry_direction_fits_the
     assert _err_deg(res.T_src_ref[0][:3, :3], T_src_ref_true[:3, :3]) < 0.1
 
     disagreeing = WindowPoseRefiner(cfg)
-    ref, src = _window(rendered_pair, odometry_b([2.0, 0.0, 0.0], [0.0, 5.0, 0.0]))
+    ref, src = _window(rendered_pair, odometry_b([2.0, 0.0, 0.0], [0.0, 15.0, 0.0]))
     res = disagreeing.refine(ref, [src])
     assert list(disagreeing._direction_ratios)[0] > cfg.flow_direction_ratio
     assert disagreeing.factor_counts['evidence_keypoints'] == 1 and 'flow_used' not in disagreeing.factor_counts
@@ -253,7 +254,7 @@ def test_auto_evidence_measures_the_flow_only_now_and_then_once_the_images_disag
     from dpv_sensor.stream.window_refiner import PoseRefinerConfig, WindowPoseRefiner
     T_wa, T_wb = rendered_pair['T_wa'], rendered_pair['T_wb']
     T = np.linalg.inv(T_wb) @ T_wa
-    T[:3, 3] = _rot([0.0, 5.0, 0.0]) @ T[:3, 3]
+    T[:3, 3] = _rot([0.0, 15.0, 0.0]) @ T[:3, 3]
     T_odom_b = T_wa @ np.linalg.inv(T)
     refiner = WindowPoseRefiner(PoseRefinerConfig(rotation_evidence='auto', odom_covariance='fixed',
                                                   flow_direction_pairs=5, flow_probe_every=4))

@@ -72,7 +72,7 @@ class FlowConfig:
     fit that ``RotationEstimate.direction_ratio`` compares with, and the share of the inliers it uses (every n-th:
     the ratio is a statistic of the pair, not an estimate, and the fit is most of a pair's fitting time)."""
     dis_preset: str = 'medium'
-    variational_iterations: Optional[int] = None
+    variational_iterations: Optional[int] = 0
     patch_stride: Optional[int] = None
     grid_px: int = 8
     texture_quantile: float = 0.5

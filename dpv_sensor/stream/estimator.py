@@ -659,12 +659,14 @@ class Estimator:
         kfs = sorted([ref] + list(sources), key=lambda k: k.index)
         r = kfs.index(ref)
         depth = conf = K_depth = None
-        pred = self.filter.predict(self._filter_pose(ref.T_world_cam_44))
+        stride = int(getattr(self.pose_refiner, 'predicted_depth_stride', 1))
+        pred = self.filter.predict(self._filter_pose(ref.T_world_cam_44), stride=stride)
         if pred is not None and self._posterior is not None:
             # the refiner maps the +-1-plane mass to an inverse-depth std, whatever the published confidence is
             depth = dpv_ops.depth_estimate(pred, self.depths_d, self.readout)
             depth, conf = depth[0], dpv_ops.confidence(pred, self.depths_d, depth_bhw=depth)[0]
             K_depth = self._posterior.K_vol_b33[0].double().cpu().numpy()
+            K_depth[:2] /= stride                    # the grid of every stride-th volume pixel
         request = PoseRefinementRequest(kfs, r, depth, conf, K_depth, self.depths_d)
         timings['pose_refinement.predict'] = self._ms(t)
         last = getattr(self.pose_refiner, 'last_result', None)
