@@ -224,6 +224,18 @@ def test_warp_volume_moves_peak_to_reprojected_voxel(case):
     assert torch.allclose(out[0, :, 0, W - 1].exp(), torch.full((D,), 1.0 / D, dtype=DT), atol=1e-6)
 
 
+def test_subsampled_intrinsics_map_every_sth_pixel_to_the_next():
+    # pixel (s*i, s*j) of the grid projects where pixel (i, j) of the subsampled grid does; numpy and torch alike
+    K = np.array([[500.0, 0.0, 319.5], [0.0, 480.0, 239.5], [0.0, 0.0, 1.0]])
+    X = np.array([0.3, -0.2, 2.0])
+    for s in (2, 3):
+        Ks = G.subsampled_intrinsics(K, s)
+        np.testing.assert_allclose(Ks @ X / X[2], np.r_[(K @ X / X[2])[:2] / s, 1.0])
+        Kt = G.subsampled_intrinsics(torch.as_tensor(K)[None], s)
+        assert Kt.shape == (1, 3, 3) and np.allclose(Kt[0].numpy(), Ks)
+    assert K[0, 0] == 500.0                                            # the input is not changed
+
+
 @pytest.mark.parametrize('stride', [2, 3, 4])
 def test_warp_volume_stride_is_the_full_warp_subsampled(stride):
     # every stride-th pixel of B (0, s, 2s, ...), odd sizes included: the same voxels as the whole warp, in float64

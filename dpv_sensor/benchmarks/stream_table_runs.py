@@ -215,9 +215,9 @@ def run_one_offline(seq_name: str, seq_dir: pathlib.Path, pose_source: str, user
     seq = Sequence(seq_dir)
     config, values = RN.build_config(user_params)
     records, status = RN.run_sequence(seq, config, E.EvalOptions(progress=progress), keep_images=False,
-                                 poses=odometry_poses(seq, pose_source),
-                                 pose_variance=odometry_variance(seq, pose_source),
-                                 twist_variance=odometry_twist_variance(seq, pose_source))
+                                      poses=odometry_poses(seq, pose_source),
+                                      pose_variance=odometry_variance(seq, pose_source),
+                                      twist_variance=odometry_twist_variance(seq, pose_source))
     if not records:
         raise RuntimeError('the pipeline published no keyframe depth')
     options = E.EvalOptions(min_depth=min_depth, max_depth=max_depth, progress=progress,

@@ -56,7 +56,10 @@ def _rotvec_deg(R: np.ndarray) -> np.ndarray:
 
 class Recorder:
     """The default refiner's ``refine`` wrapped: it refines as always, then the shadows solve the same window from
-    the same state, and one row per window is kept."""
+    the same state, and one row per window is kept. The recorder is the estimator's pose refiner (it hands every
+    call to the default refiner): it asks for the predicted depth at the finest grid any of them reads
+    (``predicted_depth_stride``; the photometric shadows align against every pixel), and each refiner gets every
+    n-th pixel of it, as the node would give it at its own stride."""
 
     def __init__(self, main, candidates: Dict[str, Any], gt_pose):
         from dpv_sensor.stream.window_refiner import WindowPoseRefiner
@@ -64,13 +67,32 @@ class Recorder:
         self.shadows = {name: WindowPoseRefiner(cfg) for name, cfg in candidates.items()}
         self.gt_pose = gt_pose              # key -> T_world_cam of the ground truth
         self.rows: List[Dict[str, Any]] = []
+        self.predicted_depth_stride = min([main.predicted_depth_stride] +
+                                          [s.predicted_depth_stride for s in self.shadows.values()])
         self._refine = main.refine
         main.refine = self.refine
+
+    def __call__(self, request):
+        return self.main(request)
+
+    def __getattr__(self, name):            # last_result, counters, reset, ...: the default refiner's
+        return getattr(self.main, name)
+
+    def _depth_for(self, refiner, depth_ref, conf_ref, K_depth_33, inv_depth_std_ref):
+        """The depth arguments as the node hands them to ``refiner``: the pixels of its own stride."""
+        k = refiner.predicted_depth_stride // self.predicted_depth_stride
+        if k == 1 or depth_ref is None:
+            return depth_ref, conf_ref, K_depth_33, inv_depth_std_ref
+        from dpv_sensor.core.geometry import subsampled_intrinsics
+        K = None if K_depth_33 is None else subsampled_intrinsics(K_depth_33, k)
+        return (depth_ref[::k, ::k], None if conf_ref is None else conf_ref[::k, ::k], K,
+                None if inv_depth_std_ref is None else inv_depth_std_ref[::k, ::k])
 
     def refine(self, ref, sources, depth_ref=None, conf_ref=None, K_depth_33=None, inv_depth_std_ref=None):
         before = {name: (dict(getattr(self.main, name))) for name in _STATE}
         depth_refs, anchor = self.main._depth_refs, self.main._anchor_key
-        res = self._refine(ref, sources, depth_ref, conf_ref, K_depth_33, inv_depth_std_ref)
+        depth = (depth_ref, conf_ref, K_depth_33, inv_depth_std_ref)
+        res = self._refine(ref, sources, *self._depth_for(self.main, *depth))
         if depth_ref is None or not sources or not res.tracking_ok:
             for s in self.shadows.values():
                 s.reset()
@@ -83,7 +105,7 @@ class Recorder:
                     state.update(getattr(self.main, field))      # caches: pure functions of the images
                 setattr(sh, field, state)
             sh._depth_refs, sh._anchor_key = depth_refs, anchor
-            shadow_res[name] = sh.refine(ref, sources, depth_ref, conf_ref, K_depth_33, inv_depth_std_ref)
+            shadow_res[name] = sh.refine(ref, sources, *self._depth_for(sh, *depth))
         self.rows.append(self._row(ref, sources, depth_ref, res, shadow_res))
         return res
 
@@ -188,7 +210,7 @@ def run(seq_dir: pathlib.Path, pose_source: str, frames: int, progress: bool) ->
     poses = ST.odometry_poses(seq, pose_source)[:n]
     var = ST.odometry_variance(seq, pose_source)
     RN.run_sequence(seq, config, options, keep_images=False, poses=poses,
-                    pose_variance=None if var is None else var[:n], pose_refiner=main)
+                    pose_variance=None if var is None else var[:n], pose_refiner=rec)
     return rec.rows
 
 

@@ -52,6 +52,15 @@ def scale_intrinsics_np(K_33, sx: float, sy: float) -> np.ndarray:
 
 
 
+def subsampled_intrinsics(K_33, stride: int):
+    """Intrinsics of every ``stride``-th pixel of a grid (its pixels 0, s, 2s, ... become 0, 1, 2, ...): K's first
+    two rows divided by s (unlike :func:`scale_intrinsics`, which averages pixels). numpy (float64) or torch, any
+    leading batch shape; returns a new array."""
+    K = K_33.clone() if isinstance(K_33, torch.Tensor) else np.array(K_33, dtype=np.float64, copy=True)
+    K[..., :2, :] /= stride
+    return K
+
+
 def scale_intrinsics(K_b33: torch.Tensor, sx: float, sy: float) -> torch.Tensor:
     """Intrinsics of an image resized by factors (sx, sy) (new_size = old_size * s).
 
@@ -329,10 +338,7 @@ def warp_volume(logp_bdhw: torch.Tensor, K_b33: torch.Tensor, T_b_a_b44: torch.T
     depths = torch.as_tensor(depths_d, dtype=dt, device=logp_bdhw.device)
     d_bd = depths[None].expand(B, -1) if depths.dim() == 1 else depths
     T_a_b = invert_se3(T_b_a_b44.to(dt))
-    K_b = K
-    if stride > 1:                                   # B's pixel s*i is pixel i of a grid with K's rows 1-2 / s
-        K_b = K.clone()
-        K_b[:, :2] /= stride
+    K_b = K if stride == 1 else subsampled_intrinsics(K, stride)
     grid_xy, z, front = _sweep_grid(K_b, K, T_a_b, d_bd, Hb, Wb, H, W)
     # normalised plane coordinate, linear in 1/z: index 0 at d_min -> -1, index D-1 at d_max -> +1
     inv_min, inv_max = 1.0 / d_bd[:, :1, None], 1.0 / d_bd[:, -1:, None]

@@ -21,7 +21,7 @@ from dpv_sensor import params as P
 from dpv_sensor.core import confidence_calibration, dpv as dpv_ops, geometry, image_quality, parallax, pose_uncertainty
 from dpv_sensor.core.confidence_calibration import ConfidenceCalibration
 from dpv_sensor.core.edge_filter import joint_weighted_median
-from dpv_sensor.core.geometry import resample_to_camera, scale_intrinsics_np
+from dpv_sensor.core.geometry import resample_to_camera, scale_intrinsics_np, subsampled_intrinsics
 from dpv_sensor.core.keypoint_pose import to_gray_u8
 from dpv_sensor.core.nets.model import cpu_bf16_fast
 from dpv_sensor.stream.continuity import DUPLICATE, stream_break, time_order
@@ -665,8 +665,7 @@ class Estimator:
             # the refiner maps the +-1-plane mass to an inverse-depth std, whatever the published confidence is
             depth = dpv_ops.depth_estimate(pred, self.depths_d, self.readout)
             depth, conf = depth[0], dpv_ops.confidence(pred, self.depths_d, depth_bhw=depth)[0]
-            K_depth = self._posterior.K_vol_b33[0].double().cpu().numpy()
-            K_depth[:2] /= stride                    # the grid of every stride-th volume pixel
+            K_depth = subsampled_intrinsics(self._posterior.K_vol_b33[0].double().cpu().numpy(), stride)
         request = PoseRefinementRequest(kfs, r, depth, conf, K_depth, self.depths_d)
         timings['pose_refinement.predict'] = self._ms(t)
         last = getattr(self.pose_refiner, 'last_result', None)
