@@ -265,6 +265,27 @@ def test_auto_evidence_measures_the_flow_only_now_and_then_once_the_images_disag
     assert refiner.factor_counts == {'evidence_keypoints': 5}
 
 
+def test_auto_evidence_measures_the_direction_ratio_only_now_and_then_once_the_images_agree(rendered_pair):
+    """Once a fifth of flow_direction_pairs say the odometry's directions fit the images, every window still takes
+    the flow factors, but only every flow_probe_every-th new pair measures its direction ratio (a third of a
+    pair's fitting time); the rotation of every pair is the same as with the ratio measured."""
+    from dpv_sensor.stream.window_refiner import PoseRefinerConfig, WindowPoseRefiner
+    T_wa, T_wb = rendered_pair['T_wa'], rendered_pair['T_wb']
+    T = np.linalg.inv(T_wb) @ T_wa
+    T[:3, :3] = _rot([2.0, 0.0, 0.0]) @ T[:3, :3]
+    T_odom_b = T_wa @ np.linalg.inv(T)
+    ref, src = _window(rendered_pair, T_odom_b)
+    thinned = WindowPoseRefiner(PoseRefinerConfig(rotation_evidence='auto', odom_covariance='fixed',
+                                                  flow_direction_pairs=5, flow_probe_every=4))
+    every = WindowPoseRefiner(PoseRefinerConfig(rotation_evidence='flow', odom_covariance='fixed'))
+    for i in range(6):                     # new pairs 1..6: the first (not yet settled) and the fourth measure it
+        refs = dataclasses.replace(ref, key=2 * i), [dataclasses.replace(src, key=2 * i + 1)]
+        a, b = thinned.refine(*refs), every.refine(*refs)
+        np.testing.assert_array_equal(a.T_src_ref[0], b.T_src_ref[0])
+    assert len(thinned._direction_ratios) == 2
+    assert thinned.factor_counts == {'evidence_flow': 6, 'flow_used': 6}
+
+
 def test_the_direction_ratio_reaches_the_diagnostics():
     """/diagnostics pose_refinement_direction_ratio: the median, whether the images agree, the threshold; absent
     before a flow pair has said anything."""

@@ -311,13 +311,15 @@ def main(argv: Optional[List[str]] = None) -> int:
                         "preset's)")
     p.add_argument('--flow-patch-stride', type=int, default=None,
                    help="with --matcher flow: DIS's step between patches in pixels (default: the preset's)")
+    p.add_argument('--flow-converged-rad', type=float, default=FlowConfig().converged_rad,
+                   help='with --matcher flow: the rotation fit stops once a Gauss-Newton step is below this (rad)')
     p.add_argument('--loso', action='store_true', help='also fit leaving each sequence out')
     p.add_argument('--json', type=pathlib.Path, help='write every pair and the fits here')
     a = p.parse_args(argv)
     from tqdm import tqdm
     size = (P.default('processing_width'), P.default('processing_height'))
-    flow = FlowConfig(variational_iterations=a.flow_variational_iterations,
-                      patch_stride=a.flow_patch_stride) if a.matcher == 'flow' else None
+    flow = FlowConfig(variational_iterations=a.flow_variational_iterations, patch_stride=a.flow_patch_stride,
+                      converged_rad=a.flow_converged_rad) if a.matcher == 'flow' else None
     if flow is not None:
         size = None
     if a.size:

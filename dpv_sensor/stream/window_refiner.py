@@ -167,6 +167,7 @@ class WindowPoseRefiner:
             # the last flow pairs' direction_ratio (rotation_evidence 'auto'): a property of the camera and the
             # odometry, so kept across resets
             self._direction_ratios: Deque[float] = collections.deque(maxlen=self.config.flow_direction_pairs)
+            self._new_flow_pairs = 0                         # flow pairs measured since construction (not reset)
 
     @property
     def uses_camera_images(self) -> bool:
@@ -516,15 +517,27 @@ class WindowPoseRefiner:
             self._rotation_factors[(s.key, ref.key)] = (s.key, ref.key, T, cov)
         return list(self._rotation_factors.values())
 
+    def _settled(self) -> Optional[bool]:
+        """rotation_evidence 'auto': None while fewer than ``flow_direction_pairs // 5`` pairs have a direction
+        ratio, else whether their median says the images agree with the odometry's directions."""
+        if len(self._direction_ratios) < max(1, self.config.flow_direction_pairs // 5):
+            return None
+        return self.direction_ratio[0] <= self.config.flow_direction_ratio
+
     def _probe_flow(self) -> bool:
-        """rotation_evidence 'auto': whether this window measures the flow. Once ``flow_direction_pairs // 5``
-        pairs or more say the images disagree with the odometry's directions, only every ``flow_probe_every``-th
-        window does (what SIFT's factors cost, plus a flow now and then to notice if that changes)."""
-        cfg = self.config
-        ratios = self._direction_ratios
-        settled = len(ratios) >= max(1, cfg.flow_direction_pairs // 5) and self.direction_ratio[0] > \
-            cfg.flow_direction_ratio
-        return not settled or self.calls % max(1, cfg.flow_probe_every) == 0
+        """rotation_evidence 'auto': whether this window measures the flow. Once enough pairs say the images
+        disagree with the odometry's directions (:meth:`_settled`), only every ``flow_probe_every``-th window does
+        (what SIFT's factors cost, plus a flow now and then to notice if that changes)."""
+        return self._settled() is not False or self.calls % max(1, self.config.flow_probe_every) == 0
+
+    def _measure_direction_ratio(self) -> bool:
+        """rotation_evidence 'auto': whether the next new flow pair also measures its direction ratio (a third of
+        its fit's time). Once enough pairs say the images agree (:meth:`_settled`), only every
+        ``flow_probe_every``-th new pair does: the median follows the camera at a quarter of the pairs."""
+        if self.config.rotation_evidence != 'auto':
+            return False
+        self._new_flow_pairs += 1
+        return self._settled() is not True or self._new_flow_pairs % max(1, self.config.flow_probe_every) == 0
 
     def _pair_rotation(self, ref: WindowKeyframe, src: WindowKeyframe, T0_src_ref: np.ndarray) -> RotationEstimate:
         """The flow rotation ``R_src_ref`` of a pair, given the direction of ``T0_src_ref``: measured once per pair
@@ -539,7 +552,7 @@ class WindowPoseRefiner:
         (ga, K), (gb, _) = self._match_image(ref), self._match_image(src)
         cfg = self.config
         est = rotation_given_direction(flow_matches(ga, gb, K, cfg.flow), T0_src_ref[:3, 3], T0_src_ref[:3, :3],
-                                       cfg.flow, direction_ratio=cfg.rotation_evidence == 'auto')
+                                       cfg.flow, direction_ratio=self._measure_direction_ratio())
         if est.direction_ratio is not None:
             self._direction_ratios.append(est.direction_ratio)
         self._flow[(ref.key, src.key)] = est

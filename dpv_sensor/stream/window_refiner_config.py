@@ -134,8 +134,10 @@ class PoseRefinerConfig:
     #     odometry. 'auto': the flow factors while the median of the last ``flow_direction_pairs`` flow pairs'
     #     ``direction_ratio`` (core.flow_rotation) is at most ``flow_direction_ratio``, i.e. while the images agree
     #     with the odometry's translation directions, else the SIFT factors (decided per window; before any pair
-    #     has a ratio, SIFT). Once a fifth of ``flow_direction_pairs`` say they disagree, the flow is measured on
-    #     every ``flow_probe_every``-th window only.
+    #     has a ratio, SIFT). Once a fifth of ``flow_direction_pairs`` have a ratio, the camera is settled: where
+    #     their median says the images disagree, the flow is measured on every ``flow_probe_every``-th window only;
+    #     where it says they agree, every window's flow is measured and every ``flow_probe_every``-th new pair
+    #     also measures its ratio.
     # marginals: after the solve, each source's pose covariance relative to the reference (gtsam Marginals) in
     #     ``RefinementResult.source_sigma``, the pose uncertainty the estimator widens with in place of the
     #     odometry's.
