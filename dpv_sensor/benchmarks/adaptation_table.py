@@ -37,7 +37,7 @@ from typing import Any, Dict, List, Optional
 
 import numpy as np
 
-from dpv_sensor.benchmarks.stream_table_inputs import rendered_sequence, sequence_folders
+from dpv_sensor.benchmarks.stream_table_inputs import odometry_poses, rendered_sequence, sequence_folders
 
 # the pose-source rows of the stream table that the adaptation table reports (stream_table_markdown.table_rows)
 POSES = ('gt', 'noisy', 'noisy+cov')
@@ -54,15 +54,18 @@ class Evaluation:
     kind: str           # 'halves' | 'pair' | 'render'
 
 
-def _write_part(src: pathlib.Path, dst: pathlib.Path, frames: range, depth: bool) -> pathlib.Path:
+def _write_part(src: pathlib.Path, dst: pathlib.Path, frames: range, depth: bool,
+                odometry_seed: Optional[int] = None) -> pathlib.Path:
     """Frames of a sequence folder as a folder of their own (PNG images: no second JPEG loss), once. A folder
     written anew (other frames, or a source that changed: a seed rendered with another frame count) takes the
-    cached results made from its old content with it: the tool's run on it, the stream-table runs of its name."""
+    cached results made from its old content with it: the tool's run on it, the stream-table runs of its name.
+    ``odometry_seed``: its poses are the stream table's odometry-like corruption of the dataset's (that seed), as a
+    robot's recording carries them."""
     import shutil
     from dpv_sensor.data.sequence import Sequence, write_sequence
     done = dst / '.complete'
     src_done = src / '.complete'
-    tag = (f'{src.resolve()} {frames.start}-{frames.stop} depth={depth} '
+    tag = (f'{src.resolve()} {frames.start}-{frames.stop} depth={depth} odometry={odometry_seed} '
            f'{src_done.read_text().strip() if src_done.is_file() else ""}')
     if done.is_file() and done.read_text() == tag:
         return dst
@@ -74,14 +77,19 @@ def _write_part(src: pathlib.Path, dst: pathlib.Path, frames: range, depth: bool
     shutil.rmtree(out / 'weights' / dst.name, ignore_errors=True)
     for stale in (out / 'stream' / 'runs').glob(f'{dst.name}__*'):
         stale.unlink()
-    write_sequence(dst, seq.subset(list(frames)), lossless=True, write_depth=depth, write_extras=False)
+    part = seq.subset(list(frames))
+    if odometry_seed is not None:
+        part = part.with_poses(odometry_poses(part, f'noisy{odometry_seed}'))
+    write_sequence(dst, part, lossless=True, write_depth=depth, write_extras=False)
     done.write_text(tag)
     return dst
 
 
 def evaluations(data: Optional[pathlib.Path], names: Optional[List[str]], pairs: List[str], seeds: List[int],
-                out: pathlib.Path, frames: int) -> List[Evaluation]:
-    """The evaluations' folders, written under OUT/recordings and OUT/scored."""
+                out: pathlib.Path, frames: int, odometry_seed: Optional[int] = None) -> List[Evaluation]:
+    """The evaluations' folders, written under OUT/recordings and OUT/scored (``odometry_seed``: the recordings
+    carry odometry-like poses of that noise seed, named ``..._odom<seed>``)."""
+    odom = '' if odometry_seed is None else f'_odom{odometry_seed}'
     from dpv_sensor.data.sequence import Sequence
     evals: List[Evaluation] = []
     folders = {p.name: p for p in sequence_folders(data)} if data else {}
@@ -94,7 +102,8 @@ def evaluations(data: Optional[pathlib.Path], names: Optional[List[str]], pairs:
         n = len(Sequence(src, depth=False))
         evals.append(Evaluation(
             name=f'{name} (2nd half)',
-            recording=_write_part(src, out / 'recordings' / f'{name}_first', range(0, n // 2), depth=False),
+            recording=_write_part(src, out / 'recordings' / f'{name}_first{odom}', range(0, n // 2), depth=False,
+                                  odometry_seed=odometry_seed),
             scored=_write_part(src, out / 'scored' / f'{name}_second', range(n // 2, n), depth=True),
             kind='render' if name.startswith('synthetic_seed') else 'halves'))
     for pair in pairs:
@@ -105,7 +114,8 @@ def evaluations(data: Optional[pathlib.Path], names: Optional[List[str]], pairs:
             nx, ny = len(Sequence(folders[x], depth=False)), len(Sequence(folders[y], depth=False))
             evals.append(Evaluation(
                 name=f'{y} (adapted on {x})',
-                recording=_write_part(folders[x], out / 'recordings' / f'{x}_all', range(0, nx), depth=False),
+                recording=_write_part(folders[x], out / 'recordings' / f'{x}_all{odom}', range(0, nx), depth=False,
+                                      odometry_seed=odometry_seed),
                 scored=_write_part(folders[y], out / 'scored' / f'{y}_all', range(0, ny), depth=True),
                 kind='pair'))
     return evals
@@ -231,6 +241,9 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument('--seeds', default='', help="held-out rendered seeds, e.g. '60' or '60-61' (controls)")
     ap.add_argument('--frames', type=int, default=60, help='frames per rendered seed (60)')
     ap.add_argument('--noise-seeds', default='0', help="odometry noise seeds ('' for GT poses only)")
+    ap.add_argument('--recording-odometry', type=int, default=None, metavar='SEED',
+                    help="the recordings adapted on carry odometry-like poses (the stream table's noise, this seed) "
+                         "instead of the dataset's, as a robot's recording does; scoring is unchanged")
     ap.add_argument('--tool-args', default='', help='arguments added to the adapt command, e.g. "--steps 150"')
     ap.add_argument('--offline', action='store_true', help='score with the pipeline in this process, not the node')
     ap.add_argument('--out', type=pathlib.Path, default=pathlib.Path('out/adaptation_table'))
@@ -247,7 +260,7 @@ def main(argv: Optional[List[str]] = None) -> int:
         ap.error(f'--data {a.data}: not a folder')
     try:
         seeds = check_heldout_seeds(parse_seeds(a.seeds))
-        evals = evaluations(a.data, a.sequences, a.pairs, seeds, a.out.resolve(), a.frames)
+        evals = evaluations(a.data, a.sequences, a.pairs, seeds, a.out.resolve(), a.frames, a.recording_odometry)
     except ValueError as exc:
         ap.error(str(exc))
     if not evals:

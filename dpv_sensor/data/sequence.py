@@ -539,6 +539,18 @@ class Sequence:
                                       load_image=lambda i: base.image(i), load_depth=None, meta=self.meta,
                                       extras={}, name=self.name, folder=self.folder)
 
+    def with_poses(self, poses) -> 'Sequence':
+        """A view with every frame's pose replaced by ``poses`` ((N, 4, 4) T_world_cam, e.g. the node's)."""
+        poses = np.asarray(poses, dtype=np.float64).reshape(-1, 4, 4)
+        if len(poses) != len(self):
+            raise ValueError(f'{len(poses)} poses for {len(self)} frames')
+        base = self
+        extras = {n: (lambda i, n=n: base.extra(n, i)) for n in self._extras}
+        return Sequence._from_loaders(K=self._K, size=self._size, poses=poses, stamps=self._stamps,
+                                      load_image=lambda i: base.image(i),
+                                      load_depth=None if not self.has_depth else (lambda i: base.depth(i)),
+                                      meta=self.meta, extras=extras, name=self.name, folder=self.folder)
+
     def materialize(self) -> 'Sequence':
         """Load every frame into memory (useful for a resized view of a folder that is read repeatedly)."""
         n = len(self)

@@ -11,7 +11,8 @@ Examples::
 
 The recording is resized to the node's processing size (320x256 by default) and cut into keyframes as the node
 cuts them; its last --holdout share of frames is held out. The networks are adapted on the rest with a photometric
-reprojection loss across each keyframe window, using the recording's poses, tied to the shipped weights
+reprojection loss across each keyframe window, using the poses the node would use (the recording run once through
+its pipeline and refinement window; --poses odometry: as recorded), tied to the shipped weights
 (dpv_sensor/training/adapt_loop.py; docs/adaptation.md). Both weights are then scored on the held-out slice with
 the same label-free score (photometric reprojection error of their depth); the adapted weights are written only
 when they score better. --minutes caps the whole run (the default fits a 700-image recording on a 2-core CPU).
@@ -41,6 +42,7 @@ from typing import Dict, List, Optional
 from dpv_sensor import params as P
 from dpv_sensor.cli import tool_argv
 from dpv_sensor.training.adapt_loop import DEFAULT_MINUTES, AdaptConfig
+from dpv_sensor.training.adapt_poses import POSE_SOURCES
 from dpv_sensor.training.config import MODULES
 
 EXIT_WRITTEN, EXIT_REFUSED, EXIT_BAD_INPUT, EXIT_INTERRUPTED = 0, 1, 2, 130
@@ -81,6 +83,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help='the depth the photometric loss warps with (the DPV readout)')
     p.add_argument('--train-modules', nargs='+', choices=MODULES, default=list(d.train_modules), metavar='MODULE',
                    help=f'adapt only these sub-networks ({", ".join(MODULES)}; default: all)')
+    p.add_argument('--poses', choices=POSE_SOURCES, default=d.poses,
+                   help="window: the keyframes' poses as the node uses them (the recording run once through the "
+                        "node's pipeline with its refinement window); odometry: the recording's poses as they are")
     p.add_argument('--seed', type=int, default=d.seed, help='seed of the sample order')
     p.add_argument('--threads', type=int, default=0, help="torch CPU threads (0: torch's default)")
     p.add_argument('--image-topic', default=None, help='bag: the image topic (needed only among several)')
@@ -101,7 +106,8 @@ def _config(a) -> AdaptConfig:
     return AdaptConfig(width=a.width, height=a.height, minutes=a.minutes, max_steps=a.steps, lr=a.lr,
                        unroll=a.unroll, holdout=a.holdout, train_modules=tuple(a.train_modules), aux=a.aux,
                        penalty=a.penalty, distill=a.distill, readout=a.readout, photometric=a.photometric,
-                       evidence=a.evidence, sigma=a.sigma, supervised=a.supervised, seed=a.seed).check()
+                       evidence=a.evidence, sigma=a.sigma, supervised=a.supervised, poses=a.poses,
+                       seed=a.seed).check()
 
 
 def _file_sha256(path) -> str:
@@ -229,7 +235,7 @@ def run(a, argv: List[str], log) -> int:
     seq, source = _load(a, log)
     gt_seq = _gt_sequence(a.gt, len(seq)) if a.gt else None
     log(f'{source["name"]}: {len(seq)} frames at {cfg.width}x{cfg.height} ({time.time() - t0:.0f} s to load)')
-    adapter = Adapter(cfg, model, seq, log=log)
+    adapter = Adapter(cfg, model, seq, log=log, progress=not a.quiet)
     log(f'keyframes: {len(adapter.train_kf)} to adapt on, {len(adapter.held_kf)} held out (frames {adapter.split}..'
         f'{len(seq) - 1})')
     result = adapter.run(deadline, progress=not a.quiet)
@@ -242,6 +248,7 @@ def run(a, argv: List[str], log) -> int:
               'stop_reason': result.stop_reason, 'minutes': round(minutes, 2), 'seconds': result.seconds,
               'held_out': {'score': result.score_kind, 'base': result.base_score, 'adapted': result.adapted_score,
                            'keyframes': result.keyframes},
+              'poses': {'source': cfg.poses, **(adapter.pose_stats or {})},
               'ground_truth': gt, 'history': result.history}
     if result.steps == 0:
         reason = f'no adaptation step fitted in --minutes {cfg.minutes:g}'

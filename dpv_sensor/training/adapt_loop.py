@@ -43,6 +43,7 @@ import torch
 
 from dpv_sensor import params as P
 from dpv_sensor.core import dpv as dpvops
+from dpv_sensor.training.adapt_poses import POSE_SOURCES, node_keyframe_poses
 from dpv_sensor.training.config import MODULES
 from dpv_sensor.training.dataset import WindowLayout, sample_from_sequence
 from dpv_sensor.training.self_supervised import (distillation, downsample_image, masked_mean, parameter_penalty,
@@ -90,6 +91,7 @@ class AdaptConfig:
     readout: str = 'relative'                       # the depth the photometric loss warps with (the node's)
     automask: bool = True
     supervised: bool = False                        # the trainer's NLL on the recording's depth instead
+    poses: str = 'window'                           # 'window': the node's refined keyframe poses; 'odometry'
     seed: int = 0
 
     def check(self) -> 'AdaptConfig':
@@ -106,6 +108,8 @@ class AdaptConfig:
             raise ValueError(f'readout must be one of {dpvops.READOUTS}, got {self.readout!r}')
         if min(self.aux, self.penalty, self.distill, self.photometric, self.evidence) < 0 or self.sigma <= 0:
             raise ValueError('loss weights must be >= 0 and sigma > 0')
+        if self.poses not in POSE_SOURCES:
+            raise ValueError(f'poses must be one of {POSE_SOURCES}, got {self.poses!r}')
         if self.photometric == 0 and self.evidence == 0 and not self.supervised:
             raise ValueError('photometric and evidence weights are both 0: nothing to adapt with')
         return self
@@ -187,10 +191,22 @@ class Adapter:
     """One adaptation run of ``model`` (a DPVNet, adapted in place) on ``sequence`` (resized to the processing size;
     see the module docstring)."""
 
-    def __init__(self, cfg: AdaptConfig, model, sequence, log: Optional[Callable[[str], None]] = None):
+    def __init__(self, cfg: AdaptConfig, model, sequence, log: Optional[Callable[[str], None]] = None,
+                 progress: bool = False):
         self.cfg = cfg.check()
         self.log = log or (lambda _m: None)
         self.model = model
+        self.pose_stats: Optional[Dict] = None
+        kfs = None
+        if cfg.poses == 'window':
+            t0 = time.time()
+            node = node_keyframe_poses(sequence, model, cfg.width, cfg.height, progress=progress)
+            sequence, kfs = sequence.with_poses(node.poses), node.keyframes
+            self.pose_stats = dict(node.stats, seconds=round(time.time() - t0, 1))
+            ch = node.stats['step_rotation_change_deg']
+            self.log(f"poses: the node's window refined {node.stats['refined']} of {node.stats['keyframes']} "
+                     f"keyframes (a keyframe step's rotation moved {ch['median']:.3f} deg in the median, "
+                     f"{ch['max']:.3f} at most; {self.pose_stats['seconds']:.0f} s)")
         self.seq = sequence
         self.depths_d = model.depth_planes(torch.float32)
         self.base = {k: v.detach().clone() for k, v in model.named_parameters()}
@@ -199,7 +215,8 @@ class Adapter:
             import copy
             self.base_model = copy.deepcopy(model).eval().requires_grad_(False)
         frames = len(sequence)
-        kfs = select_keyframes([sequence.pose(i) for i in range(frames)])
+        if kfs is None:
+            kfs = select_keyframes([sequence.pose(i) for i in range(frames)])
         self.split, self.train_kf, self.held_kf, runs = split_keyframes(kfs, frames, cfg.holdout, cfg.layout())
         if len(runs) > cfg.max_holdout_runs:
             runs = [runs[int(i)] for i in np.linspace(0, len(runs) - 1, cfg.max_holdout_runs).round()]
