@@ -72,6 +72,7 @@ def test_writes_weights_report_and_metadata(adapted, folders):
     assert 'evidence' in ad['loss'] and ad['config']['evidence'] == 1.0 and ad['config']['readout'] == 'relative'
     assert ad['recording']['depth_read'] is False and 0 < ad['minutes'] < 5
     assert ad['held_out']['adapted'] == report['held_out']['adapted']
+    assert ad['config']['poses'] == 'odometry' and report['poses'] == {'source': 'odometry'}
     # the weights moved, and they load for the size they were adapted at
     model, _ = load_checkpoint(out / 'weights.safetensors', preset='lite', processing_size=(W, H))
     shipped, _ = load_checkpoint(base, preset='lite')
@@ -92,6 +93,20 @@ def test_depth_is_never_read_same_weights_with_and_without_depth_folder(adapted,
     c = read_metadata(tmp_path / 'sup' / 'weights.safetensors')
     assert c['tensors_sha256'] != a['tensors_sha256']
     assert c['adaptation']['held_out']['score'] == 'nll' and c['adaptation']['recording']['depth_read'] is True
+
+
+def test_poses_window_warps_with_the_keyframe_poses_the_node_used(folders, tmp_path):
+    """--poses window: the recording runs once through the node's pipeline and refinement window, and the report
+    says how many keyframes it refined and how far their steps' rotations moved (exact poses here: little)."""
+    assert tool.main([str(folders[1]), '--out', str(tmp_path), *FAST, '--steps', '1', '--poses', 'window']) == \
+        tool.EXIT_WRITTEN
+    report = json.loads((tmp_path / 'report.json').read_text())
+    poses = report['poses']
+    assert poses['source'] == 'window' and report['config']['poses'] == 'window'
+    assert poses['keyframes'] >= 10 and poses['refined'] >= poses['keyframes'] - 2
+    assert poses['kept_as_recorded'] == poses['keyframes'] - poses['refined']
+    assert 0.0 <= poses['step_rotation_change_deg']['median'] < 0.5
+    assert sum(poses['refiner_windows'].values()) >= poses['refined']
 
 
 def test_supervised_needs_depth(folders, tmp_path, capsys):

@@ -63,6 +63,24 @@ def test_halves_have_no_depth_to_adapt_on_and_the_other_half_with_depth_to_score
         AT.evaluations(data, None, ['a:c'], [], tmp_path / 'out', 60)
 
 
+def test_recordings_with_odometry_carry_the_stream_tables_noisy_poses_and_the_scored_halves_the_truth(tmp_path):
+    """--recording-odometry SEED: the recordings adapted on carry the stream table's odometry-like corruption of
+    that seed (as a robot's recording does), under their own names; the scored halves keep the dataset's poses."""
+    from dpv_sensor.benchmarks.stream_table_inputs import odometry_poses
+    data = tmp_path / 'data'
+    _folder(data / 'a', 10, 2.0)
+    _folder(data / 'b', 8, 3.0)
+    evals = AT.evaluations(data, None, ['a:b'], [], tmp_path / 'out', 60, odometry_seed=1)
+    assert [e.recording.name for e in evals] == ['a_first_odom1', 'b_first_odom1', 'a_all_odom1', 'b_all_odom1']
+    truth = Sequence(data / 'a', depth=False)
+    first = Sequence(evals[0].recording, depth=False)
+    expected = odometry_poses(truth.subset(range(5)), 'noisy1')
+    np.testing.assert_allclose(first.poses, np.stack(expected), atol=1e-9)
+    assert not np.allclose(first.poses, truth.poses[:5], atol=1e-4)
+    np.testing.assert_allclose(Sequence(evals[0].scored).poses, truth.poses[5:], atol=1e-9)
+    np.testing.assert_allclose(Sequence(evals[2].scored).poses, Sequence(data / 'b').poses, atol=1e-9)
+
+
 def test_a_recording_the_tool_refuses_is_not_adapted_and_its_message_kept(tmp_path):
     data = tmp_path / 'data'
     _folder(data / 'short', 12, 2.0)

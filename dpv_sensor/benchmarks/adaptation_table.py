@@ -3,7 +3,7 @@ user runs it and scored through the stream table on frames it never saw.
 
     python -m dpv_sensor.benchmarks.adaptation_table --data DATA --out out/adaptation_table \
         [--pairs sun3d_3dmatch_frag1:sun3d_3dmatch_frag2 ...] [--seeds 60] [--noise-seeds 0] [--offline] \
-        [--tool-args "--steps 150"]
+        [--recording-odometry 0] [--tool-args "--steps 150"]
 
 Evaluations:
 
@@ -11,6 +11,9 @@ Evaluations:
   stamps written to a folder without ``depth/``), scored on its second half;
 - every ``--pairs A:B`` (both directions): adapted on the whole of A (no depth), scored on the whole of B;
 - every held-out rendered seed of ``--seeds``: the same halves as a folder (the control).
+
+The recordings carry the dataset's poses, or with ``--recording-odometry SEED`` the stream table's odometry-like
+drift of that seed, as a robot's recording carries its odometry (written as ``<name>_odom<seed>``).
 
 The tool runs as its own process (``python -m dpv_sensor.tools.adapt REC --out W --quiet`` plus ``--tool-args``).
 Exit 0: its weights are scored; exit 1 (the held-out score refused them): the user keeps the shipped weights, so

@@ -11,8 +11,8 @@ Examples::
 
 The recording is resized to the node's processing size (320x256 by default) and cut into keyframes as the node
 cuts them; its last --holdout share of frames is held out. The networks are adapted on the rest with a photometric
-reprojection loss across each keyframe window, using the poses the node would use (the recording run once through
-its pipeline and refinement window; --poses odometry: as recorded), tied to the shipped weights
+reprojection loss across each keyframe window, using the recording's poses (--poses window: the poses the node would
+use, the recording run once through its pipeline and refinement window), tied to the shipped weights
 (dpv_sensor/training/adapt_loop.py; docs/adaptation.md). Both weights are then scored on the held-out slice with
 the same label-free score (photometric reprojection error of their depth); the adapted weights are written only
 when they score better. --minutes caps the whole run (the default fits a 700-image recording on a 2-core CPU).
@@ -84,8 +84,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--train-modules', nargs='+', choices=MODULES, default=list(d.train_modules), metavar='MODULE',
                    help=f'adapt only these sub-networks ({", ".join(MODULES)}; default: all)')
     p.add_argument('--poses', choices=POSE_SOURCES, default=d.poses,
-                   help="window: the keyframes' poses as the node uses them (the recording run once through the "
-                        "node's pipeline with its refinement window); odometry: the recording's poses as they are")
+                   help="odometry (default): the recording's poses as they are; window: the keyframes' poses as "
+                        "the node uses them (the recording run once through the node's pipeline with its refinement "
+                        'window)')
     p.add_argument('--seed', type=int, default=d.seed, help='seed of the sample order')
     p.add_argument('--threads', type=int, default=0, help="torch CPU threads (0: torch's default)")
     p.add_argument('--image-topic', default=None, help='bag: the image topic (needed only among several)')

@@ -91,7 +91,7 @@ class AdaptConfig:
     readout: str = 'relative'                       # the depth the photometric loss warps with (the node's)
     automask: bool = True
     supervised: bool = False                        # the trainer's NLL on the recording's depth instead
-    poses: str = 'window'                           # 'window': the node's refined keyframe poses; 'odometry'
+    poses: str = 'odometry'                         # as recorded; 'window': the node's refined keyframe poses
     seed: int = 0
 
     def check(self) -> 'AdaptConfig':

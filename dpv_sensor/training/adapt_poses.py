@@ -35,14 +35,10 @@ class NodePoses:
 
 
 def _step_rotation_change_deg(a: List[np.ndarray], b: List[np.ndarray], keys: List[int]) -> np.ndarray:
-    """Per consecutive keyframe pair: the angle (deg) between its relative rotation in ``a`` and in ``b``."""
-    out = []
-    for i, j in zip(keys[:-1], keys[1:]):
-        Ra = a[i][:3, :3].T @ a[j][:3, :3]
-        Rb = b[i][:3, :3].T @ b[j][:3, :3]
-        c = (np.trace(Ra.T @ Rb) - 1.0) / 2.0
-        out.append(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
-    return np.asarray(out, np.float64)
+    """Per consecutive keyframe pair: the angle (deg) between its relative pose's rotation in ``a`` and in ``b``."""
+    from dpv_sensor.core.geometry import relative_pose_error_np
+    return np.asarray([relative_pose_error_np(np.linalg.inv(a[i]) @ a[j], np.linalg.inv(b[i]) @ b[j])[1]
+                       for i, j in zip(keys[:-1], keys[1:])], np.float64)
 
 
 def node_keyframe_poses(sequence, model, width: int, height: int, overrides: Optional[Dict] = None,
