@@ -57,10 +57,14 @@ class Outputs:
 
     def __init__(self, node, ns: str, diag_name: str, extra=()):
         from diagnostic_msgs.msg import DiagnosticArray
+        from rclpy.event_handler import SubscriptionEventCallbacks
         from rclpy.qos import QoSProfile, ReliabilityPolicy
         from sensor_msgs.msg import CameraInfo, CompressedImage, Image, PointCloud2
         qos = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
         self.by_stamp: dict[int, dict] = {}
+        # DDS-matched publishers per output kind: the graph lists a publisher before its writer has matched this
+        # reader, and a reliable volatile writer drops what it publishes before the match
+        self.matched: dict[str, int] = {}
         self.diag_history: list[tuple[int, str]] = []
         self.diag_count = 0
         self.diagnostics: dict = {}
@@ -68,9 +72,13 @@ class Outputs:
         types = {'depth': Image, 'rgb': Image, 'conf': Image, 'points': PointCloud2, 'compressed': CompressedImage}
         topics = dict(OUTPUT_TOPICS, points='depth/points', compressed='depth/image/compressedDepth')
         self.subs = {}
+        self.topics = {kind: topics[kind] for kind in list(OUTPUT_TOPICS) + list(extra)}
         for kind in list(OUTPUT_TOPICS) + list(extra):
+            events = SubscriptionEventCallbacks(
+                matched=lambda info, kind=kind: self.matched.update({kind: info.current_count}))
             self.subs[kind] = node.create_subscription(types.get(kind, CameraInfo), f'{ns}/{topics[kind]}',
-                                                       lambda m, kind=kind: self._on(kind, m), qos)
+                                                       lambda m, kind=kind: self._on(kind, m), qos,
+                                                       event_callbacks=events)
         self.diag_name = diag_name
         node.create_subscription(DiagnosticArray, '/diagnostics', self._on_diag, qos)
 
@@ -95,6 +103,19 @@ class Outputs:
     def complete(self):
         with self.lock:
             return {s: d for s, d in self.by_stamp.items() if set(OUTPUT_TOPICS) <= set(d)}
+
+    def all_matched(self) -> bool:
+        """Each output subscription here has matched the node's publisher, and the node's writer has matched it
+        (its /diagnostics says so): DDS matches the two sides apart, and a reliable volatile writer sends nothing
+        to a reader it has not matched yet."""
+        return all(self.matched.get(kind, 0) == 1 and self.diag_int(f'subscribers.{topic}') == 1
+                   for kind, topic in self.topics.items())
+
+    def missing(self) -> dict:
+        """For each stamp not complete (ms after the bag's start): the output kinds that have not come."""
+        with self.lock:
+            return {(s - START_NS) // 1_000_000: sorted(set(OUTPUT_TOPICS) - set(d)) for s, d in self.by_stamp.items()
+                    if not set(OUTPUT_TOPICS) <= set(d)}
 
 
 def _distorted_info(seq):
@@ -179,10 +200,11 @@ def test_rgb_confidence_info_compressed_points_and_rate_warning_in_both_resoluti
         ready = wait_for(lambda: all(o.diagnostics.get('measurement_model') == 'classical'
                                      and o.diag_int('publishers.image') == 1 and o.diag_int('publishers.odom') == 1
                                      and o.diag_int('publishers.camera_info') >= 1 for o in (a, b))
-                         and all(s.get_publisher_count() == 1 for o in (a, b) for s in o.subs.values()),
+                         and all(o.all_matched() for o in (a, b)),
                          timeout=90.0, spin=spin)
         assert proc_a.poll() is None and proc_b.poll() is None, 'a node exited early'
-        assert ready, f'the nodes never got ready: A {a.diagnostics} B {b.diagnostics}'
+        assert ready, (f'the nodes never got ready: matched A {a.matched} B {b.matched}\n'
+                       f'A {a.diagnostics}\nB {b.diagnostics}')
         assert not player.wait_for_subscribers([R.IMAGE_TOPIC, R.ODOM_TOPIC], min_count=2, timeout=10.0, spin=spin)
         assert not player.wait_for_subscribers([R.CAMERA_INFO_TOPIC], min_count=1, timeout=10.0, spin=spin)
         assert wait_for(lambda: b.diagnostics.get('rectification', '').startswith('on'), timeout=20.0, spin=spin), \
@@ -196,7 +218,9 @@ def test_rgb_confidence_info_compressed_points_and_rate_warning_in_both_resoluti
         assert done, (f'replay did not finish: player running {thread.is_alive()}; ' + '; '.join(
             f"{n}: processed {o.diag_int('frames_processed')} + dropped {o.diag_int('dropped_total')} of {FRAMES}, "
             f"published {o.diag_int('outputs_published')}, received complete {len(o.complete())} of "
-            f"{len(o.by_stamp)} stamps" for n, o in (('A', a), ('B', b))) + f'\nA {a.diagnostics}\nB {b.diagnostics}')
+            f"{len(o.by_stamp)} stamps, missing (ms after the first image: kinds) {o.missing()}"
+            for n, o in (('A', a), ('B', b)))
+            + f'\nA {a.diagnostics}\nB {b.diagnostics}')
         # the last diagnostics of the run (two more ticks of each node) and every cloud node B counted
         ticks = (a.diag_count, b.diag_count)
         settled = wait_for(lambda: a.diag_count >= ticks[0] + 2 and b.diag_count >= ticks[1] + 2 and

@@ -421,7 +421,7 @@ class _NodeReplay:
         self._wait_estimator()
         self._wait_subscribed()
         self._wait_publishing()
-        self.spin_until(lambda: False, 0.5)   # let discovery settle between the recorder and the node's publishers
+        self._wait_recorder_matched()
         self.res.node_start_s = round(time.perf_counter() - self.t_start, 2)
         d = self.monitor.snapshot()
         return (f"pid {self.proc.pid}, measurement {d.get('measurement_model')}, device {d.get('device')}, "
@@ -465,6 +465,20 @@ class _NodeReplay:
         still = self.recorder.poll()
         if still:
             raise ReplayError(f'the node does not publish {still} (log: {_rel(self.log_path)})')
+
+    def _wait_recorder_matched(self) -> None:
+        """The recorder's readers and the node's writers of the recorded outputs have matched each other (the node's
+        /diagnostics counts its matched subscribers): a reliable volatile writer sends nothing to a reader it has not
+        matched yet, so the first outputs would be lost."""
+        monitor, subs = self.monitor, self.recorder.subscriptions
+        outputs = [t for t in OUTPUT_TOPICS if t != '/diagnostics']
+        wait_s = max(10.0, self.opts.start_timeout)
+
+        def matched(t: str) -> bool:
+            return subs[t].get_publisher_count() >= 1 and monitor.get_int(f'subscribers.{t.lstrip("/")}') >= 1
+        if not self.spin_until(lambda: all(matched(t) for t in outputs), wait_s):
+            raise ReplayError(f"the node's publishers of {[t for t in outputs if not matched(t)]} did not match the "
+                              f'recorder within {wait_s:g} s (log: {_rel(self.log_path)})')
 
     # -- 4. replay and record -----------------------------------------------------------------------------------
     def replay(self, total: int) -> str:

@@ -162,7 +162,7 @@ class NodeDiagnostics:
         return values
 
     def _graph_values(self) -> dict:
-        """Pose buffer, TF, rectification and the QoS and publishers of the inputs."""
+        """Pose buffer, TF, rectification, the QoS and publishers of the inputs and the subscribers of the outputs."""
         node, inputs = self.node, self.node.inputs
         values = {'pose_buffer_size': len(inputs.pose_buffer),
                   # the worker waits for the odometry after an image's stamp, or for the camera mount on TF
@@ -178,6 +178,9 @@ class NodeDiagnostics:
         # the DDS reader: 0 means nothing arrives yet)
         for topic, sub in inputs.subscriptions.items():
             values[f'publishers.{topic}'] = min(sub.get_publisher_count(), inputs.matched.get(topic, 0))
+        # subscribers of each output that its DDS writer has matched (it sends nothing to one it has not matched yet)
+        for topic, n in node.outputs.matched.items():
+            values[f'subscribers.{topic}'] = n
         for topic, reliability in inputs.reliability.items():
             values[f'input_qos.{topic}'] = reliability
         # how the colour image arrives (image_transport raw | compressed), where, and the decode time of compressed

@@ -51,6 +51,9 @@ class NodeOutputs:
         self.node = node
         self.faults = faults
         self._qos_events = qos_events
+        # DDS-matched subscribers per output topic (publication-matched events of the writer): a reliable volatile
+        # writer sends only to the readers it has matched, so a subscriber the graph lists may still miss outputs
+        self.matched: dict[str, int] = {}
         out_qos = qos.profile(s.output_reliability, s.output_depth)
         pub = self._publisher
         self.depth = pub(Image, 'depth/image', out_qos)
@@ -97,8 +100,12 @@ class NodeOutputs:
         self._frame_meta: collections.OrderedDict = collections.OrderedDict()
 
     def _publisher(self, msg_type, topic: str, qos_profile):
+        self.matched[topic] = 0
+
+        def on_matched(info, topic=topic) -> None:
+            self.matched[topic] = int(info.current_count)
         return self.node.create_publisher(msg_type, qos.resolve(self.node, topic), qos_profile,
-                                          event_callbacks=self._qos_events.publisher(topic))
+                                          event_callbacks=self._qos_events.publisher(topic, matched=on_matched))
 
     # ------------------------------------------------------------------------------------------ frame headers
     def remember(self, stamp_s: float, meta: FrameMeta, is_keyframe: bool, window_size: int) -> None:

@@ -52,5 +52,7 @@ class QosEvents:
         return SubscriptionEventCallbacks(
             incompatible_qos=lambda info: self._on_incompatible(info, topic, 'subscription'), **events)
 
-    def publisher(self, topic: str) -> PublisherEventCallbacks:
-        return PublisherEventCallbacks(incompatible_qos=lambda info: self._on_incompatible(info, topic, 'publisher'))
+    def publisher(self, topic: str, **events) -> PublisherEventCallbacks:
+        """The publisher's callbacks: incompatible QoS, plus `events` (matched ...)."""
+        return PublisherEventCallbacks(
+            incompatible_qos=lambda info: self._on_incompatible(info, topic, 'publisher'), **events)
