@@ -214,13 +214,43 @@ def test_median_by_hand():
     assert dpv.quantile_index(_logp([0, 0, 1]), q=0.99).item() == pytest.approx(2.0)
 
 
-def test_cumsum_planes_is_the_running_sum_over_planes():
-    # by hand: 1, 2, 3 on three planes -> 1, 3, 6 at every pixel
-    x = torch.tensor([1.0, 2.0, 3.0], dtype=DT).reshape(1, 3, 1, 1).expand(2, 3, 2, 2)
-    assert dpv.cumsum_planes(x)[:, :, 1, 1].tolist() == [[1.0, 3.0, 6.0]] * 2
-    y = torch.randn(2, 7, 3, 4, dtype=DT, requires_grad=True)
-    assert torch.allclose(dpv.cumsum_planes(y), y.cumsum(1), atol=1e-12)
-    assert torch.autograd.gradcheck(dpv.cumsum_planes, (y,))
+def _quantile_by_full_cdf(logp_bdhw, q):
+    """The quantile as its docstring defines it, the whole running-sum CDF stored (the reference)."""
+    D = logp_bdhw.shape[1]
+    p = torch.exp(logp_bdhw)
+    acc, planes = p[:, 0], [p[:, 0]]
+    for k in range(1, D):
+        acc = acc + p[:, k]
+        planes.append(acc)
+    cdf = torch.stack(planes, 1)
+    k = (cdf < q).sum(1, keepdim=True).clamp(max=D - 1)
+    before = torch.where(k > 0, cdf.gather(1, (k - 1).clamp(min=0)), torch.zeros_like(cdf[:, :1]))
+    pk = p.gather(1, k).clamp_min(torch.finfo(p.dtype).tiny)
+    return (k.to(p.dtype) - 0.5 + ((q - before) / pk).clamp(0.0, 1.0))[:, 0].clamp(0.0, D - 1.0)
+
+
+@pytest.mark.parametrize('dtype', [torch.float32, torch.float64])
+def test_quantile_equals_the_full_cdf_bit_for_bit(dtype):
+    # peaked, flat, mass short of q on the last plane (the clamp to D - 1), NaN and -inf planes, one plane
+    g = torch.Generator().manual_seed(3)
+    logp = dpv.normalize_log(4.0 * torch.randn(2, 9, 5, 6, generator=g, dtype=dtype))
+    logp[0, :, 0, 0] = dpv.normalize_log(torch.zeros(1, 9, 1, 1, dtype=dtype))[0, :, 0, 0]
+    logp[0, :, 0, 1] = float('-inf')
+    logp[0, -1, 0, 1] = math.log(0.4)
+    logp[0, 3:, 0, 2] = float('nan')
+    logp[1, 2, 1, 1] = float('-inf')
+    for q in (0.5, 0.1, 0.99):
+        expected = _quantile_by_full_cdf(logp, q)
+        got = dpv.quantile_index(logp, q)
+        assert torch.equal(got.isnan(), expected.isnan())
+        assert torch.equal(got.nan_to_num(-1.0), expected.nan_to_num(-1.0)), q
+    single = dpv.normalize_log(torch.randn(1, 1, 2, 2, generator=g, dtype=dtype))
+    assert torch.equal(dpv.quantile_index(single), _quantile_by_full_cdf(single, 0.5))
+
+
+def test_quantile_gradient():
+    x = torch.randn(1, 5, 2, 3, dtype=DT, requires_grad=True)
+    assert torch.autograd.gradcheck(lambda t: dpv.quantile_index(dpv.normalize_log(t)), (x,))
 
 
 def test_relative_readout_by_hand():
