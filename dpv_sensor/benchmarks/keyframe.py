@@ -208,7 +208,8 @@ def markdown(result: Dict) -> str:
     source = f"sequence {result['sequence']}" if 'sequence' in result else f"input {result['input']}"
     lines = [f"Keyframe of `Pipeline.push`, {source} -> {d.get('processing_width')}x"
              f"{d.get('processing_height')}; settings {shown}; {result['threads']} torch threads, load average "
-             f"{result['load_average'][0]:.1f}; the variants pushed the same frames in turn. ms, median / p95.", '']
+             f"{result['load_average'][0]:.1f}; the variants pushed the same frames in turn. ms, median / p95."
+             + (f" malloc: {result['malloc']}." if result.get('malloc') else ''), '']
     hdr = ['stage'] + [f"{n} ({result['variants'][n]['keyframes_timed']} kf)" for n in names] + \
         [f'{a} / {b}' for a, b in pairs]
     rows = []
@@ -256,9 +257,16 @@ def main(argv=None) -> int:
     ap.add_argument('--variant', action='append', default=[], metavar='NAME:KEY=VALUE,...',
                     help='a variant of settings, crossed with the backends and precisions (repeatable), e.g. '
                          'no-window:pose_refinement=off')
+    ap.add_argument('--malloc', choices=('node', 'glibc'), default='node',
+                    help="the C library's malloc settings: the node process's (default; process_memory) or glibc's "
+                         'own (to measure them)')
     ap.add_argument('--json', default=None, help='also write the results here')
     ap.add_argument('--markdown', default=None, help='also write the table here')
     a = ap.parse_args(argv)
+    malloc_note = "glibc's defaults"
+    if a.malloc == 'node':       # before torch starts its threads, as the node does
+        from dpv_sensor.ros.process_memory import configure_malloc
+        malloc_note = configure_malloc()
     for b in a.backends:
         P.check_value(P.spec('inference_backend'), b)
     for p in a.precisions:
@@ -269,6 +277,7 @@ def main(argv=None) -> int:
         extra[name] = P.parse_assignments(_csv(assignments))
     result = run(variants(a.backends, a.precisions, extra or None), a.input, a.keyframes, a.warmup, a.seed,
                  settings=P.parse_assignments(a.set), threads=a.threads, progress=True, sequence=a.sequence)
+    result['malloc'] = malloc_note
     md = markdown(result)
     print(md)
     for path, text in ((a.json, json.dumps(result, indent=1)), (a.markdown, md)):

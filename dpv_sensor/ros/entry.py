@@ -1,5 +1,5 @@
 """`ros2 run dpv_sensor node`: the console script, light on purpose. It runs the start-up steps of
-``dpv_sensor.ros.startup`` (signal handlers, DDS transport, malloc arenas: standard library only) before it imports
+``dpv_sensor.ros.startup`` (signal handlers, DDS transport, malloc settings: standard library only) before it imports
 the node module (``dpv_sensor.ros.node``: rclpy, torch, OpenCV), then runs the node."""
 from __future__ import annotations
 

@@ -197,8 +197,8 @@ def run(argv: list[str], stop: threading.Event) -> int:
     """Build the node and spin it until ``stop`` is set (SIGINT / SIGTERM, see ``dpv_sensor.ros.startup``) or the
     worker reports that the pipeline cannot be built. Returns the exit code: 0, or 2 for a refused parameter or a
     failed start (with the one message on stderr). Only this thread creates and shuts down the ROS context."""
-    # capped by the start-up steps before any thread existed (DDS, the worker, OpenMP; see process_memory)
-    arenas_note = startup.arenas_note()
+    # set by the start-up steps before any thread existed (DDS, the worker, OpenMP; see process_memory)
+    malloc_note = startup.malloc_note()
     # the node's DDS transport, before rclpy.init (applied by the start-up steps already; idempotent)
     transport_note = startup.apply_transport_settings()
     if stop.is_set():
@@ -211,7 +211,7 @@ def run(argv: list[str], stop: threading.Event) -> int:
         if stop.is_set():
             return 0
         node = DepthCameraNode()
-        node.get_logger().info(arenas_note)
+        node.get_logger().info(malloc_note)
         node.get_logger().info(transport_note)
         executor = SingleThreadedExecutor()
         executor.add_node(node)

@@ -7,8 +7,8 @@ Start-up order, so that a signal at any moment gives a clean exit 0 and a failed
    standard library.
 2. ``apply_transport_settings()``: the node's own DDS transport (``dpv_sensor.ros.transport``: the Fast DDS profile in
    config/, unless the user chose a transport) goes into the process environment before rclpy is imported, since
-   the middleware reads it when rclpy initialises; and glibc's malloc arenas are capped before any thread exists
-   (``process_memory``).
+   the middleware reads it when rclpy initialises; and glibc's malloc arenas are capped and its mmap threshold
+   pinned before any thread exists (``process_memory``).
 3. the node module is imported (rclpy, torch, OpenCV: seconds on a loaded machine); a signal meanwhile only sets
    the flag, which is checked right after.
 4. ``dpv_sensor.ros.node.run(argv, STOP)`` builds and spins the node until STOP is set or the node reports a fatal
@@ -28,8 +28,8 @@ from typing import Callable, Tuple
 # set by SIGINT / SIGTERM (once installed); the node's spin loop polls it
 STOP = threading.Event()
 _installed = False
-# what limit_malloc_arenas() put in force (logged by the node), None before prepare()
-ARENAS_NOTE: str | None = None
+# what configure_malloc() put in force (logged by the node), None before prepare()
+MALLOC_NOTE: str | None = None
 # what apply_transport_settings() did (logged by the node), None before it ran
 TRANSPORT_NOTE: str | None = None
 
@@ -63,13 +63,13 @@ def apply_transport_settings() -> str:
     return TRANSPORT_NOTE
 
 
-def arenas_note() -> str:
-    """What caps glibc's malloc arenas (capped by :func:`prepare` before any thread existed; now otherwise)."""
-    global ARENAS_NOTE
-    if ARENAS_NOTE is None:
-        from dpv_sensor.ros.process_memory import limit_malloc_arenas   # standard library only
-        ARENAS_NOTE = limit_malloc_arenas()
-    return ARENAS_NOTE
+def malloc_note() -> str:
+    """glibc's malloc settings in force (set by :func:`prepare` before any thread existed; now otherwise)."""
+    global MALLOC_NOTE
+    if MALLOC_NOTE is None:
+        from dpv_sensor.ros.process_memory import configure_malloc   # standard library only
+        MALLOC_NOTE = configure_malloc()
+    return MALLOC_NOTE
 
 
 def own_args(argv: list[str]) -> list[str]:
@@ -91,7 +91,7 @@ def prepare() -> None:
     """Steps 1 and 2 of the module docstring (idempotent)."""
     install_signal_handlers()
     apply_transport_settings()
-    arenas_note()
+    malloc_note()
 
 
 def main(argv: list[str] | None, load: Callable[[], NodeFunctions]) -> int:
