@@ -261,3 +261,43 @@ def test_held_out_split_by_hand():
     # 6 keyframes cannot be split into 6 to adapt on and 4 to score
     with pytest.raises(ValueError, match='training part has 5 keyframes .*6 are needed \\(10 in all\\)'):
         split_keyframes(kfs[:6], 25, 0.2, layout)
+
+
+def test_spread_held_out_blocks_by_hand():
+    from dpv_sensor.training.adapt_loop import spread_keyframes
+    from dpv_sensor.training.dataset import WindowLayout
+    layout = WindowLayout(steps=2, window=5)                  # M = 6, references at slots 2 and 3, 2 per run
+    kfs = list(range(0, 400, 5))                              # 80 keyframes
+    # 20 % in 4 blocks: 4 keyframes each, centred at 1/8, 3/8, 5/8, 7/8 of the keyframes (indices 8, 28, 48, 68)
+    segments, held, runs = spread_keyframes(kfs, 0.2, layout, 4)
+    assert held == [kfs[i] for st in (8, 28, 48, 68) for i in range(st, st + 4)]
+    assert segments == [kfs[0:8], kfs[12:28], kfs[32:48], kfs[52:68], kfs[72:80]]
+    assert not set(held) & {k for sg in segments for k in sg}   # nothing held out is trained on
+    # every run's two references lie in one block; three runs a block, the sources around them from the segments
+    assert len(runs) == 12 and runs[0] == kfs[6:12] and runs[2] == kfs[8:14]
+    assert all(run[2] in held and run[3] in held for run in runs)
+    # 20 keyframes: two blocks would leave a middle segment of fewer than 6, so one block in the middle
+    segments, held, runs = spread_keyframes(kfs[:20], 0.2, layout, 4)
+    assert held == kfs[8:12] and segments == [kfs[0:8], kfs[12:20]] and len(runs) == 3
+    # (two blocks of two would leave 4 keyframes before the first and after the last: too few to train on)
+    with pytest.raises(ValueError, match='too short for a spread held-out part: 9 keyframes'):
+        spread_keyframes(kfs[:9], 0.2, layout, 4)
+
+
+def test_spread_adapter_trains_only_on_its_segments(folders):
+    from dpv_sensor.training.adapt_loop import AdaptConfig, Adapter
+    model, _ = load_checkpoint(default_weights_path('lite'), preset='lite')
+    seq = Sequence(folders[0], depth=False)
+    cfg = AdaptConfig(width=96, height=64, holdout_layout='spread', holdout_blocks=2, max_steps=1)
+    ad = Adapter(cfg, model, seq)
+    held = set(ad.held_kf)
+    assert held and ad.split is None and not held & set(ad.train_kf)
+    assert all(not held & set(run) for run in ad.train_runs)
+    assert all(run[2] in held and run[3] in held for run in ad.held_runs)
+    ranges = ad.held_frames()
+    assert len(ranges) >= 1 and all(a <= b for a, b in ranges)
+    assert {k for k in held} <= {f for a, b in ranges for f in range(a, b + 1)}
+    # a recording too short for blocks holds out its last frames, and says so
+    notes = []
+    short = Adapter(cfg, model, seq.subset(range(40)), log=notes.append)
+    assert short.holdout_layout == 'end' and short.split is not None and 'holding out its last frames' in notes[0]

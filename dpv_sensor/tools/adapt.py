@@ -10,7 +10,8 @@ Examples::
     ros2 run dpv_sensor node --ros-args -p weights:=adapted/weights.safetensors
 
 The recording is resized to the node's processing size (320x256 by default) and cut into keyframes as the node
-cuts them; its last --holdout share of frames is held out. The networks are adapted on the rest with a photometric
+cuts them; its last --holdout share of frames is held out (--holdout-layout spread: that share of its keyframes in
+up to --holdout-blocks blocks spread over the recording). The networks are adapted on the rest with a photometric
 reprojection loss across each keyframe window, using the recording's poses (--poses window: the poses the node would
 use, the recording run once through its pipeline and refinement window), tied to the shipped weights
 (dpv_sensor/training/adapt_loop.py; docs/adaptation.md). Both weights are then scored on the held-out slice with
@@ -41,7 +42,7 @@ from typing import Dict, List, Optional
 
 from dpv_sensor import params as P
 from dpv_sensor.cli import tool_argv
-from dpv_sensor.training.adapt_loop import DEFAULT_MINUTES, AdaptConfig
+from dpv_sensor.training.adapt_loop import DEFAULT_MINUTES, HOLDOUT_LAYOUTS, AdaptConfig
 from dpv_sensor.training.adapt_poses import POSE_SOURCES
 from dpv_sensor.training.config import MODULES
 
@@ -63,6 +64,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--width', type=int, default=d.width, help="processing width (the node's processing_width)")
     p.add_argument('--height', type=int, default=d.height, help="processing height (the node's processing_height)")
     p.add_argument('--holdout', type=float, default=d.holdout, help='share of the frames held out (the last ones)')
+    p.add_argument('--holdout-layout', default=d.holdout_layout, choices=HOLDOUT_LAYOUTS,
+                   help="where the held-out part lies: 'end' (the last frames) or 'spread' (blocks of keyframes "
+                        'spread evenly over the recording, none trained on)')
+    p.add_argument('--holdout-blocks', type=int, default=d.holdout_blocks,
+                   help='--holdout-layout spread: at most this many held-out blocks')
     p.add_argument('--gt', default='', metavar='FOLDER',
                    help='a sequence folder with depth/ matching the recording frame for frame: adds abs_rel, '
                         'delta<1.25 and ECE of the held-out slice before and after')
@@ -105,7 +111,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _config(a) -> AdaptConfig:
     return AdaptConfig(width=a.width, height=a.height, minutes=a.minutes, max_steps=a.steps, lr=a.lr,
-                       unroll=a.unroll, holdout=a.holdout, train_modules=tuple(a.train_modules), aux=a.aux,
+                       unroll=a.unroll, holdout=a.holdout, holdout_layout=a.holdout_layout,
+                       holdout_blocks=a.holdout_blocks, train_modules=tuple(a.train_modules), aux=a.aux,
                        penalty=a.penalty, distill=a.distill, readout=a.readout, photometric=a.photometric,
                        evidence=a.evidence, sigma=a.sigma, supervised=a.supervised, poses=a.poses,
                        seed=a.seed).check()
@@ -158,28 +165,37 @@ def _gt_sequence(gt_folder: str, frames: int):
     return gt
 
 
-def _gt_scores(gt, split: int, models: Dict, cfg: AdaptConfig, log) -> Dict:
+_GT_KEYS = ('abs_rel', 'delta1', 'ece', 'mean_confidence', 'kept_0.9', 'delta1_0.9')
+
+
+def _gt_scores(gt, ranges: List[List[int]], models: Dict, cfg: AdaptConfig, log) -> Dict:
     """abs_rel, delta1 and ECE of the held-out frames of the --gt sequence through the pipeline at the node's
-    defaults (GT poses), per model."""
+    defaults (GT poses), per model: each held-out range [first, last] run on its own, the figures their means
+    weighted by scored keyframes."""
     from dpv_sensor.evaluation.offline import EvalOptions, evaluate_sequence
-    held = gt.subset(range(split, len(gt)))
     overrides = {'processing_width': cfg.width, 'processing_height': cfg.height}
     out = {}
     for name, model in models.items():
         t0 = time.time()
-        s = evaluate_sequence(held, overrides, options=EvalOptions(progress=False, consumer_odometry=False),
-                              model=model)
-        fm = s['metric']['frame_mean']
-        cal = s.get('calibration') or {}
-        kept = (cal.get('kept') or {}).get('0.9') or {}
-        out[name] = {'abs_rel': fm['abs_rel'], 'delta1': fm['delta1'], 'ece': cal.get('ece'),
-                     'mean_confidence': cal.get('mean_confidence'), 'kept_0.9': kept.get('share'),
-                     'delta1_0.9': kept.get('delta1'), 'keyframes': s['num_keyframes'],
-                     'seconds': round(time.time() - t0, 1)}
-        log(f"GT on the held-out slice, {name}: abs_rel {fm['abs_rel']:.4f}, delta1 {fm['delta1']:.3f}, "
-            f"ECE {cal.get('ece', float('nan')):.3f}")
-    return {'folder': str(pathlib.Path(gt.folder).resolve()), 'frames': [split, len(gt)],
-            'how': 'the pipeline at the node defaults, GT poses, the held-out frames', **out}
+        parts = []
+        for first, last in ranges:
+            s = evaluate_sequence(gt.subset(range(first, last + 1)), overrides,
+                                  options=EvalOptions(progress=False, consumer_odometry=False), model=model)
+            fm = s['metric']['frame_mean']
+            cal = s.get('calibration') or {}
+            kept = (cal.get('kept') or {}).get('0.9') or {}
+            parts.append((s['num_keyframes'], {'abs_rel': fm['abs_rel'], 'delta1': fm['delta1'], 'ece': cal.get('ece'),
+                                               'mean_confidence': cal.get('mean_confidence'),
+                                               'kept_0.9': kept.get('share'), 'delta1_0.9': kept.get('delta1')}))
+        n = sum(k for k, _ in parts)
+        out[name] = {key: (sum(k * f[key] for k, f in parts) / n if n and all(f[key] is not None for _, f in parts)
+                           else None) for key in _GT_KEYS}
+        out[name].update(keyframes=n, seconds=round(time.time() - t0, 1))
+        r = out[name]
+        log(f"GT on the held-out frames, {name}: abs_rel {r['abs_rel'] or float('nan'):.4f}, delta1 "
+            f"{r['delta1'] or float('nan'):.3f}, ECE {r['ece'] if r['ece'] is not None else float('nan'):.3f}")
+    return {'folder': str(pathlib.Path(gt.folder).resolve()), 'frames': ranges,
+            'how': 'the pipeline at the node defaults, GT poses, each held-out range of frames', **out}
 
 
 def _atomic_json(path: pathlib.Path, data: Dict) -> None:
@@ -237,14 +253,15 @@ def run(a, argv: List[str], log) -> int:
     gt_seq = _gt_sequence(a.gt, len(seq)) if a.gt else None
     log(f'{source["name"]}: {len(seq)} frames at {cfg.width}x{cfg.height} ({time.time() - t0:.0f} s to load)')
     adapter = Adapter(cfg, model, seq, log=log, progress=not a.quiet)
-    log(f'keyframes: {len(adapter.train_kf)} to adapt on, {len(adapter.held_kf)} held out (frames {adapter.split}..'
-        f'{len(seq) - 1})')
+    held = adapter.held_frames()
+    log(f'keyframes: {len(adapter.train_kf)} to adapt on, {len(adapter.held_kf)} held out (frames '
+        f'{", ".join(f"{a}..{b}" for a, b in held)})')
     result = adapter.run(deadline, progress=not a.quiet)
     minutes = (time.time() - t0) / 60.0
     gt = None
     if gt_seq is not None:
         base_model, _ = load_checkpoint(base_path, preset=a.preset)
-        gt = _gt_scores(gt_seq, adapter.split, {'base': base_model, 'adapted': model.eval()}, cfg, log)
+        gt = _gt_scores(gt_seq, held, {'base': base_model, 'adapted': model.eval()}, cfg, log)
     report = {'source': source, 'config': cfg.to_json(), 'base_weights': str(base_path), 'steps': result.steps,
               'stop_reason': result.stop_reason, 'minutes': round(minutes, 2), 'seconds': result.seconds,
               'held_out': {'score': result.score_kind, 'base': result.base_score, 'adapted': result.adapted_score,

@@ -51,11 +51,13 @@ from dpv_sensor.training.self_supervised import (distillation, downsample_image,
                                                  score_error)
 from dpv_sensor.training.unrolled import filter_steps, measure_steps, run_unrolled
 
-__all__ = ['AdaptConfig', 'AdaptResult', 'Adapter', 'select_keyframes', 'DEFAULT_MINUTES', 'LOSS_DESCRIPTION']
+__all__ = ['AdaptConfig', 'AdaptResult', 'Adapter', 'select_keyframes', 'split_keyframes', 'spread_keyframes',
+           'DEFAULT_MINUTES', 'HOLDOUT_LAYOUTS', 'LOSS_DESCRIPTION']
 
 # The default time cap of a whole run: a 700-image 640x480 recording at the 320x256 processing size fits the
 # 20 minutes of a 2-core CPU with this (loading and resizing, two held-out scores, the report).
 DEFAULT_MINUTES = 18.0
+HOLDOUT_LAYOUTS = ('end', 'spread')
 
 LOSS_DESCRIPTION = ('mean over the unrolled knet-filter steps of: photometric x the auto-masked photometric '
                     "reprojection error (0.85 SSIM + 0.15 L1, per-pixel minimum over the window's sources) of the "
@@ -79,7 +81,9 @@ class AdaptConfig:
     unroll: int = 2                                 # filter steps per sample
     window: int = P.default('window_size')
     ref_position: str = 'center'                    # the node's default window (window_mode: centered)
-    holdout: float = 0.2                            # share of the frames held out (the last ones)
+    holdout: float = 0.2                            # share held out: the last frames, or keyframes in blocks
+    holdout_layout: str = 'end'                     # 'end': the last frames; 'spread': blocks across the recording
+    holdout_blocks: int = 4                         # 'spread': at most this many held-out blocks
     max_holdout_runs: int = 16                      # held-out runs scored (evenly spread over the slice)
     train_modules: Tuple[str, ...] = ()             # sub-networks adapted (see training.config.MODULES); () = all
     photometric: float = 1.0                        # weight of the photometric reprojection term
@@ -99,6 +103,9 @@ class AdaptConfig:
             raise ValueError(f'processing size must be multiples of 4 and >= 32, got {self.width}x{self.height}')
         if not 0.05 <= self.holdout <= 0.5:
             raise ValueError(f'holdout must lie in [0.05, 0.5], got {self.holdout}')
+        if self.holdout_layout not in HOLDOUT_LAYOUTS or self.holdout_blocks < 1:
+            raise ValueError(f'holdout_layout must be one of {HOLDOUT_LAYOUTS} and holdout_blocks >= 1, got '
+                             f'{self.holdout_layout!r}, {self.holdout_blocks}')
         if self.minutes <= 0 or self.lr <= 0 or self.unroll < 1 or self.batch_size < 1 or self.max_steps < 0:
             raise ValueError('minutes and lr must be > 0, unroll and batch_size >= 1, max_steps >= 0')
         unknown = set(self.train_modules) - set(MODULES)
@@ -174,6 +181,39 @@ def split_keyframes(kfs: List[int], frames: int, holdout: float, layout: WindowL
     return split, train, held, runs
 
 
+def spread_keyframes(kfs: List[int], holdout: float, layout: WindowLayout, blocks: int
+                     ) -> Tuple[List[List[int]], List[int], List[List[int]]]:
+    """(training segments, held-out keyframes, held-out runs) with the held-out keyframes in up to ``blocks`` blocks
+    spread evenly over the recording, about ``holdout`` of its keyframes in all, instead of its last part: the score
+    then stands for the whole place the recording covers, not only where it ends.
+
+    Each block holds at least the ``unroll`` references of one run; every training segment around the blocks keeps
+    at least M keyframes (the first and the last may be empty), so no keyframe is left out of both parts, and fewer
+    blocks are used where that does not fit. A training sample is M consecutive keyframes of one segment, so no
+    held-out image is ever trained on. The held-out runs are every M-keyframe run whose references are all in one
+    block; their other keyframes may come from the segments around it (their images, never a scored pixel).
+    ValueError when not even one block fits."""
+    M, r, n = layout.num_keyframes, layout.ref_slot, len(kfs)
+    steps = M - layout.window + 1                     # the references of one run
+    for nb in range(max(1, int(blocks)), 0, -1):
+        size = max(steps, int(round(holdout * n / nb)))
+        # block b is centred at (b + 1/2) / nb of the keyframes, its first held-out keyframe at start[b]
+        starts = [min(n - size, max(0, int(round((b + 0.5) * n / nb - size / 2.0)))) for b in range(nb)]
+        bounds = [0] + [x for st in starts for x in (st, st + size)] + [n]
+        segments = [list(range(bounds[2 * i], bounds[2 * i + 1])) for i in range(nb + 1)]
+        if any(0 < len(sg) < M for sg in segments) or any(len(sg) < M for sg in segments[1:-1]):
+            continue                                  # a segment too short to train on would be wasted
+        held_idx = [i for st in starts for i in range(st, st + size)]
+        runs = [list(range(s0, s0 + M)) for st in starts for s0 in range(st - r, st + size - steps - r + 1)
+                if s0 >= 0 and s0 + M <= n]
+        if not runs:
+            continue
+        return ([[kfs[i] for i in sg] for sg in segments if sg], [kfs[i] for i in held_idx],
+                [[kfs[i] for i in run] for run in runs])
+    raise ValueError(f'the recording is too short for a spread held-out part: {n} keyframes, at least '
+                     f'{2 * M + steps} are needed (two training segments of {M} and a block of {steps})')
+
+
 def select_keyframes(poses: Seq[np.ndarray]) -> List[int]:
     """Frame indices the node's keyframe rule picks along ``poses`` (its defaults: baseline, rotation, interval)."""
     from dpv_sensor.stream.keyframes import KeyframeSelector
@@ -217,7 +257,21 @@ class Adapter:
         frames = len(sequence)
         if kfs is None:
             kfs = select_keyframes([sequence.pose(i) for i in range(frames)])
-        self.split, self.train_kf, self.held_kf, runs = split_keyframes(kfs, frames, cfg.holdout, cfg.layout())
+        M = cfg.layout().num_keyframes
+        self.holdout_layout = cfg.holdout_layout
+        if self.holdout_layout == 'spread':
+            try:
+                segments, self.held_kf, runs = spread_keyframes(kfs, cfg.holdout, cfg.layout(), cfg.holdout_blocks)
+                self.train_kf = [k for sg in segments for k in sg]
+                self.split = None
+            except ValueError as exc:          # a short recording: its last part, as far as that fits
+                self.log(f'{exc}; holding out its last frames instead')
+                self.holdout_layout = 'end'
+        if self.holdout_layout == 'end':
+            self.split, self.train_kf, self.held_kf, runs = split_keyframes(kfs, frames, cfg.holdout, cfg.layout())
+            segments = [self.train_kf]
+        # every training sample: M consecutive keyframes of one training segment
+        self.train_runs = [sg[s:s + M] for sg in segments for s in range(len(sg) - M + 1)]
         if len(runs) > cfg.max_holdout_runs:
             runs = [runs[int(i)] for i in np.linspace(0, len(runs) - 1, cfg.max_holdout_runs).round()]
         self.held_runs = runs
@@ -227,16 +281,28 @@ class Adapter:
         params = [p for p in model.parameters() if p.requires_grad]
         self.optimizer = torch.optim.AdamW(params, lr=cfg.lr, weight_decay=0.0)
 
+    def held_frames(self) -> List[List[int]]:
+        """The held-out frame ranges [first, last] (inclusive): one per block of consecutive held-out keyframes."""
+        kfs = sorted(set(self.train_kf) | set(self.held_kf))
+        held = set(self.held_kf)
+        out: List[List[int]] = []
+        for i, k in enumerate(kfs):
+            if k in held and (i == 0 or kfs[i - 1] not in held):
+                out.append([k, k])
+            elif k in held:
+                out[-1][1] = k
+        if self.split is not None and out:        # the last frames: to the recording's end
+            out[-1] = [self.split, len(self.seq) - 1]
+        return out
+
     # ------------------------------------------------------------------ data
     def _sample(self, ids: Seq[int], rng: np.random.Generator) -> Dict[str, torch.Tensor]:
         return sample_from_sequence(self.seq, ids, self.cfg.layout(), rng, augment=None)
 
     def training_batch(self, rng: np.random.Generator) -> Dict[str, torch.Tensor]:
-        M = self.cfg.layout().num_keyframes
         out = []
         for _ in range(self.cfg.batch_size):
-            s = int(rng.integers(0, len(self.train_kf) - M + 1))
-            ids = self.train_kf[s:s + M]
+            ids = self.train_runs[int(rng.integers(0, len(self.train_runs)))]
             if rng.random() < 0.5:          # played backwards: another trajectory through the same place
                 ids = ids[::-1]
             out.append(self._sample(ids, rng))
@@ -430,4 +496,6 @@ class Adapter:
                            score_kind='nll' if cfg.supervised else 'photometric', stop_reason=stop, seconds=seconds,
                            history=history, examples=ex,
                            keyframes={'training': len(self.train_kf), 'held_out': len(self.held_kf),
-                                      'held_out_runs': len(self.held_runs), 'split_frame': self.split})
+                                      'held_out_runs': len(self.held_runs), 'split_frame': self.split,
+                                      'holdout_layout': self.holdout_layout,
+                                      'held_out_frames': self.held_frames()})
