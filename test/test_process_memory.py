@@ -49,7 +49,7 @@ def test_arena_cap_holds_for_threads_started_afterwards():
 
 def test_environment_setting_wins(monkeypatch):
     monkeypatch.setenv('MALLOC_ARENA_MAX', '4')
-    assert limit_malloc_arenas(2) == 'malloc arenas: 4 (MALLOC_ARENA_MAX from the environment)'
+    assert limit_malloc_arenas(2) == 'malloc arenas: MALLOC_ARENA_MAX=4 from the environment'
 
 
 _MAPPED_BLOCKS = r"""

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import ctypes
 import os
-from typing import Optional
+from typing import Optional, Tuple
 
 M_ARENA_MAX = -8          # glibc <malloc.h>
 M_TRIM_THRESHOLD = -1
@@ -36,37 +36,36 @@ def _mallopt():
     return mallopt
 
 
-def limit_malloc_arenas(n: int = DEFAULT_ARENAS) -> str:
-    """Cap glibc's malloc arenas at `n` for threads created from now on; call it before the process starts
-    threads. A `MALLOC_ARENA_MAX` in the environment wins (glibc has already applied it). Returns a line for the
-    log saying what is in force. Never raises: on a C library without `mallopt` nothing changes."""
-    env = os.environ.get('MALLOC_ARENA_MAX')
+def _apply(what: str, env_keys: Tuple[str, ...], options: Tuple[Tuple[int, int], ...], done: str) -> str:
+    """mallopt(parameter, value) for each of `options`, unless one of `env_keys` is set in the environment (glibc
+    has applied it already, and it wins). Returns '<what>: ...' saying what is in force; never raises."""
+    env = [k for k in env_keys if os.environ.get(k)]
     if env:
-        return f'malloc arenas: {env} (MALLOC_ARENA_MAX from the environment)'
+        return f'{what}: {", ".join(f"{k}={os.environ[k]}" for k in env)} from the environment'
     try:
         mallopt = _mallopt()
     except (OSError, AttributeError) as exc:
-        return f'malloc arenas: left as they are (no glibc mallopt: {exc})'
-    if mallopt(M_ARENA_MAX, int(n)) != 1:
-        return 'malloc arenas: left as they are (mallopt(M_ARENA_MAX) refused)'
-    return f'malloc arenas: at most {int(n)} (set MALLOC_ARENA_MAX to override)'
+        return f'{what}: left as glibc has it (no mallopt: {exc})'
+    if not all(mallopt(param, int(value)) == 1 for param, value in options):
+        return f'{what}: left as glibc has it (mallopt refused)'
+    return f'{what}: {done}'
+
+
+def limit_malloc_arenas(n: int = DEFAULT_ARENAS) -> str:
+    """Cap glibc's malloc arenas at `n` for threads created from now on; call it before the process starts
+    threads. A `MALLOC_ARENA_MAX` in the environment wins. Returns a line for the log saying what is in force."""
+    return _apply('malloc arenas', ('MALLOC_ARENA_MAX',), ((M_ARENA_MAX, n),),
+                  f'at most {int(n)} (set MALLOC_ARENA_MAX to override)')
 
 
 def pin_mmap_threshold(mib: int = MMAP_THRESHOLD_MIB) -> str:
     """Blocks up to `mib` MiB come from the heap and are reused after free (module docstring); the heap's top is
     returned to the system beyond twice that. A `MALLOC_MMAP_THRESHOLD_` or `MALLOC_TRIM_THRESHOLD_` in the
-    environment wins. Returns a line for the log; never raises."""
-    env = [k for k in ('MALLOC_MMAP_THRESHOLD_', 'MALLOC_TRIM_THRESHOLD_') if os.environ.get(k)]
-    if env:
-        return f'malloc mmap threshold: {", ".join(f"{k}={os.environ[k]}" for k in env)} from the environment'
-    try:
-        mallopt = _mallopt()
-    except (OSError, AttributeError) as exc:
-        return f'malloc mmap threshold: left as it is (no glibc mallopt: {exc})'
+    environment wins. Returns a line for the log."""
     size = int(mib) << 20
-    if mallopt(M_MMAP_THRESHOLD, size) != 1 or mallopt(M_TRIM_THRESHOLD, 2 * size) != 1:
-        return 'malloc mmap threshold: left as it is (mallopt refused)'
-    return f'malloc mmap threshold: {int(mib)} MiB, trim above {2 * int(mib)} MiB (MALLOC_MMAP_THRESHOLD_ overrides)'
+    return _apply('malloc mmap threshold', ('MALLOC_MMAP_THRESHOLD_', 'MALLOC_TRIM_THRESHOLD_'),
+                  ((M_MMAP_THRESHOLD, size), (M_TRIM_THRESHOLD, 2 * size)),
+                  f'{int(mib)} MiB, trim above {2 * int(mib)} MiB (MALLOC_MMAP_THRESHOLD_ overrides)')
 
 
 def configure_malloc() -> str:
