@@ -1,5 +1,5 @@
 """The adapt tool (dpv_sensor.tools.adapt) on rendered recordings: it never reads depth (a folder with depth/ and
-the same folder without give the same weights), refuses weights that score worse on its held-out slice, leaves
+the same folder without give the same weights), refuses weights that score worse on its held-out keyframes, leaves
 no weights when interrupted, writes the metadata the node checks, and - the point of it - lowers the depth error
 on the rest of a recording of a world the shipped weights never saw."""
 import json
@@ -226,8 +226,10 @@ def test_adapting_on_the_first_half_lowers_the_second_half_abs_rel(tmp_path):
 def test_gt_folder_adds_the_held_out_metrics_before_and_after(folders, tmp_path, capsys):
     code, err = _run(folders[0], tmp_path / 'out', '--gt', str(folders[0]), capsys=capsys)
     assert code == tool.EXIT_WRITTEN, err
-    gt = json.loads((tmp_path / 'out' / 'report.json').read_text())['ground_truth']
-    assert gt['frames'] == [58, 90]                  # the held-out slice: the last 35 % of 90 frames
+    report = json.loads((tmp_path / 'out' / 'report.json').read_text())
+    gt, held = report['ground_truth'], report['held_out']['keyframes']['held_out_frames']
+    # scored on the held-out frames: a block of keyframes inside the recording (not its end), as the tool held out
+    assert gt['frames'] == held and len(held) == 1 and 0 < held[0][0] < held[0][1] < 89, held
     for name in ('base', 'adapted'):
         assert 0 < gt[name]['abs_rel'] < 1 and 0 < gt[name]['delta1'] <= 1 and 0 <= gt[name]['ece'] <= 1
         assert gt[name]['keyframes'] >= 3

@@ -10,18 +10,19 @@ Examples::
     ros2 run dpv_sensor node --ros-args -p weights:=adapted/weights.safetensors
 
 The recording is resized to the node's processing size (320x256 by default) and cut into keyframes as the node
-cuts them; its last --holdout share of frames is held out (--holdout-layout spread: that share of its keyframes in
-up to --holdout-blocks blocks spread over the recording). The networks are adapted on the rest with a photometric
-reprojection loss across each keyframe window, using the recording's poses (--poses window: the poses the node would
-use, the recording run once through its pipeline and refinement window), tied to the shipped weights
-(dpv_sensor/training/adapt_loop.py; docs/adaptation.md). Both weights are then scored on the held-out slice with
-the same label-free score (photometric reprojection error of their depth); the adapted weights are written only
-when they score better. --minutes caps the whole run (the default fits a 700-image recording on a 2-core CPU).
+cuts them; about --holdout of its keyframes are held out, in up to --holdout-blocks blocks spread over the
+recording (--holdout-layout end, or a recording too short for blocks: its last --holdout share of frames). The
+networks are adapted on the rest with a photometric reprojection loss across each keyframe window, using the
+recording's poses (--poses window: the poses the node would use, the recording run once through its pipeline and
+refinement window), tied to the shipped weights (dpv_sensor/training/adapt_loop.py; docs/adaptation.md). Both
+weights are then scored on the held-out part with the same label-free score (photometric reprojection error of
+their depth); the adapted weights are written only when they score better. --minutes caps the whole run (the
+default fits a 700-image recording on a 2-core CPU).
 
 Writes to --out: weights.safetensors (only when better; with metadata: base weights and their hash, the
 recording, steps, losses, minutes, scores), report.json and report.png (loss curve and a before/after montage of
 held-out frames). --gt FOLDER (a sequence folder with depth/ whose frames are the recording's) adds abs_rel,
-delta<1.25 and ECE of the held-out slice through the node's pipeline at its defaults, before and after (not
+delta<1.25 and ECE of the held-out frames through the node's pipeline at its defaults, before and after (not
 counted in --minutes). --supervised fine-tunes with the trainer's loss on a recording that has depth: a folder's
 depth/, or a bag's --depth-topic (a depth camera registered to the colour camera).
 
@@ -63,15 +64,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--preset', default=P.default('preset'), choices=P.choices('preset'), help='network preset')
     p.add_argument('--width', type=int, default=d.width, help="processing width (the node's processing_width)")
     p.add_argument('--height', type=int, default=d.height, help="processing height (the node's processing_height)")
-    p.add_argument('--holdout', type=float, default=d.holdout, help='share of the frames held out (the last ones)')
+    p.add_argument('--holdout', type=float, default=d.holdout,
+                   help='share held out: of the keyframes (spread) or of the last frames (end)')
     p.add_argument('--holdout-layout', default=d.holdout_layout, choices=HOLDOUT_LAYOUTS,
-                   help="where the held-out part lies: 'end' (the last frames) or 'spread' (blocks of keyframes "
-                        'spread evenly over the recording, none trained on)')
+                   help="where the held-out part lies: 'spread' (default: blocks of keyframes spread evenly over the "
+                        "recording, none trained on) or 'end' (the last frames)")
     p.add_argument('--holdout-blocks', type=int, default=d.holdout_blocks,
                    help='--holdout-layout spread: at most this many held-out blocks')
     p.add_argument('--gt', default='', metavar='FOLDER',
                    help='a sequence folder with depth/ matching the recording frame for frame: adds abs_rel, '
-                        'delta<1.25 and ECE of the held-out slice before and after')
+                        'delta<1.25 and ECE of the held-out frames before and after')
     p.add_argument('--supervised', action='store_true',
                    help="fine-tune with the trainer's loss on the recording's depth (a sequence folder with depth/, "
                         'or a bag with --depth-topic)')
@@ -271,7 +273,7 @@ def run(a, argv: List[str], log) -> int:
     if result.steps == 0:
         reason = f'no adaptation step fitted in --minutes {cfg.minutes:g}'
     elif not result.improved:
-        reason = (f'the adapted weights scored no better on the held-out slice ({result.score_kind} '
+        reason = (f'the adapted weights scored no better on the held-out keyframes ({result.score_kind} '
                   f'{result.adapted_score:.5f} against {result.base_score:.5f} for the base weights)')
     else:
         reason = ''

@@ -2,9 +2,11 @@
 
 The recording (images, intrinsics, camera poses; :mod:`dpv_sensor.data.recording`) is resized to the node's
 processing size and cut into keyframes with the node's own keyframe rule (:class:`~dpv_sensor.stream.keyframes.
-KeyframeSelector` at its defaults). The last ``holdout`` share of its frames is held out; training samples are runs
-of ``unroll + window - 1`` consecutive keyframes from the rest (played forwards or backwards), laid out in five-frame
-windows as the trainer lays them (:func:`dpv_sensor.training.dataset.sample_from_sequence`), and go through the
+KeyframeSelector` at its defaults). About ``holdout`` of its keyframes are held out, in blocks spread over the
+recording (:func:`spread_keyframes`; ``holdout_layout='end'``, or a recording too short for blocks: the last
+``holdout`` share of its frames, :func:`split_keyframes`); training samples are runs of ``unroll + window - 1``
+consecutive keyframes of one part between the blocks (played forwards or backwards), laid out in five-frame windows
+as the trainer lays them (:func:`dpv_sensor.training.dataset.sample_from_sequence`), and go through the
 trainer's unrolled stream (:func:`dpv_sensor.training.unrolled.measure_steps` and ``filter_steps``: D-Net, the K-Net
 filter, R-Net). Each unrolled step's depth warps the window's sources into the reference
 (:mod:`.self_supervised`); the loss per batch is::
@@ -20,8 +22,8 @@ likelihood ``exp(-e / sigma)``). With ``supervised`` the loss is the trainer's i
 (:func:`dpv_sensor.training.unrolled.run_unrolled`: NLL of the recording's depth), and the depth is read.
 
 **Held-out score**: the mean photometric reprojection error of the R-Net output's depth over every pixel of every
-held-out run (the runs of :func:`split_keyframes`, at most ``max_holdout_runs`` of them), no auto-mask, a
-pixel sent out of every source counting with the unwarped sources' error
+held-out run (the runs of :func:`spread_keyframes` or :func:`split_keyframes`, at most ``max_holdout_runs``), no
+auto-mask, a pixel sent out of every source counting with the unwarped sources' error
 (:func:`dpv_sensor.training.self_supervised.score_error`), so base and adapted weights are scored on exactly the
 same pixels (with ``supervised``: the NLL of the held-out depth).
 The adapted weights are kept only when their score is lower; :class:`AdaptResult` says which.
@@ -82,7 +84,7 @@ class AdaptConfig:
     window: int = P.default('window_size')
     ref_position: str = 'center'                    # the node's default window (window_mode: centered)
     holdout: float = 0.2                            # share held out: the last frames, or keyframes in blocks
-    holdout_layout: str = 'end'                     # 'end': the last frames; 'spread': blocks across the recording
+    holdout_layout: str = 'spread'                  # 'spread': blocks across the recording; 'end': the last frames
     holdout_blocks: int = 4                         # 'spread': at most this many held-out blocks
     max_holdout_runs: int = 16                      # held-out runs scored (evenly spread over the slice)
     train_modules: Tuple[str, ...] = ()             # sub-networks adapted (see training.config.MODULES); () = all

@@ -20,7 +20,7 @@ error is flat) survives the adaptation:
 - :func:`parameter_penalty` (L2-SP): ``sum (theta - theta_base)^2`` over the adapted parameters;
 - :func:`distillation`: ``KL(p_base || p)`` of the base network's DPV and the adapted one's, per pixel, mean.
 
-The adapt loop (:mod:`.adapt_loop`) scores weights on a held-out slice with :func:`score_error`: every pixel counts,
+The adapt loop (:mod:`.adapt_loop`) scores weights on held-out keyframes with :func:`score_error`: every pixel counts,
 whichever the weights (one the depth sends out of every source counts with the error of the unwarped sources).
 """
 from __future__ import annotations
