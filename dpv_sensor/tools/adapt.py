@@ -189,13 +189,14 @@ def _gt_scores(gt, ranges: List[List[int]], models: Dict, cfg: AdaptConfig, log)
             parts.append((s['num_keyframes'], {'abs_rel': fm['abs_rel'], 'delta1': fm['delta1'], 'ece': cal.get('ece'),
                                                'mean_confidence': cal.get('mean_confidence'),
                                                'kept_0.9': kept.get('share'), 'delta1_0.9': kept.get('delta1')}))
+        parts = [(k, f) for k, f in parts if k > 0]          # a range with no keyframe output has no figures
         n = sum(k for k, _ in parts)
         out[name] = {key: (sum(k * f[key] for k, f in parts) / n if n and all(f[key] is not None for _, f in parts)
                            else None) for key in _GT_KEYS}
         out[name].update(keyframes=n, seconds=round(time.time() - t0, 1))
-        r = out[name]
-        log(f"GT on the held-out frames, {name}: abs_rel {r['abs_rel'] or float('nan'):.4f}, delta1 "
-            f"{r['delta1'] or float('nan'):.3f}, ECE {r['ece'] if r['ece'] is not None else float('nan'):.3f}")
+        shown = {key: float('nan') if v is None else v for key, v in out[name].items()}
+        log(f"GT on the held-out frames, {name}: abs_rel {shown['abs_rel']:.4f}, delta1 {shown['delta1']:.3f}, "
+            f"ECE {shown['ece']:.3f}")
     return {'folder': str(pathlib.Path(gt.folder).resolve()), 'frames': ranges,
             'how': 'the pipeline at the node defaults, GT poses, each held-out range of frames', **out}
 
