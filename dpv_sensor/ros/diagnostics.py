@@ -126,6 +126,7 @@ class NodeDiagnostics:
             'input_rate_hz': round(inputs.in_rate.rate(), 3),
             'output_rate_hz': round(outputs.rate.rate(), 3),
             'frames_received': inputs.n_received,
+            'odometry_received': inputs.n_odometry_received,
             'frames_processed': worker.n_processed,
             'outputs_published': outputs.n_published,
             'keyframes_published': outputs.n_keyframes_published,

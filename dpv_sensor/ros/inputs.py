@@ -96,6 +96,7 @@ class NodeInputs:
         self.odometry_wait = OdometryWait()   # the worker waits for odometry after an image's stamp (wait_for)
         self.in_rate = RateMeter()
         self.n_received = 0
+        self.n_odometry_received = 0                  # odometry messages taken by on_odom, whatever became of them
         self.first_image_mono = None
         self.last_image_mono = None
         self.image_transport = s.image_transport
@@ -249,6 +250,7 @@ class NodeInputs:
             self.cv.notify_all()
 
     def on_odom(self, msg) -> None:
+        self.n_odometry_received += 1
         stamp_ns = M.stamp_to_ns(msg.header.stamp)
         # a clock that starts at 0 (a simulator, a bag written from stamps 0 on) stamps its first message 0; a zero
         # stamp after any other odometry is a driver that does not stamp its messages
