@@ -2,6 +2,7 @@
 the same folder without give the same weights), refuses weights that score worse on its held-out keyframes, leaves
 no weights when interrupted, writes the metadata the node checks, and - the point of it - lowers the depth error
 on the rest of a recording of a world the shipped weights never saw."""
+import dataclasses
 import json
 import os
 import shutil
@@ -299,7 +300,9 @@ def test_spread_adapter_trains_only_on_its_segments(folders):
     ranges = ad.held_frames()
     assert len(ranges) >= 1 and all(a <= b for a, b in ranges)
     assert {k for k in held} <= {f for a, b in ranges for f in range(a, b + 1)}
-    # a recording too short for blocks holds out its last frames, and says so
-    notes = []
-    short = Adapter(cfg, model, seq.subset(range(40)), log=notes.append)
-    assert short.holdout_layout == 'end' and short.split is not None and 'holding out its last frames' in notes[0]
+    # a recording too short for blocks is refused, and the error says how to adapt it anyway; 'end' holds out its
+    # last frames
+    with pytest.raises(ValueError, match="too short for a spread held-out part.*holdout_layout 'end'"):
+        Adapter(cfg, model, seq.subset(range(40)))
+    short = Adapter(dataclasses.replace(cfg, holdout_layout='end'), model, seq.subset(range(40)))
+    assert short.holdout_layout == 'end' and short.split is not None and short.held_runs

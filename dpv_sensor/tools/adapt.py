@@ -11,7 +11,8 @@ Examples::
 
 The recording is resized to the node's processing size (320x256 by default) and cut into keyframes as the node
 cuts them; about --holdout of its keyframes are held out, in up to --holdout-blocks blocks spread over the
-recording (--holdout-layout end, or a recording too short for blocks: its last --holdout share of frames). The
+recording (a recording too short for blocks, under 14 keyframes, is refused: exit 2; --holdout-layout end holds out
+its last --holdout share of frames instead). The
 networks are adapted on the rest with a photometric reprojection loss across each keyframe window, using the
 recording's poses (--poses window: the poses the node would use, the recording run once through its pipeline and
 refinement window), tied to the shipped weights (dpv_sensor/training/adapt_loop.py; docs/adaptation.md). Both
@@ -68,7 +69,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help='share held out: of the keyframes (spread) or of the last frames (end)')
     p.add_argument('--holdout-layout', default=d.holdout_layout, choices=HOLDOUT_LAYOUTS,
                    help="where the held-out part lies: 'spread' (default: blocks of keyframes spread evenly over the "
-                        "recording, none trained on) or 'end' (the last frames)")
+                        "recording, none trained on; a recording too short for one block is refused) or 'end' (the last frames)")
     p.add_argument('--holdout-blocks', type=int, default=d.holdout_blocks,
                    help='--holdout-layout spread: at most this many held-out blocks')
     p.add_argument('--gt', default='', metavar='FOLDER',

@@ -3,8 +3,8 @@
 The recording (images, intrinsics, camera poses; :mod:`dpv_sensor.data.recording`) is resized to the node's
 processing size and cut into keyframes with the node's own keyframe rule (:class:`~dpv_sensor.stream.keyframes.
 KeyframeSelector` at its defaults). About ``holdout`` of its keyframes are held out, in blocks spread over the
-recording (:func:`spread_keyframes`; ``holdout_layout='end'``, or a recording too short for blocks: the last
-``holdout`` share of its frames, :func:`split_keyframes`); training samples are runs of ``unroll + window - 1``
+recording (:func:`spread_keyframes`; a recording too short for blocks is refused), or with ``holdout_layout='end'``
+the last ``holdout`` share of its frames (:func:`split_keyframes`); training samples are runs of ``unroll + window - 1``
 consecutive keyframes of one part between the blocks (played forwards or backwards), laid out in five-frame windows
 as the trainer lays them (:func:`dpv_sensor.training.dataset.sample_from_sequence`), and go through the
 trainer's unrolled stream (:func:`dpv_sensor.training.unrolled.measure_steps` and ``filter_steps``: D-Net, the K-Net
@@ -266,9 +266,12 @@ class Adapter:
                 segments, self.held_kf, runs = spread_keyframes(kfs, cfg.holdout, cfg.layout(), cfg.holdout_blocks)
                 self.train_kf = [k for sg in segments for k in sg]
                 self.split = None
-            except ValueError as exc:          # a short recording: its last part, as far as that fits
-                self.log(f'{exc}; holding out its last frames instead')
-                self.holdout_layout = 'end'
+            except ValueError as exc:
+                # a score of the frames right after the training part does not stand for the place: on a recording
+                # this short the adapted weights are not judged at all unless 'end' is asked for
+                raise ValueError(f'{exc}: too short to judge the adapted weights on more than its last frames; '
+                                 "record a longer stretch of the place, or hold out its last frames with "
+                                 "holdout_layout 'end' (--holdout-layout end)") from None
         if self.holdout_layout == 'end':
             self.split, self.train_kf, self.held_kf, runs = split_keyframes(kfs, frames, cfg.holdout, cfg.layout())
             segments = [self.train_kf]
