@@ -69,7 +69,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help='share held out: of the keyframes (spread) or of the last frames (end)')
     p.add_argument('--holdout-layout', default=d.holdout_layout, choices=HOLDOUT_LAYOUTS,
                    help="where the held-out part lies: 'spread' (default: blocks of keyframes spread evenly over the "
-                        "recording, none trained on; a recording too short for one block is refused) or 'end' (the last frames)")
+                        "recording, none trained on; a recording too short for one block is refused) or 'end' (the "
+                        "last frames)")
     p.add_argument('--holdout-blocks', type=int, default=d.holdout_blocks,
                    help='--holdout-layout spread: at most this many held-out blocks')
     p.add_argument('--gt', default='', metavar='FOLDER',
