@@ -59,6 +59,10 @@ def test_writes_weights_report_and_metadata(adapted, folders):
     report = json.loads((out / 'report.json').read_text())
     assert report['written'] and report['steps'] == 4 and report['held_out']['score'] == 'photometric'
     assert report['held_out']['adapted'] < report['held_out']['base']
+    # written on the per-run comparison: enough runs, better on enough of them to pass the sign-flip test at 0.05
+    verdict = report['held_out']['verdict']
+    assert verdict['better'] and verdict['runs'] >= 5 and verdict['p_value'] <= verdict['significance'] == 0.05
+    assert verdict['p_value'] >= 2.0 ** -verdict['runs'] and verdict['mean_change'] < 0
     assert [h['step'] for h in report['history']] == [1, 2, 3, 4]
     meta = read_metadata(out / 'weights.safetensors')
     ad = meta['adaptation']
@@ -73,6 +77,7 @@ def test_writes_weights_report_and_metadata(adapted, folders):
     assert 'evidence' in ad['loss'] and ad['config']['evidence'] == 1.0 and ad['config']['readout'] == 'relative'
     assert ad['recording']['depth_read'] is False and 0 < ad['minutes'] < 5
     assert ad['held_out']['adapted'] == report['held_out']['adapted']
+    assert ad['held_out']['p_value'] == verdict['p_value'] and ad['held_out']['runs'] == verdict['runs']
     assert ad['config']['poses'] == 'odometry' and report['poses'] == {'source': 'odometry'}
     # the weights moved, and they load for the size they were adapted at
     model, _ = load_checkpoint(out / 'weights.safetensors', preset='lite', processing_size=(W, H))
@@ -143,6 +148,21 @@ def test_refuses_weights_that_score_worse(folders, tmp_path, capsys):
     assert _files(tmp_path / 'out') == ['report.json', 'report.png']
     report = json.loads((tmp_path / 'out' / 'report.json').read_text())
     assert not report['written'] and report['held_out']['adapted'] > report['held_out']['base']
+    assert report['refused'] == report['held_out']['verdict']['reason'] and not report['held_out']['verdict']['better']
+
+
+def test_refuses_a_gain_too_few_held_out_runs_can_show(folders, tmp_path, capsys):
+    """The last 20 % of the 90-frame recording hold fewer than 5 held-out runs: whatever they score, a sign-flip
+    test at 0.05 cannot pass (its smallest p is 2^-runs), so the weights are refused, saying why; at significance 1
+    the lower mean alone writes them."""
+    code, err = _run(folders[1], tmp_path / 'out', '--holdout-layout', 'end', '--holdout', '0.2', capsys=capsys)
+    report = json.loads((tmp_path / 'out' / 'report.json').read_text())
+    verdict = report['held_out']['verdict']
+    assert verdict['runs'] < 5 and verdict['p_value'] >= 2.0 ** -verdict['runs'] > 0.05, verdict
+    assert verdict['mean_change'] < 0, verdict                  # the premise: a lower mean (the run is seeded)
+    assert code == tool.EXIT_REFUSED and 'runs cannot tell from noise' in err and not report['written'], err
+    mean_only = _run(folders[1], tmp_path / 'mean', '--holdout-layout', 'end', '--holdout', '0.2', '--significance', '1')
+    assert mean_only[0] == tool.EXIT_WRITTEN
 
 
 def test_no_step_within_minutes_writes_no_weights(folders, tmp_path, capsys):

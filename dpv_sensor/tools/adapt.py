@@ -73,6 +73,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "last frames)")
     p.add_argument('--holdout-blocks', type=int, default=d.holdout_blocks,
                    help='--holdout-layout spread: at most this many held-out blocks')
+    p.add_argument('--significance', type=float, default=d.significance,
+                   help='write the adapted weights only when their held-out runs score better with a one-sided '
+                        'sign-flip p-value at most this (needs at least 5 runs at 0.05; 1: whenever the mean is '
+                        'lower)')
     p.add_argument('--gt', default='', metavar='FOLDER',
                    help='a sequence folder with depth/ matching the recording frame for frame: adds abs_rel, '
                         'delta<1.25 and ECE of the held-out frames before and after')
@@ -116,7 +120,8 @@ def build_parser() -> argparse.ArgumentParser:
 def _config(a) -> AdaptConfig:
     return AdaptConfig(width=a.width, height=a.height, minutes=a.minutes, max_steps=a.steps, lr=a.lr,
                        unroll=a.unroll, holdout=a.holdout, holdout_layout=a.holdout_layout,
-                       holdout_blocks=a.holdout_blocks, train_modules=tuple(a.train_modules), aux=a.aux,
+                       holdout_blocks=a.holdout_blocks, significance=a.significance,
+                       train_modules=tuple(a.train_modules), aux=a.aux,
                        penalty=a.penalty, distill=a.distill, readout=a.readout, photometric=a.photometric,
                        evidence=a.evidence, sigma=a.sigma, supervised=a.supervised, poses=a.poses,
                        seed=a.seed).check()
@@ -226,7 +231,9 @@ def _metadata(a, cfg: AdaptConfig, base_path: pathlib.Path, base_meta: Dict, sou
         'steps': result.steps, 'minutes': round(minutes, 2), 'stop_reason': result.stop_reason,
         'loss': "the trainer's loss on the recording's depth" if cfg.supervised else LOSS_DESCRIPTION,
         'config': cfg.to_json(),
-        'held_out': {'score': result.score_kind, 'base': result.base_score, 'adapted': result.adapted_score},
+        'held_out': {'score': result.score_kind, 'base': result.base_score, 'adapted': result.adapted_score,
+                     'runs': result.verdict.runs, 'runs_better': result.verdict.runs_better,
+                     'p_value': result.verdict.p_value, 'significance': result.verdict.significance},
         'ground_truth': gt,
         'command': ' '.join(['adapt'] + argv),
     }
@@ -270,14 +277,13 @@ def run(a, argv: List[str], log) -> int:
     report = {'source': source, 'config': cfg.to_json(), 'base_weights': str(base_path), 'steps': result.steps,
               'stop_reason': result.stop_reason, 'minutes': round(minutes, 2), 'seconds': result.seconds,
               'held_out': {'score': result.score_kind, 'base': result.base_score, 'adapted': result.adapted_score,
-                           'keyframes': result.keyframes},
+                           'verdict': result.verdict.to_json(), 'keyframes': result.keyframes},
               'poses': {'source': cfg.poses, **(adapter.pose_stats or {})},
               'ground_truth': gt, 'history': result.history}
     if result.steps == 0:
         reason = f'no adaptation step fitted in --minutes {cfg.minutes:g}'
     elif not result.improved:
-        reason = (f'the adapted weights scored no better on the held-out keyframes ({result.score_kind} '
-                  f'{result.adapted_score:.5f} against {result.base_score:.5f} for the base weights)')
+        reason = result.verdict.reason
     else:
         reason = ''
     report['written'] = not reason

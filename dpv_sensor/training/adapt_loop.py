@@ -48,6 +48,7 @@ from dpv_sensor.core import dpv as dpvops
 from dpv_sensor.training.adapt_poses import POSE_SOURCES, node_keyframe_poses
 from dpv_sensor.training.config import MODULES
 from dpv_sensor.training.dataset import WindowLayout, sample_from_sequence
+from dpv_sensor.training.heldout_decision import HeldOutVerdict, judge
 from dpv_sensor.training.self_supervised import (distillation, downsample_image, masked_mean, parameter_penalty,
                                                  photometric_evidence, plane_errors, reprojection_error,
                                                  score_error)
@@ -87,6 +88,7 @@ class AdaptConfig:
     holdout_layout: str = 'spread'                  # 'spread': blocks across the recording; 'end': the last frames
     holdout_blocks: int = 4                         # 'spread': at most this many held-out blocks
     max_holdout_runs: int = 16                      # held-out runs scored (evenly spread over the slice)
+    significance: float = 0.05                      # written when better with a sign-flip p at most this (1: mean)
     train_modules: Tuple[str, ...] = ()             # sub-networks adapted (see training.config.MODULES); () = all
     photometric: float = 1.0                        # weight of the photometric reprojection term
     evidence: float = 1.0                           # weight of the plane sweep's photometric evidence term
@@ -108,6 +110,8 @@ class AdaptConfig:
         if self.holdout_layout not in HOLDOUT_LAYOUTS or self.holdout_blocks < 1:
             raise ValueError(f'holdout_layout must be one of {HOLDOUT_LAYOUTS} and holdout_blocks >= 1, got '
                              f'{self.holdout_layout!r}, {self.holdout_blocks}')
+        if not 0 < self.significance <= 1:
+            raise ValueError(f'significance must lie in (0, 1], got {self.significance}')
         if self.minutes <= 0 or self.lr <= 0 or self.unroll < 1 or self.batch_size < 1 or self.max_steps < 0:
             raise ValueError('minutes and lr must be > 0, unroll and batch_size >= 1, max_steps >= 0')
         unknown = set(self.train_modules) - set(MODULES)
@@ -148,10 +152,11 @@ class AdaptResult:
     history: List[Dict]
     keyframes: Dict[str, int]
     examples: List[Dict]
+    verdict: HeldOutVerdict                         # the per-run comparison (training.heldout_decision)
 
     @property
     def improved(self) -> bool:
-        return self.steps > 0 and math.isfinite(self.adapted_score) and self.adapted_score < self.base_score
+        return self.steps > 0 and self.verdict.better
 
 
 def split_keyframes(kfs: List[int], frames: int, holdout: float, layout: WindowLayout
@@ -389,14 +394,16 @@ class Adapter:
 
     # ------------------------------------------------------------------ held-out score
     @torch.no_grad()
-    def score(self, examples: int = 0) -> Tuple[float, List[Dict]]:
-        """The held-out score of the model as it is now (see the module docstring), and ``examples`` of its outputs
-        (the last unrolled step of evenly spread held-out runs: image, depth and confidence at the node's readout)."""
+    def score(self, examples: int = 0) -> Tuple[float, List[float], List[Dict]]:
+        """The held-out score of the model as it is now (see the module docstring), the score of each held-out run,
+        and ``examples`` of its outputs (the last unrolled step of evenly spread held-out runs: image, depth and
+        confidence at the node's readout)."""
         cfg = self.cfg
         was = self.model.training
         self.model.eval()
         rng = np.random.default_rng(0)
         num, den = 0.0, 0.0
+        per_run: List[float] = []
         pick = set(np.linspace(0, len(self.held_runs) - 1, examples).round().astype(int).tolist()) if examples \
             else set()
         out = []
@@ -407,20 +414,23 @@ class Adapter:
                 batch = _collate([batch])
                 meas = measure_steps(self.model, batch)
                 res = filter_steps(self.model, meas, self.depths_d, 'knet')
+                run_num, run_den = 0.0, 0.0
                 if cfg.supervised:
                     for m, r in zip(meas, res):
                         valid = dpvops.valid_depth_mask(m['gt'], self.model.d_min, self.model.d_max)
                         nll = dpvops.nll(r['logp_full'].float(), self.depths_d, m['gt'])
                         n = float(valid.sum())
-                        num += float(nll) * n
-                        den += n
+                        run_num += float(nll) * n
+                        run_den += n
                 else:
                     for m, r in zip(meas, res):
                         depth = dpvops.depth_estimate(r['logp_full'].float(), self.depths_d, cfg.readout)
                         srcs = batch['images'][:, m['sources']]
                         err = score_error(m['image'], srcs, depth, batch['K'], m['T_src_ref'])
-                        num += float(err.sum())
-                        den += float(err.numel())
+                        run_num += float(err.sum())
+                        run_den += float(err.numel())
+                num, den = num + run_num, den + run_den
+                per_run.append(run_num / run_den if run_den > 0 else float('nan'))     # nan: nothing scored
                 if i in pick:
                     logp = res[-1]['logp_full'].float()
                     d = dpvops.depth_estimate(logp, self.depths_d, readout)
@@ -430,7 +440,7 @@ class Adapter:
                                 'depth': d[0].numpy(), 'confidence': c[0].numpy()})
         finally:
             self.model.train(was)
-        return (num / den if den > 0 else float('nan')), out
+        return (num / den if den > 0 else float('nan')), per_run, out
 
     def learning_rate(self, step: int, time_fraction: float) -> float:
         """Linear warm-up over ``warmup`` steps, then a cosine decay to ``min_lr_ratio`` of ``lr`` over the run, so its
@@ -452,7 +462,7 @@ class Adapter:
         rng = np.random.default_rng(cfg.seed)
         seconds: Dict[str, float] = {}
         t0 = time.time()
-        base_score, base_examples = self.score(examples)
+        base_score, base_runs, base_examples = self.score(examples)
         seconds['base_score'] = time.time() - t0
         self.log(f'held-out score of the base weights: {base_score:.5f} ({len(self.held_runs)} runs, '
                  f'{seconds["base_score"]:.0f} s)')
@@ -492,14 +502,18 @@ class Adapter:
             bar.close()
         seconds['train'] = time.time() - t_train
         t1 = time.time()
-        adapted_score, adapted_examples = self.score(examples) if step else (base_score, base_examples)
+        adapted_score, adapted_runs, adapted_examples = self.score(examples) if step else \
+            (base_score, base_runs, base_examples)
         seconds['adapted_score'] = time.time() - t1
-        self.log(f'held-out score after {step} steps: {adapted_score:.5f} (base {base_score:.5f})')
+        kind = 'nll' if cfg.supervised else 'photometric'
+        verdict = judge(base_runs, adapted_runs, cfg.significance, kind)
+        self.log(f'held-out score after {step} steps: {adapted_score:.5f} (base {base_score:.5f}; '
+                 f'{verdict.runs_better} of {verdict.runs} runs better, sign-flip p {verdict.p_value:.3f})')
         ex = [{**b, 'depth_adapted': a['depth'], 'confidence_adapted': a['confidence']}
               for b, a in zip(base_examples, adapted_examples)]
         return AdaptResult(steps=step, base_score=float(base_score), adapted_score=float(adapted_score),
-                           score_kind='nll' if cfg.supervised else 'photometric', stop_reason=stop, seconds=seconds,
-                           history=history, examples=ex,
+                           score_kind=kind, stop_reason=stop, seconds=seconds, history=history, examples=ex,
+                           verdict=verdict,
                            keyframes={'training': len(self.train_kf), 'held_out': len(self.held_kf),
                                       'held_out_runs': len(self.held_runs), 'split_frame': self.split,
                                       'holdout_layout': self.holdout_layout,

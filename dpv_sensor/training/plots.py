@@ -143,7 +143,9 @@ def save_adapt_report(path: str, result, gt: Optional[Dict], d_min: float, d_max
     ax.grid(alpha=0.3)
     ax2 = fig.add_subplot(grid[0, 3:])
     ax2.bar(['base', 'adapted'], [result.base_score, result.adapted_score], color=['tab:gray', 'tab:green'])
-    ax2.set_title(f'held-out {result.score_kind} score (lower is better)', fontsize=9)
+    v = result.verdict
+    ax2.set_title(f'held-out {result.score_kind} score (lower is better)\n{v.runs_better} of {v.runs} runs better, '
+                  f'sign-flip p {v.p_value:.3f}', fontsize=9)
     lo = min(result.base_score, result.adapted_score)
     hi = max(result.base_score, result.adapted_score)
     if np.isfinite(lo) and hi > 0:
