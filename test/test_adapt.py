@@ -161,7 +161,8 @@ def test_refuses_a_gain_too_few_held_out_runs_can_show(folders, tmp_path, capsys
     assert verdict['runs'] < 5 and verdict['p_value'] >= 2.0 ** -verdict['runs'] > 0.05, verdict
     assert verdict['mean_change'] < 0, verdict                  # the premise: a lower mean (the run is seeded)
     assert code == tool.EXIT_REFUSED and 'runs cannot tell from noise' in err and not report['written'], err
-    mean_only = _run(folders[1], tmp_path / 'mean', '--holdout-layout', 'end', '--holdout', '0.2', '--significance', '1')
+    mean_only = _run(folders[1], tmp_path / 'mean', '--holdout-layout', 'end', '--holdout', '0.2',
+                     '--significance', '1')
     assert mean_only[0] == tool.EXIT_WRITTEN
 
 
