@@ -12,13 +12,13 @@ Examples::
 The recording is resized to the node's processing size (320x256 by default) and cut into keyframes as the node
 cuts them; about --holdout of its keyframes are held out, in up to --holdout-blocks blocks spread over the
 recording (a recording too short for blocks, under 14 keyframes, is refused: exit 2; --holdout-layout end holds out
-its last --holdout share of frames instead). The
-networks are adapted on the rest with a photometric reprojection loss across each keyframe window, using the
-recording's poses (--poses window: the poses the node would use, the recording run once through its pipeline and
-refinement window), tied to the shipped weights (dpv_sensor/training/adapt_loop.py; docs/adaptation.md). Both
-weights are then scored on the held-out part with the same label-free score (photometric reprojection error of
-their depth); the adapted weights are written only when they score better. --minutes caps the whole run (the
-default fits a 700-image recording on a 2-core CPU).
+its last --holdout share of frames instead). The networks are adapted on the rest with a photometric reprojection
+loss across each keyframe window, using the recording's poses (--poses window: the poses the node would use, the
+recording run once through its pipeline and refinement window), tied to the shipped weights
+(dpv_sensor/training/adapt_loop.py; docs/adaptation.md). Both weights are then scored on each held-out run with
+the same label-free score (photometric reprojection error of their depth); the adapted weights are written only
+when the runs show the gain by a one-sided sign-flip test at --significance (dpv_sensor/training/heldout_decision.py).
+--minutes caps the whole run (the default fits a 700-image recording on a 2-core CPU).
 
 Writes to --out: weights.safetensors (only when better; with metadata: base weights and their hash, the
 recording, steps, losses, minutes, scores), report.json and report.png (loss curve and a before/after montage of

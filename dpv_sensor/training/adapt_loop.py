@@ -26,7 +26,8 @@ held-out run (the runs of :func:`spread_keyframes` or :func:`split_keyframes`, a
 auto-mask, a pixel sent out of every source counting with the unwarped sources' error
 (:func:`dpv_sensor.training.self_supervised.score_error`), so base and adapted weights are scored on exactly the
 same pixels (with ``supervised``: the NLL of the held-out depth).
-The adapted weights are kept only when their score is lower; :class:`AdaptResult` says which.
+The adapted weights are kept only when the held-out runs' scores show the gain (a one-sided sign-flip test,
+:mod:`dpv_sensor.training.heldout_decision`); :class:`AdaptResult` says which.
 
 **Time**: ``minutes`` caps the whole run (loading, both held-out scores, training): training stops when the
 time left would not cover one more step and the adapted weights' held-out score (timed on the base weights).
