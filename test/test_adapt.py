@@ -327,3 +327,39 @@ def test_spread_adapter_trains_only_on_its_segments(folders):
         Adapter(cfg, model, seq.subset(range(40)))
     short = Adapter(dataclasses.replace(cfg, holdout_layout='end'), model, seq.subset(range(40)))
     assert short.holdout_layout == 'end' and short.split is not None and short.held_runs
+
+
+def test_confident_tie_weights_the_kl_by_the_base_networks_confidence(folders):
+    """``distill_pixels='confident'``: the KL to the base DPV counts only where the base network is sure, so it is
+    at most the plain KL, and nothing where no base confidence reaches the threshold."""
+    import numpy as np
+
+    from dpv_sensor.core import dpv as dpvops
+    from dpv_sensor.training.adapt_loop import AdaptConfig, Adapter
+    from dpv_sensor.training.self_supervised import confidence_tie_weight
+    seq = Sequence(folders[0], depth=False).resized(96, 64).materialize()
+    with pytest.raises(ValueError, match='distill_pixels'):
+        AdaptConfig(distill_pixels='textured').check()
+    with pytest.raises(ValueError, match='distill_threshold'):
+        AdaptConfig(distill_pixels='confident', distill_threshold=1.0).check()
+    kl = {}
+    for pixels, threshold in (('all', 0.5), ('confident', 0.5), ('confident', 0.999)):
+        model, _ = load_checkpoint(default_weights_path('lite'), preset='lite')
+        cfg = AdaptConfig(width=96, height=64, holdout_layout='spread', holdout_blocks=2, unroll=1, distill=1.0,
+                          distill_pixels=pixels, distill_threshold=threshold, photometric=0.0, penalty=0.0)
+        ad = Adapter(cfg, model, seq)
+        with torch.no_grad():                     # move the adapted network away from the base
+            for p in model.parameters():
+                p.add_(0.02 * torch.randn(p.shape, generator=torch.Generator().manual_seed(p.numel())))
+        torch.manual_seed(0)
+        batch = ad.training_batch(np.random.default_rng(0))
+        kl[(pixels, threshold)] = ad.loss(batch)[1]['distill']
+        if pixels == 'confident':                 # the weight is the base's published confidence through the map
+            noise = torch.randn(1, ad.depths_d.numel(), 4, 5, generator=torch.Generator().manual_seed(1))
+            lp = torch.log_softmax(noise, 1)
+            d = dpvops.depth_estimate(lp, ad.depths_d, cfg.readout)
+            conf = dpvops.published_confidence(lp, ad.depths_d, d)
+            assert torch.allclose(ad._tie_weight(lp), confidence_tie_weight(conf, threshold))
+    assert kl[('all', 0.5)] > 0
+    assert 0 < kl[('confident', 0.5)] < kl[('all', 0.5)]
+    assert kl[('confident', 0.999)] < 0.01 * kl[('all', 0.5)]

@@ -140,6 +140,26 @@ def test_parameter_penalty_and_distillation_by_hand():
     assert S.distillation(p, q).item() != pytest.approx(want, rel=1e-3)      # not symmetric: the base is the target
 
 
+def test_confidence_tie_weight_and_weighted_distillation_by_hand():
+    conf = torch.tensor([0.2, 0.5, 0.75, 1.0])
+    assert S.confidence_tie_weight(conf, 0.5).tolist() == pytest.approx([0.0, 0.0, 0.5, 1.0])
+    assert S.confidence_tie_weight(conf, 0.0).tolist() == pytest.approx(conf.tolist())
+    with pytest.raises(ValueError, match='threshold'):
+        S.confidence_tie_weight(conf, 1.0)
+    # two pixels: the same DPV (KL 0) and a moved one (KL k); weights 1 and w -> mean over both pixels
+    base = torch.tensor([[0.7, 0.7], [0.3, 0.3]]).log().view(1, 2, 1, 2)
+    adapted = torch.tensor([[0.7, 0.4], [0.3, 0.6]]).log().view(1, 2, 1, 2)
+    k = 0.7 * math.log(0.7 / 0.4) + 0.3 * math.log(0.3 / 0.6)
+    assert S.distillation(adapted, base).item() == pytest.approx(k / 2, rel=1e-5)
+    for w in (0.0, 0.25, 1.0):
+        weight = torch.tensor([[[1.0, w]]])
+        assert S.distillation(adapted, base, weight).item() == pytest.approx(w * k / 2, rel=1e-5, abs=1e-9)
+    # no gradient where the weight is 0: what the base network was unsure of is left to the photometry
+    a = adapted.clone().requires_grad_(True)
+    S.distillation(a, base, torch.tensor([[[1.0, 0.0]]])).backward()
+    assert a.grad[..., 1].abs().max().item() == 0.0
+
+
 def test_plane_sweep_errors_are_lowest_on_the_plane_nearest_the_true_depth():
     from dpv_sensor.core.dpv import depth_planes
     depths = depth_planes(0.3, 8.0, 32)

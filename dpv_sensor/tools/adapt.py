@@ -44,7 +44,7 @@ from typing import Dict, List, Optional
 
 from dpv_sensor import params as P
 from dpv_sensor.cli import tool_argv
-from dpv_sensor.training.adapt_loop import DEFAULT_MINUTES, HOLDOUT_LAYOUTS, AdaptConfig
+from dpv_sensor.training.adapt_loop import DEFAULT_MINUTES, DISTILL_PIXELS, HOLDOUT_LAYOUTS, AdaptConfig
 from dpv_sensor.training.adapt_poses import POSE_SOURCES
 from dpv_sensor.training.config import MODULES
 
@@ -87,6 +87,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--unroll', type=int, default=d.unroll, help='filter steps unrolled per sample')
     p.add_argument('--penalty', type=float, default=d.penalty, help='weight of ||theta - theta_base||^2')
     p.add_argument('--distill', type=float, default=d.distill, help='weight of KL(base DPV || adapted DPV)')
+    p.add_argument('--distill-pixels', choices=DISTILL_PIXELS, default=d.distill_pixels,
+                   help='all: the KL on every pixel; confident: weighted by how sure the base network is there '
+                        '(0 up to --distill-threshold, 1 at confidence 1)')
+    p.add_argument('--distill-threshold', type=float, default=d.distill_threshold,
+                   help="the base network's confidence where the 'confident' tie starts")
     p.add_argument('--photometric', type=float, default=d.photometric,
                    help='weight of the photometric reprojection term')
     p.add_argument('--evidence', type=float, default=d.evidence,
@@ -122,7 +127,8 @@ def _config(a) -> AdaptConfig:
                        unroll=a.unroll, holdout=a.holdout, holdout_layout=a.holdout_layout,
                        holdout_blocks=a.holdout_blocks, significance=a.significance,
                        train_modules=tuple(a.train_modules), aux=a.aux,
-                       penalty=a.penalty, distill=a.distill, readout=a.readout, photometric=a.photometric,
+                       penalty=a.penalty, distill=a.distill, distill_pixels=a.distill_pixels,
+                       distill_threshold=a.distill_threshold, readout=a.readout, photometric=a.photometric,
                        evidence=a.evidence, sigma=a.sigma, supervised=a.supervised, poses=a.poses,
                        seed=a.seed).check()
 

@@ -13,10 +13,13 @@ filter, R-Net). Each unrolled step's depth warps the window's sources into the r
 
     L = photometric * mean_j [photo(R-Net output_j) + aux * photo(D-Net 1/4-res measurement_j)]
         + evidence * mean_j [ev(R-Net output_j) + aux * ev(D-Net 1/4-res measurement_j)]
-        + penalty * ||theta - theta_base||^2  +  distill * KL(p_base || p)
+        + penalty * ||theta - theta_base||^2  +  distill * mean_pixels w * KL(p_base || p)
 
-``photo`` is the auto-masked photometric reprojection error of the DPV's depth (SSIM + L1, per-pixel minimum over
-the sources); ``ev`` the negative log photometric evidence of the whole DPV on its quarter-resolution grid
+``w`` is 1, or with ``distill_pixels='confident'`` the base network's published confidence mapped by
+:func:`~dpv_sensor.training.self_supervised.confidence_tie_weight` (0 below ``distill_threshold``, 1 at 1): what the
+base network was sure of stays, what it guessed is left to the photometry. ``photo`` is the auto-masked
+photometric reprojection error of the DPV's depth (SSIM + L1, per-pixel minimum over the sources); ``ev``
+the negative log photometric evidence of the whole DPV on its quarter-resolution grid
 (:func:`~dpv_sensor.training.self_supervised.photometric_evidence`: every plane's patch error from the plane sweep,
 likelihood ``exp(-e / sigma)``). With ``supervised`` the loss is the trainer's instead
 (:func:`dpv_sensor.training.unrolled.run_unrolled`: NLL of the recording's depth), and the depth is read.
@@ -50,24 +53,27 @@ from dpv_sensor.training.adapt_poses import POSE_SOURCES, node_keyframe_poses
 from dpv_sensor.training.config import MODULES
 from dpv_sensor.training.dataset import WindowLayout, sample_from_sequence
 from dpv_sensor.training.heldout_decision import HeldOutVerdict, judge
-from dpv_sensor.training.self_supervised import (distillation, downsample_image, masked_mean, parameter_penalty,
-                                                 photometric_evidence, plane_errors, reprojection_error,
-                                                 score_error)
+from dpv_sensor.training.self_supervised import (confidence_tie_weight, distillation, downsample_image, masked_mean,
+                                                 parameter_penalty, photometric_evidence, plane_errors,
+                                                 reprojection_error, score_error)
 from dpv_sensor.training.unrolled import filter_steps, measure_steps, run_unrolled
 
 __all__ = ['AdaptConfig', 'AdaptResult', 'Adapter', 'select_keyframes', 'split_keyframes', 'spread_keyframes',
-           'DEFAULT_MINUTES', 'HOLDOUT_LAYOUTS', 'LOSS_DESCRIPTION']
+           'DEFAULT_MINUTES', 'HOLDOUT_LAYOUTS', 'DISTILL_PIXELS', 'LOSS_DESCRIPTION']
 
 # The default time cap of a whole run: a 700-image 640x480 recording at the 320x256 processing size fits the
 # 20 minutes of a 2-core CPU with this (loading and resizing, two held-out scores, the report).
 DEFAULT_MINUTES = 18.0
 HOLDOUT_LAYOUTS = ('end', 'spread')
+DISTILL_PIXELS = ('all', 'confident')
 
 LOSS_DESCRIPTION = ('mean over the unrolled knet-filter steps of: photometric x the auto-masked photometric '
                     "reprojection error (0.85 SSIM + 0.15 L1, per-pixel minimum over the window's sources) of the "
                     "R-Net output's depth + evidence x the negative log photometric evidence of its DPV (plane sweep "
                     'of 3x3 patches, likelihood exp(-error / sigma)), each + aux x the same for the D-Net 1/4-res '
-                    'measurement; + penalty x ||theta - theta_base||^2 + distill x KL(base DPV || adapted DPV)')
+                    'measurement; + penalty x ||theta - theta_base||^2 + distill x KL(base DPV || adapted DPV) '
+                    "(with distill_pixels 'confident': per pixel, weighted by the base network's confidence above "
+                    'distill_threshold)')
 
 
 @dataclasses.dataclass
@@ -97,6 +103,8 @@ class AdaptConfig:
     aux: float = 0.5                                # weight of the 1/4-res measurement's terms
     penalty: float = 1.0                            # L2-SP weight
     distill: float = 0.0                            # weight of KL(base DPV || adapted DPV) (a second forward)
+    distill_pixels: str = 'all'                     # 'confident': only where the base is sure (confidence_tie_weight)
+    distill_threshold: float = 0.5                  # 'confident': the base confidence where the tie starts
     readout: str = 'relative'                       # the depth the photometric loss warps with (the node's)
     automask: bool = True
     supervised: bool = False                        # the trainer's NLL on the recording's depth instead
@@ -122,6 +130,9 @@ class AdaptConfig:
             raise ValueError(f'readout must be one of {dpvops.READOUTS}, got {self.readout!r}')
         if min(self.aux, self.penalty, self.distill, self.photometric, self.evidence) < 0 or self.sigma <= 0:
             raise ValueError('loss weights must be >= 0 and sigma > 0')
+        if self.distill_pixels not in DISTILL_PIXELS or not 0 <= self.distill_threshold < 1:
+            raise ValueError(f'distill_pixels must be one of {DISTILL_PIXELS} and distill_threshold in [0, 1), got '
+                             f'{self.distill_pixels!r}, {self.distill_threshold}')
         if self.poses not in POSE_SOURCES:
             raise ValueError(f'poses must be one of {POSE_SOURCES}, got {self.poses!r}')
         if self.photometric == 0 and self.evidence == 0 and not self.supervised:
@@ -382,7 +393,8 @@ class Adapter:
                 with torch.no_grad():
                     bmeas = measure_steps(self.base_model, batch)
                     bres = filter_steps(self.base_model, bmeas, self.depths_d, 'knet')
-                kl = torch.stack([distillation(r['logp_full'].float(), b['logp_full'].float())
+                kl = torch.stack([distillation(r['logp_full'].float(), b['logp_full'].float(),
+                                               self._tie_weight(b['logp_full'].float()))
                                   for r, b in zip(res, bres)]).mean()
                 loss = loss + cfg.distill * kl
                 stats['distill'] = float(kl.detach())
@@ -392,6 +404,18 @@ class Adapter:
             stats['penalty'] = float(pen.detach())
         stats['loss'] = float(loss.detach())
         return loss, stats
+
+    def _tie_weight(self, logp_base_bdhw: torch.Tensor) -> Optional[torch.Tensor]:
+        """The distillation's weight per pixel: None (every pixel alike), or with ``distill_pixels='confident'``
+        :func:`confidence_tie_weight` of the base network's published confidence at its own readout."""
+        cfg = self.cfg
+        if cfg.distill_pixels == 'all':
+            return None
+        with torch.no_grad():
+            depth = dpvops.depth_estimate(logp_base_bdhw, self.depths_d, cfg.readout)
+            conf = dpvops.published_confidence(logp_base_bdhw, self.depths_d, depth, P.default('confidence'),
+                                               P.default('confidence_ratio'))
+        return confidence_tie_weight(conf, cfg.distill_threshold)
 
     # ------------------------------------------------------------------ held-out score
     @torch.no_grad()

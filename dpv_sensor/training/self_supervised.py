@@ -34,7 +34,7 @@ from dpv_sensor.core import geometry
 
 __all__ = ['SSIM_ALPHA', 'ssim_dissimilarity', 'photometric_error', 'reprojection_error', 'masked_mean',
            'parameter_penalty', 'distillation', 'downsample_image', 'plane_errors', 'photometric_evidence',
-           'score_error']
+           'score_error', 'confidence_tie_weight']
 
 SSIM_ALPHA = 0.85           # weight of the SSIM term (Monodepth2's)
 _C1, _C2 = 0.01 ** 2, 0.03 ** 2
@@ -209,8 +209,20 @@ def parameter_penalty(named_params: Iterable[Tuple[str, torch.Tensor]], base: Di
     return total if total is not None else torch.zeros(())
 
 
-def distillation(logp_bdhw: torch.Tensor, logp_base_bdhw: torch.Tensor) -> torch.Tensor:
+def distillation(logp_bdhw: torch.Tensor, logp_base_bdhw: torch.Tensor,
+                 weight_bhw: Optional[torch.Tensor] = None) -> torch.Tensor:
     """``KL(p_base || p)`` over the planes, mean over pixels: keeps the adapted DPV (shape and width, hence the
-    confidence) near the base network's where the photometric error does not say otherwise."""
+    confidence) near the base network's where the photometric error does not say otherwise. ``weight_bhw``: a
+    weight per pixel (e.g. :func:`confidence_tie_weight`); the mean is then over all pixels of the weighted KL."""
     p_base = torch.exp(logp_base_bdhw)
-    return (p_base * (logp_base_bdhw - logp_bdhw)).sum(1).mean()
+    kl_bhw = (p_base * (logp_base_bdhw - logp_bdhw)).sum(1)
+    return (kl_bhw if weight_bhw is None else kl_bhw * weight_bhw).mean()
+
+
+def confidence_tie_weight(confidence_bhw: torch.Tensor, threshold: float) -> torch.Tensor:
+    """How much a pixel's DPV is tied to the base network's: 0 up to the base's confidence ``threshold``, rising
+    linearly to 1 at confidence 1. What the base network is sure of (depth its training taught it, texture-free
+    surfaces included) stays; what it guessed is left to the recording's photometry."""
+    if not 0.0 <= threshold < 1.0:
+        raise ValueError(f'threshold must lie in [0, 1), got {threshold}')
+    return ((confidence_bhw - threshold) / (1.0 - threshold)).clamp(0.0, 1.0)
