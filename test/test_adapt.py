@@ -241,8 +241,9 @@ def test_adapting_on_the_first_half_lowers_the_second_half_abs_rel(tmp_path):
                                        'pose_refinement': 'off'},
                               options=EvalOptions(progress=False, consumer_odometry=False))
         scores[name] = s['metric']['frame_mean']['abs_rel']
-    # measured: 0.104 -> 0.089
-    assert scores['adapted'] < scores['shipped'] - 0.01 and scores['adapted'] < 0.92 * scores['shipped'], scores
+    # measured: 0.104 -> 0.094 (0.089 without the tie to what the base network is sure of: it is sure of some of
+    # this room's depth and the default keeps it)
+    assert scores['adapted'] < scores['shipped'] - 0.007 and scores['adapted'] < 0.94 * scores['shipped'], scores
 
 
 def test_gt_folder_adds_the_held_out_metrics_before_and_after(folders, tmp_path, capsys):

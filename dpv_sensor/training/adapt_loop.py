@@ -102,8 +102,8 @@ class AdaptConfig:
     sigma: float = 0.05                             # its photometric error scale
     aux: float = 0.5                                # weight of the 1/4-res measurement's terms
     penalty: float = 1.0                            # L2-SP weight
-    distill: float = 0.0                            # weight of KL(base DPV || adapted DPV) (a second forward)
-    distill_pixels: str = 'all'                     # 'confident': only where the base is sure (confidence_tie_weight)
+    distill: float = 1.0                            # weight of KL(base DPV || adapted DPV) (a second forward)
+    distill_pixels: str = 'confident'               # only where the base is sure (confidence_tie_weight); or 'all'
     distill_threshold: float = 0.5                  # 'confident': the base confidence where the tie starts
     readout: str = 'relative'                       # the depth the photometric loss warps with (the node's)
     automask: bool = True
