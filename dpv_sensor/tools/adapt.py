@@ -86,12 +86,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--lr', type=float, default=d.lr, help='learning rate (AdamW)')
     p.add_argument('--unroll', type=int, default=d.unroll, help='filter steps unrolled per sample')
     p.add_argument('--penalty', type=float, default=d.penalty, help='weight of ||theta - theta_base||^2')
-    p.add_argument('--distill', type=float, default=d.distill, help='weight of KL(base DPV || adapted DPV)')
+    p.add_argument('--distill', type=float, default=d.distill,
+                   help=f'weight of KL(base DPV || adapted DPV) ({d.distill:g}; 0: no tie to the base DPV)')
     p.add_argument('--distill-pixels', choices=DISTILL_PIXELS, default=d.distill_pixels,
                    help='all: the KL on every pixel; confident: weighted by how sure the base network is there '
                         '(0 up to --distill-threshold, 1 at confidence 1)')
     p.add_argument('--distill-threshold', type=float, default=d.distill_threshold,
-                   help="the base network's confidence where the 'confident' tie starts")
+                   help=f"the base network's confidence where the 'confident' tie starts ({d.distill_threshold:g})")
     p.add_argument('--photometric', type=float, default=d.photometric,
                    help='weight of the photometric reprojection term')
     p.add_argument('--evidence', type=float, default=d.evidence,
