@@ -120,16 +120,19 @@ def test_replayed_bag_gives_depth_for_every_keyframe_with_exact_headers(scene, o
         assert wait_for(lambda: not recorder.poll(), timeout=20.0, spin=spin), 'recorder found no publishers'
         thread = threading.Thread(target=lambda: played.update(stats=player.play()), daemon=True)
         thread.start()
-        # all images reached both nodes (reliable input) and every output the nodes counted has arrived here
+        # all images reached both nodes (reliable input) and every output the nodes counted has arrived here, at
+        # the collectors and at the recorder (its own subscriptions: their last message can come a spin later)
+        recorded = ('/depth/image', '/confidence/image', '/depth/camera_info')
         done = wait_for(lambda: not thread.is_alive() and a.diag_int('frames_received') == FRAMES
                         and b.diag_int('frames_received') == FRAMES
                         and a.diag_int('frames_processed') + a.diag_int('dropped_total') == FRAMES
                         and b.diag_int('frames_processed') + b.diag_int('dropped_total') == FRAMES
                         and a.diag_int('outputs_published', -1) == len(a.complete())
-                        and b.diag_int('outputs_published', -1) == len(b.complete()),
+                        and b.diag_int('outputs_published', -1) == len(b.complete())
+                        and all(recorder.counts.get(t, 0) >= a.diag_int('outputs_published', -1) for t in recorded),
                         timeout=60.0, spin=spin)
         assert done, (f'replay did not finish: A {a.diagnostics} complete={len(a.complete())}; '
-                      f'B {b.diagnostics} complete={len(b.complete())}')
+                      f'B {b.diagnostics} complete={len(b.complete())}; recorded {recorder.counts}')
         assert played['stats'].published == player.total_messages
     finally:
         recorder.close()
