@@ -101,11 +101,13 @@ class FlowConfig:
 @dataclass
 class FlowMatches:
     """Correspondences of view a's pixels ``pa_n2`` in view b ``pb_n2`` (pixels, float64) at the size ``K_33``
-    belongs to; ``sampled`` grid pixels were looked at."""
+    belongs to; ``sampled`` grid pixels were looked at; ``flow_hw2``: the dense flow from a to b (float32, pixels)
+    they were sampled from, which chains pairs into tracks (``stream.metric_anchors``)."""
     pa_n2: np.ndarray
     pb_n2: np.ndarray
     K_33: np.ndarray
     sampled: int = 0
+    flow_hw2: Optional[np.ndarray] = None
 
 
 @dataclass
@@ -185,7 +187,7 @@ def flow_matches(gray_a: np.ndarray, gray_b: np.ndarray, K_33: np.ndarray,
                          cv2.INTER_LINEAR)[0].astype(np.float64)
         keep &= np.hypot(f[:, 0] + back[:, 0], f[:, 1] + back[:, 1]) < config.forward_backward_px
     pa = np.c_[xs, ys][keep].astype(np.float64)
-    return FlowMatches(pa, np.c_[xb, yb][keep], np.asarray(K_33, np.float64), sampled=len(xs))
+    return FlowMatches(pa, np.c_[xb, yb][keep], np.asarray(K_33, np.float64), sampled=len(xs), flow_hw2=flow_ab)
 
 
 def _rotate(R: np.ndarray, w: np.ndarray) -> np.ndarray:

@@ -73,6 +73,8 @@ class KeypointPose:
     cov_55: Optional[np.ndarray] = None      # (left rotation increment, direction increment in basis_32)
     basis_32: Optional[np.ndarray] = None    # two unit vectors normal to t_dir_b
     residual_px: float = 0.0                 # rms Sampson distance of the inliers
+    pa_n2: Optional[np.ndarray] = None       # the inliers' pixels in view a and in view b
+    pb_n2: Optional[np.ndarray] = None
 
     def rotation_covariance(self) -> np.ndarray:
         """3x3 covariance of the rotation (rad^2) about the axes of frame b."""
@@ -295,10 +297,11 @@ def keypoint_relative_pose(image_a, image_b, K_33: np.ndarray, config: Optional[
     cov = cov + np.diag(np.radians([cfg.rotation_floor_deg] * 3 + [cfg.direction_floor_deg] * 2)) ** 2
     if parallax < cfg.min_parallax_px:
         s_rot = math.hypot(s_rot, math.radians(cfg.rotation_floor_deg))
-        return KeypointPose(True, None, R, None, n_in, n_good, parallax, s_rot, math.inf, residual_px=rms)
+        return KeypointPose(True, None, R, None, n_in, n_good, parallax, s_rot, math.inf, residual_px=rms,
+                            pa_n2=pa[sel], pb_n2=pb[sel])
     s_rot = math.sqrt(max(np.linalg.eigvalsh(cov[:3, :3])[-1], s_rot ** 2))
     s_dir = math.sqrt(max(np.linalg.eigvalsh(cov[3:, 3:])[-1], s_dir ** 2))
-    return KeypointPose(True, None, R, t_dir, n_in, n_good, parallax, s_rot, s_dir, cov, B, rms)
+    return KeypointPose(True, None, R, t_dir, n_in, n_good, parallax, s_rot, s_dir, cov, B, rms, pa[sel], pb[sel])
 
 
 def _normalised(p: np.ndarray, K: np.ndarray) -> np.ndarray:

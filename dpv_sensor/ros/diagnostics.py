@@ -80,10 +80,32 @@ def estimator_values(st: EstimatorStatus | None, settings, starting: bool, reset
         values['pose_refinement_direction_ratio'] = (
             f'{median:.3f} (images {"agree" if median <= limit else "disagree"} with the odometry\'s directions; '
             f'flow rotations at most {limit:g})')
+    if st.anchors:
+        values.update(anchor_values(st.anchors))
     if st.pose_refinement_odometry is not None:
         rot, trans, source = st.pose_refinement_odometry
         values['pose_refinement_odometry'] = (f'{math.degrees(rot):.3f} deg / {1000 * trans:.2f} mm per keyframe '
                                               f'step ({source})')
+    return values
+
+
+def anchor_values(anchors: dict) -> dict:
+    """The metric anchors' part of /diagnostics (``EstimatorStatus.anchors``): the mode, keyframes checked, aligned
+    and overruled (a region disagreed with its anchors beyond their sigma), anchors per checked keyframe, rejected
+    candidates by reason, and the last keyframe's anchors, scale and why nothing was applied."""
+    checked = anchors.get('keyframes_checked', 0)
+    values = {'depth_anchors': anchors.get('mode', 'off'),
+              'anchors_keyframes': (f"{checked} checked, {anchors.get('keyframes_aligned', 0)} aligned, "
+                                    f"{anchors.get('keyframes_overruled', 0)} overruled "
+                                    f"({anchors.get('pixels_overruled', 0)} pixels)"),
+              'anchors_per_keyframe': f"{anchors.get('anchors', 0) / checked:.0f}" if checked else '0',
+              'anchors_rejected': ', '.join(f'{k} {v}' for k, v in sorted((anchors.get('rejected') or {}).items()))}
+    last = anchors.get('last') or {}
+    scale = last.get('scale')
+    values['anchors_last'] = (f"{last.get('anchors', 0)} anchors, {last.get('used', 0)} on the depth, "
+                              + (f"scale {scale:.3f} +- {100 * last.get('sigma', 0.0):.1f} %, applied "
+                                 f"{last.get('applied', 'none')}" if scale is not None else 'no fit')
+                              + (f" ({last['reason']})" if last.get('reason') else ''))
     return values
 
 

@@ -31,7 +31,7 @@ from dpv_sensor.stream.estimator_config import (EstimatorConfig, EstimatorStatus
                                                 PoseRefiner, _Measurement, _Posterior, calibration_signature,
                                                 default_weights_path, output_size)
 from dpv_sensor.stream.keyframes import Keyframe, KeyframeSelector, KeyframeWindow
-from dpv_sensor.stream import confidence_features, keyframe_geometry, window_pose_uncertainty
+from dpv_sensor.stream import confidence_features, keyframe_geometry, metric_anchors, window_pose_uncertainty
 
 __all__ = ['EstimatorConfig', 'EstimatorStatus', 'Estimator', 'PoseRefinementRequest', 'default_weights_path',
            'MEASUREMENTS', 'FILTER_MODES']
@@ -134,6 +134,10 @@ class Estimator:
         self._twist: Optional[np.ndarray] = None
         self.calibration: Optional[ConfidenceCalibration] = None
         self.calibration = self._load_calibration()
+        self.anchors = metric_anchors.AnchorAligner(cfg.depth_anchors, ratio=cfg.confidence_ratio)
+        if cfg.depth_anchors != 'off' and cfg.pose_refinement != 'window':
+            self._note(f'depth_anchors={cfg.depth_anchors} needs pose_refinement=window (its matches and poses): '
+                       'the depth is not checked against anchors')
         # keyframe outputs carry their confidence cues (stream.confidence_features) when set, with the network
         # measurement only; off for the node
         self.collect_features = False
@@ -340,6 +344,7 @@ class Estimator:
             pose_refinement_odometry=_odometry_steps(self._refinement_result()),
             pose_refinement_direction_ratio=getattr(self.pose_refiner, 'direction_ratio', None),
             confidence_calibration=None if self.calibration is None else self.calibration.path,
+            anchors=self.anchors.status.as_dict(),
         )
 
     def _refinement_result(self):
@@ -577,10 +582,15 @@ class Estimator:
             timings['upsample'] = self._ms(t)
 
         t = time.perf_counter()
+        depth, conf, anchor_report = self._hold_to_anchors(ref, depth, conf)
+        timings['anchors'] = self._ms(t)
+
+        t = time.perf_counter()
         reason = self._take_reset_reason(step.reset_reason)
         out = compose_output(self.config, depth, conf, valid, ref.input_size, ref.input_K_33, ref.stamp,
                              ref.T_world_cam_44, True, reason, self.calibration)
         timings['output'] = self._ms(t)
+        out.anchors = anchor_report
         if self.collect_features and self.measurement == 'network':
             out.features = confidence_features.keyframe_features(
                 full_logp_bdhw=full, depth_bhw=depth, band_mass_bhw=band_mass, conf_bhw=conf, depths_d=self.depths_d,
@@ -594,6 +604,27 @@ class Estimator:
         self._last_timings = dict(timings)
         self._tracking = 'tracking'
         return out
+
+    def _hold_to_anchors(self, ref: Keyframe, depth_bhw: torch.Tensor, conf_bhw: torch.Tensor):
+        """The keyframe's depth and confidence held to its metric anchors (``depth_anchors``,
+        :mod:`dpv_sensor.stream.metric_anchors`), and the report; unchanged tensors without a refined window."""
+        result = self._refinement_result()
+        anchors, veto = None, None
+        ratio = getattr(self.pose_refiner, 'direction_ratio', None)
+        if ratio is not None and ratio[0] > ratio[1]:
+            # the window takes SIFT's rotations because the images disagree with the odometry's translation
+            # directions: poses that do not explain the images triangulate biased points
+            veto = (f"the images disagree with the odometry's translation directions (direction ratio "
+                    f'{ratio[0]:.3f} > {ratio[1]:g}): its poses cannot anchor the depth')
+        elif result is not None and float(ref.stamp) in getattr(result, 'T_world_cam', {}):
+            anchors = metric_anchors.reference_anchors(result, float(ref.stamp), self.anchors.config)
+        d = depth_bhw[0].detach().float().cpu().numpy()
+        c = conf_bhw[0].detach().float().cpu().numpy()
+        d2, c2, report = self.anchors.apply(d, c, ref.K_b33[0].detach().double().cpu().numpy(), anchors, veto)
+        if d2 is d:
+            return depth_bhw, conf_bhw, report
+        return (torch.as_tensor(d2, device=depth_bhw.device, dtype=depth_bhw.dtype)[None],
+                torch.as_tensor(c2, device=conf_bhw.device, dtype=conf_bhw.dtype)[None], report)
 
     def _chain_pose(self, T_odom_44: np.ndarray) -> np.ndarray:
         """Pose estimate of a new frame: its odometry motion since the newest keyframe chained onto that

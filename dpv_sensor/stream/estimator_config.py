@@ -112,6 +112,9 @@ class EstimatorStatus:
     pose_refinement_direction_ratio: Optional[Tuple[float, float]] = None
     # the confidence calibration file in use (the confidence_calibration setting), None without one
     confidence_calibration: Optional[str] = None
+    # the metric anchors since the start (stream.metric_anchors.AnchorStatus as a dict): mode, keyframes checked,
+    # aligned and overruled, anchors kept and rejected by reason, the last keyframe's report
+    anchors: Dict[str, Any] = dataclasses.field(default_factory=dict)
 
     def as_dict(self) -> Dict[str, Any]:
         """The fields by name (``dataclasses.asdict``); ``pose_refinement_tracking`` only when there is one."""

@@ -69,3 +69,4 @@ class DepthOutput:
     reset_reason: str | None = None            # why the filter restarted at this frame, if it did
     timings_ms: dict = field(default_factory=dict)
     features: dict | None = None               # keyframe confidence cues by name (Estimator.collect_features)
+    anchors: object | None = None              # the keyframe's metric anchors report (stream.metric_anchors)

@@ -66,7 +66,7 @@ from dpv_sensor.core.photometric import (AlignmentResult, Aligner, ImagePyramid,
 from dpv_sensor.stream.window_graph import (odometry_between_sigmas, odometry_step_covariance, odometry_steps,
                                             pose3_from_matrix, relative_marginal_sigmas, relative_pose,
                                             solve_window)
-from dpv_sensor.stream.window_refiner_config import PoseRefinerConfig, RefinementResult, WindowKeyframe
+from dpv_sensor.stream.window_refiner_config import PairMatches, PoseRefinerConfig, RefinementResult, WindowKeyframe
 
 #: per-axis variance (m^2) of the translation of a keypoint factor that holds only a rotation: 10 m std, nothing
 #: next to the odometry's millimetres
@@ -150,6 +150,9 @@ class WindowPoseRefiner:
         self._match_images: Dict[Hashable, Tuple[np.ndarray, np.ndarray]] = {}   # flow's (grey, K), likewise
         self._flow: Dict[Tuple[Hashable, Hashable], RotationEstimate] = {}   # flow rotation per pair in the window
         self._rotation_factors: Dict[Tuple[Hashable, Hashable], tuple] = {}  # flow factors (src, ref) kept
+        # matched pixels per pair (a, b) in the window, flow's or SIFT's inliers: (pixels in a, pixels in b, K, the
+        # flow's dense field from a to b or None)
+        self._pair_matches: Dict[Tuple[Hashable, Hashable], tuple] = {}
         self._depth_refs = 0                                 # references with a predicted depth since the start
         self._cov: Dict[Hashable, Optional[OdometryCovariance]] = {}   # first odometry covariances seen per key
         self._graph = None                                   # (graph, result, index) of the last solve
@@ -334,7 +337,8 @@ class WindowPoseRefiner:
                         'cpu': 1e3 * (time.process_time() - c0)}, skipped=skipped,
             source_sigma=sigmas, gate=gate, correction=correction, keypoints=kps,
             factors=self._factor_pairs(window, factors, kp_factors) if refined else {},
-            odometry=odometry_steps(window, self._odom, self._cov, self.config))
+            odometry=odometry_steps(window, self._odom, self._cov, self.config),
+            matches=self._reference_matches(ref.key, window))
         return self.last_result
 
     def _admit_window(self, frames: List[WindowKeyframe]) -> List[Hashable]:
@@ -351,7 +355,7 @@ class WindowPoseRefiner:
             for k in list(store):
                 if k not in keys:
                     del store[k]
-        for store in (self._flow, self._rotation_factors):
+        for store in (self._flow, self._rotation_factors, self._pair_matches):
             for a, b in list(store):
                 if a not in keys or b not in keys:
                     del store[(a, b)]
@@ -463,6 +467,8 @@ class WindowPoseRefiner:
             kp = keypoint_relative_pose(self._keypoints(ref), self._keypoints(s), ref.K_33, cfg.keypoint, T0,
                                         cfg.keypoint_prior_gate_px)
             kps.append(kp)
+            if kp.pa_n2 is not None:
+                self._pair_matches[(ref.key, s.key)] = (kp.pa_n2, kp.pb_n2, np.asarray(ref.K_33, np.float64), None)
             if not kp.ok or kp.t_dir_b is None:
                 continue
             base = float(np.linalg.norm(T0[:3, 3]))
@@ -551,7 +557,9 @@ class WindowPoseRefiner:
             return self._flow[(src.key, ref.key)].inverse()
         (ga, K), (gb, _) = self._match_image(ref), self._match_image(src)
         cfg = self.config
-        est = rotation_given_direction(flow_matches(ga, gb, K, cfg.flow), T0_src_ref[:3, 3], T0_src_ref[:3, :3],
+        matches = flow_matches(ga, gb, K, cfg.flow)
+        self._pair_matches[(ref.key, src.key)] = (matches.pa_n2, matches.pb_n2, matches.K_33, matches.flow_hw2)
+        est = rotation_given_direction(matches, T0_src_ref[:3, 3], T0_src_ref[:3, :3],
                                        cfg.flow, direction_ratio=self._measure_direction_ratio())
         if est.direction_ratio is not None:
             self._direction_ratios.append(est.direction_ratio)
@@ -563,6 +571,21 @@ class WindowPoseRefiner:
             image, K = (f.image, f.K_33) if f.camera_image is None else (f.camera_image, f.camera_K_33)
             self._match_images[f.key] = match_image(image, K, self.config.flow)
         return self._match_images[f.key]
+
+    def _reference_matches(self, ref_key: Hashable, window: List[Hashable]) -> List[PairMatches]:
+        """The matches of the window's pairs: those that include the reference, and the flow's between any two
+        keyframes of the window (they chain into tracks through the reference), each with the odometry's per-axis
+        std of the pair's relative pose."""
+        out = []
+        for (a, b), (pa, pb, K, flow) in self._pair_matches.items():
+            if a not in window or b not in window or (ref_key not in (a, b) and flow is None):
+                continue
+            first, last = (a, b) if a <= b else (b, a)
+            cov = odometry_step_covariance(self._odom[first], self._odom[last], self._cov.get(first),
+                                           self._cov.get(last), self.config)
+            out.append(PairMatches(a, b, pa, pb, K, math.sqrt(float(np.max(np.diag(cov)[:3]))),
+                                   math.sqrt(float(np.max(np.diag(cov)[3:]))), flow))
+        return out
 
     def _evidence_gate(self, kps: List[KeypointPose], kp_factors: list, skipped) -> str:
         """Before the solve: 'kept_few_inliers' when keypoint evidence is required and no pair has enough inliers;

@@ -16,7 +16,7 @@ from dpv_sensor.core.odometry_covariance import OdometryCovariance
 from dpv_sensor.core.photometric import AlignmentConfig, AlignmentResult
 from dpv_sensor.stream.window_graph import OdometrySteps
 
-__all__ = ['PoseRefinerConfig', 'WindowKeyframe', 'RefinementResult']
+__all__ = ['PoseRefinerConfig', 'WindowKeyframe', 'RefinementResult', 'PairMatches']
 
 
 # ------------------------------------------------------------------------------------------------------------------
@@ -247,3 +247,22 @@ class RefinementResult:
     factors: Dict[str, List[Tuple[Hashable, Hashable]]] = field(default_factory=dict)
     # the window's odometry factors: median per-axis std of a step and where its covariance came from
     odometry: Optional[OdometrySteps] = None
+    # the matches the window measured between the reference and its sources (flow or SIFT), with the odometry's
+    # uncertainty of each pair's relative pose: what the reference's metric anchors are triangulated from
+    matches: List['PairMatches'] = field(default_factory=list)
+
+
+@dataclass
+class PairMatches:
+    """Matched pixels of two window keyframes: ``pa_n2`` in keyframe ``key_a`` and ``pb_n2`` in ``key_b``, at the size
+    ``K_33`` belongs to (the flow's camera-resolution images or SIFT's processing-size ones); ``sigma_rot_rad`` /
+    ``sigma_trans_m``: the per-axis std of the odometry's relative pose between the two (rotation, translation);
+    ``flow_hw2``: with the flow, its dense field from a to b, which chains pairs into tracks."""
+    key_a: Hashable
+    key_b: Hashable
+    pa_n2: np.ndarray
+    pb_n2: np.ndarray
+    K_33: np.ndarray
+    sigma_rot_rad: float = 0.0
+    sigma_trans_m: float = 0.0
+    flow_hw2: Optional[np.ndarray] = None      # the flow's dense field from a to b (None: SIFT's inliers)

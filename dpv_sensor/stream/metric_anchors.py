@@ -1,0 +1,219 @@
+"""The reference keyframe's metric anchors and what they do to its published depth (layer 3).
+
+The window refiner already matches the reference with its nearest sources (optical flow at the camera's resolution,
+or SIFT's inliers: :class:`~dpv_sensor.stream.window_refiner_config.PairMatches`) and refines their metric poses;
+:func:`reference_anchors` triangulates those matches with the refined poses (:mod:`dpv_sensor.core.anchors`: each
+kept anchor has parallax, a small reprojection error in both views, lies in front of both cameras and carries a σ
+of log depth from the pixel noise and the odometry's uncertainty of the pair). Nothing is detected or matched
+twice. A camera that turns in place gives rays that do not meet at an angle: no anchors, and no change.
+
+:class:`AnchorAligner` holds the keyframe's depth to them (``depth_anchors``):
+
+- ``scale``: one robust, σ-weighted log scale (Huber IRLS) multiplies the depth;
+- ``dense``: a smooth scale map on a coarse grid (the global scale where no anchor speaks), so a region that the
+  networks put at the wrong depth is corrected where anchors are, and a confident wrong region is caught;
+- ``off``: the depth as the networks give it (the anchors are still counted, so ``/diagnostics`` shows what they
+  would say).
+
+Either way the confidence becomes that of the corrected depth: widened by the fit's uncertainty (a scale known to
+a few percent changes little; a poorly supported node of the map widens more) and, where the anchors say the
+depth was off by more than their σ explains, by the size of that disagreement — a surface the networks put at twice
+its depth is no longer published as confident even where the map cannot fully mend it. Keyframes with fewer than
+``min_anchors`` usable anchors are published unchanged, bit for bit.
+
+:class:`AnchorStatus` counts what happened (keyframes checked / aligned, anchors, rejected candidates by reason,
+the last scale and its σ, pixels whose correction was beyond the anchors' σ) for ``/diagnostics``. numpy; no ROS.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, field
+from typing import Dict, Hashable, Optional, Tuple
+
+import cv2
+import numpy as np
+
+from dpv_sensor.core import anchors as anchor_math
+from dpv_sensor.core.anchors import AnchorConfig, Anchors
+
+__all__ = ['ANCHOR_MODES', 'AnchorStatus', 'AnchorReport', 'AnchorAligner', 'reference_anchors']
+
+#: the ``depth_anchors`` choices
+ANCHOR_MODES = ('off', 'scale', 'dense')
+
+#: a correction counts as a disagreement of the network with its anchors beyond their σ above this many σ
+OVERRULE_SIGMAS = 3.0
+
+
+def reference_anchors(result, ref_key: Hashable, config: AnchorConfig = AnchorConfig()) -> Anchors:
+    """The anchors of the reference keyframe ``ref_key`` from a window refiner's result (its ``matches`` and
+    refined ``T_world_cam``), pixels at the first part's resolution; empty without matches.
+
+    The flow's pairs chain into tracks: each keyframe's sampled pixels follow the dense flows from keyframe to
+    keyframe (older to newer, as the window measured them) for as long as there is a flow, and a track that passes
+    through the reference is triangulated from its first and its last view (the longest baseline), checked in
+    every view. SIFT's pairs with the reference are triangulated as they are."""
+    poses = result.T_world_cam
+    if ref_key not in poses:
+        return Anchors.empty()
+    flows: Dict[Hashable, object] = {}
+    parts = []
+    newest = {}                  # one set of matches per pair: the last the window measured
+    for m in getattr(result, 'matches', None) or []:
+        newest[frozenset((m.key_a, m.key_b))] = m
+    for m in newest.values():
+        if m.key_a not in poses or m.key_b not in poses:
+            continue
+        if m.flow_hw2 is not None and m.key_a < m.key_b:
+            flows[m.key_a] = m
+        elif ref_key in (m.key_a, m.key_b):
+            if m.key_a == ref_key:
+                p_ref, p_src, src = m.pa_n2, m.pb_n2, m.key_b
+            else:
+                p_ref, p_src, src = m.pb_n2, m.pa_n2, m.key_a
+            T_src_ref = np.linalg.inv(poses[src]) @ poses[ref_key]
+            parts.append(anchor_math.triangulate_pair(p_ref, p_src, m.K_33, T_src_ref, m.sigma_rot_rad,
+                                                      m.sigma_trans_m, len(parts), config))
+    for start in sorted(flows):
+        if start > ref_key:
+            continue
+        track = _flow_track(flows, start)
+        keys = [k for k, _p in track]
+        if len(keys) < 2 or ref_key not in keys:
+            continue
+        steps = [flows[k] for k in keys[:-1]]
+        sigma_rot = math.sqrt(sum(m.sigma_rot_rad ** 2 for m in steps))
+        sigma_trans = math.sqrt(sum(m.sigma_trans_m ** 2 for m in steps))
+        parts.append(anchor_math.triangulate_track([p for _k, p in track], [poses[k] for k in keys],
+                                                   steps[0].K_33, keys.index(ref_key), sigma_rot, sigma_trans,
+                                                   len(parts), config))
+    return anchor_math.concat_anchors(parts)
+
+
+def _flow_track(flows: Dict[Hashable, object], start: Hashable):
+    """[(key, pixels (n, 2))] of the tracks that start at keyframe ``start``'s sampled pixels and follow the chain of
+    flows from it (NaN once a track leaves the image)."""
+    m = flows[start]
+    track = [(start, m.pa_n2), (m.key_b, m.pb_n2)]
+    while track[-1][0] in flows:
+        nxt = flows[track[-1][0]]
+        p = track[-1][1]
+        F = nxt.flow_hw2
+        h, w = F.shape[:2]
+        x, y = p[:, 0].astype(np.float32), p[:, 1].astype(np.float32)
+        d = cv2.remap(F, x[None], y[None], cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
+                      borderValue=(np.nan, np.nan))[0].astype(np.float64)
+        q = p + d
+        out = ~((q[:, 0] >= 0) & (q[:, 0] <= w - 1) & (q[:, 1] >= 0) & (q[:, 1] <= h - 1))
+        q[out] = np.nan
+        track.append((nxt.key_b, q))
+    return track
+
+
+@dataclass
+class AnchorReport:
+    """One keyframe: anchors kept and candidates rejected by reason; those with a depth to compare (used) and the
+    fit's inliers; the scale (depth multiplied by it, None: no fit) and its σ (log); what was applied ('none',
+    'scale', 'dense'); pixels whose correction exceeded the anchors' σ (overruled); why nothing was applied."""
+    anchors: int = 0
+    rejected: Dict[str, int] = field(default_factory=dict)
+    used: int = 0
+    inliers: int = 0
+    scale: Optional[float] = None
+    sigma: Optional[float] = None
+    applied: str = 'none'
+    overruled_pixels: int = 0
+    reason: Optional[str] = None
+
+
+@dataclass
+class AnchorStatus:
+    """Since the start: the mode; keyframes checked (a window to triangulate from) and aligned (a fit applied);
+    keyframes vetoed (the poses cannot anchor them: the images disagree with the odometry's directions);
+    keyframes where some region disagreed with its anchors beyond their σ and the pixels that were; anchors kept
+    and candidates rejected by reason; the last keyframe's report."""
+    mode: str = 'off'
+    keyframes_checked: int = 0
+    keyframes_aligned: int = 0
+    keyframes_overruled: int = 0
+    keyframes_vetoed: int = 0
+    pixels_overruled: int = 0
+    anchors: int = 0
+    rejected: Dict[str, int] = field(default_factory=dict)
+    last: Optional[AnchorReport] = None
+
+    def as_dict(self) -> Dict:
+        return dataclasses.asdict(self)
+
+
+class AnchorAligner:
+    """Holds each keyframe's depth to its anchors (module doc). ``mode``: one of :data:`ANCHOR_MODES`;
+    ``ratio``: the confidence's band (×ratio)."""
+
+    def __init__(self, mode: str = 'off', config: AnchorConfig = AnchorConfig(), ratio: float = 1.25):
+        if mode not in ANCHOR_MODES:
+            raise ValueError(f'depth_anchors must be one of {ANCHOR_MODES}, not {mode!r}')
+        self.mode = mode
+        self.config = config
+        self.ratio = float(ratio)
+        self.status = AnchorStatus(mode=mode)
+
+    def apply(self, depth_hw: np.ndarray, conf_hw: np.ndarray, K_depth_33: np.ndarray, anchors: Optional[Anchors],
+              veto: Optional[str] = None) -> Tuple[np.ndarray, np.ndarray, AnchorReport]:
+        """(depth, confidence, report) of one keyframe: ``depth_hw`` (m, NaN/0 = none) and ``conf_hw`` at the
+        size of ``K_depth_33``; ``anchors`` None: none to check against, ``veto`` saying why (default: no window
+        to triangulate from). The arrays are returned as given (the same objects) when nothing is applied."""
+        st = self.status
+        if anchors is None:
+            rep = AnchorReport(reason=veto or 'no refinement window (pose_refinement off or no matches yet)')
+            st.last = rep
+            if veto is not None:
+                st.keyframes_vetoed += 1
+            return depth_hw, conf_hw, rep
+        cfg = self.config
+        st.keyframes_checked += 1
+        st.anchors += len(anchors)
+        for k, v in anchors.rejected.items():
+            st.rejected[k] = st.rejected.get(k, 0) + int(v)
+        rep = AnchorReport(anchors=len(anchors), rejected=dict(anchors.rejected))
+        st.last = rep
+        if len(anchors) < cfg.min_anchors:
+            rep.reason = f'too few anchors ({len(anchors)} < {cfg.min_anchors})'
+            return depth_hw, conf_hw, rep
+        K = np.asarray(K_depth_33, np.float64)
+        x = np.c_[anchors.uv_n2, np.ones(len(anchors))] @ np.linalg.inv(anchors.K_33).T @ K.T
+        uv = x[:, :2]
+        d_at = anchor_math.sample_depth(depth_hw, uv)
+        with np.errstate(divide='ignore', invalid='ignore'):
+            log_ratio = np.log(anchors.depth_n) - np.log(d_at)
+        fit = anchor_math.fit_log_scale(log_ratio, anchors, cfg)
+        if fit is None:
+            rep.used = int(np.isfinite(log_ratio).sum())
+            rep.reason = f'too few anchors on the depth ({rep.used} < {cfg.min_anchors})'
+            return depth_hw, conf_hw, rep
+        rep.used, rep.inliers, rep.scale, rep.sigma = fit.used, fit.inliers, fit.scale, fit.sigma
+        if self.mode == 'off':
+            rep.reason = "depth_anchors is 'off'"
+            return depth_hw, conf_hw, rep
+        if self.mode == 'scale':
+            log_map = np.full(depth_hw.shape, fit.log_scale)
+            sigma_map = np.full(depth_hw.shape, fit.sigma)
+        else:
+            grid = anchor_math.fit_scale_grid(log_ratio, anchors, uv, depth_hw.shape, fit, cfg)
+            log_map = anchor_math.grid_dense(grid)
+            sigma_map = anchor_math.grid_dense(grid, grid.sigma_rc)
+        # a correction beyond what the anchors' σ explains says the network was wrong there by about its size
+        overruled = np.abs(log_map) > OVERRULE_SIGMAS * sigma_map
+        widen = np.where(overruled, np.hypot(sigma_map, np.abs(log_map)), sigma_map)
+        valid = np.isfinite(depth_hw) & (depth_hw > 0)
+        rep.overruled_pixels = int((overruled & valid).sum())
+        rep.applied = self.mode
+        st.keyframes_aligned += 1
+        if rep.overruled_pixels:
+            st.keyframes_overruled += 1
+            st.pixels_overruled += rep.overruled_pixels
+        depth = np.where(valid, depth_hw * np.exp(log_map), depth_hw).astype(depth_hw.dtype)
+        conf = anchor_math.widened_confidence(conf_hw, widen, self.ratio).astype(conf_hw.dtype)
+        return depth, conf, rep
+

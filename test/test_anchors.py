@@ -1,0 +1,185 @@
+"""Metric anchors: triangulation, the anchors' sigma, the robust fits and the aligner, on tiny analytic cameras
+whose answers are worked out by hand (core.anchors, stream.metric_anchors)."""
+import math
+
+import numpy as np
+import pytest
+
+from dpv_sensor.core import anchors as A
+from dpv_sensor.stream import metric_anchors as MA
+
+K = np.array([[500.0, 0.0, 160.0], [0.0, 500.0, 128.0], [0.0, 0.0, 1.0]])
+SIZE_HW = (256, 320)
+
+
+def _project(X_n3, T_cam_world=np.eye(4)):
+    Xc = X_n3 @ T_cam_world[:3, :3].T + T_cam_world[:3, 3]
+    p = Xc @ K.T
+    return p[:, :2] / p[:, 2:3]
+
+
+def _translation(x, y=0.0, z=0.0):
+    T = np.eye(4)
+    T[:3, 3] = (x, y, z)
+    return T
+
+
+def _rotation_y(deg):
+    a = math.radians(deg)
+    T = np.eye(4)
+    T[:3, :3] = [[math.cos(a), 0, math.sin(a)], [0, 1, 0], [-math.sin(a), 0, math.cos(a)]]
+    return T
+
+
+def _scene(n=300, seed=0, z=(1.5, 3.0)):
+    rng = np.random.default_rng(seed)
+    zs = rng.uniform(*z, n)
+    uv = np.c_[rng.uniform(10, 310, n), rng.uniform(10, 246, n)]
+    return np.c_[(uv - K[:2, 2]) / 500.0 * zs[:, None], zs]
+
+
+def test_triangulation_recovers_exact_depth_and_rejects_behind():
+    X = _scene(50)
+    T_src_ref = _translation(-0.2)                       # the source 20 cm to the right of the reference
+    a = A.triangulate_pair(_project(X), _project(X, T_src_ref), K, T_src_ref,
+                           config=A.AnchorConfig(min_parallax_deg=0.5))
+    assert len(a) == 50 and np.allclose(a.depth_n, X[:, 2], rtol=1e-9)
+    # the inverse convention puts every point behind a camera
+    b = A.triangulate_pair(_project(X), _project(X, T_src_ref), K, np.linalg.inv(T_src_ref))
+    assert len(b) == 0 and b.rejected['behind'] == 50
+
+
+def test_anchor_sigma_by_hand_two_views():
+    # one point straight ahead at z = 2 m, the source 10 cm to the side: the rays meet at theta = atan(0.1 / 2)
+    X = np.array([[0.0, 0.0, 2.0]])
+    T_src_ref = _translation(-0.1)
+    cfg = A.AnchorConfig(pixel_sigma_px=0.5, min_parallax_deg=0.5, max_sigma_log=1.0)
+    a = A.triangulate_pair(_project(X), _project(X, T_src_ref), K, T_src_ref, sigma_rot_rad=0.001,
+                           sigma_trans_m=0.002, config=cfg)
+    tan_theta = 0.1 / 2.0
+    # independent: sqrt(2) * (0.5 px / 500 px) / tan(theta) = 0.0282843; shared: hypot(0.001 / tan, 0.002 / 0.1)
+    assert a.sigma_ind_n[0] == pytest.approx(math.sqrt(2) * 0.001 / tan_theta, rel=1e-6)
+    assert a.sigma_ind_n[0] == pytest.approx(0.0282843, rel=1e-5)
+    assert a.sigma_pair_n[0] == pytest.approx(math.hypot(0.02, 0.02), rel=1e-6)
+
+
+def test_parallax_and_reprojection_rules():
+    X = np.array([[0.0, 0.0, 2.0], [0.2, 0.1, 2.0]])
+    T_src_ref = _translation(-0.02)                      # 0.57 deg of parallax at 2 m
+    cfg = A.AnchorConfig(min_parallax_deg=1.0, max_sigma_log=1.0)
+    a = A.triangulate_pair(_project(X), _project(X, T_src_ref), K, T_src_ref, config=cfg)
+    assert len(a) == 0 and a.rejected['parallax'] == 2
+    # 0.1 m baseline (2.9 deg); a match 3 px off the epipolar line (vertical) fails the 1.5 px reprojection limit
+    T_src_ref = _translation(-0.1)
+    pb = _project(X, T_src_ref)
+    pb[1, 1] += 3.0
+    a = A.triangulate_pair(_project(X), pb, K, T_src_ref, config=cfg)
+    assert len(a) == 1 and a.rejected['reprojection'] == 1
+
+
+def test_pure_rotation_gives_no_anchors():
+    X = _scene(100)
+    T_src_ref = _rotation_y(3.0)
+    a = A.triangulate_pair(_project(X), _project(X, T_src_ref), K, T_src_ref)
+    assert len(a) == 0
+
+
+def test_track_triangulates_from_first_and_last_view_and_checks_the_middle():
+    X = _scene(40)
+    T_world = [np.eye(4), _translation(0.05), _translation(0.10)]
+    pts = [_project(X, np.linalg.inv(T)) for T in T_world]
+    a = A.triangulate_track(pts, T_world, K, 1, config=A.AnchorConfig(min_parallax_deg=0.5))
+    assert len(a) == 40
+    assert np.allclose(a.depth_n, X[:, 2], rtol=1e-9)          # same depth in the middle view (pure x motion)
+    assert np.allclose(a.uv_n2, pts[1])
+    pts[1] = pts[1].copy()
+    pts[1][:5, 1] += 4.0                                       # five tracks that the middle view contradicts
+    a = A.triangulate_track(pts, T_world, K, 1, config=A.AnchorConfig(min_parallax_deg=0.5))
+    assert len(a) == 35 and a.rejected['reprojection'] == 5
+
+
+def _anchors_at(uv, depth, sigma=0.02):
+    n = len(depth)
+    return A.Anchors(np.asarray(uv, float), np.asarray(depth, float), np.full(n, sigma), np.zeros(n),
+                     np.zeros(n, np.int64), K)
+
+
+def test_scale_fit_shrugs_off_twenty_percent_outliers():
+    rng = np.random.default_rng(1)
+    n = 200
+    log_ratio = np.log(1.15) + rng.normal(0, 0.02, n)
+    bad = rng.choice(n, n // 5, replace=False)
+    log_ratio[bad] = rng.uniform(-1.0, 1.0, len(bad))          # 20 % anchors on moving things, mirrors, bad matches
+    anchors = _anchors_at(np.zeros((n, 2)), np.ones(n))
+    fit = A.fit_log_scale(log_ratio, anchors, A.AnchorConfig())
+    assert fit.scale == pytest.approx(1.15, rel=0.02)
+    assert fit.inliers < n
+    assert A.fit_log_scale(log_ratio[:10], _anchors_at(np.zeros((10, 2)), np.ones(10)), A.AnchorConfig()) is None
+
+
+def test_widened_confidence_by_hand():
+    # c = 0.9 is a Gaussian log error of std log(1.25) / (sqrt 2 erfinv 0.9) = 0.13566; add 0.1 in quadrature
+    s0 = math.log(1.25) / (math.sqrt(2) * 1.1630871)
+    expect = math.erf(math.log(1.25) / (math.sqrt(2) * math.hypot(s0, 0.1)))
+    assert A.widened_confidence(np.array([0.9]), 0.1)[0] == pytest.approx(expect, rel=1e-5)
+    assert A.widened_confidence(np.array([0.9]), 0.0)[0] == pytest.approx(0.9, rel=1e-6)
+    assert A.widened_confidence(np.array([0.0]), 0.1)[0] == 0.0
+
+
+def _gt_scene():
+    """A wall at 3 m with a near table (rows 160+) at 0.8 m, and anchors on a grid over both."""
+    depth = np.full(SIZE_HW, 3.0, np.float32)
+    depth[160:] = 0.8
+    ys, xs = np.mgrid[8:256:16, 8:320:16]
+    uv = np.c_[xs.ravel(), ys.ravel()].astype(float)
+    return depth, uv, depth[ys.ravel(), xs.ravel()].astype(float)
+
+
+def test_aligner_scale_brings_a_scaled_depth_back():
+    gt, uv, z = _gt_scene()
+    anchors = _anchors_at(uv, z)
+    conf = np.full(SIZE_HW, 0.8, np.float32)
+    d, c, rep = MA.AnchorAligner('scale').apply(gt * 1.15, conf, K, anchors)
+    assert rep.applied == 'scale' and rep.scale == pytest.approx(1 / 1.15, rel=0.005)
+    assert np.median(d / gt) == pytest.approx(1.0, abs=0.02)
+    assert np.all(c <= conf + 1e-6)                              # the fit's uncertainty only widens
+
+
+def test_aligner_dense_overrules_a_near_table_put_at_twice_its_depth():
+    gt, uv, z = _gt_scene()
+    anchors = _anchors_at(uv, z)
+    net = gt.copy()
+    net[160:] *= 2.0                                             # the network puts the table at twice its depth
+    conf = np.full(SIZE_HW, 0.95, np.float32)
+    aligner = MA.AnchorAligner('dense')
+    d, c, rep = aligner.apply(net, conf, K, anchors)
+    table = (slice(200, 256), slice(0, 320))
+    assert rep.overruled_pixels > 0 and aligner.status.keyframes_overruled == 1
+    # the table's depth comes most of the way back, and it is no longer published as confident
+    assert np.median(d[table] / gt[table]) < 1.3
+    assert np.median(c[table]) < 0.7
+    # the wall, where the network was right, keeps its depth and most of its confidence
+    wall = (slice(0, 100), slice(0, 320))
+    assert np.median(d[wall] / gt[wall]) == pytest.approx(1.0, abs=0.05)
+    assert np.median(c[wall]) > 0.85
+
+
+def test_aligner_without_enough_anchors_changes_nothing_bit_for_bit():
+    gt, uv, z = _gt_scene()
+    conf = np.full(SIZE_HW, 0.5, np.float32)
+    aligner = MA.AnchorAligner('dense')
+    d, c, rep = aligner.apply(gt, conf, K, _anchors_at(uv[:5], z[:5]))
+    assert d is gt and c is conf and rep.applied == 'none' and 'too few anchors' in rep.reason
+    d, c, rep = aligner.apply(gt, conf, K, None)
+    assert d is gt and c is conf and aligner.status.keyframes_checked == 1
+
+
+def test_aligner_off_counts_but_does_not_touch():
+    gt, uv, z = _gt_scene()
+    conf = np.full(SIZE_HW, 0.5, np.float32)
+    aligner = MA.AnchorAligner('off')
+    d, c, rep = aligner.apply(gt * 1.2, conf, K, _anchors_at(uv, z))
+    assert rep.scale == pytest.approx(1 / 1.2, rel=0.005) and rep.applied == 'none'
+    assert np.array_equal(d, gt * 1.2) and c is conf
+    with pytest.raises(ValueError, match='depth_anchors'):
+        MA.AnchorAligner('global')
