@@ -9,7 +9,9 @@ The subpackages are the layers; imports point down the list only, and nothing be
 - ``ros``: the rclpy adapter (messages, parameters, QoS and transport, inputs, outputs, TF, diagnostics).
 - ``data``: sequence folders, the renderer and rosbag2 files.
 - ``evaluation``: metrics, the offline runner, fusion, the consumer check and plots.
-- ``client`` (the ROS client side for tools and tests) and ``training``; then ``benchmarks`` and ``tools``.
+- ``client`` (the ROS client side for tools and tests) and ``training``; then ``benchmarks`` (what a user runs
+  to learn how fast or how accurate the camera is), then ``studies`` (the one-off measurements behind the docs'
+  figures) and ``tools``.
 
 ``params`` (the settings tables), ``cli`` (the command-line groups built from them) and ``common`` (the JSON
 sanitiser, the code version) are on the ground floor: every layer may import them, they import no layer.

@@ -1,6 +1,6 @@
 """What the estimator published in an offline run, recorded from inside, and its abs_rel computed here by hand: the
 expected values of tests of tools that score such runs themselves (the trainer's streaming validation, the selection
-and error-breakdown benchmarks), independent of the runner and the metrics module they use."""
+and error-breakdown studies), independent of the runner and the metrics module they use."""
 from __future__ import annotations
 
 import numpy as np

@@ -15,14 +15,14 @@ PACKAGE = pathlib.Path(__file__).resolve().parents[1] / 'dpv_sensor'
 SETTINGS = {s.name for s in P.SPECS + P.LIBRARY_SPECS}
 
 # Same name, another setting: the fusion's own confidence mask, the trainer's table (TrainConfig), the frame of a
-# frame or message (the node's frame_id setting is only the fallback for images without one), the pose benchmark's
+# frame or message (the node's frame_id setting is only the fallback for images without one), the pose study's
 # measurement (classical or a network preset), a checkpoint path a benchmark reads, the preset of a training step.
 OTHER_MEANING = {('evaluation/fusion.py', 'min_confidence'), ('tools/fuse.py', 'min_confidence'),
                  ('training/config.py', 'device'), ('training/checkpoints.py', 'device'),
                  ('stream/frame.py', 'frame_id'), ('stream/keyframes.py', 'frame_id'), ('client/ros_io.py', 'frame_id'),
                  # the odometry child frame a written bag carries, not the node's TF parent
                  ('data/rosbag_io.py', 'base_frame'), ('tools/bag.py', 'base_frame'),
-                 ('benchmarks/poses.py', 'measurement'), ('benchmarks/error_breakdown.py', 'weights'),
+                 ('studies/poses.py', 'measurement'), ('studies/error_breakdown.py', 'weights'),
                  ('benchmarks/train_step.py', 'preset')}
 # the network presets are the tables of the nets themselves (planes and range of each preset)
 OWN_VALUES = ('core/nets/',)

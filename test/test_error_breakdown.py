@@ -1,11 +1,11 @@
-"""benchmarks.error_breakdown: the groups on hand-made frames, the window's view count on a pure translation."""
+"""studies.error_breakdown: the groups on hand-made frames, the window's view count on a pure translation."""
 import json
 
 import numpy as np
 import pytest
 import torch
 
-from dpv_sensor.benchmarks import error_breakdown as eb
+from dpv_sensor.studies import error_breakdown as eb
 
 
 def _K(fx=100.0, w=64, h=48):

@@ -1,4 +1,4 @@
-"""benchmarks.keypoint_accuracy: the error of a keypoint estimate against the truth in its covariance's
+"""studies.keypoint_accuracy: the error of a keypoint estimate against the truth in its covariance's
 coordinates, the rotation given the direction, and the floors fitted to honest NEES."""
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 import pytest
 
-from dpv_sensor.benchmarks import keypoint_accuracy as KA
+from dpv_sensor.studies import keypoint_accuracy as KA
 from dpv_sensor.core.keypoint_pose import KeypointPose
 
 

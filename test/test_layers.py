@@ -1,7 +1,7 @@
 """The subpackages are the layers (dpv_sensor/__init__.py): imports point down only, no ROS below the adapter, no
-import cycle between modules, benchmarks do not import tools, tools do not import each other (shared pieces live in
-the client package below them), and the entry point imports only the standard library before it has installed its
-signal handlers."""
+import cycle between modules, benchmarks do not import tools or studies, studies and tools do not import each other,
+tools do not import each other (shared pieces live in the client package below them), and the entry point imports
+only the standard library before it has installed its signal handlers."""
 import ast
 import pathlib
 import sys
@@ -9,10 +9,12 @@ import sys
 PACKAGE = pathlib.Path(__file__).resolve().parents[1] / 'dpv_sensor'
 ROS_PACKAGES = {'rclpy', 'rcl_interfaces', 'sensor_msgs', 'nav_msgs', 'geometry_msgs', 'diagnostic_msgs',
                 'std_msgs', 'builtin_interfaces', 'tf2_msgs'}
-# The layers from the ground up; a package imports only from a lower rank or from itself.
+# The layers from the ground up; a package imports only from a lower rank or from itself. The studies (the one-off
+# measurements behind the docs' figures) sit on the benchmarks, whose pieces they use (the stream table's pose
+# sources, the held-out loader), beside the tools: neither of those two imports the other.
 GROUND = ('params', 'cli', 'common')
 RANK = {'core': 1, 'stream': 2, 'ros': 3, 'data': 4, 'evaluation': 5, 'client': 6, 'training': 6,
-        'benchmarks': 7, 'tools': 8}
+        'benchmarks': 7, 'studies': 8, 'tools': 8}
 # Packages that never import ROS, and the ROS adapter's modules that must stay importable without it.
 NO_ROS_PACKAGES = ('core', 'stream', 'data', 'evaluation', 'training')
 NO_ROS_ADAPTER = ('entry.py', 'startup.py', 'msgs.py', 'cloud_msgs.py', 'compressed_depth.py', 'compressed_image.py',
@@ -123,8 +125,15 @@ def test_no_import_cycle():
 
 
 def test_benchmarks_do_not_import_tools():
+    offenders = [f'{p.parent.name}/{p.name}: {m}' for pkg in ('benchmarks', 'studies')
+                 for p in (PACKAGE / pkg).glob('*.py') for m in _imports(p) if m.startswith('dpv_sensor.tools')]
+    assert not offenders
+
+
+def test_benchmarks_do_not_import_studies():
+    """A benchmark a user runs stands without the one-off studies; a study may use a benchmark's pieces."""
     offenders = [f'{p.name}: {m}' for p in (PACKAGE / 'benchmarks').glob('*.py') for m in _imports(p)
-                 if m.startswith('dpv_sensor.tools')]
+                 if m.startswith('dpv_sensor.studies')]
     assert not offenders
 
 

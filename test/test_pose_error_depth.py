@@ -1,4 +1,4 @@
-"""The pose-error oracle of benchmarks.pose_error_depth: the error scaling, the split of a rotation error about the
+"""The pose-error oracle of studies.pose_error_depth: the error scaling, the split of a rotation error about the
 epipolar axis, and the oracle refiner's poses worked out by hand on tiny cases."""
 import math
 from types import SimpleNamespace
@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from dpv_sensor.benchmarks import pose_error_depth as PED
+from dpv_sensor.studies import pose_error_depth as PED
 
 
 def _pose(rotvec_deg, t):

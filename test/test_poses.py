@@ -474,7 +474,7 @@ def test_corrupt_trajectory_has_the_requested_per_keyframe_errors():
 
 
 class _Seq:
-    """The part of a dpv_sensor.data.sequence.Sequence that benchmarks.poses.gt_consistency reads."""
+    """The part of a dpv_sensor.data.sequence.Sequence that studies.poses.gt_consistency reads."""
 
     def __init__(self, poses, imgs, depths):
         self.K, self._poses, self._imgs, self._depths = K_NP, poses, imgs, depths
@@ -493,7 +493,7 @@ class _Seq:
 
 
 def test_gt_consistency_check_finds_a_wrong_ground_truth_pose(sequence):
-    from dpv_sensor.benchmarks.poses import gt_consistency
+    from dpv_sensor.studies.poses import gt_consistency
     gt, imgs, depths = sequence
     exact = gt_consistency('exact', _Seq(gt, imgs, depths))
     assert exact['pairs'] == len(gt) - 1
@@ -561,7 +561,7 @@ def test_the_window_reports_where_its_odometry_covariance_comes_from():
 
 
 def test_alignment_depth_perturbations():
-    from dpv_sensor.benchmarks.alignment_depth import perturbed_depth
+    from dpv_sensor.studies.alignment_depth import perturbed_depth
     rng = np.random.default_rng(0)
     d = np.full((64, 80), 2.0, np.float32) + np.linspace(0, 1, 80, dtype=np.float32)
     assert np.array_equal(perturbed_depth(d, 'gt', 0.3, rng), d)

@@ -437,9 +437,9 @@ def test_seed_lists_parse_and_refuse_garbage():
 
 
 def test_selection_benchmark_scores_weight_files_like_the_streaming_validation(tmp_path, capsys, monkeypatch):
-    """benchmarks.selection: the figures equal the trainer's streaming validation of the same weights, are
+    """studies.selection: the figures equal the trainer's streaming validation of the same weights, are
     written as JSON and printed as a table; seeds outside the held-out range are refused."""
-    from dpv_sensor.benchmarks import selection
+    from dpv_sensor.studies import selection
     from dpv_sensor.core.nets.checkpoint import save_checkpoint
     from dpv_sensor.core.nets.model import DPVNet
     from dpv_sensor.data.synthetic import render_sequence
@@ -475,7 +475,7 @@ def test_selection_benchmark_scores_weight_files_like_the_streaming_validation(t
 
 def test_selection_paired_differences_by_hand():
     """Per-seed scores are the mean of the GT and noisy abs_rel; differences are paired by seed."""
-    from dpv_sensor.benchmarks import selection
+    from dpv_sensor.studies import selection
 
     def res(gt, noisy=None):
         r = {'stream_net_knet': {'per_seed': gt}}

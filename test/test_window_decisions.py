@@ -1,11 +1,11 @@
-"""The per-window record of the refinement window's choices (benchmarks.window_decisions): every candidate solved
+"""The per-window record of the refinement window's choices (studies.window_decisions): every candidate solved
 from the default refiner's state, the odometry's own error recomputed by hand, and the summary's oracle."""
 import math
 
 import numpy as np
 import pytest
 
-from dpv_sensor.benchmarks import window_decisions as WD
+from dpv_sensor.studies import window_decisions as WD
 
 
 def test_rows_on_a_rendered_sequence_with_drift(tmp_path):

@@ -1,6 +1,6 @@
 """Per-pixel cues of whether a published depth is right, beside the DPV's band mass: the maths of each, arrays in,
 arrays out (torch only; no stream, no ROS). The estimator gathers them per keyframe
-(``dpv_sensor.stream.confidence_features``); the confidence study (``dpv_sensor.benchmarks.confidence_features``)
+(``dpv_sensor.stream.confidence_features``); the confidence study (``dpv_sensor.studies.confidence_features``)
 measures how well each ranks right from wrong and which carry from one sequence to another.
 
 Every function returns (B, H, W) maps on the grid of its input. Conventions:

@@ -1,7 +1,7 @@
 """The relative rotation of two views from dense optical flow, given the translation's direction (layer 2).
 
 The window refiner's rotation evidence that does not depend on the depth being estimated. Plane-swept depth is
-biased by the sweep's relative rotations much more than by its translations (``benchmarks.pose_error_depth``), so
+biased by the sweep's relative rotations much more than by its translations (``studies.pose_error_depth``), so
 what the window needs from the images is the rotation; the odometry's translation direction is good to a few
 degrees, far better than what two views of an indoor scene a few centimetres apart say about it.
 
@@ -26,7 +26,7 @@ degrees, far better than what two views of an indoor scene a few centimetres apa
 
 The covariance is the Gauss-Newton one, ``s^2 (J^T J)^-1`` with ``s`` the inliers' rms distance, times
 ``covariance_scale``: neighbouring flow vectors share their errors (the flow is smooth over patches), so the
-inliers are far fewer independent measurements than their count says. ``benchmarks.keypoint_accuracy --matcher
+inliers are far fewer independent measurements than their count says. ``studies.keypoint_accuracy --matcher
 flow`` measures the scale on the rendered sequences (median NEES of the rotation against the ground truth, given
 the true direction).
 

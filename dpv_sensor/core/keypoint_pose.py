@@ -39,7 +39,7 @@ class KeypointConfig:
     this is no estimate (``ok`` False); pixel_sigma: the std of a keypoint's position (pixels) for the covariance;
     min_parallax_px: a median parallax below this gives no translation direction (``t_dir_b`` None);
     rotation_floor_deg, direction_floor_deg: added in quadrature to each axis of the inliers' covariance, for errors
-    the Sampson spread does not see (measured by ``benchmarks.keypoint_accuracy``; 0 by default)."""
+    the Sampson spread does not see (measured by ``studies.keypoint_accuracy``; 0 by default)."""
     detector: str = 'sift'
     max_features: int = 1000
     ratio: float = 0.8

@@ -1,6 +1,6 @@
 """How far the window refiner's keypoint relative poses really err, against what their covariance says.
 
-    .venv/bin/python -m dpv_sensor.benchmarks.keypoint_accuracy --data DATA [--seeds 60,61,62,63] [--json OUT]
+    .venv/bin/python -m dpv_sensor.studies.keypoint_accuracy --data DATA [--seeds 60,61,62,63] [--json OUT]
         [--detector orb]
 
 The refiner's keypoint factors (``core.keypoint_pose``) carry the Gauss-Newton covariance of the inliers' Sampson

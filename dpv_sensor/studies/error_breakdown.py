@@ -2,7 +2,7 @@
 texture and whether the window's other keyframes saw the pixel at all.
 
 Rendered sequences (held-out seeds, never trained on) and sequence folders (``--seqs``, e.g. SUN3D) are streamed
-frame by frame through ``Estimator`` with the node's defaults, as in :mod:`dpv_sensor.benchmarks.selection`, and
+frame by frame through ``Estimator`` with the node's defaults, as in :mod:`dpv_sensor.studies.selection`, and
 every scored pixel of every keyframe output is put into these groups (abs_rel = |d - d_gt| / d_gt, pooled over pixels):
 
 * ``cell``: an 8 x 8 grid over the image (drawn as a heat map);
@@ -17,7 +17,7 @@ every scored pixel of every keyframe output is put into these groups (abs_rel = 
 
 Each group reports per label the fraction of pixels, their abs_rel and their share of the total error.
 
-    .venv/bin/python -m dpv_sensor.benchmarks.error_breakdown --weights dpv_sensor/weights/lite.safetensors \
+    .venv/bin/python -m dpv_sensor.studies.error_breakdown --weights dpv_sensor/weights/lite.safetensors \
         --seeds 20-25 [--seqs FOLDER ...] [--frames 60] [--mode knet] [--window-mode causal] \
         [--pose-noise REL_T ROT_DEG] \
         [--threads 2] [--out DIR]

@@ -1,7 +1,7 @@
 """How the depth answers the plane sweep's pose errors: a chosen share of the odometry's error against what the
 window refiner leaves in the closed loop.
 
-    python -m dpv_sensor.benchmarks.pose_error_depth --data DATA --sequences icl_nuim_lr_kt3 --poses noisy0 \
+    python -m dpv_sensor.studies.pose_error_depth --data DATA --sequences icl_nuim_lr_kt3 --poses noisy0 \
         [--scales 0 0.3 0.6 0.73:1 1:0] [--refiners default refine_photometric_sources=4] [--out DIR]
 
 Each row runs one sequence through the node's pipeline in this process (the node's defaults otherwise) with the
@@ -204,7 +204,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     a.out.mkdir(parents=True, exist_ok=True)
     (a.out / 'pose_error_depth.json').write_text(json.dumps(rows, indent=1))
     text = markdown(rows)
-    (a.out / 'pose_error_depth.md').write_text(f'Command: `python -m dpv_sensor.benchmarks.pose_error_depth '
+    (a.out / 'pose_error_depth.md').write_text(f'Command: `python -m dpv_sensor.studies.pose_error_depth '
                                                f'{" ".join(argv)}`\n\n' + text)
     print('\n' + text)
     return 0

@@ -1,7 +1,7 @@
 """What each factor set of the refinement window would have done, window by window: the evidence a per-window
 decision could use, and the relative-pose error each choice leaves.
 
-    python -m dpv_sensor.benchmarks.window_decisions --data DATA [--sequences ...] \
+    python -m dpv_sensor.studies.window_decisions --data DATA [--sequences ...] \
         [--poses noisy0cov noisy1cov noisy0 gt] [--frames 0] [--out out/window_decisions]
 
 Each sequence runs through the node's pipeline in this process at the node's defaults with the pose source of the
@@ -279,7 +279,7 @@ def main(argv: Optional[List[str]] = None) -> int:
             rows_by_run[f'{n} {src}'] = rows
             print(f'{n} {src}: {len(rows)} windows', flush=True)
     text = markdown(summary_rows(rows_by_run))
-    (a.out / 'window_decisions.md').write_text(f'Command: `python -m dpv_sensor.benchmarks.window_decisions '
+    (a.out / 'window_decisions.md').write_text(f'Command: `python -m dpv_sensor.studies.window_decisions '
                                                f'{" ".join(argv)}`\n\n' + text)
     print('\n' + text)
     return 0

@@ -1,7 +1,7 @@
 """The confidence study: which per-pixel cues separate a right depth (within x1.25 of the truth) from a wrong one,
 on every sequence, and which carry from one sequence to another.
 
-    .venv/bin/python -m dpv_sensor.benchmarks.confidence_features [--data DATA] [--seeds 50,51,60,61]
+    .venv/bin/python -m dpv_sensor.studies.confidence_features [--data DATA] [--seeds 50,51,60,61]
         [--sources gt,noisy1cov] [--pixels 3000] [--out out/confidence_features]
 
 It runs every sequence folder under --data and the rendered held-out seeds through the node's pipeline in this

@@ -1,9 +1,9 @@
 """Pose-refinement experiments (sliding-window pose refinement, odometry-free mode).
 
-    python -m dpv_sensor.benchmarks.poses                        # everything, CPU, prints tables
-    python -m dpv_sensor.benchmarks.poses --parts synthetic sun3d --seeds 0 1 --frames 90
-    python -m dpv_sensor.benchmarks.poses --parts timing --measurement lite
-    python -m dpv_sensor.benchmarks.poses --json out/poses.json
+    python -m dpv_sensor.studies.poses                        # everything, CPU, prints tables
+    python -m dpv_sensor.studies.poses --parts synthetic sun3d --seeds 0 1 --frames 90
+    python -m dpv_sensor.studies.poses --parts timing --measurement lite
+    python -m dpv_sensor.studies.poses --json out/poses.json
 
 Parts:
 

@@ -6,7 +6,7 @@ and once with odometry-like poses (``--pose-noise``, seeded per sequence), and s
 Use seeds that are never trained on and never reported (the README uses 20-25 for picking exports and 50-57
 for reporting), and pick by the mean of the two columns.
 
-    .venv/bin/python -m dpv_sensor.benchmarks.selection --weights A.safetensors B.safetensors --seeds 20-25 \
+    .venv/bin/python -m dpv_sensor.studies.selection --weights A.safetensors B.safetensors --seeds 20-25 \
         [--frames 60] [--pose-noise 0.03 0.5] [--modes knet] [--threads 2] [--device cpu] [--out selection.json]
 
 Prints a table (weights, abs_rel with GT poses, with noisy poses, their mean, delta1, confident-half ratios) and,

@@ -1,6 +1,6 @@
 """How much the photometric alignment's rotation depends on the quality of the reference depth it is given.
 
-    .venv/bin/python -m dpv_sensor.benchmarks.alignment_depth SEQUENCE [--size 320x256] [--gap 5] [--pairs 20]
+    .venv/bin/python -m dpv_sensor.studies.alignment_depth SEQUENCE [--size 320x256] [--gap 5] [--pairs 20]
         [--error 0.3]
 
 Pairs of frames ``gap`` apart of a sequence folder (every 10th frame as reference) are aligned

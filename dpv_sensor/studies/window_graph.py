@@ -1,6 +1,6 @@
 """A picture of the pose-refinement window's factor graph, from a real run.
 
-    .venv/bin/python -m dpv_sensor.benchmarks.window_graph SEQUENCE [--poses noisy0cov] [--frames 60]
+    .venv/bin/python -m dpv_sensor.studies.window_graph SEQUENCE [--poses noisy0cov] [--frames 60]
         [--params pose_refinement=window refine_odom_covariance=odometry refine_keypoints=true] [--out PNG]
 
 It runs the first --frames frames of a sequence folder through the node's pipeline in this process with the pose
