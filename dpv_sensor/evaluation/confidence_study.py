@@ -1,4 +1,4 @@
-"""The analysis of the confidence study (``dpv_sensor.benchmarks.confidence_features`` collects the samples): how well
+"""The analysis of the confidence study (``dpv_sensor.studies.confidence_features`` collects the samples): how well
 each cue ranks right from wrong per sequence, and calibration maps on the cues scored leave-one-sequence-out.
 
 Ranking, per sequence and pose source: the AUROC of the x1.25 event for each cue, oriented by its sign over all
