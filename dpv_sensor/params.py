@@ -95,13 +95,14 @@ SPECS: tuple[ParamSpec, ...] = (
     ParamSpec('edge_filter_sigma', 0.08, "Colour distance (RGB in [0, 1]) at which a neighbour's vote in the "
               'edge-aware refinement falls to exp(-1/2): smaller keeps depth edges on weaker colour edges.',
               min_value=1e-3, max_value=1.0),
-    ParamSpec('depth_anchors', 'off', 'Metric anchors: points triangulated from the matches the pose-refinement '
-              "window already makes and its metric poses check each keyframe's depth. off: counted in /diagnostics "
-              'only; scale: the depth multiplied by one robust, sigma-weighted scale fitted to them; dense: by a '
-              'smooth scale map (a coarse grid, the global scale where no anchor speaks). With scale or dense the '
-              "confidence is widened by the fit's uncertainty and, where the depth disagreed with the anchors "
-              'beyond their sigma, by the size of the correction. Keyframes with too few anchors (a camera turning '
-              'in place) are unchanged. Needs pose_refinement: window.',
+    ParamSpec('depth_anchors', 'dense', 'Metric anchors: points triangulated from the matches the pose-refinement '
+              "window already makes and its metric poses check each keyframe's depth. off: not computed; scale: the "
+              'depth multiplied by one robust, sigma-weighted scale fitted to them; dense: by a depth-aware scale '
+              'map (each pixel corrected by the anchors near it in the image and in depth, unchanged where none '
+              'is). The depth moves only by as much as it disagrees with its anchors beyond their sigma, and its '
+              'confidence widens where it moved and where the disagreement was large. Keyframes with too few '
+              'anchors (a camera turning in place), or whose odometry directions the images contradict, are '
+              'unchanged. Needs pose_refinement: window.',
               choices=('off', 'scale', 'dense')),
     ParamSpec('damping', 0.8, 'Global damping lambda of the prediction energy (paper eq. 8).',
               min_value=0.0, max_value=1.0),

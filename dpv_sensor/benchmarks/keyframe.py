@@ -15,7 +15,8 @@ and every frame is pushed into all of them in turn (the order rotating per frame
 variant sees the same load and the ratios between variants hold even where the absolute times are noisy.
 
 The stages are the estimator's own timings (``DepthOutput.timings_ms``: resize, pose refinement, measurement,
-pose uncertainty, filter, refine, output, and their parts such as ``filter.knet`` or ``refine.edge_filter``);
+pose uncertainty, filter, refine, metric anchors, output, and their parts such as ``filter.knet`` or
+``refine.edge_filter``);
 ``push`` is the wall time of the whole call, measured here, ``push_cpu`` the process CPU time it took (all
 threads: on a loaded machine the steadier figure; with ``--threads 1`` it is the one-core cost). A keyframe whose
 push publishes an output is timed (in the centred window that output is the keyframe two keyframes back); the first
@@ -63,13 +64,14 @@ STAGES = (
     ('refine.rnet', 'R-Net'),
     ('refine.readout', 'readout'),
     ('refine.edge_filter', 'edge filter'),
+    ('anchors', 'metric anchors'),
     ('output', 'output'),
 )
 
 
 # the settings that shape a keyframe, shown with the table (the variants' own settings are in each variant)
 SHAPING = ('preset', 'processing_width', 'processing_height', 'window_mode', 'pose_refinement', 'filter_mode',
-           'depth_readout', 'edge_filter_radius', 'output_resolution')
+           'depth_readout', 'edge_filter_radius', 'depth_anchors', 'output_resolution')
 
 
 def _frames(size: Tuple[int, int], seed: int, count: int, sequence: Optional[str] = None):

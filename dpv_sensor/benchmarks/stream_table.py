@@ -28,6 +28,10 @@ and consumer odometry against the GT poses.
 Columns (frame means over the recorded keyframe outputs unless said otherwise):
 
 - abs_rel, d1: metric depth; ms abs_rel: per-frame median-scaled abs_rel; coverage: scored / valid GT pixels.
+- scale q25, scale q75: quartiles over the images of each image's scale (the median of depth / GT over its scored
+  pixels); scaled abs_rel: abs_rel once each image is divided by its own scale (what a perfect per-image scale
+  correction would leave: dpv_sensor.evaluation.metrics.image_scale_summary). anchors/kf: metric anchors per
+  checked keyframe (``depth_anchors``; /diagnostics ``anchors_per_keyframe``).
 - ECE, mean conf, d1 pooled, kept@.9, d1@.9, d1@.7: calibration of the published confidence as the probability of
   the delta1 event (dpv_sensor.evaluation.metrics.calibration_summary, pixels pooled over the run); a reliability
   diagram per run in ``OUT/plots/<run>_reliability.png``.

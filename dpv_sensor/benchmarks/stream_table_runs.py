@@ -17,7 +17,7 @@ import numpy as np
 from dpv_sensor.benchmarks.stream_table_inputs import (PosedView, noise_description, odometry_poses,
                                                        odometry_twist_variance, odometry_variance, run_key)
 
-RUN_VERSION = 2   # bump when a cached run's content changes meaning (2: calibration)
+RUN_VERSION = 3   # bump when a cached run's content changes meaning (2: calibration; 3: image scale, anchors)
 
 
 # --------------------------------------------------------------------------------------------------------------
@@ -163,6 +163,9 @@ def run_one(seq_name: str, seq_dir: pathlib.Path, pose_source: str, user_params:
         'delta1': summary['metric']['frame_mean']['delta1'],
         'rmse': summary['metric']['frame_mean']['rmse'],
         'ms_abs_rel': summary['median_scaled']['frame_mean']['abs_rel'],
+        'image_scale': image_scale(records, min_depth, max_depth),
+        'anchors_per_keyframe': D._as_number(d.get('anchors_per_keyframe')),
+        'anchors_keyframes': d.get('anchors_keyframes'),
         'coverage': summary['coverage']['frame_mean'],
         'confident_half_ratio': get_path(summary, 'confidence', 'confident_half_ratio_frame_mean'),
         'confident_half_ratio_pooled': get_path(summary, 'confidence', 'confident_half_ratio_pooled'),
@@ -232,6 +235,8 @@ def run_one_offline(seq_name: str, seq_dir: pathlib.Path, pose_source: str, user
         'abs_rel': summary['metric']['frame_mean']['abs_rel'], 'delta1': summary['metric']['frame_mean']['delta1'],
         'rmse': summary['metric']['frame_mean']['rmse'],
         'ms_abs_rel': summary['median_scaled']['frame_mean']['abs_rel'],
+        'image_scale': image_scale(records, min_depth, max_depth),
+        'anchors_per_keyframe': anchors_per_keyframe(status),
         'coverage': summary['coverage']['frame_mean'],
         'confident_half_ratio': get_path(summary, 'confidence', 'confident_half_ratio_frame_mean'),
         'mean_confidence': get_path(summary, 'confidence', 'mean_confidence'),
@@ -247,3 +252,17 @@ def run_one_offline(seq_name: str, seq_dir: pathlib.Path, pose_source: str, user
         'min_depth': min_depth, 'max_depth': max_depth,
         'timing': {'total_s': round(time.perf_counter() - t_all, 1)}, 'finished': time.strftime('%Y-%m-%d %H:%M:%S'),
     })
+
+
+def image_scale(records, min_depth=None, max_depth=None) -> Dict[str, Any]:
+    """The per-image scale's quartiles and the per-image-scaled abs_rel of a run's records
+    (evaluation.metrics.image_scale_summary)."""
+    from dpv_sensor.evaluation.metrics import image_scale_summary
+    return image_scale_summary(((r.depth_hw, r.gt_depth_hw) for r in records), min_depth, max_depth)
+
+
+def anchors_per_keyframe(status) -> float:
+    """Metric anchors per checked keyframe from an estimator status (0 when none was checked)."""
+    a = getattr(status, 'anchors', None) or {}
+    checked = a.get('keyframes_checked', 0)
+    return float(a.get('anchors', 0)) / checked if checked else 0.0

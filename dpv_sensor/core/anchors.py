@@ -16,15 +16,20 @@ uncertainty is a std of log depth, from two parts:
 The fits take log ratios ``r_i = log z_anchor_i - log z_depth(p_i)`` between the anchors and the depth map at their
 pixels:
 
-- :func:`fit_log_scale`: one log scale by iteratively reweighted least squares with Huber weights, each anchor
-  weighted by ``1 / (sigma_i^2 + sigma_depth^2)`` (``sigma_depth``: the depth map's own structure error, so that a
-  few very precise anchors do not outvote the rest); its std counts the pairs' shared errors, which averaging over
-  anchors does not remove.
-- :func:`fit_scale_grid`: a smooth log-scale map on a coarse grid over the image (bilinear interpolation of the
-  grid's nodes), least squares on the anchors' log ratios (their Huber weights from the global fit) plus a
-  smoothness term between neighbouring nodes and a pull towards the global log scale where the anchors say
-  nothing: a Gaussian Markov random field of a few dozen unknowns, solved exactly; each node's posterior std comes
-  with it.
+- :func:`fit_log_scale`: one log scale, the weighted median of the log ratios, each anchor weighted by
+  ``1 / (sigma_i^2 + sigma_depth^2)`` (``sigma_depth``: the depth map's own structure error, so that a few very
+  precise anchors do not outvote the rest). A median, not a Huber mean: the ratios' contamination is one-sided
+  (at object outlines the flow follows the nearer surface), which pulls any mean with it (on a render with exact
+  poses a Huber mean sat 1 % nearer than the median). Its std counts the pairs' shared errors, which averaging
+  over anchors does not remove; the anchors' Huber weights about it are what the scale map uses.
+- :func:`fit_scale_map`: a depth-aware scale map. Anchors gather where there is texture, which is seldom at the
+  depth of the texture-free walls and floors nearby, and a network's error depends on depth (a prior-led network
+  puts near things too far and far things too near): on the rendered hospital corridor the anchors were right to
+  1 %, the network 2-3 % too near at them and right elsewhere, so any scale carried from them across the image by
+  position alone made the depth worse. The map is a bilateral grid over (row, column, log depth of the map being
+  corrected): each anchor's log ratio is splatted at its position and depth, blurred, and read at every pixel at
+  its own position and depth; a pull towards no correction worth a few anchors leaves a pixel without anchors near
+  it, in the image and in depth, as the network gave it.
 - :func:`widened_confidence`: the probability of the ×ratio band after an extra log-depth error of std ``sigma``:
   the confidence read as that of a zero-mean Gaussian log error, its variance increased by ``sigma^2``.
 
@@ -39,11 +44,12 @@ from typing import Dict, Optional, Tuple
 
 import cv2
 import numpy as np
+from scipy.ndimage import convolve1d
 from scipy.special import erf, erfinv
 
-__all__ = ['AnchorConfig', 'Anchors', 'ScaleFit', 'ScaleGrid', 'triangulate_pair', 'triangulate_track',
-           'concat_anchors', 'fit_log_scale', 'fit_scale_grid', 'grid_log_scale_at', 'grid_dense',
-           'widened_confidence', 'sample_depth']
+__all__ = ['AnchorConfig', 'Anchors', 'ScaleFit', 'ScaleMap', 'triangulate_pair', 'triangulate_track',
+           'concat_anchors', 'fit_log_scale', 'fit_scale_map', 'widened_confidence', 'sample_depth',
+           'depth_edge_mask', 'weighted_median', 'refine_tracks']
 
 
 @dataclass(frozen=True)
@@ -53,12 +59,31 @@ class AnchorConfig:
     error in either view; max_sigma_log: anchors less precise than this (std of log depth) are dropped;
     min_depth_m / max_depth_m: anchors outside are dropped; depth_sigma_log: the depth map's own error at a
     pixel (std of log depth) added to each anchor's in the fits; huber_k: the fits' Huber threshold (in stds);
-    iterations: IRLS iterations; min_anchors: fewer usable anchors give no fit; min_consistent_fraction: a pair or
+    min_anchors: fewer usable anchors give no fit; min_consistent_fraction: a pair or
     track set whose poses reproject fewer than this share of its matches (in front, with parallax) within
     ``max_reprojection_px`` is dropped whole (the poses do not explain the images: the few matches that fit them
-    by chance are a biased sample, not anchors); grid_cols / grid_rows: nodes of
-    the scale map; grid_smoothness: std of the log-scale difference between neighbouring nodes;
-    grid_prior_sigma: std of a node's departure from the global log scale where no anchor speaks."""
+    by chance are a biased sample, not anchors); grid_rows / grid_cols / grid_depth_bins: nodes of the scale
+    map's bilateral grid over the image and over log depth (between the depth planes' nearest and farthest);
+    grid_prior_anchors: how many anchors' weight the map's pull towards no correction is worth (fewer anchors near
+    a pixel, in the image and in depth, move it less than halfway); bias_sigma_log: the std of an anchor set's
+    systematic error, shared by all of a keyframe's anchors (measured on the rendered sequences with exact poses:
+    the keyframes' median anchor / true depth spreads by a few percent, with tails to 10-20 % where the flow and
+    the tracker agree on a wrong match); correction_sigmas: the depth moves only by as much as it disagrees with
+    its anchors beyond this many of their stds (a soft threshold: a check, then a correction);
+    edge_log_range: anchors where the depth map's log depth spans more than this over the 3x3 pixels around them
+    are not compared with it (a depth edge: textured pixels gather on object outlines, where the flow follows the
+    nearer surface and the map's pixel may hold the farther one); max_inverse_depth_ratio: a track whose inverse
+    distance is more than this factor from the set's median is dropped (optical flow that fails on a large
+    displacement stays near zero, which triangulates far behind the scene, or overshoots: on the rendered hospital
+    corridor such tracks put whole keyframes' anchors at 2 to 70 times the true depth); min_inlier_fraction: a fit
+    whose anchors agree with one scale (within huber_k of their sigma) in a smaller share is not applied (they do not
+    tell one story); track_window_px / track_levels / track_fb_px: each track's pixel in every other view is refined
+    by pyramidal Lucas-Kanade from the reference image (window of this size, pyramid levels above the image, started
+    at the chained flow's guess) and kept only
+    where tracking back lands within ``track_fb_px`` of where it started (dense flow chained over keyframes
+    accumulates its error and underestimates large displacements: on the rendered hospital corridor its anchors sat
+    3-12 % too far on keyframes whose network depth was right); max_tracks: at most this many tracks a keyframe
+    (evenly spread over the flow's sampled pixels): the tracking is most of the anchors' time."""
     pixel_sigma_px: float = 0.5
     min_parallax_deg: float = 1.0
     max_reprojection_px: float = 1.5
@@ -67,32 +92,42 @@ class AnchorConfig:
     max_depth_m: float = 100.0
     depth_sigma_log: float = 0.1
     huber_k: float = 1.5
-    iterations: int = 10
     min_anchors: int = 20
     min_consistent_fraction: float = 0.5
-    grid_cols: int = 8
+    edge_log_range: float = 0.1
+    max_inverse_depth_ratio: float = 4.0
+    track_window_px: int = 9
+    track_levels: int = 1
+    max_tracks: int = 500
+    track_fb_px: float = 0.5
+    min_inlier_fraction: float = 0.5
     grid_rows: int = 6
-    grid_smoothness: float = 0.15
-    grid_prior_sigma: float = 0.3
+    grid_cols: int = 8
+    grid_depth_bins: int = 8
+    grid_prior_anchors: float = 2.0
+    bias_sigma_log: float = 0.03
+    correction_sigmas: float = 1.0
 
     def __post_init__(self):
         for name in ('pixel_sigma_px', 'max_reprojection_px', 'max_sigma_log', 'depth_sigma_log', 'huber_k',
-                     'grid_smoothness', 'grid_prior_sigma'):
+                     'bias_sigma_log', 'grid_prior_anchors'):
             if not getattr(self, name) > 0:
                 raise ValueError(f'{name} must be > 0, not {getattr(self, name)}')
         if not 0 <= self.min_parallax_deg < 90:
             raise ValueError(f'min_parallax_deg must be in [0, 90), not {self.min_parallax_deg}')
         if not 0 < self.min_depth_m < self.max_depth_m:
             raise ValueError(f'need 0 < min_depth_m < max_depth_m, not {self.min_depth_m}, {self.max_depth_m}')
-        if self.iterations < 1 or self.min_anchors < 1 or self.grid_cols < 1 or self.grid_rows < 1:
-            raise ValueError('iterations, min_anchors, grid_cols and grid_rows must be >= 1')
+        if self.min_anchors < 1 or min(self.grid_cols, self.grid_rows, self.grid_depth_bins) < 2:
+            raise ValueError('min_anchors must be >= 1 and grid_rows, grid_cols, grid_depth_bins >= 2')
 
 
 @dataclass
 class Anchors:
     """Anchors of one reference view. uv_n2: their pixels in the reference (at the size K_33 belongs to); depth_n:
     z in the reference (m); sigma_ind_n / sigma_pair_n: the independent and the shared std of log depth (module
-    doc); pair_n: which pair made each (an index); rejected: candidates dropped, by reason ('behind', 'parallax',
+    doc); pair_n: which pair made each (an index); rejected: candidates dropped, by reason ('lost' (a view where
+    the track was not found), 'behind', 'atypical'
+    (an inverse distance far from the set's median), 'parallax',
     'reprojection', 'inconsistent_poses' (every match that fitted poses that most matches of their pair do not),
     'sigma', 'range')."""
     uv_n2: np.ndarray
@@ -128,6 +163,29 @@ def _project(X_n3: np.ndarray, K_33: np.ndarray) -> np.ndarray:
     return p[:, :2] / p[:, 2:3]
 
 
+def refine_tracks(gray_ref: np.ndarray, p_ref_n2: np.ndarray, gray_v: np.ndarray, guess_n2: np.ndarray,
+                  config: AnchorConfig = AnchorConfig()) -> np.ndarray:
+    """The reference pixels ``p_ref_n2`` found in another view (grey uint8 images of one size) by pyramidal
+    Lucas-Kanade started at ``guess_n2``, checked by tracking back: (n, 2), NaN where a guess was NaN, the tracker
+    lost the point, or the way back misses the start by more than ``track_fb_px``."""
+    out = np.full((len(p_ref_n2), 2), np.nan)
+    valid = np.all(np.isfinite(p_ref_n2), axis=1) & np.all(np.isfinite(guess_n2), axis=1)
+    if not valid.any():
+        return out
+    win = (int(config.track_window_px), int(config.track_window_px))
+    crit = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 20, 0.01)
+    p0 = np.ascontiguousarray(p_ref_n2[valid], np.float32)
+    lev = int(config.track_levels)
+    p1, st, _ = cv2.calcOpticalFlowPyrLK(gray_ref, gray_v, p0, np.ascontiguousarray(guess_n2[valid], np.float32),
+                                         winSize=win, maxLevel=lev, criteria=crit, flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
+    back, st2, _ = cv2.calcOpticalFlowPyrLK(gray_v, gray_ref, p1, p0.copy(), winSize=win, maxLevel=lev,
+                                            criteria=crit, flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
+    good = (st.ravel() == 1) & (st2.ravel() == 1) & (np.linalg.norm(back - p0, axis=1) <= config.track_fb_px)
+    idx = np.flatnonzero(valid)
+    out[idx[good]] = p1[good]
+    return out
+
+
 def triangulate_pair(p_ref_n2: np.ndarray, p_src_n2: np.ndarray, K_33: np.ndarray, T_src_ref_44: np.ndarray,
                      sigma_rot_rad: float = 0.0, sigma_trans_m: float = 0.0, pair: int = 0,
                      config: AnchorConfig = AnchorConfig()) -> Anchors:
@@ -153,7 +211,7 @@ def triangulate_track(points_v, T_world_cam_v, K_33: np.ndarray, ref_view: int, 
     P = [np.asarray(p, np.float64).reshape(-1, 2) for p in points_v]
     T = [np.asarray(t, np.float64) for t in T_world_cam_v]
     n = len(P[ref_view])
-    rejected = {'behind': 0, 'parallax': 0, 'reprojection': 0, 'sigma': 0, 'range': 0}
+    rejected = {'lost': 0, 'behind': 0, 'parallax': 0, 'reprojection': 0, 'sigma': 0, 'range': 0}
     first, last = 0, len(P) - 1
     T_l_f = np.linalg.inv(T[last]) @ T[first]
     R_lf, t_lf = T_l_f[:3, :3], T_l_f[:3, 3]
@@ -187,7 +245,9 @@ def triangulate_track(points_v, T_world_cam_v, K_33: np.ndarray, ref_view: int, 
             err = np.fmax(err, np.linalg.norm(_project(X_v, K) - P[v], axis=1))
         if v == ref_view:
             z = X_v[:, 2]
-    rejected['behind'] = int((~front).sum())
+    rejected['lost'] = int((~seen).sum())
+    rejected['behind'] = int((seen & ~front).sum())
+    rejected['atypical'] = 0
     # the parallax each track would have at the set's typical distance (the median of the signed inverse distances
     # of every seen track, which match noise leaves unbiased): selecting on each track's own measured parallax
     # would keep the matches whose error happens to enlarge it, i.e. depths biased near
@@ -199,7 +259,12 @@ def triangulate_track(points_v, T_world_cam_v, K_33: np.ndarray, ref_view: int, 
     theta = np.arccos(np.clip(np.einsum('ij,ij->i', da, ray_b), -1.0, 1.0))
     if not inv_med > 0:
         theta[:] = 0.0
-    ok = front
+    with np.errstate(divide='ignore', invalid='ignore'):
+        inv_all = 1.0 / la
+    typical = (inv_all * config.max_inverse_depth_ratio >= inv_med) & (inv_all <= config.max_inverse_depth_ratio *
+                                                                       inv_med)
+    rejected['atypical'] = int((front & ~typical).sum())
+    ok = front & typical
     par = ok & (theta >= math.radians(config.min_parallax_deg)) & (theta > 0)
     rejected['parallax'] = int((ok & ~par).sum())
     ok = par
@@ -242,6 +307,18 @@ def concat_anchors(parts) -> Anchors:
                    np.concatenate([a.pair_n for a in parts]), K, rejected)
 
 
+def depth_edge_mask(depth_hw: np.ndarray, log_range: float) -> np.ndarray:
+    """True where the log depth spans more than ``log_range`` over a pixel's 3x3 neighbourhood, or where a
+    neighbour has no depth."""
+    d = np.asarray(depth_hw, np.float32)
+    good = np.isfinite(d) & (d > 0)
+    logd = np.log(np.where(good, d, 1.0)).astype(np.float32)
+    kernel = np.ones((3, 3), np.uint8)
+    span = cv2.dilate(logd, kernel) - cv2.erode(logd, kernel)
+    holes = cv2.erode(good.astype(np.uint8), kernel) == 0
+    return (span > log_range) | holes
+
+
 def sample_depth(depth_hw: np.ndarray, uv_n2: np.ndarray) -> np.ndarray:
     """Bilinear depth at sub-pixel positions (x, y) of a depth map (NaN or <= 0: no depth); NaN where a corner has
     none or the position is outside."""
@@ -280,6 +357,18 @@ def _huber_weights(r: np.ndarray, s: np.ndarray, k: float) -> np.ndarray:
     return np.where(a <= k, 1.0, k / np.maximum(a, 1e-12))
 
 
+def weighted_median(x_n: np.ndarray, w_n: np.ndarray) -> float:
+    """The value below which half of the total weight lies (the midpoint where it falls exactly between two)."""
+    order = np.argsort(x_n)
+    x, w = np.asarray(x_n, np.float64)[order], np.asarray(w_n, np.float64)[order]
+    c = np.cumsum(w)
+    half = 0.5 * c[-1]
+    i = int(np.searchsorted(c, half))
+    if i < len(x) - 1 and math.isclose(c[i], half, rel_tol=1e-12):
+        return 0.5 * (x[i] + x[i + 1])
+    return float(x[i])
+
+
 def fit_log_scale(log_ratio_n: np.ndarray, anchors: Anchors, config: AnchorConfig = AnchorConfig()
                   ) -> Optional[ScaleFit]:
     """The log scale that takes the depth to the anchors (module doc); None with fewer than ``min_anchors``
@@ -290,20 +379,12 @@ def fit_log_scale(log_ratio_n: np.ndarray, anchors: Anchors, config: AnchorConfi
         return None
     s = np.sqrt(anchors.sigma_ind_n ** 2 + anchors.sigma_pair_n ** 2 + config.depth_sigma_log ** 2)[use]
     ru = r[use]
-    mu = float(np.median(ru))
-    w = np.ones_like(ru)
-    for _ in range(config.iterations):
-        w = _huber_weights(ru - mu, s, config.huber_k) / s ** 2
-        mu_new = float(np.sum(w * ru) / np.sum(w))
-        if abs(mu_new - mu) < 1e-7:
-            mu = mu_new
-            break
-        mu = mu_new
+    mu = weighted_median(ru, 1.0 / s ** 2)
     w = _huber_weights(ru - mu, s, config.huber_k) / s ** 2
     inliers = int((np.abs(ru - mu) <= config.huber_k * s).sum())
-    # independent part: the weighted mean's std; shared part: each pair's pose error, averaged over the pairs with
-    # the share of the weight each pair has
-    var_ind = 1.0 / float(np.sum(w))
+    # independent part: the weighted median's std (pi / 2 times the weighted mean's variance); shared part: each
+    # pair's pose error, averaged over the pairs with the share of the weight each pair has
+    var_ind = 0.5 * math.pi / float(np.sum(1.0 / s ** 2))
     pairs = anchors.pair_n[use]
     var_pair = 0.0
     total = float(np.sum(w))
@@ -317,83 +398,115 @@ def fit_log_scale(log_ratio_n: np.ndarray, anchors: Anchors, config: AnchorConfi
 
 
 @dataclass
-class ScaleGrid:
-    """A smooth log-scale map: node values (rows, cols) and their posterior stds, over an image of size (H, W)
-    whose nodes sit at the centres of a rows x cols tiling."""
-    log_scale_rc: np.ndarray
-    sigma_rc: np.ndarray
-    size_hw: Tuple[int, int]
+class ScaleMap:
+    """A depth-aware log-scale map at every pixel of a depth map (H, W): the correction (add it to log depth), its
+    std, and the anchors' weight that supports it (0: no anchor near in the image and in depth)."""
+    log_scale_hw: np.ndarray
+    sigma_hw: np.ndarray
+    support_hw: np.ndarray
 
 
-def _bilinear_weights(uv_n2: np.ndarray, size_hw: Tuple[int, int], rows: int, cols: int
-                      ) -> Tuple[np.ndarray, np.ndarray]:
-    """(node indices (n, 4), weights (n, 4)) of the bilinear interpolation of a rows x cols node grid (nodes at the
-    centres of a rows x cols tiling of the image, clamped at the borders: OpenCV's resize convention) at pixels
-    uv (pixel centres at integers)."""
+def _grid_coords(uv_n2: np.ndarray, log_d_n: np.ndarray, size_hw: Tuple[int, int], shape: Tuple[int, int, int],
+                 log_range: Tuple[float, float]) -> np.ndarray:
+    """Continuous (row, col, bin) coordinates in a bilateral grid of ``shape`` (rows, cols, bins): nodes at the
+    centres of a rows x cols tiling of the image (OpenCV's resize convention) and of ``bins`` equal steps of log
+    depth over ``log_range``; clamped to the grid."""
     H, W = size_hw
-    gx = np.clip((uv_n2[:, 0] + 0.5) / W * cols - 0.5, 0, cols - 1)
+    rows, cols, bins = shape
     gy = np.clip((uv_n2[:, 1] + 0.5) / H * rows - 0.5, 0, rows - 1)
-    x0 = np.minimum(np.floor(gx).astype(np.int64), max(cols - 2, 0))
-    y0 = np.minimum(np.floor(gy).astype(np.int64), max(rows - 2, 0))
-    x1, y1 = np.minimum(x0 + 1, cols - 1), np.minimum(y0 + 1, rows - 1)
-    fx, fy = gx - x0, gy - y0
-    idx = np.stack([y0 * cols + x0, y0 * cols + x1, y1 * cols + x0, y1 * cols + x1], 1)
-    w = np.stack([(1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy], 1)
-    return idx, w
+    gx = np.clip((uv_n2[:, 0] + 0.5) / W * cols - 0.5, 0, cols - 1)
+    lo, hi = log_range
+    gz = np.clip((log_d_n - lo) / max(hi - lo, 1e-9) * (bins - 1), 0, bins - 1)
+    return np.stack([gy, gx, gz], 1)
 
 
-def fit_scale_grid(log_ratio_n: np.ndarray, anchors: Anchors, uv_n2: np.ndarray, size_hw: Tuple[int, int],
-                   fit: ScaleFit, config: AnchorConfig = AnchorConfig()) -> ScaleGrid:
-    """The smooth log-scale map (module doc) at an image of ``size_hw`` from the anchors at pixels ``uv_n2`` of that
-    image, their log ratios, and the global fit (its Huber weights and log scale; the map's prior)."""
-    rows, cols = config.grid_rows, config.grid_cols
-    n = rows * cols
+def _corners(c_n3: np.ndarray, shape: Tuple[int, int, int]):
+    """The 8 trilinear corners of grid coordinates: (flat indices (n, 8), weights (n, 8))."""
+    lo = np.floor(c_n3).astype(np.int64)
+    lo = np.minimum(lo, np.maximum(np.asarray(shape) - 2, 0))
+    f = c_n3 - lo
+    idx, wts = [], []
+    for dy in (0, 1):
+        for dx in (0, 1):
+            for dz in (0, 1):
+                y = np.minimum(lo[:, 0] + dy, shape[0] - 1)
+                x = np.minimum(lo[:, 1] + dx, shape[1] - 1)
+                z = np.minimum(lo[:, 2] + dz, shape[2] - 1)
+                idx.append((y * shape[1] + x) * shape[2] + z)
+                wts.append((f[:, 0] if dy else 1 - f[:, 0]) * (f[:, 1] if dx else 1 - f[:, 1])
+                           * (f[:, 2] if dz else 1 - f[:, 2]))
+    return np.stack(idx, 1), np.stack(wts, 1)
+
+
+def _splat_blur(idx: np.ndarray, wts: np.ndarray, values_n: np.ndarray, shape) -> np.ndarray:
+    """Trilinear splat of per-point values into the grid, then a [1 2 1] / 4 blur along each axis."""
+    g = np.bincount(idx.ravel(), (wts * values_n[:, None]).ravel(), minlength=int(np.prod(shape)))
+    g = g.reshape(shape)
+    for axis in range(3):
+        g = convolve1d(g, [0.25, 0.5, 0.25], axis=axis, mode='nearest')
+    return g
+
+
+def _slice(grid: np.ndarray, idx: np.ndarray, wts: np.ndarray) -> np.ndarray:
+    return np.sum(grid.ravel()[idx] * wts, axis=1)
+
+
+def _slice_image(grids: np.ndarray, gz_hw: np.ndarray, size_hw: Tuple[int, int]) -> np.ndarray:
+    """Grids (rows, cols, bins, channels) read at every pixel of an image of ``size_hw`` at its bin coordinate
+    ``gz_hw``: (channels, H, W). Each bin's plane is resized to the image (bilinear, the nodes at the cells'
+    centres: :func:`_grid_coords`' convention), then the two bins around a pixel's are mixed linearly: the same as
+    trilinear slicing, at a fraction of its cost."""
+    H, W = size_hw
+    rows, cols, bins, ch = grids.shape
+    gz = np.asarray(gz_hw, np.float32)
+    out = np.zeros((ch, H, W), np.float32)
+    for z in range(bins):
+        tent = np.maximum(0.0, 1.0 - np.abs(gz - np.float32(z)))       # the linear weight of bin z at each pixel
+        if not tent.any():
+            continue
+        plane = cv2.resize(np.ascontiguousarray(grids[:, :, z, :], np.float32), (W, H),
+                           interpolation=cv2.INTER_LINEAR).reshape(H, W, ch)
+        out += np.moveaxis(plane, -1, 0) * tent
+    return out.astype(np.float64)
+
+
+def fit_scale_map(log_ratio_n: np.ndarray, anchors: Anchors, uv_n2: np.ndarray, depth_hw: np.ndarray,
+                  fit: ScaleFit, log_range: Tuple[float, float], config: AnchorConfig = AnchorConfig()
+                  ) -> ScaleMap:
+    """The depth-aware scale map (module doc) of a depth map from its anchors at pixels ``uv_n2`` of it and their
+    log ratios: a bilateral grid over (row, column, log depth of the map) in which each anchor's log ratio is
+    splatted with its weight ``1 / (sigma_i^2 + sigma_depth^2)``, blurred, and read at every pixel at its own
+    position and depth; robust (Huber weights about a first pass) and pulled towards no correction by a prior worth
+    ``grid_prior_anchors`` anchors, so that a region or a depth without anchors nearby keeps the network's depth.
+    ``log_range``: the log depths the grid spans (the depth planes'); ``fit``: the global fit (its std, mostly the
+    pairs' shared pose error, is added to every pixel's)."""
+    shape = (config.grid_rows, config.grid_cols, config.grid_depth_bins)
+    d = np.asarray(depth_hw, np.float64)
+    H, W = d.shape
     r = np.asarray(log_ratio_n, np.float64)
-    use = np.isfinite(r) & (fit.weight_n > 0)
-    idx, bw = _bilinear_weights(uv_n2[use], size_hw, rows, cols)
-    A = np.zeros((n, n))
-    rhs = np.zeros(n)
-    w = fit.weight_n[use]
-    # data: sum_i w_i (sum_j bw_ij g_j - r_i)^2
-    for a in range(4):
-        for b in range(4):
-            np.add.at(A, (idx[:, a], idx[:, b]), w * bw[:, a] * bw[:, b])
-        np.add.at(rhs, idx[:, a], w * bw[:, a] * r[use])
-    # smoothness between 4-neighbours and the prior towards the global log scale
-    ws = 1.0 / config.grid_smoothness ** 2
-    for y in range(rows):
-        for x in range(cols):
-            i = y * cols + x
-            for j in ((i + 1) if x + 1 < cols else None, (i + cols) if y + 1 < rows else None):
-                if j is None:
-                    continue
-                A[i, i] += ws
-                A[j, j] += ws
-                A[i, j] -= ws
-                A[j, i] -= ws
-    wp = 1.0 / config.grid_prior_sigma ** 2
-    A[np.diag_indices(n)] += wp
-    rhs += wp * fit.log_scale
-    cov = np.linalg.inv(A)
-    g = cov @ rhs
-    # the nodes' posterior stds, with the global fit's (its pairs' shared pose errors move every node alike)
-    sigma = np.sqrt(np.maximum(np.diag(cov), 0.0) + fit.sigma ** 2)
-    return ScaleGrid(g.reshape(rows, cols), sigma.reshape(rows, cols), (int(size_hw[0]), int(size_hw[1])))
-
-
-def grid_log_scale_at(grid: ScaleGrid, uv_n2: np.ndarray) -> np.ndarray:
-    """The map's log scale at pixels uv of its image (bilinear between nodes)."""
-    rows, cols = grid.log_scale_rc.shape
-    idx, w = _bilinear_weights(np.asarray(uv_n2, np.float64), grid.size_hw, rows, cols)
-    return np.sum(grid.log_scale_rc.ravel()[idx] * w, axis=1)
-
-
-def grid_dense(grid: ScaleGrid, values_rc: Optional[np.ndarray] = None) -> np.ndarray:
-    """The map (or other node values on its grid) at every pixel of its image, (H, W): the bilinear interpolation
-    of :func:`grid_log_scale_at`, as OpenCV's resize computes it."""
-    H, W = grid.size_hw
-    v = grid.log_scale_rc if values_rc is None else np.asarray(values_rc, np.float64)
-    return cv2.resize(v.astype(np.float64), (W, H), interpolation=cv2.INTER_LINEAR)
+    use = np.isfinite(r)
+    s = np.sqrt(anchors.sigma_ind_n ** 2 + anchors.sigma_pair_n ** 2 + config.depth_sigma_log ** 2)[use]
+    with np.errstate(divide='ignore', invalid='ignore'):
+        log_d_anchor = np.log(sample_depth(d, uv_n2[use]))
+    ok = np.isfinite(log_d_anchor)
+    ru, s, log_d_anchor, uv = r[use][ok], s[ok], log_d_anchor[ok], uv_n2[use][ok]
+    a_idx, a_wts = _corners(_grid_coords(uv, log_d_anchor, (H, W), shape, log_range), shape)
+    w_prior = config.grid_prior_anchors / config.depth_sigma_log ** 2
+    w = 1.0 / s ** 2
+    for _ in range(2):                      # a first pass, then Huber weights about what it says at each anchor
+        Wg = _splat_blur(a_idx, a_wts, w, shape)
+        WRg = _splat_blur(a_idx, a_wts, w * ru, shape)
+        local = _slice(WRg, a_idx, a_wts) / (_slice(Wg, a_idx, a_wts) + w_prior)
+        w = _huber_weights(ru - local, s, config.huber_k) / s ** 2
+    Wg = _splat_blur(a_idx, a_wts, w, shape)
+    WRg = _splat_blur(a_idx, a_wts, w * ru, shape)
+    good = np.isfinite(d) & (d > 0)
+    lo, hi = log_range
+    gz = np.clip((np.log(np.where(good, d, 1.0)) - lo) / max(hi - lo, 1e-9) * (shape[2] - 1), 0, shape[2] - 1)
+    support, wr = _slice_image(np.stack([Wg, WRg], -1), gz, (H, W))
+    g = wr / (support + w_prior)
+    sigma = np.sqrt(1.0 / (support + w_prior) + fit.sigma ** 2)
+    return ScaleMap(np.where(good, g, 0.0), sigma, support)
 
 
 def widened_confidence(conf: np.ndarray, sigma_log, ratio: float = 1.25) -> np.ndarray:

@@ -45,7 +45,7 @@ import numpy as np
 
 __all__ = [
     'ERROR_METRICS', 'DEFAULT_FRACTIONS', 'gt_valid_mask', 'pred_valid_mask', 'evaluation_mask',
-    'median_scale', 'error_sums', 'metrics_from_sums', 'depth_metrics', 'frame_metrics',
+    'median_scale', 'image_scale_summary', 'error_sums', 'metrics_from_sums', 'depth_metrics', 'frame_metrics',
     'temporal_consistency', 'sparsification', 'ause', 'aurg', 'confident_half_ratio', 'MetricAccumulator',
     'CALIBRATION_BINS', 'KEPT_THRESHOLDS', 'DELTA1_RATIO', 'within_ratio', 'confidence_events', 'reliability_bins',
     'expected_calibration_error', 'kept_at_thresholds', 'calibration_summary',
@@ -106,6 +106,28 @@ def median_scale(pred_n: np.ndarray, gt_n: np.ndarray) -> float:
     if pred_n.size == 0:
         return 1.0
     return float(np.median(gt_n) / np.median(pred_n))
+
+
+def image_scale_summary(pairs, min_depth: Optional[float] = None, max_depth: Optional[float] = None
+                        ) -> Dict[str, Optional[float]]:
+    """How the depth's scale wanders from image to image: for each (prediction, GT) pair its scale, the median of
+    prediction / GT over the scored pixels; then their quartiles ('q25', 'median', 'q75') and 'iqr' over the images,
+    and 'scaled_abs_rel': the frame mean of abs_rel once each image is divided by its own scale (what a perfect
+    per-image scale correction would leave). None with no scored image."""
+    scales, scaled = [], []
+    for pred, gt in pairs:
+        m = evaluation_mask(pred, gt, min_depth, max_depth)
+        if not m.any():
+            continue
+        p, g = np.asarray(pred, np.float64)[m], np.asarray(gt, np.float64)[m]
+        s = float(np.median(p / g))
+        scales.append(s)
+        scaled.append(float(np.mean(np.abs(p / s - g) / g)))
+    if not scales:
+        return {'q25': None, 'median': None, 'q75': None, 'iqr': None, 'scaled_abs_rel': None, 'images': 0}
+    q25, q50, q75 = (float(v) for v in np.percentile(scales, [25, 50, 75]))
+    return {'q25': q25, 'median': q50, 'q75': q75, 'iqr': q75 - q25, 'scaled_abs_rel': float(np.mean(scaled)),
+            'images': len(scales)}
 
 
 def _clip(pred_n: np.ndarray, min_depth, max_depth) -> np.ndarray:

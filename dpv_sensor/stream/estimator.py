@@ -134,7 +134,8 @@ class Estimator:
         self._twist: Optional[np.ndarray] = None
         self.calibration: Optional[ConfidenceCalibration] = None
         self.calibration = self._load_calibration()
-        self.anchors = metric_anchors.AnchorAligner(cfg.depth_anchors, ratio=cfg.confidence_ratio)
+        self.anchors = metric_anchors.AnchorAligner(cfg.depth_anchors, ratio=cfg.confidence_ratio,
+                                                    depth_range=(self.d_min, self.d_max))
         if cfg.depth_anchors != 'off' and cfg.pose_refinement != 'window':
             self._note(f'depth_anchors={cfg.depth_anchors} needs pose_refinement=window (its matches and poses): '
                        'the depth is not checked against anchors')
@@ -607,7 +608,10 @@ class Estimator:
 
     def _hold_to_anchors(self, ref: Keyframe, depth_bhw: torch.Tensor, conf_bhw: torch.Tensor):
         """The keyframe's depth and confidence held to its metric anchors (``depth_anchors``,
-        :mod:`dpv_sensor.stream.metric_anchors`), and the report; unchanged tensors without a refined window."""
+        :mod:`dpv_sensor.stream.metric_anchors`), and the report; unchanged tensors without a refined window, and
+        nothing computed (report None) with ``depth_anchors: off``."""
+        if self.anchors.mode == 'off':
+            return depth_bhw, conf_bhw, None
         result = self._refinement_result()
         anchors, veto = None, None
         ratio = getattr(self.pose_refiner, 'direction_ratio', None)

@@ -10,7 +10,8 @@ twice. A camera that turns in place gives rays that do not meet at an angle: no 
 :class:`AnchorAligner` holds the keyframe's depth to them (``depth_anchors``):
 
 - ``scale``: one robust, σ-weighted log scale (Huber IRLS) multiplies the depth;
-- ``dense``: a smooth scale map on a coarse grid (the global scale where no anchor speaks), so a region that the
+- ``dense``: a depth-aware scale map (a bilateral grid over the image and the depth: a pixel is corrected by the
+  anchors near it in the image *and* in depth, and keeps the network's depth where none is), so a region that the
   networks put at the wrong depth is corrected where anchors are, and a confident wrong region is caught;
 - ``off``: the depth as the networks give it (the anchors are still counted, so ``/diagnostics`` shows what they
   would say).
@@ -50,10 +51,12 @@ def reference_anchors(result, ref_key: Hashable, config: AnchorConfig = AnchorCo
     """The anchors of the reference keyframe ``ref_key`` from a window refiner's result (its ``matches`` and
     refined ``T_world_cam``), pixels at the first part's resolution; empty without matches.
 
-    The flow's pairs chain into tracks: each keyframe's sampled pixels follow the dense flows from keyframe to
-    keyframe (older to newer, as the window measured them) for as long as there is a flow, and a track that passes
-    through the reference is triangulated from its first and its last view (the longest baseline), checked in
-    every view. SIFT's pairs with the reference are triangulated as they are."""
+    The flow's pairs chain into tracks: the sampled pixels of the oldest keyframe whose chain of flows reaches the
+    reference follow the dense flows from keyframe to keyframe (older to newer, as the window measured them) to the
+    newest; each track's pixels in its first and last views are refined by Lucas-Kanade from its pixel in the
+    reference image (checked by tracking back), and it is triangulated from its first and its last view (the
+    longest baseline) and checked in those and in the reference. SIFT's pairs with the reference are triangulated
+    as they are."""
     poses = result.T_world_cam
     if ref_key not in poses:
         return Anchors.empty()
@@ -75,27 +78,48 @@ def reference_anchors(result, ref_key: Hashable, config: AnchorConfig = AnchorCo
             T_src_ref = np.linalg.inv(poses[src]) @ poses[ref_key]
             parts.append(anchor_math.triangulate_pair(p_ref, p_src, m.K_33, T_src_ref, m.sigma_rot_rad,
                                                       m.sigma_trans_m, len(parts), config))
-    for start in sorted(flows):
-        if start > ref_key:
-            continue
-        track = _flow_track(flows, start)
+    track = _longest_track(flows, ref_key, config.max_tracks)
+    if track is not None:
         keys = [k for k, _p in track]
-        if len(keys) < 2 or ref_key not in keys:
-            continue
+        r = keys.index(ref_key)
+        # the views that matter: the first and the last (the triangulation's baseline) and the reference
+        views = sorted({0, r, len(keys) - 1})
         steps = [flows[k] for k in keys[:-1]]
         sigma_rot = math.sqrt(sum(m.sigma_rot_rad ** 2 for m in steps))
         sigma_trans = math.sqrt(sum(m.sigma_trans_m ** 2 for m in steps))
-        parts.append(anchor_math.triangulate_track([p for _k, p in track], [poses[k] for k in keys],
-                                                   steps[0].K_33, keys.index(ref_key), sigma_rot, sigma_trans,
-                                                   len(parts), config))
+        images = getattr(result, 'match_images', None) or {}
+        points = [track[v][1] for v in views]
+        rv = views.index(r)
+        if all(keys[v] in images for v in views):
+            points = [p if i == rv else anchor_math.refine_tracks(images[ref_key], points[rv], images[keys[v]], p,
+                                                                  config)
+                      for i, (v, p) in enumerate(zip(views, points))]
+        parts.append(anchor_math.triangulate_track(points, [poses[keys[v]] for v in views], steps[0].K_33, rv,
+                                                   sigma_rot, sigma_trans, len(parts), config))
     return anchor_math.concat_anchors(parts)
 
 
-def _flow_track(flows: Dict[Hashable, object], start: Hashable):
-    """[(key, pixels (n, 2))] of the tracks that start at keyframe ``start``'s sampled pixels and follow the chain of
-    flows from it (NaN once a track leaves the image)."""
+def _longest_track(flows: Dict[Hashable, object], ref_key: Hashable, max_tracks: int):
+    """The tracks of the longest chain of flows that passes through the reference: they start at the sampled pixels
+    of the oldest keyframe whose chain reaches the reference (at most ``max_tracks`` of them, evenly spread) and
+    follow the flows to the newest; None without such a chain."""
+    for start in sorted(flows):
+        if start > ref_key:
+            return None
+        k = start
+        while k in flows and k < ref_key:
+            k = flows[k].key_b
+        if k == ref_key or (start == ref_key and k in flows):
+            return _flow_track(flows, start, max_tracks)
+    return None
+
+
+def _flow_track(flows: Dict[Hashable, object], start: Hashable, max_tracks: int):
+    """[(key, pixels (n, 2))] of the tracks that start at keyframe ``start``'s sampled pixels (every n-th, at most
+    ``max_tracks``) and follow the chain of flows from it (NaN once a track leaves the image)."""
     m = flows[start]
-    track = [(start, m.pa_n2), (m.key_b, m.pb_n2)]
+    step = max(1, -(-len(m.pa_n2) // max(1, max_tracks)))
+    track = [(start, m.pa_n2[::step]), (m.key_b, m.pb_n2[::step])]
     while track[-1][0] in flows:
         nxt = flows[track[-1][0]]
         p = track[-1][1]
@@ -114,8 +138,9 @@ def _flow_track(flows: Dict[Hashable, object], start: Hashable):
 @dataclass
 class AnchorReport:
     """One keyframe: anchors kept and candidates rejected by reason; those with a depth to compare (used) and the
-    fit's inliers; the scale (depth multiplied by it, None: no fit) and its σ (log); what was applied ('none',
-    'scale', 'dense'); pixels whose correction exceeded the anchors' σ (overruled); why nothing was applied."""
+    fit's inliers; the global scale (None: no fit) and its σ (log); what was applied ('none', 'scale', 'dense');
+    pixels whose depth moved (the disagreement beyond correction_sigmas) and pixels where it exceeded
+    OVERRULE_SIGMAS (overruled); why nothing was applied."""
     anchors: int = 0
     rejected: Dict[str, int] = field(default_factory=dict)
     used: int = 0
@@ -123,6 +148,7 @@ class AnchorReport:
     scale: Optional[float] = None
     sigma: Optional[float] = None
     applied: str = 'none'
+    corrected_pixels: int = 0
     overruled_pixels: int = 0
     reason: Optional[str] = None
 
@@ -130,7 +156,8 @@ class AnchorReport:
 @dataclass
 class AnchorStatus:
     """Since the start: the mode; keyframes checked (a window to triangulate from) and aligned (a fit applied);
-    keyframes vetoed (the poses cannot anchor them: the images disagree with the odometry's directions);
+    keyframes vetoed (the poses cannot anchor them: the images disagree with the odometry's directions) and
+    keyframes whose anchors did not agree on a scale (not applied);
     keyframes where some region disagreed with its anchors beyond their σ and the pixels that were; anchors kept
     and candidates rejected by reason; the last keyframe's report."""
     mode: str = 'off'
@@ -138,6 +165,7 @@ class AnchorStatus:
     keyframes_aligned: int = 0
     keyframes_overruled: int = 0
     keyframes_vetoed: int = 0
+    keyframes_disagreeing: int = 0
     pixels_overruled: int = 0
     anchors: int = 0
     rejected: Dict[str, int] = field(default_factory=dict)
@@ -149,15 +177,27 @@ class AnchorStatus:
 
 class AnchorAligner:
     """Holds each keyframe's depth to its anchors (module doc). ``mode``: one of :data:`ANCHOR_MODES`;
-    ``ratio``: the confidence's band (×ratio)."""
+    ``ratio``: the confidence's band (×ratio); ``depth_range``: (d_min, d_max) of the depth planes, outside which
+    anchors are not compared (None: all are)."""
 
-    def __init__(self, mode: str = 'off', config: AnchorConfig = AnchorConfig(), ratio: float = 1.25):
+    def __init__(self, mode: str = 'off', config: AnchorConfig = AnchorConfig(), ratio: float = 1.25,
+                 depth_range: Optional[Tuple[float, float]] = None):
         if mode not in ANCHOR_MODES:
             raise ValueError(f'depth_anchors must be one of {ANCHOR_MODES}, not {mode!r}')
         self.mode = mode
         self.config = config
         self.ratio = float(ratio)
+        self.depth_range = depth_range
         self.status = AnchorStatus(mode=mode)
+
+    def _log_range(self, depth_hw: np.ndarray) -> Tuple[float, float]:
+        """The log depths the scale map spans: the depth planes' range, else the map's own 1st to 99th
+        percentile."""
+        if self.depth_range is not None:
+            return math.log(self.depth_range[0]), math.log(self.depth_range[1])
+        d = depth_hw[np.isfinite(depth_hw) & (depth_hw > 0)]
+        lo, hi = np.percentile(d, [1, 99]) if d.size else (1.0, 2.0)
+        return math.log(lo), math.log(max(hi, lo * 1.01))
 
     def apply(self, depth_hw: np.ndarray, conf_hw: np.ndarray, K_depth_33: np.ndarray, anchors: Optional[Anchors],
               veto: Optional[str] = None) -> Tuple[np.ndarray, np.ndarray, AnchorReport]:
@@ -178,6 +218,7 @@ class AnchorAligner:
             st.rejected[k] = st.rejected.get(k, 0) + int(v)
         rep = AnchorReport(anchors=len(anchors), rejected=dict(anchors.rejected))
         st.last = rep
+        rep.rejected.setdefault('depth_edge', 0)
         if len(anchors) < cfg.min_anchors:
             rep.reason = f'too few anchors ({len(anchors)} < {cfg.min_anchors})'
             return depth_hw, conf_hw, rep
@@ -185,6 +226,20 @@ class AnchorAligner:
         x = np.c_[anchors.uv_n2, np.ones(len(anchors))] @ np.linalg.inv(anchors.K_33).T @ K.T
         uv = x[:, :2]
         d_at = anchor_math.sample_depth(depth_hw, uv)
+        H, W = depth_hw.shape
+        ix = np.clip(np.rint(uv[:, 0]), 0, W - 1).astype(np.int64)
+        iy = np.clip(np.rint(uv[:, 1]), 0, H - 1).astype(np.int64)
+        edge = anchor_math.depth_edge_mask(depth_hw, cfg.edge_log_range)[iy, ix] & np.isfinite(d_at)
+        d_at[edge] = np.nan
+        rep.rejected['depth_edge'] = int(edge.sum())
+        st.rejected['depth_edge'] = st.rejected.get('depth_edge', 0) + int(edge.sum())
+        if self.depth_range is not None:
+            # anchors outside the depth planes' range: the map cannot hold them, so they say nothing about it
+            out = ((anchors.depth_n < self.depth_range[0]) | (anchors.depth_n > self.depth_range[1])) & \
+                np.isfinite(d_at)
+            d_at[out] = np.nan
+            rep.rejected['out_of_planes'] = int(out.sum())
+            st.rejected['out_of_planes'] = st.rejected.get('out_of_planes', 0) + int(out.sum())
         with np.errstate(divide='ignore', invalid='ignore'):
             log_ratio = np.log(anchors.depth_n) - np.log(d_at)
         fit = anchor_math.fit_log_scale(log_ratio, anchors, cfg)
@@ -196,24 +251,39 @@ class AnchorAligner:
         if self.mode == 'off':
             rep.reason = "depth_anchors is 'off'"
             return depth_hw, conf_hw, rep
+        if fit.inliers < cfg.min_inlier_fraction * fit.used:
+            rep.reason = (f'the anchors do not agree on a scale ({fit.inliers} of {fit.used} within '
+                          f'{cfg.huber_k:g} sigma)')
+            st.keyframes_disagreeing += 1
+            return depth_hw, conf_hw, rep
         if self.mode == 'scale':
             log_map = np.full(depth_hw.shape, fit.log_scale)
             sigma_map = np.full(depth_hw.shape, fit.sigma)
         else:
-            grid = anchor_math.fit_scale_grid(log_ratio, anchors, uv, depth_hw.shape, fit, cfg)
-            log_map = anchor_math.grid_dense(grid)
-            sigma_map = anchor_math.grid_dense(grid, grid.sigma_rc)
-        # a correction beyond what the anchors' σ explains says the network was wrong there by about its size
+            smap = anchor_math.fit_scale_map(log_ratio, anchors, uv, depth_hw, fit, self._log_range(depth_hw), cfg)
+            log_map, sigma_map = smap.log_scale_hw, smap.sigma_hw
+        # the anchor set's own systematic error (flow that underestimates a large displacement, a scene the poses
+        # do not quite explain) is shared by every anchor of a keyframe and no count of anchors averages it away
+        sigma_map = np.hypot(sigma_map, cfg.bias_sigma_log)
+        # a check first: the depth is corrected only by as much as the anchors disagree with it beyond
+        # correction_sigmas of their σ (soft threshold), so a network that agrees with its anchors is left alone
+        excess = np.maximum(np.abs(log_map) - cfg.correction_sigmas * sigma_map, 0.0)
+        applied = np.sign(log_map) * excess
+        # a disagreement beyond what the anchors' σ explains says the network was wrong there by about its size;
+        # where the depth moved at all, it is as uncertain as the correction
         overruled = np.abs(log_map) > OVERRULE_SIGMAS * sigma_map
-        widen = np.where(overruled, np.hypot(sigma_map, np.abs(log_map)), sigma_map)
+        widen = np.where(overruled, np.hypot(sigma_map, np.abs(log_map)), np.where(excess > 0, sigma_map, 0.0))
         valid = np.isfinite(depth_hw) & (depth_hw > 0)
         rep.overruled_pixels = int((overruled & valid).sum())
+        rep.corrected_pixels = int(((excess > 0) & valid).sum())
         rep.applied = self.mode
         st.keyframes_aligned += 1
         if rep.overruled_pixels:
             st.keyframes_overruled += 1
             st.pixels_overruled += rep.overruled_pixels
-        depth = np.where(valid, depth_hw * np.exp(log_map), depth_hw).astype(depth_hw.dtype)
-        conf = anchor_math.widened_confidence(conf_hw, widen, self.ratio).astype(conf_hw.dtype)
+        depth = np.where(valid, depth_hw * np.exp(applied), depth_hw).astype(depth_hw.dtype)
+        conf = conf_hw.copy()
+        moved = widen > 0
+        conf[moved] = anchor_math.widened_confidence(conf_hw[moved], widen[moved], self.ratio)
         return depth, conf, rep
 

@@ -32,7 +32,7 @@ The factors' covariances are widened accordingly (``depth_scale_sigma``, ``inv_d
 ``translation_sigma_rel``). The defaults (5 % depth scale, 10 % of the step isotropically) still let the
 alignments move the translation by about the odometry's own error: keeping the odometry's translation while the
 alignments turn the rotation leaves a pose that agrees with neither, and plane-swept depth from such poses is
-biased (measured with ``benchmarks.poses``, classical model: with 50 % / 20 % widening, SUN3D recovered 0.22 and
+biased (measured with ``studies.poses``, classical model: with 50 % / 20 % widening, SUN3D recovered 0.22 and
 -0.01 of the noisy-to-GT abs_rel gap; with 10 % / 5 % (and 2 sources per keyframe), 0.74 and 0.59, and rendered
 sequences 0.87 and 0.81 instead of 0.82 and 0.79, at the same metric translation RPE).
 
@@ -338,7 +338,8 @@ class WindowPoseRefiner:
             source_sigma=sigmas, gate=gate, correction=correction, keypoints=kps,
             factors=self._factor_pairs(window, factors, kp_factors) if refined else {},
             odometry=odometry_steps(window, self._odom, self._cov, self.config),
-            matches=self._reference_matches(ref.key, window))
+            matches=self._reference_matches(ref.key, window),
+            match_images={k: g for k, (g, _K) in self._match_images.items() if k in window})
         return self.last_result
 
     def _admit_window(self, frames: List[WindowKeyframe]) -> List[Hashable]:

@@ -44,7 +44,7 @@ class PoseRefinerConfig:
     translation_sigma_rel: isotropic widening of the photometric translation, relative to the step length, for
         errors in the predicted depth's structure. With the filter's depth, photometric translations are only
         good to a few percent of the baseline (rotations to a few hundredths of a degree); with exact depth, about
-        1-3 mm at 3-5 cm baselines (``benchmarks.poses --parts gtcheck``), so sub-millimetre odometry errors are
+        1-3 mm at 3-5 cm baselines (``studies.poses --parts gtcheck``), so sub-millimetre odometry errors are
         below what the alignment resolves.
     use_depth_uncertainty: in the estimator hook, derive the per-pixel inverse-depth std from the DPV confidence
         (:func:`~dpv_sensor.core.photometric.inverse_depth_std_from_confidence`) and let the alignment weigh it.
@@ -250,6 +250,8 @@ class RefinementResult:
     # the matches the window measured between the reference and its sources (flow or SIFT), with the odometry's
     # uncertainty of each pair's relative pose: what the reference's metric anchors are triangulated from
     matches: List['PairMatches'] = field(default_factory=list)
+    # the grey images the flow matched, by key (what the anchors' tracks are refined on); empty without the flow
+    match_images: Dict[Hashable, np.ndarray] = field(default_factory=dict)
 
 
 @dataclass
