@@ -40,3 +40,12 @@ def test_the_node_publishes_what_the_anchors_did(replay):
     assert 'reprojection' in diag['anchors_rejected'] and 'depth_edge' in diag['anchors_rejected']
     assert re.search(r'\d+ anchors, \d+ on the depth, (scale \d\.\d{3} \+- \d+\.\d %|no fit)', diag['anchors_last']), \
         diag['anchors_last']
+
+
+def test_the_node_says_where_its_time_goes(replay):
+    diag = replay.diagnostics
+    stages = diag['keyframe_stages_ms']
+    for stage in ('pose_refinement', 'measurement', 'filter', 'anchors', 'total'):
+        assert re.search(rf'\b{stage} \d+', stages), stages
+    share = diag['worker_busy_share']
+    assert share == 'n/a' or 0.0 <= float(share) <= 1.0

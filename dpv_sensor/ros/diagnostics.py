@@ -42,6 +42,10 @@ def calibration_text(path: str | None) -> str:
     return pathlib.PurePath(path).name if path else 'off'
 
 
+def _share(value) -> str | float:
+    return 'n/a' if value is None else round(float(value), 3)
+
+
 def estimator_values(st: EstimatorStatus | None, settings, starting: bool, resets: int) -> dict:
     """The estimator's part of /diagnostics from its status; without one (`starting`: the pipeline is being built,
     else its status failed) the settings' values."""
@@ -167,6 +171,10 @@ class NodeDiagnostics:
             'processing_ms_median': _median(list(worker.process_ms)),
             'keyframe_ms_median': _median(list(worker.keyframe_ms)),
             'keyframe_ms_last': round(worker.last_keyframe_ms, 1) if worker.last_keyframe_ms is not None else 'n/a',
+            # where the worker's time goes: the share of the last rate_window it spent processing images (near 1: it
+            # is starved, and images are dropped as busy), and each stage's median over the last 50 keyframes
+            'worker_busy_share': _share(worker.load.busy_share(time.monotonic(), s.rate_window)),
+            'keyframe_stages_ms': worker.load.text(),
             'dropped_total': sum(dropped.values()),
         }
         for reason, n in sorted(dropped.items()):

@@ -25,6 +25,7 @@ from dpv_sensor.ros.inputs import FROM_THE_FUTURE, NO_MOUNT
 from dpv_sensor.ros.node_support import Incoming, camera_gap_ns, max_gap
 from dpv_sensor.ros.outputs import FrameMeta
 from dpv_sensor.ros.receipt import BAD_IMAGE, UNSUPPORTED_ENCODING
+from dpv_sensor.ros.worker_load import WorkerLoad
 from dpv_sensor.stream.continuity import ReceivedImages
 from dpv_sensor.stream.estimator import EstimatorConfig, EstimatorStatus
 from dpv_sensor.stream.frame import Frame
@@ -68,6 +69,7 @@ class Worker:
         self.process_ms: collections.deque[float] = collections.deque(maxlen=200)   # estimator.push, any frame
         self.keyframe_ms: collections.deque[float] = collections.deque(maxlen=50)   # estimator.push, keyframes
         self.last_keyframe_ms = None
+        self.load = WorkerLoad()              # busy share and the keyframes' stage medians (/diagnostics)
         self.n_processed = 0
         self.n_resets = 0                     # restarts the node asked for or saw (diagnostics without a status)
         self._degenerate_run = 0              # consecutive degenerate images
@@ -153,11 +155,14 @@ class Worker:
             item = self.inputs.mailbox.take(timeout=0.2)
             if item is None:
                 continue
+            start = time.monotonic()
             try:
                 self._process(item)
             except Exception as exc:   # the worker must survive anything
                 self.faults.report(INTERNAL_ERROR, f'unexpected error while processing an image: '
                                    f'{type(exc).__name__}: {exc}\n{traceback.format_exc()}', level='error')
+            finally:
+                self.load.busy(start, time.monotonic())
 
     def _process(self, item: Incoming) -> None:
         """One image, in named steps; each step reports and counts its own drops and returns None for them."""
@@ -307,6 +312,8 @@ class Worker:
         if is_keyframe:
             self.keyframe_ms.append(push_ms)
             self.last_keyframe_ms = push_ms
+        if result is not None and result.output is not None and result.output.is_keyframe:
+            self.load.keyframe(result.output.timings_ms)
         self.n_processed += 1
         self.outputs.remember(stamp_s, meta, is_keyframe, self.pipeline.config.window_size)
         return None if result is None else result.output
