@@ -3,6 +3,8 @@ what a doc section quotes (e.g. `python -m dpv_sensor.studies.window_graph SEQUE
 asked while the camera was being built (how far the keypoint poses err, which cue tells a right depth from a wrong
 one); the benchmarks a user runs to learn how fast or how accurate the camera is live in ``dpv_sensor.benchmarks``.
 
+- ``anchors``: how accurate the metric anchors are and what each way of holding the depth to them does
+  (docs/anchors.md).
 - ``alignment_depth``: the photometric alignment's rotation against the quality of its reference depth
   (docs/pose_uncertainty.md, "Every sequence: the odometry's covariance and keypoints together").
 - ``confidence_features``: which per-pixel cues separate a right depth from a wrong one, and which carry
