@@ -172,7 +172,7 @@ def test_aligner_without_enough_anchors_changes_nothing_bit_for_bit():
     conf = np.full(SIZE_HW, 0.5, np.float32)
     aligner = MA.AnchorAligner('dense')
     d, c, rep = aligner.apply(gt, conf, K, _anchors_at(uv[:5], z[:5]))
-    assert d is gt and c is conf and rep.applied == 'none' and 'too few anchors' in rep.reason
+    assert d is gt and c is conf and rep.applied == 'none' and rep.reason == 'too few anchors (5 < 20)'
     d, c, rep = aligner.apply(gt, conf, K, None)
     assert d is gt and c is conf and aligner.status.keyframes_checked == 1
 
@@ -280,3 +280,41 @@ def test_a_camera_turning_in_place_gets_no_anchors_and_the_same_depth_bit_for_bi
                                           ([3.0, 1.0, 2.0, 10.0], [1, 1, 1, 0.5], 2.0)])
 def test_weighted_median_by_hand(x, w, expected):
     assert A.weighted_median(np.array(x), np.array(w, float)) == pytest.approx(expected)
+
+
+def test_anchors_that_do_not_agree_on_a_scale_change_nothing():
+    """A third of the anchors say the depth is right, a third 1.5x too far, a third 1.5x too near: no scale is
+    applied, and the reason says so (a fit needs half of them within huber_k sigma of one scale)."""
+    gt, uv, z = _gt_scene()
+    z = z.copy()
+    z[0::3] *= 1.5
+    z[1::3] /= 1.5
+    conf = np.full(SIZE_HW, 0.5, np.float32)
+    aligner = MA.AnchorAligner('scale')
+    d, c, rep = aligner.apply(gt, conf, K, _anchors_at(uv, z))
+    assert d is gt and c is conf and rep.applied == 'none' and rep.reason.startswith('the anchors do not agree')
+    assert aligner.status.keyframes_disagreeing == 1 and aligner.status.keyframes_aligned == 0
+
+
+def _readback(f):
+    """How much of a point's own splat a trilinear read at the same point gets back along one axis after the
+    [1 2 1] / 4 blur, the point a fraction f past an interior node: 1/2 of each corner's square, 1/4 across."""
+    return 0.5 * ((1 - f) ** 2 + f ** 2) + 0.5 * f * (1 - f)
+
+
+def test_a_lone_anchor_moves_the_map_little():
+    """The map's pull towards no correction is worth two anchors (grid_prior_anchors): one exact anchor saying
+    log ratio 0.1 (inside the Huber threshold, 1.5 x 0.1) moves its own pixel by 0.1 * w / (w + prior), with w its
+    weight 1 / 0.1^2 times what the blur leaves of it at its own position (about an eighth) and prior 2 / 0.1^2."""
+    depth = np.full(SIZE_HW, 2.0)
+    x, y = 140, 106                                    # next to the node at row 2, column 3
+    gx, gy = (x + 0.5) / 320 * 8 - 0.5, (y + 0.5) / 256 * 6 - 0.5
+    gz = (math.log(2.0) - math.log(0.3)) / (math.log(8.0) - math.log(0.3)) * 7
+    w = 100.0 * _readback(gx % 1) * _readback(gy % 1) * _readback(gz % 1)
+    uv = np.array([[float(x), float(y)]])
+    anchors = A.Anchors(uv, np.array([2.0 * math.exp(0.1)]), np.zeros(1), np.zeros(1), np.zeros(1, np.int64), K)
+    fit = A.ScaleFit(0.1, 0.0, 1, 1, np.ones(1))
+    smap = A.fit_scale_map(np.array([0.1]), anchors, uv, depth, fit, (math.log(0.3), math.log(8.0)))
+    assert w == pytest.approx(11.9, abs=0.2)
+    assert smap.log_scale_hw[y, x] == pytest.approx(0.1 * w / (w + 200.0), rel=1e-6)
+    assert smap.support_hw[y, x] == pytest.approx(w, rel=1e-6)
