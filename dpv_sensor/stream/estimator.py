@@ -95,6 +95,11 @@ class Estimator:
         self._checkpoint_meta: Dict[str, Any] = {}
         self._build_measurement(model)
         self._build_filter()
+        self.anchors = metric_anchors.AnchorAligner(cfg.depth_anchors, ratio=cfg.confidence_ratio,
+                                                    depth_range=(self.d_min, self.d_max))
+        if cfg.depth_anchors != 'off' and cfg.pose_refinement != 'window':
+            self._note(f'depth_anchors={cfg.depth_anchors} needs pose_refinement=window (its matches and poses): '
+                       'the depth is not checked against anchors')
         if cfg.pose_refinement == 'window' and pose_refiner is None:
             self._note('pose_refinement=window requested but no pose refiner was given: poses are used as received')
         if cfg.cpu_precision == 'bfloat16' and self.device.type == 'cpu' and self.model is not None \
@@ -134,11 +139,6 @@ class Estimator:
         self._twist: Optional[np.ndarray] = None
         self.calibration: Optional[ConfidenceCalibration] = None
         self.calibration = self._load_calibration()
-        self.anchors = metric_anchors.AnchorAligner(cfg.depth_anchors, ratio=cfg.confidence_ratio,
-                                                    depth_range=(self.d_min, self.d_max))
-        if cfg.depth_anchors != 'off' and cfg.pose_refinement != 'window':
-            self._note(f'depth_anchors={cfg.depth_anchors} needs pose_refinement=window (its matches and poses): '
-                       'the depth is not checked against anchors')
         # keyframe outputs carry their confidence cues (stream.confidence_features) when set, with the network
         # measurement only; off for the node
         self.collect_features = False
