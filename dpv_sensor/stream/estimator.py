@@ -98,8 +98,7 @@ class Estimator:
         self.anchors = metric_anchors.AnchorAligner(cfg.depth_anchors, ratio=cfg.confidence_ratio,
                                                     depth_range=(self.d_min, self.d_max))
         if cfg.depth_anchors != 'off' and cfg.pose_refinement != 'window':
-            self._note(f'depth_anchors={cfg.depth_anchors} needs pose_refinement=window (its matches and poses): '
-                       'the depth is not checked against anchors')
+            self._note(metric_anchors.NEEDS_WINDOW.format(mode=cfg.depth_anchors))
         if cfg.pose_refinement == 'window' and pose_refiner is None:
             self._note('pose_refinement=window requested but no pose refiner was given: poses are used as received')
         if cfg.cpu_precision == 'bfloat16' and self.device.type == 'cpu' and self.model is not None \
@@ -607,28 +606,9 @@ class Estimator:
         return out
 
     def _hold_to_anchors(self, ref: Keyframe, depth_bhw: torch.Tensor, conf_bhw: torch.Tensor):
-        """The keyframe's depth and confidence held to its metric anchors (``depth_anchors``,
-        :mod:`dpv_sensor.stream.metric_anchors`), and the report; unchanged tensors without a refined window, and
-        nothing computed (report None) with ``depth_anchors: off``."""
-        if self.anchors.mode == 'off':
-            return depth_bhw, conf_bhw, None
-        result = self._refinement_result()
-        anchors, veto = None, None
-        ratio = getattr(self.pose_refiner, 'direction_ratio', None)
-        if ratio is not None and ratio[0] > ratio[1]:
-            # the window takes SIFT's rotations because the images disagree with the odometry's translation
-            # directions: poses that do not explain the images triangulate biased points
-            veto = (f"the images disagree with the odometry's translation directions (direction ratio "
-                    f'{ratio[0]:.3f} > {ratio[1]:g}): its poses cannot anchor the depth')
-        elif result is not None and float(ref.stamp) in getattr(result, 'T_world_cam', {}):
-            anchors = metric_anchors.reference_anchors(result, float(ref.stamp), self.anchors.config)
-        d = depth_bhw[0].detach().float().cpu().numpy()
-        c = conf_bhw[0].detach().float().cpu().numpy()
-        d2, c2, report = self.anchors.apply(d, c, ref.K_b33[0].detach().double().cpu().numpy(), anchors, veto)
-        if d2 is d:
-            return depth_bhw, conf_bhw, report
-        return (torch.as_tensor(d2, device=depth_bhw.device, dtype=depth_bhw.dtype)[None],
-                torch.as_tensor(c2, device=conf_bhw.device, dtype=conf_bhw.dtype)[None], report)
+        """The keyframe's depth and confidence held to its metric anchors (``depth_anchors``), and the report."""
+        return metric_anchors.hold_to_anchors(self.anchors, self.pose_refiner, self._refinement_result(),
+                                              float(ref.stamp), ref.K_b33[0], depth_bhw, conf_bhw)
 
     def _chain_pose(self, T_odom_44: np.ndarray) -> np.ndarray:
         """Pose estimate of a new frame: its odometry motion since the newest keyframe chained onto that

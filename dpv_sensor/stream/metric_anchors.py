@@ -23,7 +23,8 @@ its depth is no longer published as confident even where the map cannot fully me
 ``min_anchors`` usable anchors are published unchanged, bit for bit.
 
 :class:`AnchorStatus` counts what happened (keyframes checked / aligned, anchors, rejected candidates by reason,
-the last scale and its σ, pixels whose correction was beyond the anchors' σ) for ``/diagnostics``. numpy; no ROS.
+the last scale and its σ, pixels whose correction was beyond the anchors' σ) for ``/diagnostics``;
+:func:`hold_to_anchors` is the estimator's hook (its tensors in and out). numpy and torch; no ROS.
 """
 from __future__ import annotations
 
@@ -34,14 +35,20 @@ from typing import Dict, Hashable, Optional, Tuple
 
 import cv2
 import numpy as np
+import torch
 
 from dpv_sensor.core import anchors as anchor_math
 from dpv_sensor.core.anchors import AnchorConfig, Anchors
 
-__all__ = ['ANCHOR_MODES', 'AnchorStatus', 'AnchorReport', 'AnchorAligner', 'reference_anchors']
+__all__ = ['ANCHOR_MODES', 'NEEDS_WINDOW', 'AnchorStatus', 'AnchorReport', 'AnchorAligner', 'reference_anchors',
+           'hold_to_anchors']
 
 #: the ``depth_anchors`` choices
 ANCHOR_MODES = ('off', 'scale', 'dense')
+
+#: the estimator's note when anchors are asked for without the refinement window they are made from
+NEEDS_WINDOW = ('depth_anchors={mode} needs pose_refinement=window (its matches and poses): the depth is not checked '
+                'against anchors')
 
 #: a correction counts as a disagreement of the network with its anchors beyond their σ above this many σ
 OVERRULE_SIGMAS = 3.0
@@ -287,3 +294,27 @@ class AnchorAligner:
         conf[moved] = anchor_math.widened_confidence(conf_hw[moved], widen[moved], self.ratio)
         return depth, conf, rep
 
+
+def hold_to_anchors(aligner: AnchorAligner, refiner, result, ref_key: float, K_b33_t, depth_bhw, conf_bhw):
+    """The estimator's hook: (depth, confidence, report) of a keyframe, tensors (1, H, W) at the size of
+    ``K_b33_t``, held to the anchors that the window refiner's last ``result`` triangulates for ``ref_key``.
+    Unchanged tensors without a refined window or under the veto (the refiner's ``direction_ratio`` above its
+    threshold: the images contradict the odometry's directions); nothing computed (report None) with mode 'off'."""
+    if aligner.mode == 'off':
+        return depth_bhw, conf_bhw, None
+    anchors, veto = None, None
+    ratio = getattr(refiner, 'direction_ratio', None)
+    if ratio is not None and ratio[0] > ratio[1]:
+        # the window takes SIFT's rotations because the images disagree with the odometry's translation directions:
+        # poses that do not explain the images triangulate biased points
+        veto = (f"the images disagree with the odometry's translation directions (direction ratio {ratio[0]:.3f} > "
+                f'{ratio[1]:g}): its poses cannot anchor the depth')
+    elif result is not None and ref_key in getattr(result, 'T_world_cam', {}):
+        anchors = reference_anchors(result, ref_key, aligner.config)
+    d = depth_bhw[0].detach().float().cpu().numpy()
+    c = conf_bhw[0].detach().float().cpu().numpy()
+    d2, c2, report = aligner.apply(d, c, K_b33_t.detach().double().cpu().numpy(), anchors, veto)
+    if d2 is d:
+        return depth_bhw, conf_bhw, report
+    return (torch.as_tensor(d2, device=depth_bhw.device, dtype=depth_bhw.dtype)[None],
+            torch.as_tensor(c2, device=conf_bhw.device, dtype=conf_bhw.dtype)[None], report)
