@@ -1,12 +1,13 @@
 """How accurate the metric anchors are, and what each way of holding the depth to them does (docs/anchors.md).
 
-    python -m dpv_sensor.studies.anchors --data DATA --poses gt,noisy0cov --out out/anchors
-    python -m dpv_sensor.studies.anchors --data DATA --sequences icl_nuim_lr_kt3 --set bias_sigma_log=0.05
+    python -m dpv_sensor.studies.anchors --data DATA --poses gt,noisy0cov
+    python -m dpv_sensor.studies.anchors --data DATA --sequences icl_nuim_lr_kt3 --set bias_sigma_log=0.05 \
+        --set "bias_sigma_log=0.02 max_tracks=1000"
 
 Each (sequence, pose source) runs once through the node's pipeline (``evaluation.runner.run_sequence``, the
 defaults with ``depth_anchors: off``) while every keyframe's refinement window is kept: its matches, refined poses,
-match images and the flow's direction ratio (the veto). That is cached under ``OUT/windows`` (a local cache this
-study writes and reads; delete a file to redo it). Then, for the anchor settings given with ``--set``
+match images and the flow's direction ratio (the veto), in memory (a run of 300 frames takes one to three
+minutes). Then, for the anchor settings given with ``--set``
 (:class:`~dpv_sensor.core.anchors.AnchorConfig` fields), each keyframe's anchors are triangulated again
 (:func:`~dpv_sensor.stream.metric_anchors.reference_anchors`) and the published depth is held to them post hoc with
 each mode (``off``, ``scale``, ``dense``: :class:`~dpv_sensor.stream.metric_anchors.AnchorAligner` on the depth at
@@ -20,7 +21,6 @@ from __future__ import annotations
 
 import argparse
 import pathlib
-import pickle
 import sys
 from typing import Dict, List
 
@@ -38,11 +38,8 @@ class _Window:
         self.matches, self.T_world_cam, self.match_images = matches, T_world_cam, match_images
 
 
-def collect_windows(seq_dir: pathlib.Path, pose_source: str, cache: pathlib.Path) -> List[Dict]:
+def collect_windows(seq_dir: pathlib.Path, pose_source: str) -> List[Dict]:
     """Run the sequence once and keep each published keyframe's depth, confidence, GT and refinement window."""
-    if cache.exists():
-        with open(cache, 'rb') as f:
-            return pickle.load(f)
     from dpv_sensor.benchmarks.stream_table_inputs import odometry_poses, odometry_variance
     from dpv_sensor.data.sequence import Sequence
     from dpv_sensor.evaluation import offline as E, runner as RN
@@ -72,9 +69,6 @@ def collect_windows(seq_dir: pathlib.Path, pose_source: str, cache: pathlib.Path
         rows.append({'stamp': rec.stamp, 'depth': rec.depth_hw, 'conf': rec.confidence_hw, 'K': rec.K_33,
                      'gt': rec.gt_depth_hw, 'window': None if w is None else w[:3],
                      'direction_ratio': None if w is None else w[3], 'depth_range': status.depth_range})
-    cache.parent.mkdir(parents=True, exist_ok=True)
-    with open(cache, 'wb') as f:
-        pickle.dump(rows, f)
     return rows
 
 
@@ -138,20 +132,23 @@ def main(argv=None) -> int:
     p.add_argument('--data', required=True, type=pathlib.Path, help='folder of sequence folders')
     p.add_argument('--sequences', nargs='*', help='sequence folder names (default: every one in DATA)')
     p.add_argument('--poses', default='gt,noisy0cov', help="comma list of pose sources (the stream table's)")
-    p.add_argument('--set', nargs='*', default=[], metavar='KEY=VALUE', help='AnchorConfig fields')
-    p.add_argument('--out', type=pathlib.Path, default=pathlib.Path('out/anchors'))
+    p.add_argument('--set', action='append', default=[], metavar='"KEY=VALUE ..."',
+                   help='AnchorConfig fields; repeat to score several settings on the same runs')
     args = p.parse_args(argv)
     try:
-        config = AnchorConfig(**{k: type(getattr(AnchorConfig, k))(v) for k, v in
-                                 (item.split('=', 1) for item in args.set)})
+        configs = [AnchorConfig(**{k: type(getattr(AnchorConfig, k))(v) for k, v in
+                                   (item.split('=', 1) for item in one.split())}) for one in args.set] or \
+            [AnchorConfig()]
     except (ValueError, AttributeError, TypeError) as e:
         print(f'anchors: bad --set: {e}', file=sys.stderr)
         return 2
     names = args.sequences or sorted(d.name for d in args.data.iterdir() if (d / 'poses.txt').exists())
     for name in names:
         for src in args.poses.split(','):
-            rows = collect_windows(args.data / name, src, args.out / 'windows' / f'{name}__{src}.pkl')
-            _print(f'{name} {src}', score_windows(rows, config))
+            rows = collect_windows(args.data / name, src)
+            for i, config in enumerate(configs):
+                _print(f'{name} {src}' + (f' (--set {args.set[i]})' if len(configs) > 1 else ''),
+                       score_windows(rows, config))
     return 0
 
 
