@@ -276,6 +276,20 @@ def keypoint_relative_pose(image_a, image_b, K_33: np.ndarray, config: Optional[
         if len(pa) < cfg.min_inliers:
             return KeypointPose(False, f'too few matches agree with the prior ({len(pa)} < {cfg.min_inliers})',
                                 matches=len(pa))
+    return relative_pose_from_points(pa, pb, K, cfg, n_good)
+
+
+def relative_pose_from_points(pa: np.ndarray, pb: np.ndarray, K_33: np.ndarray, config: Optional[KeypointConfig] = None,
+                              n_matches: Optional[int] = None) -> KeypointPose:
+    """``T_b_a`` from matched pixels ``pa`` (view a) and ``pb`` (view b), (n, 2) each, with the intrinsics ``K_33``:
+    the essential matrix by RANSAC, the cheirality test, and the inliers' refinement and covariance (module doc).
+    ``n_matches``: the matches counted before (default: n)."""
+    cfg = config or KeypointConfig()
+    K = np.asarray(K_33, np.float64)
+    pa, pb = np.ascontiguousarray(pa), np.ascontiguousarray(pb)
+    n_good = len(pa) if n_matches is None else int(n_matches)
+    if len(pa) < max(cfg.min_inliers, 5):
+        return KeypointPose(False, f'too few matches ({len(pa)} < {cfg.min_inliers})', matches=n_good)
     E, mask = cv2.findEssentialMat(pa, pb, K, method=cv2.RANSAC, prob=cfg.ransac_confidence, threshold=cfg.ransac_px)
     if E is None or E.shape != (3, 3):
         return KeypointPose(False, 'no essential matrix', matches=n_good)
