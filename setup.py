@@ -17,6 +17,7 @@ TOOLS = {
     'demo': 'dpv_sensor.tools.demo:main',
     'bench': 'dpv_sensor.tools.bench:main',
     'calibrate': 'dpv_sensor.tools.calibrate:main',
+    'calibrate_mount': 'dpv_sensor.tools.calibrate_mount:main',
     'export_onnx': 'dpv_sensor.tools.export_onnx:main',
 }
 

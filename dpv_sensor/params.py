@@ -144,6 +144,9 @@ SPECS: tuple[ParamSpec, ...] = (
               choices=('auto', 'tf', 'parameter'), scope='node'),
     ParamSpec('odom_wait_timeout', 0.5, 'How long an image waits for odometry that brackets its stamp (s).',
               min_value=0.0, max_value=60.0, scope='node'),
+    ParamSpec('odom_time_offset_ms', 0.0, "The odometry's clock against the images': an image stamped t is paired "
+              'with the odometry at t + this (ms; + when the odometry is stamped late). calibrate_mount and '
+              "/diagnostics time_offset_estimate measure it.", min_value=-1000.0, max_value=1000.0, scope='node'),
     ParamSpec('max_odom_gap', 0.5, 'Largest gap between the two odometry messages an image pose is '
               'interpolated from (s).', min_value=0.0, max_value=60.0, scope='node'),
     ParamSpec('future_stamp_tolerance', 1.0, "An image stamped ahead of both the node's clock and the newest "
@@ -173,6 +176,11 @@ SPECS: tuple[ParamSpec, ...] = (
               'one that does not converge, moves a pose implausibly far from the odometry or turns in place keeps '
               'the odometry poses (counted in the pose_refinement_fallbacks diagnostic).',
               choices=('off', 'window')),
+    ParamSpec('mount_check', True, "Estimate the camera mount's rotation and the camera-odometry time offset from "
+              "the rotations the refinement window's matches measure between keyframes against the odometry's "
+              '(hand-eye calibration, with a sigma each; needs odometry from a topic and pose_refinement window): '
+              '/diagnostics mount_estimate and time_offset_estimate, and a WARN naming the estimate when it is '
+              'confidently away from the mount and stamps in use. Reports only; nothing is changed.'),
     ParamSpec('odom_sigma_rot_deg', 0.5, 'Pose refinement: rotation std of the odometry between two keyframes '
               '(deg); lower trusts odometry more.', min_value=1e-4, max_value=90.0),
     ParamSpec('odom_sigma_trans_m', 0.002, 'Pose refinement: translation std of the odometry between two keyframes, '

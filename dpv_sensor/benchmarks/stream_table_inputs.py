@@ -2,10 +2,10 @@
 poses), the sequences (the data folder's, the rendered held-out seeds) and the names runs are cached and tabled
 under.
 
-Pose sources: ``gt``, ``offset<t>ms``, ``noisy<k>``, ``noisy<k>cov`` and ``noisy<k>twist`` (the stream_table
-module's docstring describes each): odometry_poses, odometry_variance, odometry_twist_variance, time_shifted_poses,
-noise_description, PosedView (a sequence with its poses replaced). Sequences: sequence_folders, rendered_sequence.
-Names: params_tag, run_key.
+Pose sources: ``gt``, ``offset<t>ms``, ``mount<k>``, ``noisy<k>``, ``noisy<k>cov`` and ``noisy<k>twist`` (the
+stream_table module's docstring describes each): odometry_poses, odometry_variance, odometry_twist_variance,
+time_shifted_poses, mount_error, noise_description, PosedView (a sequence with its poses replaced). Sequences:
+sequence_folders, rendered_sequence. Names: params_tag, run_key.
 """
 from __future__ import annotations
 
@@ -49,22 +49,48 @@ class PosedView:
 
 
 NOISY_SOURCE = re.compile(r'noisy(\d+)(cov|twist)?')
+OFFSET_SOURCE = re.compile(r'offset(-?\d+(?:\.\d+)?)ms')
+MOUNT_SOURCE = re.compile(r'mount(\d+)')
+# the mount-error pose sources: a rotation of this many degrees (uniform) about an axis tilted at random, and a
+# translation of this many metres (uniform) in a random direction
+MOUNT_ERROR_DEG = (1.0, 3.0)
+MOUNT_ERROR_M = (0.02, 0.05)
+
+
+def mount_error(seed: int) -> np.ndarray:
+    """The true mount ``X`` (4x4, the camera's pose in the odometry's frame) of pose source ``mount<seed>``: the
+    node is told the identity, so the node's camera pose is the true one times ``X^-1``. Seeded: the same seed is
+    the same mount on every sequence."""
+    from scipy.spatial.transform import Rotation
+    rng = np.random.default_rng(1000 + int(seed))
+    axis = rng.normal(size=3)
+    direction = rng.normal(size=3)
+    X = np.eye(4)
+    X[:3, :3] = Rotation.from_rotvec(np.radians(rng.uniform(*MOUNT_ERROR_DEG)) * axis / np.linalg.norm(axis)
+                                     ).as_matrix()
+    X[:3, 3] = rng.uniform(*MOUNT_ERROR_M) * direction / np.linalg.norm(direction)
+    return X
 
 
 def odometry_poses(seq, pose_source: str) -> List[np.ndarray]:
     """The poses written as odometry for a pose source: 'gt', 'noisy<seed>', 'noisy<seed>cov' or 'noisy<seed>twist'
-    (corrupt_trajectory with the table's noise, seeded), or 'offset<ms>' (the GT pose ``ms`` milliseconds after each
-    image's stamp, SLERP + linear between frames: a camera-odometry time offset)."""
+    (corrupt_trajectory with the table's noise, seeded), 'offset<ms>ms' (the GT pose ``ms`` milliseconds after each
+    image's stamp, SLERP + linear between frames, ``ms`` negative: before: a camera-odometry time offset) or
+    'mount<seed>' (the GT pose times ``mount_error(seed)^-1``: a mount nobody calibrated)."""
     gt = [np.asarray(seq.pose(i), np.float64) for i in range(len(seq))]
     if pose_source == 'gt':
         return gt
-    m = re.fullmatch(r'offset(\d+(?:\.\d+)?)ms', pose_source)
+    m = OFFSET_SOURCE.fullmatch(pose_source)
     if m:
         return time_shifted_poses(seq, gt, float(m.group(1)) / 1000.0)
+    m = MOUNT_SOURCE.fullmatch(pose_source)
+    if m:
+        X_inv = np.linalg.inv(mount_error(int(m.group(1))))
+        return [T @ X_inv for T in gt]
     m = NOISY_SOURCE.fullmatch(pose_source)
     if not m:
-        raise ValueError(f'pose source {pose_source!r} is neither gt, offset<ms>ms, noisy<seed>, noisy<seed>cov nor '
-                         'noisy<seed>twist')
+        raise ValueError(f'pose source {pose_source!r} is neither gt, offset<ms>ms, mount<seed>, noisy<seed>, '
+                         'noisy<seed>cov nor noisy<seed>twist')
     from dpv_sensor.data.trajectory import corrupt_trajectory
     return corrupt_trajectory(gt, trans_noise_rel=NOISE_TRANS_REL, rot_noise_deg=NOISE_ROT_DEG, seed=int(m.group(1)))
 
@@ -118,9 +144,15 @@ def noise_description(pose_source: str) -> Optional[Dict[str, float]]:
     """What was done to the GT poses of a pose source (None for gt)."""
     if pose_source == 'gt':
         return None
-    m = re.fullmatch(r'offset(\d+(?:\.\d+)?)ms', pose_source)
+    m = OFFSET_SOURCE.fullmatch(pose_source)
     if m:
         return {'time_offset_ms': float(m.group(1))}
+    m = MOUNT_SOURCE.fullmatch(pose_source)
+    if m:
+        X = mount_error(int(m.group(1)))
+        from scipy.spatial.transform import Rotation
+        return {'mount_rotvec_deg': [float(v) for v in np.degrees(Rotation.from_matrix(X[:3, :3]).as_rotvec())],
+                'mount_translation_m': [float(v) for v in X[:3, 3]]}
     m = NOISY_SOURCE.fullmatch(pose_source)
     published = m.group(2) if m else None
     return {'trans_rel': NOISE_TRANS_REL, 'rot_deg_per_frame': NOISE_ROT_DEG,

@@ -183,11 +183,23 @@ def flow_matches(gray_a: np.ndarray, gray_b: np.ndarray, K_33: np.ndarray,
         (yb >= 0) & (yb <= h - 1)
     if config.forward_backward_px > 0:
         flow_ba = _dis(config).calc(gray_b, gray_a, None)
-        back = cv2.remap(flow_ba, xb.astype(np.float32)[None], yb.astype(np.float32)[None],
-                         cv2.INTER_LINEAR)[0].astype(np.float64)
-        keep &= np.hypot(f[:, 0] + back[:, 0], f[:, 1] + back[:, 1]) < config.forward_backward_px
+        keep &= round_trip_px(flow_ba, np.c_[xs, ys], np.c_[xb, yb]) < config.forward_backward_px
     pa = np.c_[xs, ys][keep].astype(np.float64)
     return FlowMatches(pa, np.c_[xb, yb][keep], np.asarray(K_33, np.float64), sampled=len(xs), flow_hw2=flow_ab)
+
+
+def dense_flow(gray_a: np.ndarray, gray_b: np.ndarray, config: FlowConfig = FlowConfig()) -> np.ndarray:
+    """DIS optical flow from grey image a to grey image b (h, w, 2), float32 pixels, with the config's preset."""
+    return _dis(config).calc(gray_a, gray_b, None)
+
+
+def round_trip_px(flow_ba_hw2: np.ndarray, pa_n2: np.ndarray, pb_n2: np.ndarray) -> np.ndarray:
+    """How far (pixels) the flow back from b to a, read at each match's pixel in b, misses its pixel in a."""
+    pb = np.asarray(pb_n2, np.float64)
+    back = cv2.remap(flow_ba_hw2, pb[:, 0].astype(np.float32)[None], pb[:, 1].astype(np.float32)[None],
+                     cv2.INTER_LINEAR)[0].astype(np.float64)
+    miss = pb + back - np.asarray(pa_n2, np.float64)
+    return np.hypot(miss[:, 0], miss[:, 1])
 
 
 def _rotate(R: np.ndarray, w: np.ndarray) -> np.ndarray:

@@ -86,11 +86,42 @@ def estimator_values(st: EstimatorStatus | None, settings, starting: bool, reset
             f'flow rotations at most {limit:g})')
     if st.anchors:
         values.update(anchor_values(st.anchors))
+    if st.mount_check:
+        values.update(mount_values(st.mount_check))
     if st.pose_refinement_odometry is not None:
         rot, trans, source = st.pose_refinement_odometry
         values['pose_refinement_odometry'] = (f'{math.degrees(rot):.3f} deg / {1000 * trans:.2f} mm per keyframe '
                                               f'step ({source})')
     return values
+
+
+def _triple(v, fmt: str) -> str:
+    return '[' + ', '.join('n/a' if x is None else format(x, fmt) for x in v) + ']'
+
+
+def mount_values(mount: dict) -> dict:
+    """The mount check's part of /diagnostics (``EstimatorStatus.mount_check``): ``mount_estimate`` (the rotation
+    and translation of the camera from the mount in use, with sigmas, 'OFF' when confidently away from it) and
+    ``time_offset_estimate`` (ms, + = the odometry is stamped late), or why there is none yet."""
+    fit = mount.get('fit')
+    pairs = mount.get('pairs', 0)
+    if fit is None:
+        waiting = f'no estimate yet ({pairs} image pairs measured)'
+        return {'mount_estimate': waiting, 'time_offset_estimate': waiting}
+    if not fit.get('ok'):
+        why = f"no estimate: {fit.get('reason')}"
+        return {'mount_estimate': why, 'time_offset_estimate': why}
+    verdict = 'OFF' if mount.get('rotation_off') or mount.get('translation_off') else 'ok'
+    shift = (f", shift {_triple(fit['translation_mm'], '+.0f')} +- {_triple(fit['sigma_trans_mm'], '.0f')} mm"
+             if all(v is not None for v in fit['sigma_trans_mm']) else ', shift not observed')
+    mount_text = (f"{verdict}: {fit['angle_deg']:.2f} deg, rotation vector {_triple(fit['rotvec_deg'], '+.2f')} +- "
+                  f"{_triple(fit['sigma_rot_deg'], '.2f')} deg (camera x, y, z){shift}; {fit['pairs']} pairs")
+    if fit.get('sigma_time_ms') is None:
+        offset_text = 'not fitted'
+    else:
+        offset_text = (f"{'OFF' if mount.get('offset_off') else 'ok'}: {fit['time_offset_ms']:+.1f} +- "
+                       f"{fit['sigma_time_ms']:.1f} ms (+: the odometry is stamped late)")
+    return {'mount_estimate': mount_text, 'time_offset_estimate': offset_text}
 
 
 def anchor_values(anchors: dict) -> dict:

@@ -314,6 +314,8 @@ class NodeInputs:
 
     def _wait_for(self, item: Incoming, stamp_ns: int, stop: threading.Event):
         deadline = item.receipt_mono + self.node.settings.node.odom_wait_timeout
+        # the odometry's time of the image (odom_time_offset_ms: the odometry's stamps against the images')
+        stamp_ns = stamp_ns + int(round(self.node.settings.node.odom_time_offset_ms * 1e6))
         need_pose = self.node.settings.estimator.odometry == 'topic'
         while True:
             with self.cv:

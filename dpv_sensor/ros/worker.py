@@ -98,11 +98,24 @@ class Worker:
     def _make_pipeline(self) -> Pipeline:
         try:
             # a config of its own: the pipeline changes its runtime settings in place
-            return Pipeline(EstimatorConfig.from_params(self.node.settings.estimator.as_dict()))
+            return Pipeline(EstimatorConfig.from_params(self.node.settings.estimator.as_dict()),
+                            mount_text=self._mount_text)
         except P.ParameterError as exc:     # a setting the estimator refuses once built (confidence_calibration)
             raise StartupError(f'invalid parameter: {exc}') from exc
         except Exception as exc:
             raise StartupError(f'cannot build the estimator: {type(exc).__name__}: {exc}') from exc
+
+    def _mount_text(self, fit) -> str:
+        """What to set for a mount-check fit: the T_base_camera line with the parameter's mount, else where the
+        mount comes from."""
+        from dpv_sensor.core.mount_calibration import corrected_mount
+        from dpv_sensor.stream.pose_buffer import matrix_to_pose7, pose7_to_matrix
+        node = self.node.settings.node
+        if P.extrinsic_source(node.extrinsic_source, node.T_base_camera) != 'parameter':
+            return ('the mount comes from TF: correct the transform there (calibrate_mount on a recording prints it '
+                    'whole)')
+        new = matrix_to_pose7(corrected_mount(pose7_to_matrix(node.T_base_camera), fit))
+        return 'set T_base_camera:=[' + ', '.join(f'{v:.6g}' for v in new) + ']'
 
     def _build(self) -> bool:
         """The pipeline (pose source and estimator). On failure the node reports a fatal error: ``failed`` is set

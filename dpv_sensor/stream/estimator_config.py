@@ -115,6 +115,9 @@ class EstimatorStatus:
     # the metric anchors since the start (stream.metric_anchors.AnchorStatus as a dict): mode, keyframes checked,
     # aligned and overruled, anchors kept and rejected by reason, the last keyframe's report
     anchors: Dict[str, Any] = dataclasses.field(default_factory=dict)
+    # the mount check (stream.mount_check.MountCheckStatus as a dict: pairs, fits, the last fit, whether the mount
+    # or the stamps are confidently off); empty without one
+    mount_check: Dict[str, Any] = dataclasses.field(default_factory=dict)
 
     def as_dict(self) -> Dict[str, Any]:
         """The fields by name (``dataclasses.asdict``); ``pose_refinement_tracking`` only when there is one."""

@@ -18,6 +18,10 @@ The pose source (:class:`PoseSource`), built from the :class:`~dpv_sensor.stream
   the odometry comes from a topic (counted as a fallback, the filter goes on); with visual odometry it is a
   tracking loss and restarts the filter.
 
+The mount check (``mount_check``, :mod:`dpv_sensor.stream.mount_check`) watches the same stream: every pushed frame's
+pose and every refinement window's matches, to estimate the camera mount's rotation and the time offset against the
+odometry (odometry from a topic with the refinement window only).
+
 The stream-continuity rules are in ``dpv_sensor.stream.continuity`` (applied by the estimator on every pushed frame).
 """
 from __future__ import annotations
@@ -31,6 +35,7 @@ import numpy as np
 
 from dpv_sensor.stream.estimator import Estimator, EstimatorConfig, EstimatorStatus
 from dpv_sensor.stream.frame import DepthOutput, Frame
+from dpv_sensor.stream.mount_check import MountCheck, MountCheckConfig
 
 __all__ = ['PoseSource', 'Pipeline', 'PushResult', 'VO_LOST', 'DEGENERATE']
 
@@ -101,20 +106,28 @@ class PoseSource:
 
 
 class Pipeline:
-    """Pose source + estimator. ``model`` / ``pose_refiner`` / ``logger``: as for :class:`Estimator`."""
+    """Pose source + estimator (+ the mount check). ``model`` / ``pose_refiner`` / ``logger``: as for
+    :class:`Estimator`; ``mount_text``: names the mount to set for a mount-check fit in its WARN (the node's)."""
 
-    def __init__(self, config: Optional[EstimatorConfig] = None, *, model=None, pose_refiner=None, logger=None):
+    def __init__(self, config: Optional[EstimatorConfig] = None, *, model=None, pose_refiner=None, logger=None,
+                 mount_text=None):
         config = (config or EstimatorConfig()).validate()
         self.pose_source = PoseSource(config, pose_refiner)
         self.estimator = Estimator(config, model=model, pose_refiner=self.pose_source.refiner, logger=logger)
         self.config = self.estimator.config
+        self.mount_check = None
+        if config.mount_check and config.odometry == 'topic' and self.pose_source.refiner is not None:
+            self.mount_check = MountCheck(MountCheckConfig(), logger=logger, mount_text=mount_text)
         # keyframe images and intrinsics by stamp: a (centered) keyframe's output comes later than its frame
         self._keyframe_images: collections.OrderedDict = collections.OrderedDict()
 
     @property
     def status(self) -> EstimatorStatus:
-        """The estimator's status with the pose source's tracking (``pose_refinement_tracking``)."""
-        return dataclasses.replace(self.estimator.status, pose_refinement_tracking=self.pose_source.tracking)
+        """The estimator's status with the pose source's tracking (``pose_refinement_tracking``) and the mount
+        check's (``mount_check``)."""
+        mount = {} if self.mount_check is None else self.mount_check.status.as_dict()
+        return dataclasses.replace(self.estimator.status, pose_refinement_tracking=self.pose_source.tracking,
+                                   mount_check=mount)
 
     def push(self, frame: Frame) -> PushResult:
         T, lost = self.pose_source.frame_pose(frame)
@@ -130,6 +143,10 @@ class Pipeline:
         if degenerate_after > degenerate_before:
             return PushResult(output=out, drop=DEGENERATE, detail=str(self.estimator.status.last_degenerate_reason))
         is_keyframe = keyframes_after > keyframes_before
+        if self.mount_check is not None:
+            self.mount_check.observe_frame(float(frame.stamp), T)
+            if is_keyframe:
+                self.mount_check.observe_window(getattr(self.pose_source.refiner, 'last_result', None))
         if is_keyframe and self.pose_source.visual_odometry is not None:
             self._keyframe_images[float(frame.stamp)] = (frame.image, np.asarray(frame.K_33, dtype=np.float64))
             while len(self._keyframe_images) > 2 * int(self.config.window_size) + 6:
