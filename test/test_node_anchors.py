@@ -1,7 +1,8 @@
 """The metric anchors through the node process: a rendered room written as a rosbag2 and replayed in lockstep
 through a node with `depth_anchors: dense` (classical model, small processing size): /diagnostics reports the
 mode, the keyframes checked and aligned, the anchors per keyframe, the rejected candidates by reason and the last
-keyframe's scale."""
+keyframe's scale; the same replay shows where the worker's time goes and the mount check's estimate (no WARN:
+the bag's odometry is the camera's own)."""
 import re
 
 import pytest
@@ -49,3 +50,10 @@ def test_the_node_says_where_its_time_goes(replay):
         assert re.search(rf'\b{stage} \d+', stages), stages
     share = diag['worker_busy_share']
     assert share == 'n/a' or 0.0 <= float(share) <= 1.0
+
+
+def test_the_node_reports_its_mount_check_and_does_not_warn_on_the_exact_mount(replay):
+    diag = replay.diagnostics
+    for key in ('mount_estimate', 'time_offset_estimate'):
+        assert re.match(r'(ok: |no estimate|not fitted)', diag[key]), (key, diag[key])
+    assert 'mount check:' not in replay.node_log

@@ -16,8 +16,10 @@ as the bag would carry it) and scores them the same way, without consumer odomet
 node's depth (cached and tabled apart, ``offline=True`` in the names). The table of record is the node's.
 
 Pose sources: ``gt`` (the sequence's poses as odometry), ``offset<t>ms`` (``--offset-ms``, default 10: the GT pose
-t ms after each image's stamp, a camera-odometry time offset), ``noisy<k>`` for each noise seed k (odometry-like
-drift: 2 % of each step's translation in a random direction and a 0.1 deg rotation about a random axis per frame,
+t ms after each image's stamp, before it when negative, a camera-odometry time offset), ``mount<k>``
+(``--mount-seeds``: the GT poses through a mount the node is not told, 1-3 deg about a tilted axis and 2-5 cm,
+seeded), ``noisy<k>`` for each noise seed k (odometry-like drift: 2 % of each step's translation in a random
+direction and a 0.1 deg rotation about a random axis per frame,
 chained: dpv_sensor.data.trajectory.corrupt_trajectory) and ``noisy<k>cov`` (``--covariance``: the same poses with the
 noise model's own accumulated variance in ``pose.covariance``, as an honest odometry publishes it:
 dpv_sensor.data.trajectory.corruption_variance) and ``noisy<k>twist`` (``--twist-covariance``: the same poses with a
@@ -32,6 +34,10 @@ Columns (frame means over the recorded keyframe outputs unless said otherwise):
   pixels); scaled abs_rel: abs_rel once each image is divided by its own scale (what a perfect per-image scale
   correction would leave: dpv_sensor.evaluation.metrics.image_scale_summary). anchors/kf: metric anchors per
   checked keyframe (``depth_anchors``; /diagnostics ``anchors_per_keyframe``).
+- mount°, mount σ°, offset ms, offset σ: the node's mount check at the end of the run (/diagnostics
+  ``mount_estimate``: the camera's angle from the mount in use and the largest of its axis sigmas;
+  ``time_offset_estimate``: + = the odometry stamped late); the truth of a ``mount<k>`` or ``offset<t>ms`` source is
+  in the run's JSON (``noise``).
 - ECE, mean conf, d1 pooled, kept@.9, d1@.9, d1@.7: calibration of the published confidence as the probability of
   the delta1 event (dpv_sensor.evaluation.metrics.calibration_summary, pixels pooled over the run); a reliability
   diagram per run in ``OUT/plots/<run>_reliability.png``.
@@ -101,9 +107,12 @@ def build_parser() -> argparse.ArgumentParser:
                    help='add the diff-drive pose sources noisy<k>twist: the noisy poses of every noise seed with a '
                         "constant pose.covariance and the noise model's motion noise in twist.covariance")
     p.add_argument('--no-gt', action='store_true', help='only the noisy (and time-offset) pose sources')
-    p.add_argument('--offset-ms', type=float, default=TIME_OFFSET_MS,
-                   help=f'add the time-offset pose source: GT poses taken this many ms after each image stamp '
-                        f'({TIME_OFFSET_MS:g}; 0 = none)')
+    p.add_argument('--offset-ms', type=float, nargs='*', default=[TIME_OFFSET_MS],
+                   help=f'add a time-offset pose source per value: GT poses taken this many ms after each image stamp '
+                        f'(negative: before; default {TIME_OFFSET_MS:g}; 0 or none given = none)')
+    p.add_argument('--mount-seeds', default='',
+                   help="add the mount-error pose sources mount<k> for these seeds, e.g. '1' or '1-2' (GT poses "
+                        'seen through a mount 1-3 deg and 2-5 cm off that the node is not told)')
     p.add_argument('--params', nargs='*', default=[], metavar='KEY=VALUE', help='node parameters over the defaults')
     p.add_argument('--out', default='out/stream_table', help='output folder (cache of runs, tables)')
     p.add_argument('--min-depth', type=float, default=None, help='smallest GT depth scored (default: all valid)')
@@ -289,7 +298,9 @@ def main(argv: Optional[List[str]] = None) -> int:
     out = pathlib.Path(a.out).resolve()
     (out / 'runs').mkdir(parents=True, exist_ok=True)
     folders = _sequences(ap, a, opts.seeds)
-    single = tuple(([] if a.no_gt else ['gt']) + ([f'offset{a.offset_ms:g}ms'] if a.offset_ms > 0 else []))
+    from dpv_sensor.training.dataset import parse_seeds
+    single = tuple(([] if a.no_gt else ['gt']) + [f'offset{v:g}ms' for v in a.offset_ms if v != 0]
+                   + [f'mount{k}' for k in parse_seeds(a.mount_seeds)])
     table = _Table(out=out, params=opts.params, folders=folders, noise_seeds=opts.noise_seeds, single_sources=single,
                    command='python -m dpv_sensor.benchmarks.stream_table ' +
                    ' '.join(x for x in argv if x != '--table-only'), covariance=a.covariance, twist=a.twist_covariance,

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import math
 import pathlib
+import re
 import shutil
 import time
 from typing import Any, Dict, List
@@ -18,6 +19,7 @@ from dpv_sensor.benchmarks.stream_table_inputs import (PosedView, noise_descript
                                                        odometry_twist_variance, odometry_variance, run_key)
 
 RUN_VERSION = 3   # bump when a cached run's content changes meaning (2: calibration; 3: image scale, anchors)
+# (the mount check's figures are new keys: runs without them show blanks, no bump)
 
 
 # --------------------------------------------------------------------------------------------------------------
@@ -166,6 +168,7 @@ def run_one(seq_name: str, seq_dir: pathlib.Path, pose_source: str, user_params:
         'image_scale': image_scale(records, min_depth, max_depth),
         'anchors_per_keyframe': D._as_number(d.get('anchors_per_keyframe')),
         'anchors_keyframes': d.get('anchors_keyframes'),
+        'mount_check': mount_check_numbers(d),
         'coverage': summary['coverage']['frame_mean'],
         'confident_half_ratio': get_path(summary, 'confidence', 'confident_half_ratio_frame_mean'),
         'confident_half_ratio_pooled': get_path(summary, 'confidence', 'confident_half_ratio_pooled'),
@@ -259,6 +262,22 @@ def image_scale(records, min_depth=None, max_depth=None) -> Dict[str, Any]:
     (evaluation.metrics.image_scale_summary)."""
     from dpv_sensor.evaluation.metrics import image_scale_summary
     return image_scale_summary(((r.depth_hw, r.gt_depth_hw) for r in records), min_depth, max_depth)
+
+
+def mount_check_numbers(diag: Dict[str, str]) -> Dict[str, Any]:
+    """The mount check's figures from /diagnostics' text (``ros.diagnostics.mount_values``): the angle and the
+    largest axis sigma (deg), the rotation vector, the time offset and its sigma (ms); the texts as they were."""
+    out: Dict[str, Any] = {'mount_estimate': diag.get('mount_estimate'),
+                           'time_offset_estimate': diag.get('time_offset_estimate')}
+    m = re.search(r'([\d.]+) deg, rotation vector \[([^\]]+)\] \+- \[([^\]]+)\]', diag.get('mount_estimate') or '')
+    if m:
+        sig = [float(v) for v in m.group(3).split(',') if v.strip() != 'n/a']
+        out.update(angle_deg=float(m.group(1)), rotvec_deg=[float(v) for v in m.group(2).split(',')],
+                   sigma_deg=max(sig) if sig else None)
+    m = re.search(r'([+-][\d.]+) \+- ([\d.]+) ms', diag.get('time_offset_estimate') or '')
+    if m:
+        out.update(offset_ms=float(m.group(1)), sigma_ms=float(m.group(2)))
+    return out
 
 
 def anchors_per_keyframe(status) -> float:

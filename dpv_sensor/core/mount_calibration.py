@@ -108,10 +108,11 @@ class PoseTrack:
             return np.tile(np.eye(3), (len(t), 1, 1)), np.zeros((len(t), 3)), np.zeros(len(t), bool)
         ts = np.asarray(self._t)
         j = np.searchsorted(ts, t, side='right')
-        ok = ((j > 0) & (j < len(ts))) | (t == ts[-1])
+        inside = ((j > 0) & (j < len(ts))) | (t == ts[-1])
         j = np.clip(j, 1, len(ts) - 1)
         gap = ts[j] - ts[j - 1]
-        ok &= gap <= self.max_gap_s
+        on_sample = (t == ts[j - 1]) | (t == ts[j])
+        ok = inside & ((gap <= self.max_gap_s) | on_sample)
         Ts = np.asarray(self._T)
         T0, T1 = Ts[j - 1], Ts[j]
         alpha = np.clip((t - ts[j - 1]) / np.maximum(gap, 1e-12), 0.0, 1.0)

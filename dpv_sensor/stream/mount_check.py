@@ -48,7 +48,9 @@ class MountCheckConfig:
     """enabled: estimate at all; refit_every: new pairs between two fits; max_pairs: pairs kept (the newest);
     history_s: odometry kept behind the newest frame (s); warn_sigmas: how many sigmas from the mount in use
     (and from a zero offset) an estimate must be to warn; warn_rotation_deg / warn_translation_m / warn_offset_ms:
-    and at least this far; background: fit on a thread of its own (False: in the caller, as the tools do);
+    and at least this far; warn_min_pairs: no WARN from a fit on fewer pairs (the first fits, on a few pairs, are
+    reported in /diagnostics only: on the rendered hospital the first estimate moved by 0.5 deg by the next);
+    background: fit on a thread of its own (False: in the caller, as the tools do);
     fit: the fit's settings (searched offsets, robust loss, sigma floors)."""
     enabled: bool = True
     refit_every: int = 20
@@ -58,6 +60,7 @@ class MountCheckConfig:
     warn_rotation_deg: float = 0.5
     warn_translation_m: float = 0.02
     warn_offset_ms: float = 10.0
+    warn_min_pairs: int = 20
     background: bool = True
     fit: MountFitConfig = field(default_factory=MountFitConfig)
 
@@ -162,7 +165,8 @@ class MountCheck:
         oldest = self.track.span[0]
         self._seen = {k for k in self._seen if float(k[0]) >= oldest and float(k[1]) >= oldest}
         self.status.pairs = len(self._pairs)
-        if self._new >= self.config.refit_every:
+        # the first fits come early (at min_pairs pairs, then each time the pairs double), then every refit_every
+        if self._new >= min(self.config.refit_every, max(self.config.fit.min_pairs, len(self._pairs) // 2)):
             self.refit()
 
     def refit(self, wait: bool = False) -> None:
@@ -215,6 +219,8 @@ class MountCheck:
                        or float(np.linalg.norm(mount[3:] - self._warned_rotation[3:])) >= cfg.warn_translation_m)
         moved_off = self._warned_offset is None or abs(fit.time_offset_s - self._warned_offset) * 1e3 >= \
             cfg.warn_offset_ms
+        if fit.pairs < cfg.warn_min_pairs:
+            return
         if (st.rotation_off or st.translation_off) and moved_mount:
             self._warned_rotation = mount
             self.log.warning(f'mount check: {mount_text(fit)}'
