@@ -31,7 +31,7 @@ from dpv_sensor.core.mount_calibration import (MountFit, MountFitConfig, PairMat
                                                normalised_matches)
 
 __all__ = ['MountCheckConfig', 'MountCheckStatus', 'MountCheck', 'pair_matches', 'fit_dict', 'mount_text',
-           'offset_text']
+           'offset_text', 'sequence_pairs']
 
 LOG = logging.getLogger(__name__)
 
@@ -252,3 +252,43 @@ def offset_text(fit: MountFit) -> str:
     late = 'late' if ms >= 0 else 'early'
     return (f"time offset {ms:+.1f} +- {s:.1f} ms: the pose at an image's time is the odometry's at the image's "
             f'stamp {ms:+.0f} ms (the odometry is stamped {abs(ms):.0f} ms {late}; {fit.pairs} image pairs)')
+
+
+# a recording's pairs end at the first image that turned this much (deg), moved this far (m) or is this many frames on
+PAIR_TURN_DEG, PAIR_MOVE_M, PAIR_MAX_FRAMES = 5.0, 0.05, 5
+
+
+def sequence_pairs(seq, poses: List[np.ndarray], every: int, progress: bool) -> list:
+    """The pairs of a recording as the fit scores them (``calibrate_mount``, ``studies.mount_check``): the keyframe
+    window's kind of pairs, each ``every``-th image with the next one that turned
+    PAIR_TURN_DEG, moved PAIR_MOVE_M or is PAIR_MAX_FRAMES on, matched by the window's flow."""
+    from scipy.spatial.transform import Rotation
+    from tqdm import tqdm
+
+    from dpv_sensor.core.flow_rotation import FlowConfig, flow_matches, match_image
+    cfg = FlowConfig()
+    K = np.asarray(seq.K, np.float64)
+    grey: Dict[int, Any] = {}
+
+    def image(i):
+        if i not in grey:
+            grey[i] = match_image(seq.image(i), K, cfg)
+            for k in [k for k in grey if k < i - PAIR_MAX_FRAMES]:
+                del grey[k]
+        return grey[i]
+
+    pairs = []
+    n = len(seq)
+    for a in tqdm(range(0, n - 1, max(1, every)), desc='pairs', disable=not progress, unit='pair'):
+        b = a + 1
+        for b in range(a + 1, min(n, a + PAIR_MAX_FRAMES + 1)):
+            T_b_a = np.linalg.inv(poses[b]) @ poses[a]
+            if (math.degrees(Rotation.from_matrix(T_b_a[:3, :3]).magnitude()) >= PAIR_TURN_DEG
+                    or float(np.linalg.norm(T_b_a[:3, 3])) >= PAIR_MOVE_M):
+                break
+        (ga, Kg), (gb, _) = image(a), image(b)
+        m = flow_matches(ga, gb, Kg, cfg)
+        pair, _why = pair_matches(float(seq.stamp(a)), float(seq.stamp(b)), m.pa_n2, m.pb_n2, Kg, m.flow_hw2, ga, gb)
+        if pair is not None:
+            pairs.append(pair)
+    return pairs

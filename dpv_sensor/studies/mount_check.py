@@ -44,14 +44,13 @@ def run(folder: pathlib.Path, pose_source: str, progress: bool) -> Dict[str, Any
     from dpv_sensor.benchmarks.stream_table_inputs import odometry_poses
     from dpv_sensor.core.mount_calibration import PoseTrack, fit_mount
     from dpv_sensor.data.sequence import Sequence
-    from dpv_sensor.stream.mount_check import fit_dict
-    from dpv_sensor.tools.calibrate_mount import measure_pairs
+    from dpv_sensor.stream.mount_check import fit_dict, sequence_pairs
     seq = Sequence(folder, depth=False)
     poses = odometry_poses(seq, pose_source)
     track = PoseTrack()
     for i, T in enumerate(poses):
         track.add(float(seq.stamp(i)), T)
-    fit = fit_mount(measure_pairs(seq, poses, 2, progress), track)
+    fit = fit_mount(sequence_pairs(seq, poses, 2, progress), track)
     return {'sequence': folder.name, 'poses': pose_source, 'truth': truth(pose_source), 'fit': fit_dict(fit)}
 
 

@@ -39,8 +39,6 @@ import numpy as np
 from dpv_sensor.cli import tool_argv
 
 EXIT_OK, EXIT_NO_ESTIMATE, EXIT_BAD_INPUT = 0, 1, 2
-# a pair ends at the first image that turned this much (deg), moved this far (m) or is this many frames on
-PAIR_TURN_DEG, PAIR_MOVE_M, PAIR_MAX_FRAMES = 5.0, 0.05, 5
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -61,42 +59,6 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--json', default=None, metavar='FILE', help='also write the estimate as JSON')
     p.add_argument('--quiet', action='store_true', help='no progress bar')
     return p
-
-
-def measure_pairs(seq, poses: List[np.ndarray], every: int, progress: bool) -> list:
-    """The pairs of a sequence as the fit scores them: each ``every``-th image with the next one that turned
-    PAIR_TURN_DEG, moved PAIR_MOVE_M or is PAIR_MAX_FRAMES on, matched by the window's flow."""
-    from scipy.spatial.transform import Rotation
-    from tqdm import tqdm
-
-    from dpv_sensor.core.flow_rotation import FlowConfig, flow_matches, match_image
-    from dpv_sensor.stream.mount_check import pair_matches
-    cfg = FlowConfig()
-    K = np.asarray(seq.K, np.float64)
-    grey: Dict[int, Any] = {}
-
-    def image(i):
-        if i not in grey:
-            grey[i] = match_image(seq.image(i), K, cfg)
-            for k in [k for k in grey if k < i - PAIR_MAX_FRAMES]:
-                del grey[k]
-        return grey[i]
-
-    pairs = []
-    n = len(seq)
-    for a in tqdm(range(0, n - 1, max(1, every)), desc='pairs', disable=not progress, unit='pair'):
-        b = a + 1
-        for b in range(a + 1, min(n, a + PAIR_MAX_FRAMES + 1)):
-            T_b_a = np.linalg.inv(poses[b]) @ poses[a]
-            if (math.degrees(Rotation.from_matrix(T_b_a[:3, :3]).magnitude()) >= PAIR_TURN_DEG
-                    or float(np.linalg.norm(T_b_a[:3, 3])) >= PAIR_MOVE_M):
-                break
-        (ga, Kg), (gb, _) = image(a), image(b)
-        m = flow_matches(ga, gb, Kg, cfg)
-        pair, _why = pair_matches(float(seq.stamp(a)), float(seq.stamp(b)), m.pa_n2, m.pb_n2, Kg, m.flow_hw2, ga, gb)
-        if pair is not None:
-            pairs.append(pair)
-    return pairs
 
 
 def _load(a, ap: argparse.ArgumentParser):
@@ -154,6 +116,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     ap = build_parser()
     a = ap.parse_args(tool_argv(argv))
     from dpv_sensor.core.mount_calibration import MountFitConfig, PoseTrack, fit_mount
+    from dpv_sensor.stream.mount_check import sequence_pairs
     rec, mount = _load(a, ap)
     seq = rec.sequence
     poses = [np.asarray(seq.pose(i), np.float64) for i in range(len(seq))]
@@ -166,7 +129,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     track = PoseTrack()
     for i, T in enumerate(poses):
         track.add(float(seq.stamp(i)), T)
-    pairs = measure_pairs(seq, poses, a.every, not a.quiet)
+    pairs = sequence_pairs(seq, poses, a.every, not a.quiet)
     fit = fit_mount(pairs, track, MountFitConfig(max_offset_s=a.max_offset_ms / 1000.0))
     if not fit.ok:
         print(f'calibrate_mount: no estimate: {fit.reason}', file=sys.stderr)
