@@ -6,9 +6,11 @@ Nothing is matched twice: every pair of keyframes the window matched (its flow o
 second image (a cheap DIS preset) returns to within ``ROUND_TRIP_PX``: the window's one-way flow errs
 consistently near occlusions and in weak texture, which tilted the mount estimate by 0.4-0.5 deg on renders with
 exact poses, 0.1 with the check. Every pushed frame's pose (the odometry composed with the mount in use) goes into
-a pose track. Every ``refit_every`` new pairs, :func:`dpv_sensor.core.mount_calibration.fit_mount` fits the mount's
+a pose track. As pairs come, :func:`dpv_sensor.core.mount_calibration.fit_mount` fits the mount's
 rotation and translation and the time offset that best explain every pair's matches with the track's motion, each
-with a sigma, on a thread of its own (a fit takes about half a second; the worker does not wait for it).
+with a sigma, on a thread of its own (the worker does not wait for it). Cost: the flow back, 5.6 ms a new pair
+(one or two a keyframe); a fit, 0.3 s of a core on 20 pairs and 1 s on 91, the first at 8 pairs and each next
+after twice as many new ones, at most every 128.
 
 :class:`MountCheck` keeps the pairs (the newest ``max_pairs``) and the track, and reports a :class:`MountCheckStatus`:
 the estimate, its sigma, and whether it is confidently away from the mount and the stamps in use
@@ -45,7 +47,9 @@ BACK_FLOW = FlowConfig(dis_preset='fast')
 
 @dataclass
 class MountCheckConfig:
-    """enabled: estimate at all; refit_every: new pairs between two fits; max_pairs: pairs kept (the newest);
+    """enabled: estimate at all; refit_every: new pairs between two fits at most (the first fit comes at the fit's
+    min_pairs, each next one after twice as many new pairs as the last, up to this: a fit on 91 pairs takes 1 s of
+    a core here, on 200 about 2 s); max_pairs: pairs kept (the newest);
     history_s: odometry kept behind the newest frame (s); warn_sigmas: how many sigmas from the mount in use
     (and from a zero offset) an estimate must be to warn; warn_rotation_deg / warn_translation_m / warn_offset_ms:
     and at least this far; warn_min_pairs: no WARN from a fit on fewer pairs (the first fits, on a few pairs, are
@@ -53,8 +57,8 @@ class MountCheckConfig:
     background: fit on a thread of its own (False: in the caller, as the tools do);
     fit: the fit's settings (searched offsets, robust loss, sigma floors)."""
     enabled: bool = True
-    refit_every: int = 20
-    max_pairs: int = 300
+    refit_every: int = 128
+    max_pairs: int = 200
     history_s: float = 300.0
     warn_sigmas: float = 4.0
     warn_rotation_deg: float = 0.5
@@ -133,6 +137,7 @@ class MountCheck:
         self._lock = threading.Lock()
         self._seen: Set[Tuple[Hashable, Hashable]] = set()
         self._new = 0
+        self._next_fit = self.config.fit.min_pairs
         self._warned_rotation: Optional[np.ndarray] = None
         self._warned_offset: Optional[float] = None
         self.status = MountCheckStatus(enabled=self.config.enabled)
@@ -165,14 +170,14 @@ class MountCheck:
         oldest = self.track.span[0]
         self._seen = {k for k in self._seen if float(k[0]) >= oldest and float(k[1]) >= oldest}
         self.status.pairs = len(self._pairs)
-        # the first fits come early (at min_pairs pairs, then each time the pairs double), then every refit_every
-        if self._new >= min(self.config.refit_every, max(self.config.fit.min_pairs, len(self._pairs) // 2)):
+        if self._new >= self._next_fit:
             self.refit()
 
     def refit(self, wait: bool = False) -> None:
         """Fit on the pairs kept (also when fewer than refit_every are new): on a thread of its own with
         ``background`` unless ``wait``; a fit still running is not started twice."""
         self._new = 0
+        self._next_fit = min(self.config.refit_every, 2 * self._next_fit)
         if self._thread is not None and self._thread.is_alive():
             if not wait:
                 return
