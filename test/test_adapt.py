@@ -225,13 +225,14 @@ def test_adapted_weights_refused_at_another_processing_size(adapted):
 
 def test_adapting_on_the_first_half_lowers_the_second_half_abs_rel(tmp_path):
     """A world the shipped weights never saw - a room 2-2.8 m across: adapting on the first 80 frames (no depth)
-    lowers abs_rel on the next 80, through the node's pipeline."""
+    lowers abs_rel on the next 80, through the node's pipeline. 12 steps (the tool's warm-up and the start of its
+    decay) already move it well past the margins below: 50 steps, which took two minutes, gave a smaller gain."""
     from dpv_sensor.evaluation.offline import EvalOptions, evaluate_sequence
     seq = render_sequence(65, 160, width=W, height=H, **SMALL_ROOM)
     first = write_sequence(tmp_path / 'first', seq.subset(range(80)), lossless=True, write_depth=False)
     out = tmp_path / 'out'
     code = tool.main([str(first), '--out', str(out), '--width', str(W), '--height', str(H), '--threads', '1',
-                      '--quiet', '--holdout', '0.4', '--steps', '50'])
+                      '--quiet', '--holdout', '0.4', '--steps', '12'])
     assert code == tool.EXIT_WRITTEN
     second = Sequence.from_arrays([seq.image(i) for i in range(80, 160)], [seq.depth(i) for i in range(80, 160)],
                                   seq.poses[80:], seq.K, seq.stamps[80:])
@@ -241,8 +242,9 @@ def test_adapting_on_the_first_half_lowers_the_second_half_abs_rel(tmp_path):
                                        'pose_refinement': 'off'},
                               options=EvalOptions(progress=False, consumer_odometry=False))
         scores[name] = s['metric']['frame_mean']['abs_rel']
-    # measured: 0.104 -> 0.094 (0.089 without the tie to what the base network is sure of: it is sure of some of
-    # this room's depth and the default keeps it)
+    # measured: 0.104 -> 0.086 after 12 steps (0.094 after 50; 0.089 after 50 without the tie to what the base
+    # network is sure of: it is sure of some of this room's depth and the default keeps it). Weights that do not move
+    # or that move the wrong way fail both margins.
     assert scores['adapted'] < scores['shipped'] - 0.007 and scores['adapted'] < 0.94 * scores['shipped'], scores
 
 
