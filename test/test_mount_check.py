@@ -165,3 +165,18 @@ def test_the_tool_says_why_a_short_recording_gives_no_estimate(tmp_path, render,
     rc, rep = _tool(_bag(tmp_path, short, gt), tmp_path / 'mount.json')
     assert rc == 1 and rep is None
     assert 'no estimate: too few image pairs' in capsys.readouterr().err
+
+
+def test_the_node_names_the_mount_to_set():
+    """The WARN's last part (ros.worker): with the mount from the parameter, the T_base_camera that the fit says
+    (the parameter's pose times the fit's); with the mount from TF, where to correct it."""
+    pytest.importorskip('rclpy')
+    from dpv_sensor.core.mount_calibration import MountFit
+    from dpv_sensor.ros.worker import Worker
+    fit = MountFit(True, rotvec_rad=np.radians([0.0, 0.0, 90.0]), translation_m=np.array([0.0, 0.0, 0.0]))
+    node = SimpleNamespace(extrinsic_source='auto', T_base_camera=[0.1, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0])
+    fake = SimpleNamespace(node=SimpleNamespace(settings=SimpleNamespace(node=node)))
+    text = Worker._mount_text(fake, fit)
+    assert text.startswith('set T_base_camera:=[0.1, 0, 0, 0, 0, 0.707107, 0.707107]'), text
+    node.T_base_camera = [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0]          # auto with the identity: the mount is TF's
+    assert Worker._mount_text(fake, fit).startswith('the mount comes from TF')
