@@ -23,6 +23,16 @@ if _WORKER.startswith('gw'):
 else:
     os.environ.setdefault('ROS_DOMAIN_ID', str(random.Random(os.getpid()).randint(100, 200)))
 os.environ.setdefault('ROS_LOCALHOST_ONLY', '1')
+# One OpenMP/MKL thread per worker, and for the processes it starts (nodes, tools), when the workers fill the cores
+# (make test: two workers on two cores). Two workers that each run torch with a thread per core wait on each other's
+# threads at every parallel region: test_train took 233 s beside a busy core at torch's default, 121 s at one thread.
+# A value set by hand is kept; one process (TEST_WORKERS=1) keeps torch's default.
+if _WORKER.startswith('gw'):
+    _THREADS = max(1, (os.cpu_count() or 1) // max(1, int(os.environ.get('PYTEST_XDIST_WORKER_COUNT', '1') or 1)))
+    for _var in ('OMP_NUM_THREADS', 'MKL_NUM_THREADS'):
+        os.environ.setdefault(_var, str(_THREADS))
+    if 'torch' in sys.modules and os.environ['OMP_NUM_THREADS'].isdigit():   # imported by a plugin: sized already
+        sys.modules['torch'].set_num_threads(int(os.environ['OMP_NUM_THREADS']))
 if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 os.environ['PYTHONPATH'] = os.pathsep.join(

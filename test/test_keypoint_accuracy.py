@@ -66,13 +66,24 @@ def test_fitted_floors_make_the_median_nees_honest_and_ignore_gross_errors():
     assert KA.fit_floors([_pair([0.0, 0.0, 0.0])]) == (0.0, 0.0)       # no pair with a direction: nothing to fit
 
 
-def test_the_tool_measures_a_rendered_scene(tmp_path, capsys):
-    out = tmp_path / 'kp.json'
-    assert KA.main(['--seeds', '7', '--frames', '40', '--json', str(out)]) == 0
-    text = capsys.readouterr().out
-    assert 'synthetic_seed7' in text and 'floors fitted on the rendered sequences' in text
+@pytest.fixture(scope='module')
+def sift_run(tmp_path_factory):
+    """The tool on rendered seed 7 (40 frames) with its default detector, SIFT: (printed text, JSON). One run for
+    the two tests below that read it (the detector test compares ORB with it)."""
+    import contextlib
+    import io
     import json
-    data = json.loads(out.read_text())
+    out = tmp_path_factory.mktemp('kp') / 'kp.json'
+    buf = io.StringIO()
+    with contextlib.redirect_stdout(buf):
+        code = KA.main(['--seeds', '7', '--frames', '40', '--json', str(out)])
+    assert code == 0
+    return buf.getvalue(), json.loads(out.read_text())
+
+
+def test_the_tool_measures_a_rendered_scene(sift_run):
+    text, data = sift_run
+    assert 'synthetic_seed7' in text and 'floors fitted on the rendered sequences' in text
     pairs = [KA.PairError(**p) for p in data['pairs']]
     assert len(pairs) >= 5 and all(p.sequence == 'synthetic_seed7' for p in pairs)
     assert sum(p.ref > p.src for p in pairs) == len(pairs)                  # each keyframe with earlier ones
@@ -81,14 +92,15 @@ def test_the_tool_measures_a_rendered_scene(tmp_path, capsys):
     assert data['tried']['synthetic_seed7'] >= len(pairs)
 
 
-def test_the_tool_measures_the_detector_it_is_given(tmp_path, capsys):
-    """--detector orb matches ORB keypoints (other pairs and inlier counts than SIFT's on the same scene)."""
+def test_the_tool_measures_the_detector_it_is_given(sift_run, tmp_path, capsys):
+    """--detector orb matches ORB keypoints (other pairs and inlier counts than SIFT's, the default, on the same
+    scene)."""
     import json
-    runs = {}
+    runs = {'sift': sift_run[1]}
+    out = tmp_path / 'orb.json'
+    assert KA.main(['--seeds', '7', '--frames', '40', '--detector', 'orb', '--json', str(out)]) == 0
+    runs['orb'] = json.loads(out.read_text())
     for det in ('sift', 'orb'):
-        out = tmp_path / f'{det}.json'
-        assert KA.main(['--seeds', '7', '--frames', '40', '--detector', det, '--json', str(out)]) == 0
-        runs[det] = json.loads(out.read_text())
         assert runs[det]['detector'] == det
     inliers = {d: [(p['ref'], p['src'], p['inliers']) for p in r['pairs']] for d, r in runs.items()}
     assert inliers['orb'] and inliers['orb'] != inliers['sift']
