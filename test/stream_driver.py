@@ -14,6 +14,10 @@ W, H = 160, 128
 BASE_NS = 1_760_000_000 * NS
 FAST_PARAMS = {'measurement': 'classical', 'processing_width': W, 'processing_height': H, 'num_planes': 32,
                'keyframe_max_interval': 1, 'input_depth': 50, 'diagnostics_period': 0.1,
+               # the driver sends each image's odometry just before it, but on a loaded 2-core machine the node may
+               # take the image first and hear the odometry later than the 0.5 s default: a test of late odometry sets
+               # its own timeout
+               'odom_wait_timeout': 3.0,
                # the odometry of 'base_link' tracks the camera 'cam' itself: the identity mount, not looked up on TF
                'extrinsic_source': 'parameter'}
 
