@@ -57,7 +57,12 @@ def test_writes_weights_report_and_metadata(adapted, folders):
     assert code == tool.EXIT_WRITTEN
     assert _files(out) == ['report.json', 'report.png', 'weights.safetensors']
     report = json.loads((out / 'report.json').read_text())
-    assert report['written'] and report['steps'] == 4 and report['held_out']['score'] == 'photometric'
+    assert report['written'] and report['steps'] == 4 and report['held_out']['score'] == 'anchors'
+    # the photometric score is reported beside the anchors' judge, with its own verdict
+    photometric = report['held_out']['beside']['photometric']
+    assert photometric['base'] > 0 and photometric['verdict']['runs'] == report['held_out']['verdict']['runs']
+    anchors = report['held_out']['anchors']
+    assert anchors['runs_judged'] >= 5 and min(anchors['per_run']) >= anchors['min_anchors'], anchors
     assert report['held_out']['adapted'] < report['held_out']['base']
     # written on the per-run comparison: enough runs, better on enough of them to pass the sign-flip test at 0.05
     verdict = report['held_out']['verdict']
@@ -154,16 +159,23 @@ def test_refuses_weights_that_score_worse(folders, tmp_path, capsys):
 def test_refuses_a_gain_too_few_held_out_runs_can_show(folders, tmp_path, capsys):
     """The last 20 % of the 90-frame recording hold fewer than 5 held-out runs: whatever they score, a sign-flip
     test at 0.05 cannot pass (its smallest p is 2^-runs), so the weights are refused, saying why; at significance 1
-    the lower mean alone writes them."""
-    code, err = _run(folders[1], tmp_path / 'out', '--holdout-layout', 'end', '--holdout', '0.2', capsys=capsys)
+    the lower mean alone writes them. (Judged by photometry: the anchors' judge refuses such a recording before it
+    trains, below.)"""
+    code, err = _run(folders[1], tmp_path / 'out', '--holdout-layout', 'end', '--holdout', '0.2', '--judge',
+                     'photometric', capsys=capsys)
     report = json.loads((tmp_path / 'out' / 'report.json').read_text())
     verdict = report['held_out']['verdict']
     assert verdict['runs'] < 5 and verdict['p_value'] >= 2.0 ** -verdict['runs'] > 0.05, verdict
     assert verdict['mean_change'] < 0, verdict                  # the premise: a lower mean (the run is seeded)
     assert code == tool.EXIT_REFUSED and 'runs cannot tell from noise' in err and not report['written'], err
     mean_only = _run(folders[1], tmp_path / 'mean', '--holdout-layout', 'end', '--holdout', '0.2',
-                     '--significance', '1')
+                     '--significance', '1', '--judge', 'photometric')
     assert mean_only[0] == tool.EXIT_WRITTEN
+    # the anchors' judge: fewer judged runs than a sign-flip test at 0.05 needs: refused at once, nothing trained
+    code, err = _run(folders[1], tmp_path / 'anchors', '--holdout-layout', 'end', '--holdout', '0.2', capsys=capsys)
+    report = json.loads((tmp_path / 'anchors' / 'report.json').read_text())
+    assert code == tool.EXIT_REFUSED and 'too few metric anchors to judge the depth' in err, err
+    assert '5 are needed at significance 0.05' in err and report['steps'] == 0 and not report['written'], err
 
 
 def test_no_step_within_minutes_writes_no_weights(folders, tmp_path, capsys):

@@ -15,9 +15,12 @@ recording (a recording too short for blocks, under 14 keyframes, is refused: exi
 its last --holdout share of frames instead). The networks are adapted on the rest with a photometric reprojection
 loss across each keyframe window, using the recording's poses (--poses window: the poses the node would use, the
 recording run once through its pipeline and refinement window), tied to the shipped weights
-(dpv_sensor/training/adapt_loop.py; docs/adaptation.md). Both weights are then scored on each held-out run with
-the same label-free score (photometric reprojection error of their depth); the adapted weights are written only
-when the runs show the gain by a one-sided sign-flip test at --significance (dpv_sensor/training/heldout_decision.py).
+(dpv_sensor/training/adapt_loop.py; docs/adaptation.md). Both weights are then scored on each held-out run by
+the depth's error at metric anchors: points triangulated from the held-out keyframes' own images and the
+recording's poses, never trained on (--judge anchors, the default; the photometric reprojection error is reported
+beside it and vetoes weights it finds worse); the adapted weights are written only when the runs show the gain by a
+one-sided sign-flip test at --significance (dpv_sensor/training/heldout_decision.py). A recording whose held-out
+keyframes give too few anchors to judge (a camera turning in place, blank walls) is refused before training.
 --minutes caps the whole run (the default fits a 700-image recording on a 2-core CPU).
 
 Writes to --out: weights.safetensors (only when better; with metadata: base weights and their hash, the
@@ -27,8 +30,8 @@ delta<1.25 and ECE of the held-out frames through the node's pipeline at its def
 counted in --minutes). --supervised fine-tunes with the trainer's loss on a recording that has depth: a folder's
 depth/, or a bag's --depth-topic (a depth camera registered to the colour camera).
 
-Exit status: 0 weights written; 1 not written (adapted weights scored no better, or no step fitted in --minutes;
-one line says why); 2 bad input; 130 interrupted (nothing written).
+Exit status: 0 weights written; 1 not written (adapted weights scored no better, too few anchors to judge them,
+or no step fitted in --minutes; one line says why); 2 bad input; 130 interrupted (nothing written).
 """
 from __future__ import annotations
 
@@ -46,6 +49,7 @@ from dpv_sensor import params as P
 from dpv_sensor.cli import tool_argv
 from dpv_sensor.training.adapt_loop import DEFAULT_MINUTES, DISTILL_PIXELS, HOLDOUT_LAYOUTS, AdaptConfig
 from dpv_sensor.training.adapt_poses import POSE_SOURCES
+from dpv_sensor.training.anchor_judge import JUDGES
 from dpv_sensor.training.config import MODULES
 
 EXIT_WRITTEN, EXIT_REFUSED, EXIT_BAD_INPUT, EXIT_INTERRUPTED = 0, 1, 2, 130
@@ -107,6 +111,13 @@ def build_parser() -> argparse.ArgumentParser:
                    help="odometry (default): the recording's poses as they are; window: the keyframes' poses as "
                         "the node uses them (the recording run once through the node's pipeline with its refinement "
                         'window)')
+    p.add_argument('--judge', choices=JUDGES, default=d.judge,
+                   help="what decides whether the weights are written: 'anchors' (default): the depth's error at "
+                        "metric anchors triangulated from the held-out keyframes' own images and poses (the "
+                        "photometric score beside it may veto; too few anchors: refused, exit 1); 'photometric': "
+                        'the photometric score alone (blind to depth where the images have no texture)')
+    p.add_argument('--anchor-loss', type=float, default=d.anchor_loss,
+                   help="weight of a sparse depth loss at the training keyframes' own anchors (0: none)")
     p.add_argument('--seed', type=int, default=d.seed, help='seed of the sample order')
     p.add_argument('--threads', type=int, default=0, help="torch CPU threads (0: torch's default)")
     p.add_argument('--image-topic', default=None, help='bag: the image topic (needed only among several)')
@@ -131,7 +142,7 @@ def _config(a) -> AdaptConfig:
                        penalty=a.penalty, distill=a.distill, distill_pixels=a.distill_pixels,
                        distill_threshold=a.distill_threshold, readout=a.readout, photometric=a.photometric,
                        evidence=a.evidence, sigma=a.sigma, supervised=a.supervised, poses=a.poses,
-                       seed=a.seed).check()
+                       judge=a.judge, anchor_loss=a.anchor_loss, seed=a.seed).check()
 
 
 def _file_sha256(path) -> str:
@@ -240,13 +251,21 @@ def _metadata(a, cfg: AdaptConfig, base_path: pathlib.Path, base_meta: Dict, sou
         'config': cfg.to_json(),
         'held_out': {'score': result.score_kind, 'base': result.base_score, 'adapted': result.adapted_score,
                      'runs': result.verdict.runs, 'runs_better': result.verdict.runs_better,
-                     'p_value': result.verdict.p_value, 'significance': result.verdict.significance},
+                     'p_value': result.verdict.p_value, 'significance': result.verdict.significance,
+                     'beside': {k: {'base': _finite(v['base']), 'adapted': _finite(v['adapted'])}
+                                for k, v in result.beside.items()}},
         'ground_truth': gt,
         'command': ' '.join(['adapt'] + argv),
     }
     return {'adaptation': adaptation, 'steps': base_steps + result.steps, 'input_size': [cfg.width, cfg.height],
             'training_data': {'base': base_meta.get('training_data'), 'adapted_on': source.get('name')},
             'validation_metrics': adaptation['held_out'], 'loss': adaptation['loss']}
+
+
+def _finite(x: float) -> Optional[float]:
+    """A score for the metadata (strict JSON): None where no run could be scored."""
+    import math
+    return float(x) if math.isfinite(x) else None
 
 
 def _sigterm(signum, frame):
@@ -284,10 +303,13 @@ def run(a, argv: List[str], log) -> int:
     report = {'source': source, 'config': cfg.to_json(), 'base_weights': str(base_path), 'steps': result.steps,
               'stop_reason': result.stop_reason, 'minutes': round(minutes, 2), 'seconds': result.seconds,
               'held_out': {'score': result.score_kind, 'base': result.base_score, 'adapted': result.adapted_score,
-                           'verdict': result.verdict.to_json(), 'keyframes': result.keyframes},
+                           'verdict': result.verdict.to_json(), 'keyframes': result.keyframes,
+                           'runs': result.runs, 'beside': result.beside, 'anchors': result.anchors},
               'poses': {'source': cfg.poses, **(adapter.pose_stats or {})},
               'ground_truth': gt, 'history': result.history}
-    if result.steps == 0:
+    if result.refused:
+        reason = result.refused
+    elif result.steps == 0:
         reason = f'no adaptation step fitted in --minutes {cfg.minutes:g}'
     elif not result.improved:
         reason = result.verdict.reason
@@ -303,7 +325,8 @@ def run(a, argv: List[str], log) -> int:
     save_adapt_report(str(out / REPORT_PNG), result, gt, model.d_min, model.d_max,
                       title=f'{source["name"]}: {result.steps} steps, {minutes:.1f} min')
     print(f'adapt: {result.steps} steps in {minutes:.1f} min (limit {cfg.minutes:g}); held-out {result.score_kind} '
-          f'{result.base_score:.5f} -> {result.adapted_score:.5f}', flush=True)
+          f'{result.base_score:.5f} -> {result.adapted_score:.5f}'
+          + ''.join(f"; {k} {b['base']:.5f} -> {b['adapted']:.5f}" for k, b in result.beside.items()), flush=True)
     if reason:
         print(f'adapt: weights not written: {reason}', file=sys.stderr, flush=True)
         return EXIT_REFUSED

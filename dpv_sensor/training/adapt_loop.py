@@ -24,13 +24,25 @@ the negative log photometric evidence of the whole DPV on its quarter-resolution
 likelihood ``exp(-e / sigma)``). With ``supervised`` the loss is the trainer's instead
 (:func:`dpv_sensor.training.unrolled.run_unrolled`: NLL of the recording's depth), and the depth is read.
 
-**Held-out score**: the mean photometric reprojection error of the R-Net output's depth over every pixel of every
-held-out run (the runs of :func:`spread_keyframes` or :func:`split_keyframes`, at most ``max_holdout_runs``), no
-auto-mask, a pixel sent out of every source counting with the unwarped sources' error
-(:func:`dpv_sensor.training.self_supervised.score_error`), so base and adapted weights are scored on exactly the
-same pixels (with ``supervised``: the NLL of the held-out depth).
-The adapted weights are kept only when the held-out runs' scores show the gain (a one-sided sign-flip test,
-:mod:`dpv_sensor.training.heldout_decision`); :class:`AdaptResult` says which.
+**Held-out scores**: per held-out run (the runs of :func:`spread_keyframes` or :func:`split_keyframes`, at most
+``max_holdout_runs``), scored alike for the base and the adapted weights:
+
+- ``anchors`` (the default judge, ``judge``): the σ-weighted mean absolute log-depth error of the R-Net output's
+  depth (the node's readout) at metric anchors triangulated from the held-out keyframes' own images and the
+  recording's poses (:mod:`dpv_sensor.training.anchor_judge`; never from a training image). A run with fewer than
+  ``min_anchors`` anchors is not judged; with fewer judged runs than the sign-flip test needs at ``significance``
+  the run is refused before training, saying why (a camera turning in place, blank walls).
+- ``photometric``: the mean photometric reprojection error of the same depth over every pixel of the run, no
+  auto-mask, a pixel sent out of every source counting with the unwarped sources' error
+  (:func:`dpv_sensor.training.self_supervised.score_error`), so both weights are scored on exactly the same
+  pixels. Beside the anchors' judge it may veto: adapted weights whose photometric score is worse by the same test
+  are not written. With ``judge='photometric'`` it decides alone and the anchors' score is reported beside it.
+- with ``supervised``: the NLL of the held-out depth decides.
+
+The adapted weights are kept only when the deciding score's runs show the gain (a one-sided sign-flip test,
+:mod:`dpv_sensor.training.heldout_decision`); :class:`AdaptResult` says which. ``anchor_loss`` > 0 adds a sparse
+depth loss at the training keyframes' own anchors (:func:`~dpv_sensor.training.anchor_judge.anchor_loss`) to the
+photometric terms.
 
 **Time**: ``minutes`` caps the whole run (loading, both held-out scores, training): training stops when the
 time left would not cover one more step and the adapted weights' held-out score (timed on the base weights).
@@ -50,9 +62,11 @@ import torch
 from dpv_sensor import params as P
 from dpv_sensor.core import dpv as dpvops
 from dpv_sensor.training.adapt_poses import POSE_SOURCES, node_keyframe_poses
+from dpv_sensor.training.anchor_judge import JUDGES, AnchorScore, JudgeConfig, anchor_loss, group_anchors, \
+    keyframe_groups
 from dpv_sensor.training.config import MODULES
 from dpv_sensor.training.dataset import WindowLayout, sample_from_sequence
-from dpv_sensor.training.heldout_decision import HeldOutVerdict, judge
+from dpv_sensor.training.heldout_decision import HeldOutVerdict, judge, runs_needed, veto
 from dpv_sensor.training.self_supervised import (confidence_tie_weight, distillation, downsample_image, masked_mean,
                                                  parameter_penalty, photometric_evidence, plane_errors,
                                                  reprojection_error, score_error)
@@ -109,6 +123,8 @@ class AdaptConfig:
     automask: bool = True
     supervised: bool = False                        # the trainer's NLL on the recording's depth instead
     poses: str = 'odometry'                         # as recorded; 'window': the node's refined keyframe poses
+    judge: str = 'anchors'                          # what decides (training.anchor_judge.JUDGES; supervised: nll)
+    anchor_loss: float = 0.0                        # weight of the sparse loss on training keyframes' anchors
     seed: int = 0
 
     def check(self) -> 'AdaptConfig':
@@ -135,6 +151,9 @@ class AdaptConfig:
                              f'{self.distill_pixels!r}, {self.distill_threshold}')
         if self.poses not in POSE_SOURCES:
             raise ValueError(f'poses must be one of {POSE_SOURCES}, got {self.poses!r}')
+        if self.judge not in JUDGES or self.anchor_loss < 0:
+            raise ValueError(f'judge must be one of {JUDGES} and anchor_loss >= 0, got {self.judge!r}, '
+                             f'{self.anchor_loss}')
         if self.photometric == 0 and self.evidence == 0 and not self.supervised:
             raise ValueError('photometric and evidence weights are both 0: nothing to adapt with')
         return self
@@ -164,11 +183,15 @@ class AdaptResult:
     history: List[Dict]
     keyframes: Dict[str, int]
     examples: List[Dict]
-    verdict: HeldOutVerdict                         # the per-run comparison (training.heldout_decision)
+    verdict: HeldOutVerdict                         # the deciding per-run comparison (training.heldout_decision)
+    beside: Dict[str, Dict] = dataclasses.field(default_factory=dict)   # the other scores: base, adapted, verdict
+    anchors: Optional[Dict] = None                  # the judge's anchors: per held-out run, runs judged
+    refused: Optional[str] = None                   # why nothing was trained (the judge cannot judge)
+    runs: Optional[Dict[str, List[float]]] = None   # the deciding score of each held-out run: base, adapted
 
     @property
     def improved(self) -> bool:
-        return self.steps > 0 and self.verdict.better
+        return self.steps > 0 and self.verdict.better and self.refused is None
 
 
 def split_keyframes(kfs: List[int], frames: int, holdout: float, layout: WindowLayout
@@ -297,6 +320,21 @@ class Adapter:
         if len(runs) > cfg.max_holdout_runs:
             runs = [runs[int(i)] for i in np.linspace(0, len(runs) - 1, cfg.max_holdout_runs).round()]
         self.held_runs = runs
+        self.judge_config = JudgeConfig()
+        self.keyframes = sorted(set(self.train_kf) | set(self.held_kf))
+        self.held_anchors: Dict[int, object] = {}
+        self.train_anchors: Dict[int, object] = {}
+        if not cfg.supervised:           # the anchors' score: the judge, or reported beside the photometric judge
+            t0 = time.time()
+            for group in keyframe_groups(self.keyframes, self.held_kf):
+                self.held_anchors.update(group_anchors(sequence, group, self.judge_config))
+            counts = [len(a) for a in self.held_anchors.values()]
+            self.log(f'anchors of the held-out keyframes: {sum(counts)} ({int(np.median(counts)) if counts else 0} a '
+                     f'keyframe in the median; {time.time() - t0:.0f} s)')
+        if not cfg.supervised and cfg.anchor_loss > 0:
+            for group in keyframe_groups(self.keyframes, self.train_kf):
+                self.train_anchors.update(group_anchors(sequence, group, self.judge_config))
+        self._batch_ids: List[List[int]] = []
         for name, child in model.named_children():
             child.requires_grad_(cfg.trains(name))
         self.measure_grad = cfg.trains('features') or cfg.trains('cost_volume')
@@ -322,12 +360,13 @@ class Adapter:
         return sample_from_sequence(self.seq, ids, self.cfg.layout(), rng, augment=None)
 
     def training_batch(self, rng: np.random.Generator) -> Dict[str, torch.Tensor]:
-        out = []
+        out, self._batch_ids = [], []
         for _ in range(self.cfg.batch_size):
             ids = self.train_runs[int(rng.integers(0, len(self.train_runs)))]
             if rng.random() < 0.5:          # played backwards: another trajectory through the same place
                 ids = ids[::-1]
             out.append(self._sample(ids, rng))
+            self._batch_ids.append(list(ids))
         return _collate(out)
 
     # ------------------------------------------------------------------ losses
@@ -389,6 +428,18 @@ class Adapter:
                 loss = loss + cfg.evidence * (ev + cfg.aux * ev_q)
                 stats['evidence'] = float(ev.detach())
                 stats['evidence_q'] = float(ev_q.detach())
+            if cfg.anchor_loss > 0 and self._batch_ids:
+                terms = []
+                for m, r in zip(meas, res):
+                    depth = dpvops.depth_estimate(r['logp_full'].float(), self.depths_d, cfg.readout)
+                    anchors = [self.train_anchors.get(ids[m['ref']]) for ids in self._batch_ids]
+                    term = anchor_loss(depth, anchors, self.judge_config)
+                    if term is not None:
+                        terms.append(term)
+                if terms:
+                    al = torch.stack(terms).mean()
+                    loss = loss + cfg.anchor_loss * al
+                    stats['anchor'] = float(al.detach())
             if self.base_model is not None:
                 with torch.no_grad():
                     bmeas = measure_steps(self.base_model, batch)
@@ -419,16 +470,19 @@ class Adapter:
 
     # ------------------------------------------------------------------ held-out score
     @torch.no_grad()
-    def score(self, examples: int = 0) -> Tuple[float, List[float], List[Dict]]:
-        """The held-out score of the model as it is now (see the module docstring), the score of each held-out run,
-        and ``examples`` of its outputs (the last unrolled step of evenly spread held-out runs: image, depth and
-        confidence at the node's readout)."""
+    def score(self, examples: int = 0) -> Tuple[Dict[str, Tuple[float, List[float]]], List[int], List[Dict]]:
+        """The held-out scores of the model as it is now (see the module docstring): per kind ('photometric' or
+        'nll', and 'anchors' when the judge is the anchors') the mean and the score of each held-out run; the anchors
+        each run's score counted; and ``examples`` of its outputs (the last unrolled step of evenly spread held-out
+        runs: image, depth and confidence at the node's readout)."""
         cfg = self.cfg
         was = self.model.training
         self.model.eval()
         rng = np.random.default_rng(0)
         num, den = 0.0, 0.0
         per_run: List[float] = []
+        anchor_runs: List[float] = []
+        anchor_counts: List[int] = []
         pick = set(np.linspace(0, len(self.held_runs) - 1, examples).round().astype(int).tolist()) if examples \
             else set()
         out = []
@@ -440,6 +494,13 @@ class Adapter:
                 meas = measure_steps(self.model, batch)
                 res = filter_steps(self.model, meas, self.depths_d, 'knet')
                 run_num, run_den = 0.0, 0.0
+                if self.held_anchors:
+                    judged = AnchorScore(self.judge_config)
+                    for m, r in zip(meas, res):
+                        d = dpvops.depth_estimate(r['logp_full'].float(), self.depths_d, readout)
+                        judged.add(d[0].numpy(), self.held_anchors.get(int(ids[m['ref']])))
+                    anchor_runs.append(judged.value)
+                    anchor_counts.append(judged.count)
                 if cfg.supervised:
                     for m, r in zip(meas, res):
                         valid = dpvops.valid_depth_mask(m['gt'], self.model.d_min, self.model.d_max)
@@ -465,7 +526,12 @@ class Adapter:
                                 'depth': d[0].numpy(), 'confidence': c[0].numpy()})
         finally:
             self.model.train(was)
-        return (num / den if den > 0 else float('nan')), per_run, out
+        kind = 'nll' if cfg.supervised else 'photometric'
+        scores = {kind: ((num / den if den > 0 else float('nan')), per_run)}
+        if self.held_anchors:
+            finite = [v for v in anchor_runs if math.isfinite(v)]
+            scores['anchors'] = (float(np.mean(finite)) if finite else float('nan'), anchor_runs)
+        return scores, anchor_counts, out
 
     def learning_rate(self, step: int, time_fraction: float) -> float:
         """Linear warm-up over ``warmup`` steps, then a cosine decay to ``min_lr_ratio`` of ``lr`` over the run, so its
@@ -487,10 +553,30 @@ class Adapter:
         rng = np.random.default_rng(cfg.seed)
         seconds: Dict[str, float] = {}
         t0 = time.time()
-        base_score, base_runs, base_examples = self.score(examples)
+        base, counts, base_examples = self.score(examples)
         seconds['base_score'] = time.time() - t0
-        self.log(f'held-out score of the base weights: {base_score:.5f} ({len(self.held_runs)} runs, '
+        kind = 'nll' if cfg.supervised else cfg.judge
+        self.log(f'held-out score of the base weights: {base[kind][0]:.5f} ({kind}; {len(self.held_runs)} runs, '
                  f'{seconds["base_score"]:.0f} s)')
+        anchors = None
+        if 'anchors' in base:
+            judged = sum(math.isfinite(v) for v in base['anchors'][1])
+            anchors = {'per_run': counts, 'runs_judged': judged, 'min_anchors': self.judge_config.min_anchors}
+            need = runs_needed(cfg.significance)
+            if kind == 'anchors' and judged < need:
+                reason = (f'the held-out keyframes have too few metric anchors to judge the depth: {judged} of '
+                          f'{len(self.held_runs)} held-out runs have {self.judge_config.min_anchors} or more (anchors '
+                          f'per run: {", ".join(str(c) for c in counts)}), {need} are needed at significance '
+                          f'{cfg.significance:g}. Anchors need the camera to move sideways past textured surfaces; '
+                          'a camera turning in place or facing blank walls gives none. Record more of that motion, '
+                          'or judge by photometry alone (--judge photometric), which cannot see depth where the '
+                          'images have no texture')
+                verdict = judge(base[kind][1], base[kind][1], cfg.significance, kind)
+                verdict = dataclasses.replace(verdict, better=False, reason=reason)
+                return AdaptResult(steps=0, base_score=float(base[kind][0]), adapted_score=float(base[kind][0]),
+                                   score_kind=kind, stop_reason='judge', seconds=seconds, history=[],
+                                   examples=[], verdict=verdict, anchors=anchors, refused=reason,
+                                   keyframes=self._keyframe_stats())
         history: List[Dict] = []
         step, step_s, stop = 0, 0.0, 'max_steps'
         bar = tqdm(total=cfg.max_steps or None, disable=not progress, desc='adapt', unit='step', dynamic_ncols=True)
@@ -527,19 +613,29 @@ class Adapter:
             bar.close()
         seconds['train'] = time.time() - t_train
         t1 = time.time()
-        adapted_score, adapted_runs, adapted_examples = self.score(examples) if step else \
-            (base_score, base_runs, base_examples)
+        adapted, _, adapted_examples = self.score(examples) if step else (base, counts, base_examples)
         seconds['adapted_score'] = time.time() - t1
-        kind = 'nll' if cfg.supervised else 'photometric'
-        verdict = judge(base_runs, adapted_runs, cfg.significance, kind)
-        self.log(f'held-out score after {step} steps: {adapted_score:.5f} (base {base_score:.5f}; '
-                 f'{verdict.runs_better} of {verdict.runs} runs better, sign-flip p {verdict.p_value:.3f})')
+        verdicts = {k: judge(base[k][1], adapted[k][1], cfg.significance, k) for k in base}
+        verdict = verdicts[kind]
+        beside = {k: {'base': float(base[k][0]), 'adapted': float(adapted[k][0]), 'verdict': v.to_json(),
+                      'base_runs': list(base[k][1]), 'adapted_runs': list(adapted[k][1])}
+                  for k, v in verdicts.items() if k != kind}
+        if kind == 'anchors' and verdict.better:
+            # the photometric score beside the judge: adapted weights it finds worse by its own test are not taken
+            why = veto(base['photometric'][1], adapted['photometric'][1], cfg.significance, 'photometric')
+            if why:
+                verdict = dataclasses.replace(verdict, better=False, reason=why)
+        self.log(f'held-out {kind} score after {step} steps: {adapted[kind][0]:.5f} (base {base[kind][0]:.5f}; '
+                 f'{verdict.runs_better} of {verdict.runs} runs better, sign-flip p {verdict.p_value:.3f})'
+                 + ''.join(f'; {k} {b["base"]:.5f} -> {b["adapted"]:.5f}' for k, b in beside.items()))
         ex = [{**b, 'depth_adapted': a['depth'], 'confidence_adapted': a['confidence']}
               for b, a in zip(base_examples, adapted_examples)]
-        return AdaptResult(steps=step, base_score=float(base_score), adapted_score=float(adapted_score),
+        return AdaptResult(steps=step, base_score=float(base[kind][0]), adapted_score=float(adapted[kind][0]),
                            score_kind=kind, stop_reason=stop, seconds=seconds, history=history, examples=ex,
-                           verdict=verdict,
-                           keyframes={'training': len(self.train_kf), 'held_out': len(self.held_kf),
-                                      'held_out_runs': len(self.held_runs), 'split_frame': self.split,
-                                      'holdout_layout': self.holdout_layout,
-                                      'held_out_frames': self.held_frames()})
+                           verdict=verdict, beside=beside, anchors=anchors, keyframes=self._keyframe_stats(),
+                           runs={'base': list(base[kind][1]), 'adapted': list(adapted[kind][1])})
+
+    def _keyframe_stats(self) -> Dict:
+        return {'training': len(self.train_kf), 'held_out': len(self.held_kf), 'held_out_runs': len(self.held_runs),
+                'split_frame': self.split, 'holdout_layout': self.holdout_layout,
+                'held_out_frames': self.held_frames()}

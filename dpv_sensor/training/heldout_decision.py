@@ -18,7 +18,7 @@ from typing import Optional, Sequence
 
 import numpy as np
 
-__all__ = ['sign_flip_p_value', 'HeldOutVerdict', 'judge']
+__all__ = ['sign_flip_p_value', 'HeldOutVerdict', 'judge', 'runs_needed', 'veto']
 
 EXACT_MAX_RUNS = 16          # up to this many runs every sign pattern is counted; above, 2^16 random ones (seeded)
 
@@ -88,3 +88,19 @@ def judge(base_n: Sequence[float], adapted_n: Sequence[float], significance: flo
         reason = None
     return HeldOutVerdict(better=reason is None, runs=n, runs_better=better_runs, mean_change=change, p_value=p,
                           significance=float(significance), reason=reason)
+
+
+def runs_needed(significance: float) -> int:
+    """The fewest runs whose sign-flip test can reach ``significance``: the smallest p that n runs give is 2^-n."""
+    return max(1, math.ceil(math.log2(1.0 / significance) - 1e-12)) if significance < 1 else 1
+
+
+def veto(base_n: Sequence[float], adapted_n: Sequence[float], significance: float, kind: str) -> Optional[str]:
+    """Why a second score vetoes adapted weights that the judge approved: they score worse on it, by the same
+    one-sided sign-flip test at ``significance`` the other way round; None when it does not."""
+    worse = judge(adapted_n, base_n, significance, kind)
+    if not worse.better:
+        return None
+    return (f'the depth judge approved the adapted weights, but their held-out {kind} score is worse by '
+            f'{100 * (1.0 / (1.0 + worse.mean_change) - 1.0):.2f} % ({worse.runs_better} of {worse.runs} runs worse, '
+            f'sign-flip p = {worse.p_value:.3f}): not written')

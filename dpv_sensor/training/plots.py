@@ -129,7 +129,7 @@ def save_adapt_report(path: str, result, gt: Optional[Dict], d_min: float, d_max
         steps = np.array([h['step'] for h in hist])
         for key, colour in (('loss', 'k'), ('photometric', 'tab:blue'), ('photometric_q', 'tab:orange'),
                             ('evidence', 'tab:green'), ('evidence_q', 'tab:olive'), ('penalty', 'tab:gray'),
-                            ('distill', 'tab:purple'), ('nll', 'tab:blue')):
+                            ('distill', 'tab:purple'), ('nll', 'tab:blue'), ('anchor', 'tab:red')):
             y = np.array([h.get(key, np.nan) for h in hist], np.float64)
             if not np.isfinite(y).any():
                 continue
@@ -144,8 +144,10 @@ def save_adapt_report(path: str, result, gt: Optional[Dict], d_min: float, d_max
     ax2 = fig.add_subplot(grid[0, 3:])
     ax2.bar(['base', 'adapted'], [result.base_score, result.adapted_score], color=['tab:gray', 'tab:green'])
     v = result.verdict
+    beside = ''.join(f"\n{k} beside it: {b['base']:.5f} -> {b['adapted']:.5f}"
+                     for k, b in (getattr(result, 'beside', None) or {}).items())
     ax2.set_title(f'held-out {result.score_kind} score (lower is better)\n{v.runs_better} of {v.runs} runs better, '
-                  f'sign-flip p {v.p_value:.3f}', fontsize=9)
+                  f'sign-flip p {v.p_value:.3f}{beside}', fontsize=9)
     lo = min(result.base_score, result.adapted_score)
     hi = max(result.base_score, result.adapted_score)
     if np.isfinite(lo) and hi > 0:
