@@ -139,3 +139,40 @@ def test_runs_needed_and_the_photometric_veto_by_hand():
     # better, or worse on too few runs to tell: no veto
     assert veto(base, [0.99] * 6, 0.05, 'photometric') is None
     assert veto(base, [1.01, 0.99, 1.01, 0.99, 1.01, 0.99], 0.05, 'photometric') is None
+
+
+def test_held_out_anchors_never_enter_training_and_the_sparse_loss_trains(monkeypatch):
+    """An Adapter with the sparse loss: the held-out keyframes' anchors are made from held-out images only, the
+    training keyframes' from training images only; a training batch's loss has the anchor term, finite, with a
+    gradient on the networks."""
+    import dpv_sensor.training.adapt_loop as AL
+    from dpv_sensor.core.nets.checkpoint import default_weights_path, load_checkpoint
+    seq = render_sequence(65, 90, width=W, height=H, room_size_x=(2.0, 2.8), room_size_y=(2.0, 2.8),
+                          room_height=(2.2, 2.4))
+    reads = []
+    real = AL.group_anchors
+
+    def watched(sequence, group, config):
+        w = _Watched(sequence)
+        out = real(w, group, config)
+        reads.append((list(group), w.read))
+        return out
+    monkeypatch.setattr(AL, 'group_anchors', watched)
+    model, _ = load_checkpoint(default_weights_path('lite'))
+    torch.manual_seed(0)
+    ad = AL.Adapter(AL.AdaptConfig(width=W, height=H, holdout=0.35, unroll=1, anchor_loss=0.1, distill=0), model, seq)
+    held, train = set(ad.held_kf), set(ad.train_kf)
+    assert set(ad.held_anchors) == held and set(ad.train_anchors) == train and not held & train
+    for group, read in reads:
+        assert read == set(group) and (read <= held or read <= train), (group, read)
+    assert sum(len(a) for a in ad.train_anchors.values()) > 100
+    rng = np.random.default_rng(0)
+    for _ in range(20):          # the room's far end gives no anchors (the camera turns there): a batch that has
+        loss, stats = ad.loss(ad.training_batch(rng))
+        ref = ad._batch_ids[0][int(ad.cfg.layout().indices()[0][0])]
+        assert ('anchor' in stats) == (len(ad.train_anchors[ref]) > 0), (ref, stats)
+        if 'anchor' in stats:
+            break
+    assert math.isfinite(stats['anchor']) and stats['anchor'] > 0, stats
+    loss.backward()
+    assert any(p.grad is not None and float(p.grad.abs().sum()) > 0 for p in model.parameters())
