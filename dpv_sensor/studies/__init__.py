@@ -5,6 +5,8 @@ one); the benchmarks a user runs to learn how fast or how accurate the camera is
 
 - ``anchors``: how accurate the metric anchors are and what each way of holding the depth to them does
   (docs/anchors.md).
+- ``adaptation_judge``: whether the adapt tool's judges (the anchors', the photometric) tell better held-out depth
+  from worse on every folder (docs/adaptation.md, "The anchors' judge").
 - ``alignment_depth``: the photometric alignment's rotation against the quality of its reference depth
   (docs/pose_uncertainty.md, "Every sequence: the odometry's covariance and keypoints together").
 - ``confidence_features``: which per-pixel cues separate a right depth from a wrong one, and which carry
