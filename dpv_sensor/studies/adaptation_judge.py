@@ -43,13 +43,17 @@ def _parts(src: pathlib.Path, out: pathlib.Path, name: str, pose_source: str):
     return rec, gt
 
 
-def run_tool(rec: pathlib.Path, gt: pathlib.Path, out: pathlib.Path, tool_args: List[str]) -> Dict[str, Any]:
-    """The tool's report on ``rec`` (cached under ``out`` with its command)."""
+def run_tool(rec: pathlib.Path, gt: pathlib.Path, out: pathlib.Path, tool_args: List[str], cached_only: bool = False
+             ) -> Optional[Dict[str, Any]]:
+    """The tool's report on ``rec`` (cached under ``out`` with its command; ``cached_only``: None where the run
+    is not cached)."""
     cmd = [sys.executable, '-m', 'dpv_sensor.tools.adapt', str(rec), '--out', str(out), '--quiet', '--gt', str(gt),
            '--judge', 'photometric', '--significance', '1', *tool_args]
     stamp = out / '.command'
     report = out / 'report.json'
     if not (report.is_file() and stamp.is_file() and stamp.read_text() == shlex.join(cmd)):
+        if cached_only:
+            return None
         out.mkdir(parents=True, exist_ok=True)
         proc = subprocess.run(cmd, capture_output=True, text=True)
         if proc.returncode not in (0, 1):
@@ -158,6 +162,7 @@ def main(argv: Optional[List[str]] = None) -> int:
                     help="the recordings' poses: gt, or noisy<seed> (the stream table's odometry-like drift)")
     ap.add_argument('--tool-args', default='--steps 120 --threads 2', help='added to the adapt command')
     ap.add_argument('--out', type=pathlib.Path, default=pathlib.Path('out/adaptation_judge'))
+    ap.add_argument('--table-only', action='store_true', help='run nothing: the table of the cached runs')
     a = ap.parse_args(argv)
     out = a.out.resolve()
     sources = {}
@@ -172,9 +177,12 @@ def main(argv: Optional[List[str]] = None) -> int:
     for name, src, pose_source in tqdm(jobs, desc='adapt runs', unit='run'):
         try:
             rec, gt = _parts(src, out, name, pose_source)
-            report = run_tool(rec, gt, out / 'runs' / f'{name}__{pose_source}', shlex.split(a.tool_args))
+            report = run_tool(rec, gt, out / 'runs' / f'{name}__{pose_source}', shlex.split(a.tool_args),
+                              a.table_only)
         except (RuntimeError, ValueError) as exc:
             print(f'{name}, {pose_source}: {exc}', file=sys.stderr)
+            continue
+        if report is None:
             continue
         if report.get('refused') and report['steps'] == 0:
             print(f"{name}, {pose_source}: {report['refused']}", file=sys.stderr)
