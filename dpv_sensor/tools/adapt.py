@@ -252,20 +252,13 @@ def _metadata(a, cfg: AdaptConfig, base_path: pathlib.Path, base_meta: Dict, sou
         'held_out': {'score': result.score_kind, 'base': result.base_score, 'adapted': result.adapted_score,
                      'runs': result.verdict.runs, 'runs_better': result.verdict.runs_better,
                      'p_value': result.verdict.p_value, 'significance': result.verdict.significance,
-                     'beside': {k: {'base': _finite(v['base']), 'adapted': _finite(v['adapted'])}
-                                for k, v in result.beside.items()}},
+                     'beside': {k: {'base': v['base'], 'adapted': v['adapted']} for k, v in result.beside.items()}},
         'ground_truth': gt,
         'command': ' '.join(['adapt'] + argv),
     }
     return {'adaptation': adaptation, 'steps': base_steps + result.steps, 'input_size': [cfg.width, cfg.height],
             'training_data': {'base': base_meta.get('training_data'), 'adapted_on': source.get('name')},
             'validation_metrics': adaptation['held_out'], 'loss': adaptation['loss']}
-
-
-def _finite(x: float) -> Optional[float]:
-    """A score for the metadata (strict JSON): None where no run could be scored."""
-    import math
-    return float(x) if math.isfinite(x) else None
 
 
 def _sigterm(signum, frame):
@@ -318,7 +311,9 @@ def run(a, argv: List[str], log) -> int:
     report['written'] = not reason
     report['refused'] = reason or None
     if not reason:
-        meta = _metadata(a, cfg, base_path, base_meta, source, result, minutes, gt, argv)
+        from dpv_sensor.common import to_jsonable
+        # strict JSON: a score no run could give (NaN) is None
+        meta = to_jsonable(_metadata(a, cfg, base_path, base_meta, source, result, minutes, gt, argv))
         save_checkpoint(out / WEIGHTS_NAME, model, meta)            # atomic: temp file + rename
         report['weights'] = str(out / WEIGHTS_NAME)
     _atomic_json(out / REPORT_JSON, report)
