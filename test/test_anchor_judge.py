@@ -11,8 +11,7 @@ from dpv_sensor.core.anchors import Anchors, sample_depth
 from dpv_sensor.data.synthetic import SyntheticScene, render_sequence
 from dpv_sensor.data.sequence import Sequence
 from dpv_sensor.training.adapt_loop import select_keyframes
-from dpv_sensor.training.anchor_judge import (AnchorScore, JudgeConfig, anchor_loss, group_anchors,
-                                              keyframe_groups)
+from dpv_sensor.training.anchor_judge import AnchorScore, JudgeConfig, anchor_loss, frame_anchors
 from dpv_sensor.training.heldout_decision import runs_needed, veto
 
 W, H = 160, 128
@@ -60,17 +59,15 @@ def test_anchor_loss_is_zero_at_the_anchors_depth_and_its_gradient_checks():
     assert anchor_loss(d, [None]) is None and anchor_loss(d, [Anchors.empty()]) is None
 
 
-def test_keyframe_groups_by_hand():
-    assert keyframe_groups([0, 5, 10, 15, 20, 25], [10, 15, 25]) == [[10, 15], [25]]
-    assert keyframe_groups([0, 5, 10], []) == []
-
-
 class _Watched:
     """A sequence that records which frames' images were read."""
 
     def __init__(self, seq):
         self.seq, self.read = seq, set()
         self.K = seq.K
+
+    def __len__(self):
+        return len(self.seq)
 
     def image(self, i):
         self.read.add(int(i))
@@ -86,13 +83,14 @@ def rendered():
     return render_sequence(7, 90, width=320, height=256, lazy=True)
 
 
-def test_rendered_anchors_hold_the_true_depth_and_read_only_their_group(rendered):
+def test_rendered_anchors_hold_the_true_depth_and_read_only_the_frames_allowed(rendered):
     kfs = select_keyframes([rendered.pose(i) for i in range(len(rendered))])
-    group = kfs[4:12]
+    refs = kfs[4:12]
+    forbidden = set(kfs[:4]) | set(kfs[12:]) | set(range(60, 90))
     watched = _Watched(rendered)
-    anchors = group_anchors(watched, group)
-    assert watched.read == set(group)
-    assert sorted(anchors) == group
+    anchors = frame_anchors(watched, refs, lambda f: f not in forbidden)
+    assert watched.read - set(refs) and not watched.read & forbidden, sorted(watched.read)
+    assert sorted(anchors) == refs
     counts = [len(a) for a in anchors.values()]
     assert sum(counts) >= 100, counts
     err = np.concatenate([np.log(a.depth_n) - np.log(sample_depth(rendered.depth(k), a.uv_n2))
@@ -126,7 +124,7 @@ def test_a_camera_turning_in_place_gives_no_anchors():
                                np.stack([scene.pose(i) for i in range(n)]), scene.K,
                                np.array([scene.stamp(i) for i in range(n)]))
     kfs = select_keyframes([seq.pose(i) for i in range(n)])
-    anchors = group_anchors(seq, kfs)
+    anchors = frame_anchors(seq, kfs, lambda f: True)
     assert len(kfs) >= 5 and sum(len(a) for a in anchors.values()) == 0, [len(a) for a in anchors.values()]
 
 
@@ -142,29 +140,32 @@ def test_runs_needed_and_the_photometric_veto_by_hand():
 
 
 def test_held_out_anchors_never_enter_training_and_the_sparse_loss_trains(monkeypatch):
-    """An Adapter with the sparse loss: the held-out keyframes' anchors are made from held-out images only, the
-    training keyframes' from training images only; a training batch's loss has the anchor term, finite, with a
-    gradient on the networks."""
+    """An Adapter with the sparse loss: the held-out keyframes' anchors are made from frames never trained on (no
+    training keyframe), the training keyframes' from frames outside the held-out parts; a training batch's loss has
+    the anchor term, finite, with a gradient on the networks."""
     import dpv_sensor.training.adapt_loop as AL
     from dpv_sensor.core.nets.checkpoint import default_weights_path, load_checkpoint
     seq = render_sequence(65, 90, width=W, height=H, room_size_x=(2.0, 2.8), room_size_y=(2.0, 2.8),
                           room_height=(2.2, 2.4))
     reads = []
-    real = AL.group_anchors
+    real = AL.frame_anchors
 
-    def watched(sequence, group, config):
+    def watched(sequence, refs, allowed, config):
         w = _Watched(sequence)
-        out = real(w, group, config)
-        reads.append((list(group), w.read))
+        out = real(w, refs, allowed, config)
+        reads.append((list(refs), w.read))
         return out
-    monkeypatch.setattr(AL, 'group_anchors', watched)
+    monkeypatch.setattr(AL, 'frame_anchors', watched)
     model, _ = load_checkpoint(default_weights_path('lite'))
     torch.manual_seed(0)
     ad = AL.Adapter(AL.AdaptConfig(width=W, height=H, holdout=0.35, unroll=1, anchor_loss=0.1, distill=0), model, seq)
     held, train = set(ad.held_kf), set(ad.train_kf)
+    held_frames = {f for a, b in ad.held_frames() for f in range(a, b + 1)}
     assert set(ad.held_anchors) == held and set(ad.train_anchors) == train and not held & train
-    for group, read in reads:
-        assert read == set(group) and (read <= held or read <= train), (group, read)
+    (held_refs, held_read), (train_refs, train_read) = reads
+    # held-out anchors: no training keyframe read; training anchors: nothing of the held-out parts
+    assert set(held_refs) == held and held_read - held and not held_read & train, sorted(held_read)
+    assert set(train_refs) == train and not train_read & held_frames, sorted(train_read & held_frames)
     assert sum(len(a) for a in ad.train_anchors.values()) > 100
     rng = np.random.default_rng(0)
     for _ in range(20):          # the room's far end gives no anchors (the camera turns there): a batch that has

@@ -16,8 +16,8 @@ its last --holdout share of frames instead). The networks are adapted on the res
 loss across each keyframe window, using the recording's poses (--poses window: the poses the node would use, the
 recording run once through its pipeline and refinement window), tied to the shipped weights
 (dpv_sensor/training/adapt_loop.py; docs/adaptation.md). Both weights are then scored on each held-out run by
-the depth's error at metric anchors: points triangulated from the held-out keyframes' own images and the
-recording's poses, never trained on (--judge anchors, the default; the photometric reprojection error is reported
+the depth's error at metric anchors: points of the held-out keyframes triangulated with the recording's poses
+from frames never trained on (--judge anchors, the default; the photometric reprojection error is reported
 beside it and vetoes weights it finds worse); the adapted weights are written only when the runs show the gain by a
 one-sided sign-flip test at --significance (dpv_sensor/training/heldout_decision.py). A recording whose held-out
 keyframes give too few anchors to judge (a camera turning in place, blank walls) is refused before training.

@@ -28,8 +28,8 @@ likelihood ``exp(-e / sigma)``). With ``supervised`` the loss is the trainer's i
 ``max_holdout_runs``), scored alike for the base and the adapted weights:
 
 - ``anchors`` (the default judge, ``judge``): the σ-weighted mean absolute log-depth error of the R-Net output's
-  depth (the node's readout) at metric anchors triangulated from the held-out keyframes' own images and the
-  recording's poses (:mod:`dpv_sensor.training.anchor_judge`; never from a training image). A run with fewer than
+  depth (the node's readout) at metric anchors of the held-out keyframes, triangulated with the recording's poses
+  from frames never trained on (:mod:`dpv_sensor.training.anchor_judge`; no training keyframe). A run with fewer than
   ``min_anchors`` anchors is not judged; with fewer judged runs than the sign-flip test needs at ``significance``
   the run is refused before training, saying why (a camera turning in place, blank walls).
 - ``photometric``: the mean photometric reprojection error of the same depth over every pixel of the run, no
@@ -62,8 +62,7 @@ import torch
 from dpv_sensor import params as P
 from dpv_sensor.core import dpv as dpvops
 from dpv_sensor.training.adapt_poses import POSE_SOURCES, node_keyframe_poses
-from dpv_sensor.training.anchor_judge import JUDGES, AnchorScore, JudgeConfig, anchor_loss, group_anchors, \
-    keyframe_groups
+from dpv_sensor.training.anchor_judge import JUDGES, AnchorScore, JudgeConfig, anchor_loss, frame_anchors
 from dpv_sensor.training.config import MODULES
 from dpv_sensor.training.dataset import WindowLayout, sample_from_sequence
 from dpv_sensor.training.heldout_decision import HeldOutVerdict, judge, runs_needed, veto
@@ -321,19 +320,21 @@ class Adapter:
             runs = [runs[int(i)] for i in np.linspace(0, len(runs) - 1, cfg.max_holdout_runs).round()]
         self.held_runs = runs
         self.judge_config = JudgeConfig()
-        self.keyframes = sorted(set(self.train_kf) | set(self.held_kf))
         self.held_anchors: Dict[int, object] = {}
         self.train_anchors: Dict[int, object] = {}
         if not cfg.supervised:           # the anchors' score: the judge, or reported beside the photometric judge
             t0 = time.time()
-            for group in keyframe_groups(self.keyframes, self.held_kf):
-                self.held_anchors.update(group_anchors(sequence, group, self.judge_config))
+            # from frames never trained on: anything but a training keyframe
+            trained = set(self.train_kf)
+            self.held_anchors = frame_anchors(sequence, self.held_kf, lambda f: f not in trained, self.judge_config)
             counts = [len(a) for a in self.held_anchors.values()]
             self.log(f'anchors of the held-out keyframes: {sum(counts)} ({int(np.median(counts)) if counts else 0} a '
                      f'keyframe in the median; {time.time() - t0:.0f} s)')
         if not cfg.supervised and cfg.anchor_loss > 0:
-            for group in keyframe_groups(self.keyframes, self.train_kf):
-                self.train_anchors.update(group_anchors(sequence, group, self.judge_config))
+            # from frames outside the held-out parts
+            held = [range(a, b + 1) for a, b in self.held_frames()]
+            self.train_anchors = frame_anchors(sequence, self.train_kf, lambda f: not any(f in r for r in held),
+                                               self.judge_config)
         self._batch_ids: List[List[int]] = []
         for name, child in model.named_children():
             child.requires_grad_(cfg.trains(name))

@@ -1,13 +1,14 @@
 """Metric anchors of a recording's keyframes for adaptation: the held-out judge of depth, and a sparse depth loss.
 
 A photometric score cannot see depth where the images have no texture, and it approved adapted weights whose depth
-was worse. Anchors measure the depth itself: for each keyframe of a group (the keyframes of one held-out block, or
-of one training segment: never both), its corners are tracked into its nearest keyframes of the same group on each
-side (pyramidal Lucas-Kanade started where the pose's rotation alone would put them, checked by tracking back) and
-triangulated with the recording's metric poses (:mod:`dpv_sensor.core.anchors`: in front of both cameras, with
-parallax, within the reprojection bound, a σ of log depth each). They use no network, so the base and the adapted
-weights are judged on the very same points; an anchor of a held-out keyframe is made from held-out images only,
-and a training keyframe's from training images only.
+was worse. Anchors measure the depth itself: the corners of a keyframe are tracked into the frames 2, 4, 8, 16, 32
+away on each side (pyramidal Lucas-Kanade started where the poses' rotation alone would put them, checked by
+tracking back) and triangulated with the recording's metric poses (:mod:`dpv_sensor.core.anchors`: in front of both
+cameras, with parallax, within the reprojection bound, a σ of log depth each, a pose error assumed in every pair).
+They use no network, so the base and the adapted weights are judged on the very same points. The frames they may
+come from are the caller's choice: a held-out keyframe's anchors come from frames never trained on (anything but a
+training keyframe: the frames between keyframes are never trained on either, and a held-out block alone is too
+short for parallax), a training keyframe's from frames outside the held-out parts.
 
 - :class:`AnchorScore`: the held-out judge's score of one run: the σ-weighted mean absolute error in log depth of
   the depth at the anchors' pixels, ``sum_i w_i |log z_i - log d(u_i)| / sum_i w_i`` with ``w_i = 1 / s_i^2`` and
@@ -24,7 +25,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import Dict, List, Optional, Sequence as Seq
+from typing import Callable, Dict, Optional, Sequence as Seq
 
 import cv2
 import numpy as np
@@ -33,8 +34,7 @@ import torch
 from dpv_sensor.core import anchors as anchor_math
 from dpv_sensor.core.anchors import AnchorConfig, Anchors
 
-__all__ = ['JUDGES', 'JudgeConfig', 'keyframe_groups', 'group_anchors', 'AnchorScore', 'anchor_loss',
-           'anchor_residuals']
+__all__ = ['JUDGES', 'JudgeConfig', 'frame_anchors', 'AnchorScore', 'anchor_loss', 'anchor_residuals']
 
 #: what decides whether adapted weights are written: the anchors' depth error (the photometric score beside it may
 #: veto), or the photometric score alone
@@ -43,12 +43,14 @@ JUDGES = ('anchors', 'photometric')
 
 @dataclasses.dataclass(frozen=True)
 class JudgeConfig:
-    """neighbours: keyframes of the same group tracked on each side of a keyframe; corners: at most this many
+    """offsets: the frames (this many away on each side) a keyframe's corners are tracked into; pose_sigma_deg: the
+    rotation error assumed in every relative pose (rays that meet at too small an angle for it are not used); corners:
+    at most this many
     corners a keyframe (Shi-Tomasi, ``corner_quality`` of the strongest, ``corner_spacing_px`` apart); anchors: the
     triangulation's and tracker's settings (the tracker with a wider window and more pyramid levels than the node's,
     which starts from the flow's guess: here the guess is the rotation's alone); min_anchors: a held-out run with
     fewer anchors over its references is not judged; huber_k: the loss's Huber threshold in σ."""
-    offsets: tuple = (1, 2, 4, 8)
+    offsets: tuple = (2, 4, 8, 16, 32)
     pose_sigma_deg: float = 0.3
     corners: int = 400
     corner_quality: float = 0.01
@@ -56,22 +58,6 @@ class JudgeConfig:
     anchors: AnchorConfig = AnchorConfig(track_window_px=15, track_levels=3, min_anchors=1)
     min_anchors: int = 20
     huber_k: float = 1.5
-
-
-def keyframe_groups(keyframes: Seq[int], members: Seq[int]) -> List[List[int]]:
-    """``members`` (a subset of the sorted ``keyframes``) cut into runs of consecutive keyframes: the held-out blocks,
-    or the training segments."""
-    kfs = sorted(int(k) for k in keyframes)
-    inside = set(int(k) for k in members)
-    groups: List[List[int]] = []
-    for i, k in enumerate(kfs):
-        if k not in inside:
-            continue
-        if i and kfs[i - 1] in inside and groups:
-            groups[-1].append(k)
-        else:
-            groups.append([k])
-    return groups
 
 
 def _gray(rgb: np.ndarray) -> np.ndarray:
@@ -90,19 +76,32 @@ def _rotation_guess(p_n2: np.ndarray, K_33: np.ndarray, R_src_ref: np.ndarray) -
     return q
 
 
-def group_anchors(seq, group: Seq[int], config: JudgeConfig = JudgeConfig()) -> Dict[int, Anchors]:
-    """The anchors of every keyframe of ``group`` (frame indices of ``seq``: ``image(i)``, ``pose(i)`` (T_world_cam,
-    metres) and ``K`` at the images' size), each from its ``neighbours`` nearest keyframes of the group on each side
-    (module doc); an empty set where none is made."""
-    group = [int(k) for k in group]
+def frame_anchors(seq, refs: Seq[int], allowed: Callable[[int], bool], config: JudgeConfig = JudgeConfig()
+                  ) -> Dict[int, Anchors]:
+    """The anchors of every frame of ``refs`` (frame indices of ``seq``: ``image(i)``, ``pose(i)`` (T_world_cam,
+    metres), ``K`` at the images' size and ``len``), each from the frames ``offsets`` away on each side (or the one
+    next to it) for which ``allowed`` is true (module doc); an empty set where none is made."""
     K = np.asarray(seq.K, np.float64)
-    gray = {k: _gray(seq.image(k)) for k in group}
+    n = len(seq)
+    gray: Dict[int, np.ndarray] = {}
+
+    def image(i: int) -> np.ndarray:
+        if i not in gray:
+            gray[i] = _gray(seq.image(i))
+        return gray[i]
+
     out: Dict[int, Anchors] = {}
-    for i, k in enumerate(group):
-        corners = cv2.goodFeaturesToTrack(gray[k], config.corners, config.corner_quality, config.corner_spacing_px)
-        sources = [group[i + o] for o in config.offsets + tuple(-o for o in config.offsets)
-                   if 0 <= i + o < len(group)]
-        if corners is None or not sources:
+    for k in (int(r) for r in refs):
+        sources = []
+        for o in config.offsets:
+            for sign in (1, -1):
+                f = next((c for c in (k + sign * o, k + sign * (o + 1), k + sign * (o - 1))
+                          if 0 <= c < n and c != k and allowed(c) and c not in sources), None)
+                if f is not None:
+                    sources.append(f)
+        corners = cv2.goodFeaturesToTrack(image(k), config.corners, config.corner_quality, config.corner_spacing_px) \
+            if sources else None
+        if corners is None:
             out[k] = Anchors.empty(K)
             continue
         p_ref = corners.reshape(-1, 2).astype(np.float64)
@@ -110,7 +109,7 @@ def group_anchors(seq, group: Seq[int], config: JudgeConfig = JudgeConfig()) -> 
         for j, s in enumerate(sources):
             T_src_ref = np.linalg.inv(np.asarray(seq.pose(s), np.float64)) @ np.asarray(seq.pose(k), np.float64)
             guess = _rotation_guess(p_ref, K, T_src_ref[:3, :3])
-            p_src = anchor_math.refine_tracks(gray[k], p_ref, gray[s], guess, config.anchors)
+            p_src = anchor_math.refine_tracks(image(k), p_ref, image(s), guess, config.anchors)
             seen = np.all(np.isfinite(p_src), axis=1)
             if seen.sum() < 2:
                 continue
