@@ -284,14 +284,19 @@ def main(argv: Optional[List[str]] = None) -> int:
         lines.append({'name': ev.name, 'kind': ev.kind, 'recording': str(ev.recording), 'scored': str(ev.scored),
                       'tool': tool, 'shipped': pick,
                       'adapted': {pose: {k: row.get(k) for _c, k in METRICS} for pose, row in adapted.items()}})
-    summ = summary(lines)
-    command = 'python -m dpv_sensor.benchmarks.adaptation_table ' + shlex.join(argv)
-    text = markdown(lines, summ, command)
-    (out / 'adaptation_table.md').write_text(text)
-    (out / 'adaptation_table.json').write_text(json.dumps({'command': command, 'lines': lines, 'summary': summ},
-                                                          indent=1))
-    print('\n' + text)
+    write_tables(out, 'adaptation_table', 'python -m dpv_sensor.benchmarks.adaptation_table ' + shlex.join(argv),
+                 lines, summary, markdown)
     return 0
+
+
+def write_tables(out: pathlib.Path, stem: str, command: str, lines: List[Dict[str, Any]], summarise, render) -> None:
+    """``OUT/<stem>.md`` (``render(lines, summary, command)``, also printed) and ``OUT/<stem>.json`` (the command,
+    the lines and ``summarise(lines)``)."""
+    summ = summarise(lines)
+    text = render(lines, summ, command)
+    (out / f'{stem}.md').write_text(text)
+    (out / f'{stem}.json').write_text(json.dumps({'command': command, 'lines': lines, 'summary': summ}, indent=1))
+    print('\n' + text)
 
 
 if __name__ == '__main__':

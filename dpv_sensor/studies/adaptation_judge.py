@@ -149,6 +149,7 @@ def markdown(lines: List[Dict[str, Any]], summ: Dict[str, Any], command: str) ->
 def main(argv: Optional[List[str]] = None) -> int:
     from tqdm import tqdm
 
+    from dpv_sensor.benchmarks.adaptation_table import write_tables
     from dpv_sensor.benchmarks.stream_table_inputs import rendered_sequence, sequence_folders
     from dpv_sensor.cli import tool_argv
     from dpv_sensor.training.dataset import check_heldout_seeds, parse_seeds
@@ -188,13 +189,8 @@ def main(argv: Optional[List[str]] = None) -> int:
             print(f"{name}, {pose_source}: {report['refused']}", file=sys.stderr)
             continue
         lines.append(line(name, pose_source, report))
-    summ = summary(lines)
-    command = 'python -m dpv_sensor.studies.adaptation_judge ' + shlex.join(argv)
-    text = markdown(lines, summ, command)
-    (out / 'adaptation_judge.md').write_text(text)
-    (out / 'adaptation_judge.json').write_text(json.dumps({'command': command, 'lines': lines, 'summary': summ},
-                                                          indent=1))
-    print(text)
+    write_tables(out, 'adaptation_judge', 'python -m dpv_sensor.studies.adaptation_judge ' + shlex.join(argv), lines,
+                 summary, markdown)
     return 0
 
 
