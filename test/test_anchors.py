@@ -225,9 +225,9 @@ def test_pipeline_brings_a_depth_scaled_by_1_15_back_to_the_truth(room, monkeypa
     index = {float(room.stamp(i)): i for i in range(len(room))}
     hold = EST.Estimator._hold_to_anchors
 
-    def scaled_truth(self, ref, depth, conf):
+    def scaled_truth(self, ref, depth, conf, fallback=None):
         gt = resize_nearest(np.asarray(room.depth(index[float(ref.stamp)]), np.float32), tuple(depth.shape[-2:]))
-        return hold(self, ref, torch.as_tensor(gt * 1.15)[None], conf)
+        return hold(self, ref, torch.as_tensor(gt * 1.15)[None], conf, fallback)
 
     monkeypatch.setattr(EST.Estimator, '_hold_to_anchors', scaled_truth)
     outs, pipe = _push_all(_frames(room), depth_anchors='scale')

@@ -33,9 +33,12 @@ def test_the_node_publishes_what_the_anchors_did(replay):
     assert replay.node_exit_code == 0
     diag = replay.diagnostics
     assert diag['depth_anchors'] == 'dense'
-    m = re.fullmatch(r'(\d+) checked, (\d+) aligned, (\d+) overruled \((\d+) pixels\)', diag['anchors_keyframes'])
+    m = re.fullmatch(r"(\d+) checked, (\d+) aligned, (\d+) overruled \((\d+) pixels\), (\d+) with the classical "
+                     r"sweep blended in \((\d+) pixels mostly the sweep's\)", diag['anchors_keyframes'])
     assert m, diag['anchors_keyframes']
     checked, aligned = int(m.group(1)), int(m.group(2))
+    # the measurement is the classical sweep itself: no second opinion to blend in
+    assert m.group(5) == m.group(6) == '0'
     assert checked >= 3 and 1 <= aligned <= checked
     assert float(diag['anchors_per_keyframe']) >= 20
     assert 'reprojection' in diag['anchors_rejected'] and 'depth_edge' in diag['anchors_rejected']

@@ -49,7 +49,8 @@ from scipy.special import erf, erfinv
 
 __all__ = ['AnchorConfig', 'Anchors', 'ScaleFit', 'ScaleMap', 'triangulate_pair', 'triangulate_track',
            'concat_anchors', 'fit_log_scale', 'fit_scale_map', 'widened_confidence', 'sample_depth',
-           'depth_edge_mask', 'weighted_median', 'refine_tracks']
+           'depth_edge_mask', 'weighted_median', 'refine_tracks', 'confidence_sigma', 'band_confidence',
+           'blend_log_depth', 'GRID_READBACK']
 
 
 @dataclass(frozen=True)
@@ -470,16 +471,28 @@ def _slice_image(grids: np.ndarray, gz_hw: np.ndarray, size_hw: Tuple[int, int])
     return out.astype(np.float64)
 
 
+#: the share of an anchor's weight that the grid gives back at the anchor's own position, on average over positions:
+#: per axis, trilinear splat, [1 2 1] / 4 blur and trilinear read give back 0.5 ((1 - f)^2 + f^2) + 0.5 f (1 - f) at
+#: a fraction f between nodes, whose mean over f is 5 / 12; cubed over the three axes
+GRID_READBACK = (5.0 / 12.0) ** 3
+
+
 def fit_scale_map(log_ratio_n: np.ndarray, anchors: Anchors, uv_n2: np.ndarray, depth_hw: np.ndarray,
-                  fit: ScaleFit, log_range: Tuple[float, float], config: AnchorConfig = AnchorConfig()
-                  ) -> ScaleMap:
+                  fit: ScaleFit, log_range: Tuple[float, float], config: AnchorConfig = AnchorConfig(),
+                  readback: Optional[float] = None) -> ScaleMap:
     """The depth-aware scale map (module doc) of a depth map from its anchors at pixels ``uv_n2`` of it and their
     log ratios: a bilateral grid over (row, column, log depth of the map) in which each anchor's log ratio is
     splatted with its weight ``1 / (sigma_i^2 + sigma_depth^2)``, blurred, and read at every pixel at its own
     position and depth; robust (Huber weights about a first pass) and pulled towards no correction by a prior worth
     ``grid_prior_anchors`` anchors, so that a region or a depth without anchors nearby keeps the network's depth.
     ``log_range``: the log depths the grid spans (the depth planes'); ``fit``: the global fit (its std, mostly the
-    pairs' shared pose error, is added to every pixel's)."""
+    pairs' shared pose error, is added to every pixel's).
+
+    ``readback`` None: the support as the grid reads it back, a fraction of the anchors' own weights (a lone
+    anchor's read at its own pixel is about an eighth of it), so the prior outweighs each anchor several times over:
+    a cautious correction. ``readback`` (e.g. :data:`GRID_READBACK`): the support counted in the anchors' own
+    weights (divided by it), so the map's σ is about that of a weighted mean of the anchors near and the prior is
+    worth ``grid_prior_anchors`` of them: the map that judges whether a region disagrees with its anchors."""
     shape = (config.grid_rows, config.grid_cols, config.grid_depth_bins)
     d = np.asarray(depth_hw, np.float64)
     H, W = d.shape
@@ -492,6 +505,8 @@ def fit_scale_map(log_ratio_n: np.ndarray, anchors: Anchors, uv_n2: np.ndarray, 
     ru, s, log_d_anchor, uv = r[use][ok], s[ok], log_d_anchor[ok], uv_n2[use][ok]
     a_idx, a_wts = _corners(_grid_coords(uv, log_d_anchor, (H, W), shape, log_range), shape)
     w_prior = config.grid_prior_anchors / config.depth_sigma_log ** 2
+    if readback is not None:
+        w_prior = w_prior * readback         # in the grid's units: dividing the prior is dividing the support
     w = 1.0 / s ** 2
     for _ in range(2):                      # a first pass, then Huber weights about what it says at each anchor
         Wg = _splat_blur(a_idx, a_wts, w, shape)
@@ -505,8 +520,24 @@ def fit_scale_map(log_ratio_n: np.ndarray, anchors: Anchors, uv_n2: np.ndarray, 
     gz = np.clip((np.log(np.where(good, d, 1.0)) - lo) / max(hi - lo, 1e-9) * (shape[2] - 1), 0, shape[2] - 1)
     support, wr = _slice_image(np.stack([Wg, WRg], -1), gz, (H, W))
     g = wr / (support + w_prior)
-    sigma = np.sqrt(1.0 / (support + w_prior) + fit.sigma ** 2)
-    return ScaleMap(np.where(good, g, 0.0), sigma, support)
+    to_weights = 1.0 if readback is None else 1.0 / readback
+    sigma = np.sqrt(1.0 / ((support + w_prior) * to_weights) + fit.sigma ** 2)
+    return ScaleMap(np.where(good, g, 0.0), sigma, support * to_weights)
+
+
+def confidence_sigma(conf: np.ndarray, ratio: float = 1.25) -> np.ndarray:
+    """The std of a zero-mean Gaussian log-depth error whose ×ratio band holds probability ``conf``:
+    ``log(ratio) / (sqrt 2 erfinv(conf))`` (infinite at 0, 0 at 1)."""
+    c = np.clip(np.asarray(conf, np.float64), 0.0, 1.0 - 1e-9)
+    with np.errstate(divide='ignore'):
+        return math.log(ratio) / (math.sqrt(2.0) * np.maximum(erfinv(c), 1e-12))
+
+
+def band_confidence(sigma_log: np.ndarray, ratio: float = 1.25) -> np.ndarray:
+    """The probability of the ×ratio band of a zero-mean Gaussian log-depth error of std ``sigma_log`` (the inverse
+    of :func:`confidence_sigma`)."""
+    with np.errstate(divide='ignore'):
+        return erf(math.log(ratio) / (math.sqrt(2.0) * np.asarray(sigma_log, np.float64)))
 
 
 def widened_confidence(conf: np.ndarray, sigma_log, ratio: float = 1.25) -> np.ndarray:
@@ -514,9 +545,23 @@ def widened_confidence(conf: np.ndarray, sigma_log, ratio: float = 1.25) -> np.n
     pixel) is added: the confidence ``c`` read as ``P(|e| < log ratio)`` of a zero-mean Gaussian ``e``, whose
     variance is then increased by ``sigma_log^2``. A confidence of 1 stays 1 only with sigma 0; 0 stays 0."""
     c = np.clip(np.asarray(conf, np.float64), 0.0, 1.0 - 1e-9)
-    band = math.log(ratio)
-    with np.errstate(divide='ignore'):
-        s0 = band / (math.sqrt(2.0) * np.maximum(erfinv(c), 1e-12))
-    s = np.sqrt(s0 ** 2 + np.asarray(sigma_log, np.float64) ** 2)
-    out = erf(band / (math.sqrt(2.0) * s))
-    return np.where(c > 0, out, 0.0)
+    s = np.sqrt(confidence_sigma(c, ratio) ** 2 + np.asarray(sigma_log, np.float64) ** 2)
+    return np.where(c > 0, band_confidence(s, ratio), 0.0)
+
+
+def blend_log_depth(depth_a: np.ndarray, conf_a: np.ndarray, depth_b: np.ndarray, conf_b: np.ndarray,
+                    ratio: float = 1.25) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Two depth estimates of the same pixels, each with its confidence: (depth, confidence, weight of b). The
+    depth is the inverse-variance mean in log depth, each confidence read as a Gaussian log error's std
+    (:func:`confidence_sigma`); the confidence is the larger of the two (no credit for combining them: their
+    errors need not be independent). A confidence of 0 gives its estimate no weight."""
+    sa = confidence_sigma(conf_a, ratio)
+    sb = confidence_sigma(conf_b, ratio)
+    with np.errstate(divide='ignore', over='ignore'):
+        wa = np.where(np.asarray(conf_a) > 0, 1.0 / sa ** 2, 0.0)
+        wb = np.where(np.asarray(conf_b) > 0, 1.0 / sb ** 2, 0.0)
+    total = wa + wb
+    w_b = np.where(total > 0, wb / np.where(total > 0, total, 1.0), 0.0)
+    with np.errstate(divide='ignore', invalid='ignore'):
+        log_d = (1.0 - w_b) * np.log(depth_a) + w_b * np.log(depth_b)
+    return np.exp(log_d), np.maximum(conf_a, conf_b), w_b

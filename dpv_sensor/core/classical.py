@@ -171,8 +171,15 @@ class ClassicalMeasurement:
         Returns:
             (logp_bdhw at (H/downscale, W/downscale), K_volume_b33).
         """
-        score, _, K_vol = self.score_volume(ref_b3hw, srcs_bn3hw, K_b33, T_src_ref_bn44)
-        return torch.log_softmax(score / self.temperature, dim=1), K_vol
+        logp, _, K_vol = self.measure_with_views(ref_b3hw, srcs_bn3hw, K_b33, T_src_ref_bn44)
+        return logp, K_vol
+
+    def measure_with_views(self, ref_b3hw: torch.Tensor, srcs_bn3hw: torch.Tensor, K_b33: torch.Tensor,
+                           T_src_ref_bn44: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """As :meth:`__call__`, and the number of source views valid per voxel: (logp_bdhw, nvalid_bdhw,
+        K_volume_b33)."""
+        score, count, K_vol = self.score_volume(ref_b3hw, srcs_bn3hw, K_b33, T_src_ref_bn44)
+        return torch.log_softmax(score / self.temperature, dim=1), count, K_vol
 
 
 def select_source_frames(positions_n3, ref: int, baselines=(-0.3, -0.15, 0.15, 0.3)) -> list:

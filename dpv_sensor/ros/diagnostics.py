@@ -126,13 +126,16 @@ def mount_values(mount: dict) -> dict:
 
 def anchor_values(anchors: dict) -> dict:
     """The metric anchors' part of /diagnostics (``EstimatorStatus.anchors``): the mode, keyframes checked, aligned
-    and overruled (a region disagreed with its anchors beyond their sigma), anchors per checked keyframe, rejected
+    and overruled (a region disagreed with its anchors beyond their sigma) and those where the classical sweep was
+    blended into the overruled region (``anchor_fallback``), anchors per checked keyframe, rejected
     candidates by reason, and the last keyframe's anchors, scale and why nothing was applied."""
     checked = anchors.get('keyframes_checked', 0)
     values = {'depth_anchors': anchors.get('mode', 'off'),
               'anchors_keyframes': (f"{checked} checked, {anchors.get('keyframes_aligned', 0)} aligned, "
                                     f"{anchors.get('keyframes_overruled', 0)} overruled "
-                                    f"({anchors.get('pixels_overruled', 0)} pixels)"),
+                                    f"({anchors.get('pixels_overruled', 0)} pixels), "
+                                    f"{anchors.get('keyframes_fallback', 0)} with the classical sweep blended in "
+                                    f"({anchors.get('pixels_fallback', 0)} pixels mostly the sweep's)"),
               'anchors_per_keyframe': f"{anchors.get('anchors', 0) / checked:.0f}" if checked else '0',
               'anchors_rejected': ', '.join(f'{k} {v}' for k, v in sorted((anchors.get('rejected') or {}).items()))}
     last = anchors.get('last') or {}

@@ -31,7 +31,8 @@ from dpv_sensor.stream.estimator_config import (EstimatorConfig, EstimatorStatus
                                                 PoseRefiner, _Measurement, _Posterior, calibration_signature,
                                                 default_weights_path, output_size)
 from dpv_sensor.stream.keyframes import Keyframe, KeyframeSelector, KeyframeWindow
-from dpv_sensor.stream import confidence_features, keyframe_geometry, metric_anchors, window_pose_uncertainty
+from dpv_sensor.stream import (classical_fallback, confidence_features, keyframe_geometry, metric_anchors,
+                               window_pose_uncertainty)
 
 __all__ = ['EstimatorConfig', 'EstimatorStatus', 'Estimator', 'PoseRefinementRequest', 'default_weights_path',
            'MEASUREMENTS', 'FILTER_MODES']
@@ -99,6 +100,11 @@ class Estimator:
                                                     depth_range=(self.d_min, self.d_max))
         if cfg.depth_anchors != 'off' and cfg.pose_refinement != 'window':
             self._note(metric_anchors.NEEDS_WINDOW.format(mode=cfg.depth_anchors))
+        # the sweep's second opinion where the anchors overrule the networks (none when it is the measurement)
+        self.fallback = None
+        if cfg.anchor_fallback == 'classical' and cfg.depth_anchors != 'off' and self.measurement == 'network':
+            self.fallback = classical_fallback.ClassicalFallback(cfg, (self.d_min, self.d_max), self.num_planes,
+                                                                 self.device)
         if cfg.pose_refinement == 'window' and pose_refiner is None:
             self._note('pose_refinement=window requested but no pose refiner was given: poses are used as received')
         if cfg.cpu_precision == 'bfloat16' and self.device.type == 'cpu' and self.model is not None \
@@ -582,7 +588,9 @@ class Estimator:
             timings['upsample'] = self._ms(t)
 
         t = time.perf_counter()
-        depth, conf, anchor_report = self._hold_to_anchors(ref, depth, conf)
+        fallback = None if self.fallback is None else self.fallback.opinion(
+            ref.image_b3hw, ref.K_b33, [s.image_b3hw for s in sources], T_src_ref_t, timings)
+        depth, conf, anchor_report = self._hold_to_anchors(ref, depth, conf, fallback)
         timings['anchors'] = self._ms(t)
 
         t = time.perf_counter()
@@ -605,10 +613,11 @@ class Estimator:
         self._tracking = 'tracking'
         return out
 
-    def _hold_to_anchors(self, ref: Keyframe, depth_bhw: torch.Tensor, conf_bhw: torch.Tensor):
-        """The keyframe's depth and confidence held to its metric anchors (``depth_anchors``), and the report."""
+    def _hold_to_anchors(self, ref: Keyframe, depth_bhw: torch.Tensor, conf_bhw: torch.Tensor, fallback=None):
+        """The keyframe's depth and confidence held to its metric anchors (``depth_anchors``), and the report;
+        ``fallback``: the classical sweep's opinion where they overrule the networks (``anchor_fallback``)."""
         return metric_anchors.hold_to_anchors(self.anchors, self.pose_refiner, self._refinement_result(),
-                                              float(ref.stamp), ref.K_b33[0], depth_bhw, conf_bhw)
+                                              float(ref.stamp), ref.K_b33[0], depth_bhw, conf_bhw, fallback)
 
     def _chain_pose(self, T_odom_44: np.ndarray) -> np.ndarray:
         """Pose estimate of a new frame: its odometry motion since the newest keyframe chained onto that

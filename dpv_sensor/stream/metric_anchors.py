@@ -31,7 +31,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from dataclasses import dataclass, field
-from typing import Dict, Hashable, Optional, Tuple
+from typing import Callable, Dict, Hashable, Optional, Tuple
 
 import cv2
 import numpy as np
@@ -147,7 +147,9 @@ class AnchorReport:
     """One keyframe: anchors kept and candidates rejected by reason; those with a depth to compare (used) and the
     fit's inliers; the global scale (None: no fit) and its σ (log); what was applied ('none', 'scale', 'dense');
     pixels whose depth moved (the disagreement beyond correction_sigmas) and pixels where it exceeded
-    OVERRULE_SIGMAS (overruled); why nothing was applied."""
+    OVERRULE_SIGMAS (overruled); of those, the pixels where the classical sweep's depth outweighed the networks'
+    (fallback_pixels) and what the fallback did ('blended' or why not, None: not asked); why nothing was
+    applied."""
     anchors: int = 0
     rejected: Dict[str, int] = field(default_factory=dict)
     used: int = 0
@@ -157,6 +159,8 @@ class AnchorReport:
     applied: str = 'none'
     corrected_pixels: int = 0
     overruled_pixels: int = 0
+    fallback_pixels: int = 0
+    fallback: Optional[str] = None
     reason: Optional[str] = None
 
 
@@ -165,7 +169,8 @@ class AnchorStatus:
     """Since the start: the mode; keyframes checked (a window to triangulate from) and aligned (a fit applied);
     keyframes vetoed (the poses cannot anchor them: the images disagree with the odometry's directions) and
     keyframes whose anchors did not agree on a scale (not applied);
-    keyframes where some region disagreed with its anchors beyond their σ and the pixels that were; anchors kept
+    keyframes where some region disagreed with its anchors beyond their σ and the pixels that were; keyframes
+    where the classical sweep was blended in there and the pixels where it outweighed the networks; anchors kept
     and candidates rejected by reason; the last keyframe's report."""
     mode: str = 'off'
     keyframes_checked: int = 0
@@ -174,6 +179,8 @@ class AnchorStatus:
     keyframes_vetoed: int = 0
     keyframes_disagreeing: int = 0
     pixels_overruled: int = 0
+    keyframes_fallback: int = 0
+    pixels_fallback: int = 0
     anchors: int = 0
     rejected: Dict[str, int] = field(default_factory=dict)
     last: Optional[AnchorReport] = None
@@ -207,10 +214,13 @@ class AnchorAligner:
         return math.log(lo), math.log(max(hi, lo * 1.01))
 
     def apply(self, depth_hw: np.ndarray, conf_hw: np.ndarray, K_depth_33: np.ndarray, anchors: Optional[Anchors],
-              veto: Optional[str] = None) -> Tuple[np.ndarray, np.ndarray, AnchorReport]:
+              veto: Optional[str] = None, fallback: Optional[Callable[[], Optional[Tuple[np.ndarray, np.ndarray]]]]
+              = None) -> Tuple[np.ndarray, np.ndarray, AnchorReport]:
         """(depth, confidence, report) of one keyframe: ``depth_hw`` (m, NaN/0 = none) and ``conf_hw`` at the
         size of ``K_depth_33``; ``anchors`` None: none to check against, ``veto`` saying why (default: no window
-        to triangulate from). The arrays are returned as given (the same objects) when nothing is applied."""
+        to triangulate from). ``fallback``: called only when some pixels are overruled, the classical sweep's
+        (depth, confidence) of the keyframe at the same size (or None), blended in there. The arrays are returned
+        as given (the same objects) when nothing is applied."""
         st = self.status
         if anchors is None:
             rep = AnchorReport(reason=veto or 'no refinement window (pose_refinement off or no matches yet)')
@@ -232,23 +242,7 @@ class AnchorAligner:
         K = np.asarray(K_depth_33, np.float64)
         x = np.c_[anchors.uv_n2, np.ones(len(anchors))] @ np.linalg.inv(anchors.K_33).T @ K.T
         uv = x[:, :2]
-        d_at = anchor_math.sample_depth(depth_hw, uv)
-        H, W = depth_hw.shape
-        ix = np.clip(np.rint(uv[:, 0]), 0, W - 1).astype(np.int64)
-        iy = np.clip(np.rint(uv[:, 1]), 0, H - 1).astype(np.int64)
-        edge = anchor_math.depth_edge_mask(depth_hw, cfg.edge_log_range)[iy, ix] & np.isfinite(d_at)
-        d_at[edge] = np.nan
-        rep.rejected['depth_edge'] = int(edge.sum())
-        st.rejected['depth_edge'] = st.rejected.get('depth_edge', 0) + int(edge.sum())
-        if self.depth_range is not None:
-            # anchors outside the depth planes' range: the map cannot hold them, so they say nothing about it
-            out = ((anchors.depth_n < self.depth_range[0]) | (anchors.depth_n > self.depth_range[1])) & \
-                np.isfinite(d_at)
-            d_at[out] = np.nan
-            rep.rejected['out_of_planes'] = int(out.sum())
-            st.rejected['out_of_planes'] = st.rejected.get('out_of_planes', 0) + int(out.sum())
-        with np.errstate(divide='ignore', invalid='ignore'):
-            log_ratio = np.log(anchors.depth_n) - np.log(d_at)
+        log_ratio = self._log_ratios(depth_hw, anchors, uv, rep)
         fit = anchor_math.fit_log_scale(log_ratio, anchors, cfg)
         if fit is None:
             rep.used = int(np.isfinite(log_ratio).sum())
@@ -258,48 +252,161 @@ class AnchorAligner:
         if self.mode == 'off':
             rep.reason = "depth_anchors is 'off'"
             return depth_hw, conf_hw, rep
-        if fit.inliers < cfg.min_inlier_fraction * fit.used:
+        if self.mode == 'scale' and fit.inliers < cfg.min_inlier_fraction * fit.used:
             rep.reason = (f'the anchors do not agree on a scale ({fit.inliers} of {fit.used} within '
                           f'{cfg.huber_k:g} sigma)')
             st.keyframes_disagreeing += 1
             return depth_hw, conf_hw, rep
-        if self.mode == 'scale':
-            log_map = np.full(depth_hw.shape, fit.log_scale)
-            sigma_map = np.full(depth_hw.shape, fit.sigma)
-        else:
-            smap = anchor_math.fit_scale_map(log_ratio, anchors, uv, depth_hw, fit, self._log_range(depth_hw), cfg)
-            log_map, sigma_map = smap.log_scale_hw, smap.sigma_hw
-        # the anchor set's own systematic error (flow that underestimates a large displacement, a scene the poses
-        # do not quite explain) is shared by every anchor of a keyframe and no count of anchors averages it away
-        sigma_map = np.hypot(sigma_map, cfg.bias_sigma_log)
-        # a check first: the depth is corrected only by as much as the anchors disagree with it beyond
-        # correction_sigmas of their σ (soft threshold), so a network that agrees with its anchors is left alone
-        excess = np.maximum(np.abs(log_map) - cfg.correction_sigmas * sigma_map, 0.0)
-        applied = np.sign(log_map) * excess
-        # a disagreement beyond what the anchors' σ explains says the network was wrong there by about its size;
-        # where the depth moved at all, it is as uncertain as the correction
-        overruled = np.abs(log_map) > OVERRULE_SIGMAS * sigma_map
-        widen = np.where(overruled, np.hypot(sigma_map, np.abs(log_map)), np.where(excess > 0, sigma_map, 0.0))
+        held = self._hold(depth_hw, conf_hw, log_ratio, anchors, uv, fit)
+        if self.mode == 'dense':
+            # the map may say different things in different regions (a near desk put too far, the room right), but
+            # each anchor must agree with what it says where the anchor is: scattered anchors (poses that do not
+            # explain the images, bad matches) correct nothing
+            agree = self._agreeing(held.judge_hw, log_ratio, anchors, uv)
+            if agree < cfg.min_inlier_fraction * fit.used:
+                rep.reason = (f'the anchors do not agree with a scale map ({agree} of {fit.used} within '
+                              f'{cfg.huber_k:g} sigma of it)')
+                st.keyframes_disagreeing += 1
+                return depth_hw, conf_hw, rep
         valid = np.isfinite(depth_hw) & (depth_hw > 0)
-        rep.overruled_pixels = int((overruled & valid).sum())
-        rep.corrected_pixels = int(((excess > 0) & valid).sum())
+        overruled = held.overruled_hw & valid
+        rep.overruled_pixels = int(overruled.sum())
+        rep.corrected_pixels = int(((held.excess_hw > 0) & valid).sum())
         rep.applied = self.mode
         st.keyframes_aligned += 1
+        depth, conf = held.depth_hw, held.conf_hw
         if rep.overruled_pixels:
             st.keyframes_overruled += 1
             st.pixels_overruled += rep.overruled_pixels
+            if fallback is not None:
+                depth, conf = self._second_opinion(depth, conf, overruled, anchors, uv, fallback, rep)
+        return depth, conf, rep
+
+    def _log_ratios(self, depth_hw: np.ndarray, anchors: Anchors, uv_n2: np.ndarray,
+                    rep: Optional[AnchorReport] = None) -> np.ndarray:
+        """log(anchor depth / depth at its pixel) of every anchor; NaN at the depth map's edges, outside the depth
+        planes and where the map has no depth. With ``rep`` the two rejections are counted (its and the
+        status')."""
+        d_at = anchor_math.sample_depth(depth_hw, uv_n2)
+        H, W = depth_hw.shape
+        ix = np.clip(np.rint(uv_n2[:, 0]), 0, W - 1).astype(np.int64)
+        iy = np.clip(np.rint(uv_n2[:, 1]), 0, H - 1).astype(np.int64)
+        edge = anchor_math.depth_edge_mask(depth_hw, self.config.edge_log_range)[iy, ix] & np.isfinite(d_at)
+        d_at[edge] = np.nan
+        out = np.zeros(len(d_at), bool)
+        if self.depth_range is not None:
+            # anchors outside the depth planes' range: the map cannot hold them, so they say nothing about it
+            out = ((anchors.depth_n < self.depth_range[0]) | (anchors.depth_n > self.depth_range[1])) & \
+                np.isfinite(d_at)
+            d_at[out] = np.nan
+        if rep is not None:
+            st = self.status
+            rep.rejected['depth_edge'] = int(edge.sum())
+            st.rejected['depth_edge'] = st.rejected.get('depth_edge', 0) + int(edge.sum())
+            if self.depth_range is not None:
+                rep.rejected['out_of_planes'] = int(out.sum())
+                st.rejected['out_of_planes'] = st.rejected.get('out_of_planes', 0) + int(out.sum())
+        with np.errstate(divide='ignore', invalid='ignore'):
+            return np.log(anchors.depth_n) - np.log(d_at)
+
+    def _agreeing(self, map_hw: np.ndarray, log_ratio: np.ndarray, anchors: Anchors, uv_n2: np.ndarray) -> int:
+        """How many anchors with a depth to compare lie within huber_k of their σ (and the depth's own structure
+        error) of what ``map_hw`` says at their pixel."""
+        H, W = map_hw.shape
+        ix = np.clip(np.rint(uv_n2[:, 0]), 0, W - 1).astype(np.int64)
+        iy = np.clip(np.rint(uv_n2[:, 1]), 0, H - 1).astype(np.int64)
+        s = np.sqrt(anchors.sigma_ind_n ** 2 + anchors.sigma_pair_n ** 2 + self.config.depth_sigma_log ** 2)
+        with np.errstate(invalid='ignore'):
+            return int((np.abs(log_ratio - map_hw[iy, ix]) <= self.config.huber_k * s).sum())
+
+    def _hold(self, depth_hw: np.ndarray, conf_hw: np.ndarray, log_ratio: np.ndarray, anchors: Anchors,
+              uv_n2: np.ndarray, fit) -> '_Held':
+        """One depth map held to its anchors (the mode's scale or map): the corrected depth and confidence, the
+        correction's size beyond the anchors' σ, and where the disagreement exceeded OVERRULE_SIGMAS."""
+        cfg = self.config
+        if self.mode == 'scale':
+            log_map = judge_map = np.full(depth_hw.shape, fit.log_scale)
+            sigma_map = judge_sigma = np.full(depth_hw.shape, fit.sigma)
+        else:
+            log_range = self._log_range(depth_hw)
+            smap = anchor_math.fit_scale_map(log_ratio, anchors, uv_n2, depth_hw, fit, log_range, cfg)
+            log_map, sigma_map = smap.log_scale_hw, smap.sigma_hw
+            # the judge: the same map with the support counted in the anchors' own weights, so a region whose
+            # anchors all say the depth is off is heard (the cautious map's prior outweighs a few dozen anchors)
+            judge = anchor_math.fit_scale_map(log_ratio, anchors, uv_n2, depth_hw, fit, log_range, cfg,
+                                              readback=anchor_math.GRID_READBACK)
+            judge_map, judge_sigma = judge.log_scale_hw, judge.sigma_hw
+        # the anchor set's own systematic error (flow that underestimates a large displacement, a scene the poses
+        # do not quite explain) is shared by every anchor of a keyframe and no count of anchors averages it away
+        sigma_map = np.hypot(sigma_map, cfg.bias_sigma_log)
+        judge_sigma = np.hypot(judge_sigma, cfg.bias_sigma_log)
+        # a disagreement beyond what the anchors' σ explains says the depth was wrong there by about its size: it
+        # is overruled, corrected by the judge's map less its σ, and as uncertain as the disagreement was large
+        overruled = np.abs(judge_map) > OVERRULE_SIGMAS * judge_sigma
+        # elsewhere a check first: the depth is corrected only by as much as the cautious map disagrees with it
+        # beyond correction_sigmas of its σ (soft threshold), so a network that agrees with its anchors is left
+        # alone, and where the depth moved at all, it is as uncertain as the correction
+        excess = np.where(overruled, np.abs(judge_map) - cfg.correction_sigmas * judge_sigma,
+                          np.maximum(np.abs(log_map) - cfg.correction_sigmas * sigma_map, 0.0))
+        applied = np.where(overruled, np.sign(judge_map), np.sign(log_map)) * excess
+        widen = np.where(overruled, np.hypot(judge_sigma, np.abs(judge_map)), np.where(excess > 0, sigma_map, 0.0))
+        valid = np.isfinite(depth_hw) & (depth_hw > 0)
         depth = np.where(valid, depth_hw * np.exp(applied), depth_hw).astype(depth_hw.dtype)
         conf = conf_hw.copy()
         moved = widen > 0
         conf[moved] = anchor_math.widened_confidence(conf_hw[moved], widen[moved], self.ratio)
-        return depth, conf, rep
+        return _Held(depth, conf, excess, overruled, judge_map)
+
+    def _second_opinion(self, depth_hw: np.ndarray, conf_hw: np.ndarray, overruled_hw: np.ndarray, anchors: Anchors,
+                        uv_n2: np.ndarray, fallback, rep: AnchorReport) -> Tuple[np.ndarray, np.ndarray]:
+        """Where the networks were overruled, the classical sweep's depth (``fallback()``: its depth and
+        confidence at the same pixels, or None), held to the same anchors the same way, blended in by confidence
+        (:func:`~dpv_sensor.core.anchors.blend_log_depth`): a region the sweep explains better than the networks
+        takes the sweep's depth; where the sweep has no texture to go by, the networks' corrected depth stays."""
+        st = self.status
+        got = fallback()
+        if got is None:
+            rep.fallback = 'no classical depth for this keyframe'
+            return depth_hw, conf_hw
+        dc, cc = got
+        log_ratio = self._log_ratios(dc, anchors, uv_n2)
+        fit = anchor_math.fit_log_scale(log_ratio, anchors, self.config)
+        if fit is None:
+            rep.fallback = 'too few anchors on the classical depth'
+            return depth_hw, conf_hw
+        held = self._hold(dc, np.asarray(cc, np.float32), log_ratio, anchors, uv_n2, fit)
+        region = overruled_hw & np.isfinite(held.depth_hw) & (held.depth_hw > 0) & (held.conf_hw > 0)
+        d, c, w = anchor_math.blend_log_depth(depth_hw[region].astype(np.float64), conf_hw[region],
+                                              held.depth_hw[region].astype(np.float64), held.conf_hw[region],
+                                              self.ratio)
+        depth, conf = depth_hw.copy(), conf_hw.copy()
+        depth[region] = d
+        conf[region] = c
+        rep.fallback_pixels = int((w > 0.5).sum())
+        rep.fallback = 'blended'
+        st.keyframes_fallback += 1
+        st.pixels_fallback += rep.fallback_pixels
+        return depth, conf
 
 
-def hold_to_anchors(aligner: AnchorAligner, refiner, result, ref_key: float, K_b33_t, depth_bhw, conf_bhw):
+@dataclass
+class _Held:
+    """One depth map held to its anchors: the corrected depth and confidence, the correction beyond the anchors' σ
+    (log), where the disagreement exceeded OVERRULE_SIGMAS, and the judge's log-scale map."""
+    depth_hw: np.ndarray
+    conf_hw: np.ndarray
+    excess_hw: np.ndarray
+    overruled_hw: np.ndarray
+    judge_hw: np.ndarray
+
+
+def hold_to_anchors(aligner: AnchorAligner, refiner, result, ref_key: float, K_b33_t, depth_bhw, conf_bhw,
+                    fallback=None):
     """The estimator's hook: (depth, confidence, report) of a keyframe, tensors (1, H, W) at the size of
     ``K_b33_t``, held to the anchors that the window refiner's last ``result`` triangulates for ``ref_key``.
     Unchanged tensors without a refined window or under the veto (the refiner's ``direction_ratio`` above its
-    threshold: the images contradict the odometry's directions); nothing computed (report None) with mode 'off'."""
+    threshold: the images contradict the odometry's directions); nothing computed (report None) with mode 'off'.
+    ``fallback``: :meth:`AnchorAligner.apply`'s."""
     if aligner.mode == 'off':
         return depth_bhw, conf_bhw, None
     anchors, veto = None, None
@@ -313,7 +420,7 @@ def hold_to_anchors(aligner: AnchorAligner, refiner, result, ref_key: float, K_b
         anchors = reference_anchors(result, ref_key, aligner.config)
     d = depth_bhw[0].detach().float().cpu().numpy()
     c = conf_bhw[0].detach().float().cpu().numpy()
-    d2, c2, report = aligner.apply(d, c, K_b33_t.detach().double().cpu().numpy(), anchors, veto)
+    d2, c2, report = aligner.apply(d, c, K_b33_t.detach().double().cpu().numpy(), anchors, veto, fallback)
     if d2 is d:
         return depth_bhw, conf_bhw, report
     return (torch.as_tensor(d2, device=depth_bhw.device, dtype=depth_bhw.dtype)[None],
