@@ -176,6 +176,16 @@ def nees(err, cov) -> float:
         return math.inf
 
 
+def _nees_rows(errs: np.ndarray, covs: np.ndarray) -> np.ndarray:
+    """:func:`nees` of every row (``errs`` (n, k), ``covs`` (n, k, k)) at once; inf where a covariance is
+    singular, as :func:`nees` gives."""
+    try:
+        x = np.linalg.solve(covs, errs[:, :, None])[:, :, 0]
+    except np.linalg.LinAlgError:                                          # one singular: row by row, as nees does
+        return np.asarray([nees(e, S) for e, S in zip(errs, covs)])
+    return np.asarray([float(e @ v) for e, v in zip(errs, x)])
+
+
 def fit_floors(rows: Seq[PairError]) -> Tuple[float, float]:
     """(rotation, direction) floors in degrees at which the median NEES of the direction and of the rotation given
     the direction are the honest medians (1.39 and 2.37): a median is blind to the gross errors (repeated texture
@@ -185,10 +195,19 @@ def fit_floors(rows: Seq[PairError]) -> Tuple[float, float]:
     if not rows:
         return 0.0, 0.0
 
+    errs = np.asarray([r.err for r in rows], np.float64)                  # (n, 5)
+    covs = np.asarray([r.cov for r in rows], np.float64)                  # (n, 5, 5)
+
     def cost(br, bd):
-        parts = [blocks(r, br, bd) for r in rows]
-        med_dir = float(np.median([nees(*p[1]) for p in parts]))
-        med_cond = float(np.median([nees(*p[2]) for p in parts]))
+        # blocks() and nees() on every row at once (the same LAPACK and BLAS calls per matrix, so the same numbers)
+        S = covs + floors(5, br, bd)
+        e_dir, S_dir = errs[:, 3:], S[:, 3:, 3:]
+        G = S[:, :3, 3:] @ np.linalg.pinv(S_dir)
+        cov_cond = S[:, :3, :3] - G @ S[:, 3:, :3]
+        cov_cond = 0.5 * (cov_cond + np.swapaxes(cov_cond, -1, -2))
+        e_cond = errs[:, :3] - (G @ e_dir[:, :, None])[:, :, 0]
+        med_dir = float(np.median(_nees_rows(e_dir, S_dir)))
+        med_cond = float(np.median(_nees_rows(e_cond, cov_cond)))
         return math.log(med_dir / CHI2_MEDIAN[2]) ** 2 + math.log(med_cond / CHI2_MEDIAN[3]) ** 2
 
     def search(grid_r, grid_d):
