@@ -53,6 +53,14 @@ NEEDS_WINDOW = ('depth_anchors={mode} needs pose_refinement=window (its matches 
 #: a correction counts as a disagreement of the network with its anchors beyond their σ above this many σ
 OVERRULE_SIGMAS = 3.0
 
+#: the judge's bins of log depth over the depth planes: about 1.25x a bin over 0.3-8 m, so that a surface and
+#: another at twice its depth do not share a bin after the grid's blur (the cautious map's 8 bins are 1.6x)
+JUDGE_DEPTH_BINS = 16
+
+#: the judge overrules only where its support is at least this many anchors' weight (anchors whose σ is the depth's
+#: own structure error, ``depth_sigma_log``)
+JUDGE_MIN_ANCHORS = 3.0
+
 
 def reference_anchors(result, ref_key: Hashable, config: AnchorConfig = AnchorConfig()) -> Anchors:
     """The anchors of the reference keyframe ``ref_key`` from a window refiner's result (its ``matches`` and
@@ -203,6 +211,7 @@ class AnchorAligner:
         self.ratio = float(ratio)
         self.depth_range = depth_range
         self.status = AnchorStatus(mode=mode)
+        self._min_support = JUDGE_MIN_ANCHORS / config.depth_sigma_log ** 2
 
     def _log_range(self, depth_hw: np.ndarray) -> Tuple[float, float]:
         """The log depths the scale map spans: the depth planes' range, else the map's own 1st to 99th
@@ -327,22 +336,27 @@ class AnchorAligner:
         if self.mode == 'scale':
             log_map = judge_map = np.full(depth_hw.shape, fit.log_scale)
             sigma_map = judge_sigma = np.full(depth_hw.shape, fit.sigma)
+            judge_support = np.full(depth_hw.shape, np.inf)
         else:
             log_range = self._log_range(depth_hw)
             smap = anchor_math.fit_scale_map(log_ratio, anchors, uv_n2, depth_hw, fit, log_range, cfg)
             log_map, sigma_map = smap.log_scale_hw, smap.sigma_hw
             # the judge: the same map with the support counted in the anchors' own weights, so a region whose
-            # anchors all say the depth is off is heard (the cautious map's prior outweighs a few dozen anchors)
-            judge = anchor_math.fit_scale_map(log_ratio, anchors, uv_n2, depth_hw, fit, log_range, cfg,
+            # anchors all say the depth is off is heard (the cautious map's prior outweighs a few dozen anchors),
+            # with finer bins of depth (a coarser image grid would carry a region's verdict a whole cell beyond its
+            # anchors: onto a wall that happens to stand where the doubled desk seems to be)
+            judge = anchor_math.fit_scale_map(log_ratio, anchors, uv_n2, depth_hw, fit, log_range,
+                                              dataclasses.replace(cfg, grid_depth_bins=JUDGE_DEPTH_BINS),
                                               readback=anchor_math.GRID_READBACK)
-            judge_map, judge_sigma = judge.log_scale_hw, judge.sigma_hw
+            judge_map, judge_sigma, judge_support = judge.log_scale_hw, judge.sigma_hw, judge.support_hw
         # the anchor set's own systematic error (flow that underestimates a large displacement, a scene the poses
         # do not quite explain) is shared by every anchor of a keyframe and no count of anchors averages it away
         sigma_map = np.hypot(sigma_map, cfg.bias_sigma_log)
         judge_sigma = np.hypot(judge_sigma, cfg.bias_sigma_log)
         # a disagreement beyond what the anchors' σ explains says the depth was wrong there by about its size: it
         # is overruled, corrected by the judge's map less its σ, and as uncertain as the disagreement was large
-        overruled = np.abs(judge_map) > OVERRULE_SIGMAS * judge_sigma
+        # only where the anchors are: a region the judge reaches by its blur's tails alone is not judged
+        overruled = (np.abs(judge_map) > OVERRULE_SIGMAS * judge_sigma) & (judge_support >= self._min_support)
         # elsewhere a check first: the depth is corrected only by as much as the cautious map disagrees with it
         # beyond correction_sigmas of its σ (soft threshold), so a network that agrees with its anchors is left
         # alone, and where the depth moved at all, it is as uncertain as the correction

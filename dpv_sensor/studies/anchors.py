@@ -47,12 +47,12 @@ def collect_windows(seq_dir: pathlib.Path, pose_source: str) -> List[Dict]:
     windows = {}
     hold = EST.Estimator._hold_to_anchors
 
-    def keep(self, ref, depth, conf):
+    def keep(self, ref, depth, conf, fallback=None):
         res = self._refinement_result()
         if res is not None and float(ref.stamp) in res.T_world_cam:
             windows[float(ref.stamp)] = (res.matches, {k: v.copy() for k, v in res.T_world_cam.items()},
                                          dict(res.match_images), getattr(self.pose_refiner, 'direction_ratio', None))
-        return hold(self, ref, depth, conf)
+        return hold(self, ref, depth, conf, fallback)
 
     EST.Estimator._hold_to_anchors = keep
     try:
