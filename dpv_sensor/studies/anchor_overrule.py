@@ -11,7 +11,7 @@ what the defaults do to a right depth), the planted depth with ``anchor_fallback
 ``classical`` (the default). Printed per run, over the keyframes: abs_rel of the planted pixels (the networks
 before the plant; planted; judged; judged with the sweep), how many of them are published with confidence >= 0.9
 and how many of those are within x1.25; abs_rel of the whole image (the networks; the defaults on them; planted;
-judged; with the sweep); keyframes overruled of those checked.
+judged; with the sweep); keyframes overruled of those checked; the anchors that fall on the planted pixels.
 """
 from __future__ import annotations
 
@@ -55,7 +55,8 @@ def planted_run(seq_dir: pathlib.Path, pose_source: str) -> List[Dict]:
         pd = net_d.copy()
         pd[near] *= PLANT_FACTOR
         pd_t = torch.as_tensor(pd, dtype=depth.dtype)[None]
-        row = {'gt': gt, 'valid': valid, 'near': near, 'net': (net_d, net_c), 'planted': (pd, net_c)}
+        row = {'gt': gt, 'valid': valid, 'near': near, 'net': (net_d, net_c), 'planted': (pd, net_c),
+               'near_anchors': _anchors_in(self, ref, near)}
         d, c, _ = hold(self, ref, depth, conf, fallback)
         row['defaults'] = (d[0].float().cpu().numpy(), c[0].float().cpu().numpy())
         d, c, rep = hold(self, ref, pd_t, conf, None)
@@ -75,6 +76,23 @@ def planted_run(seq_dir: pathlib.Path, pose_source: str) -> List[Dict]:
     finally:
         EST.Estimator._hold_to_anchors = hold
     return rows
+
+
+def _anchors_in(estimator, ref, mask_hw: np.ndarray) -> int:
+    """How many of the keyframe's anchors lie in ``mask_hw`` (processing size)."""
+    from dpv_sensor.stream import metric_anchors as MA
+    result = estimator._refinement_result()
+    if result is None or float(ref.stamp) not in getattr(result, 'T_world_cam', {}):
+        return 0
+    a = MA.reference_anchors(result, float(ref.stamp), estimator.anchors.config)
+    if not len(a):
+        return 0
+    K = ref.K_b33[0].double().cpu().numpy()
+    uv = (np.c_[a.uv_n2, np.ones(len(a))] @ np.linalg.inv(a.K_33).T @ K.T)[:, :2]
+    H, W = mask_hw.shape
+    ix = np.clip(np.rint(uv[:, 0]), 0, W - 1).astype(np.int64)
+    iy = np.clip(np.rint(uv[:, 1]), 0, H - 1).astype(np.int64)
+    return int(mask_hw[iy, ix].sum())
 
 
 def _abs_rel(d: np.ndarray, gt: np.ndarray, m: np.ndarray) -> float:
@@ -109,6 +127,7 @@ def summarise(rows: List[Dict]) -> Dict:
         elif rep is not None and rep.anchors:
             checked += 1
     return {'keyframes': len(rows), 'checked': checked, 'overruled': overruled,
+            'near_anchors': float(np.median([r['near_anchors'] for r in rows])) if rows else 0.0,
             'near': {k: float(np.nanmean(v)) if v else None for k, v in near.items()},
             'whole': {k: float(np.nanmean(v)) if v else None for k, v in whole.items()},
             'confident': {k: (v[1] / v[0] if v[0] else 0.0, v[2] / v[1] if v[1] else None)
@@ -124,12 +143,13 @@ def _row(name: str, s: Dict) -> str:
     return (f"| {name} | {n['net']:.3f} / {n['planted']:.3f} / {n['judged']:.3f} / {n['sweep']:.3f} | "
             f"{conf('planted')} / {conf('judged')} / {conf('sweep')} | "
             f"{w['net']:.4f} / {w['defaults']:.4f} / {w['planted']:.4f} / {w['judged']:.4f} / {w['sweep']:.4f} | "
-            f"{s['overruled']} / {s['checked']} / {s['keyframes']} |")
+            f"{s['overruled']} / {s['checked']} / {s['keyframes']} | {s['near_anchors']:.0f} |")
 
 
 HEADER = ('| sequence, poses | planted pixels abs_rel: networks / planted / judged / + sweep | planted pixels at '
           'conf >= 0.9 (within x1.25): planted / judged / + sweep | whole image abs_rel: networks / defaults / '
-          'planted / judged / + sweep | keyframes overruled / checked / all |\n|---|---|---|---|---|')
+          'planted / judged / + sweep | keyframes overruled / checked / all | anchors on the planted pixels, median '
+          'per keyframe |\n|---|---|---|---|---|---|')
 
 
 def main(argv=None) -> int:
