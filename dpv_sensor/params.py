@@ -104,12 +104,12 @@ SPECS: tuple[ParamSpec, ...] = (
               'anchors (a camera turning in place), or whose odometry directions the images contradict, are '
               'unchanged. Needs pose_refinement: window.',
               choices=('off', 'scale', 'dense')),
-    ParamSpec('anchor_fallback', 'classical', "Where the metric anchors overrule the networks' depth (it disagrees "
-              'with them by more than three sigma), classical: the training-free plane sweep of the same keyframe '
-              'is computed, held to the same anchors, and blended in there by confidence, so a region the sweep '
-              'explains better takes its depth; off: the networks keep the overruled region (corrected towards '
-              'the anchors, its confidence lowered). Costs a sweep only on keyframes with overruled pixels; nothing '
-              'when the measurement is already classical.',
+    ParamSpec('anchor_fallback', 'off', "Where the metric anchors overrule the networks' depth (it disagrees "
+              'with them by more than three sigma), off: the networks keep the overruled region, corrected to the '
+              'anchors there, its confidence lowered; classical: the training-free plane sweep of the same keyframe '
+              'is also computed, held to the same anchors, and blended in there by confidence (dense anchors only). '
+              'Costs a sweep only on keyframes with overruled pixels; nothing when the measurement is already '
+              'classical. off by default: on renders with a planted error the blend made the corrected depth worse.',
               choices=('classical', 'off')),
     ParamSpec('damping', 0.8, 'Global damping lambda of the prediction energy (paper eq. 8).',
               min_value=0.0, max_value=1.0),

@@ -29,17 +29,44 @@ def test_blend_by_hand():
     # weights 1 / 0.04 and 1 / 0.01: b has 100 / 125 = 0.8; log d = 0.2 log 2
     assert w[0] == pytest.approx(0.8, rel=1e-6)
     assert d[0] == pytest.approx(2.0 ** 0.2, rel=1e-6)
-    assert c[0] == pytest.approx(cb[0])                     # the larger confidence, no credit for the combination
+    # the smaller std (0.1), widened by the mixture's spread 0.8 x 0.2 x (log 2)^2: sqrt(0.01 + 0.076872) = 0.29474
+    assert c[0] == pytest.approx(A.band_confidence(np.array([math.sqrt(0.01 + 0.16 * math.log(2) ** 2)]))[0])
+    assert c[0] == pytest.approx(A.band_confidence(np.array([0.29474]))[0], rel=1e-4)
+    d, c, w = A.blend_log_depth(np.array([1.0]), ca, np.array([1.0]), cb)
+    assert c[0] == pytest.approx(cb[0])                     # agreeing: the larger confidence, no credit for both
     d, c, w = A.blend_log_depth(np.array([2.0]), ca, np.array([1.0]), np.array([0.0]))
     assert w[0] == 0.0 and d[0] == pytest.approx(2.0) and c[0] == pytest.approx(ca[0])
 
 
-def test_grid_readback_is_the_mean_of_what_one_axis_gives_back_cubed():
-    # per axis at a fraction f past a node: 0.5 ((1 - f)^2 + f^2) + 0.5 f (1 - f); its mean over f is 1/3 + 1/12
-    f = (np.arange(100000) + 0.5) / 100000
-    per_axis = 0.5 * ((1 - f) ** 2 + f ** 2) + 0.5 * f * (1 - f)
-    assert per_axis.mean() == pytest.approx(5 / 12, rel=1e-6)
-    assert A.GRID_READBACK == pytest.approx((5 / 12) ** 3, rel=1e-12)
+@pytest.mark.parametrize('x,y', [(0, 0), (319, 255), (0, 130), (160, 128), (141, 107)])
+def test_the_judge_counts_a_lone_anchor_as_its_own_weight_anywhere(x, y):
+    """A lone exact anchor at a corner, an edge, the middle, next to a node: the judge's support at its own pixel is
+    its weight 1 / (0 + 0 + 0.1^2) = 100, whatever share of it the grid reads back there (3/4 per axis at an end
+    node, 1/2 at an interior one: 0.42 in a corner, 1/8 in the middle); the cautious map's is that share of it."""
+    depth = np.full(SIZE_HW, 2.0)
+    uv = np.array([[float(x), float(y)]])
+    anchors = A.Anchors(uv, np.array([2.0 * math.exp(0.1)]), np.zeros(1), np.zeros(1), np.zeros(1, np.int64), K)
+    fit = A.ScaleFit(0.1, 0.0, 1, 1, np.ones(1))
+    cfg = A.AnchorConfig(grid_depth_bins=16)
+    judge = A.fit_scale_map(np.array([0.1]), anchors, uv, depth, fit, (math.log(0.3), math.log(8.0)), cfg,
+                            in_anchor_weights=True)
+    assert judge.support_hw[y, x] == pytest.approx(100.0, rel=1e-4)
+    # the judge's map is the anchors' weighted mean, here the lone anchor's 0.1, its sigma sqrt(1 / 100)
+    assert judge.log_scale_hw[y, x] == pytest.approx(0.1, rel=1e-4)
+    assert judge.sigma_hw[y, x] == pytest.approx(0.1, rel=1e-4)
+    cautious = A.fit_scale_map(np.array([0.1]), anchors, uv, depth, fit, (math.log(0.3), math.log(8.0)), cfg)
+    gy, gx = (y + 0.5) / 256 * 6 - 0.5, (x + 0.5) / 320 * 8 - 0.5
+    gz = (math.log(2.0) - math.log(0.3)) / (math.log(8.0) - math.log(0.3)) * 15
+    back = (A.axis_readback(np.clip([gy], 0, 5), 6) * A.axis_readback(np.clip([gx], 0, 7), 8)
+            * A.axis_readback(np.array([gz]), 16))[0]
+    assert cautious.support_hw[y, x] == pytest.approx(100.0 * back, rel=1e-4)
+
+
+def test_axis_readback_by_hand():
+    # 5 nodes: 1/2 at an interior node, 3/4 at an end node, half way between two interior nodes
+    # 0.25 (1/2) + 0.5 (1/4) + 0.25 (1/2) = 3/8
+    assert A.axis_readback(np.array([2.0, 0.0, 4.0, 1.5]), 5) == pytest.approx([0.5, 0.75, 0.75, 0.375])
+    assert A.axis_readback(np.array([0.3]), 1) == pytest.approx([1.0])
 
 
 def _anchors(uv, depth, sigma):
@@ -99,22 +126,22 @@ def test_anchors_that_agree_within_their_sigma_overrule_nothing():
 
 
 def test_the_classical_depth_is_blended_in_where_the_networks_are_overruled():
-    """The networks put the table at twice its depth; the sweep has it within 3 % at confidence 0.8 (its
-    texture), and nothing at all on the blank wall: the table comes back to within 8 % of the truth, the wall is
+    """The networks put the table at twice its depth; the sweep has it right at confidence 0.8 (its texture), and
+    nothing at all on the blank wall: the table ends nearer the truth than the judge alone brings it, the wall is
     the networks' as before, and the counters say where the sweep outweighed the networks."""
     gt, anchors = _table_scene()
     net = gt.copy()
     net[160:] *= 2.0
     conf = np.full(SIZE_HW, 0.95, np.float32)
-    sweep_d = gt * 1.03
+    sweep_d = gt.copy()
     sweep_c = np.where(np.arange(SIZE_HW[0])[:, None] >= 160, 0.8, 0.0).astype(np.float32) * np.ones(SIZE_HW)
     plain = MA.AnchorAligner('dense', depth_range=(0.3, 8.0))
     d0, c0, _ = plain.apply(net, conf, K, anchors)
     aligner = MA.AnchorAligner('dense', depth_range=(0.3, 8.0))
     d, c, rep = aligner.apply(net, conf, K, anchors, fallback=lambda: (sweep_d, sweep_c.astype(np.float32)))
     table = (slice(180, 256), slice(0, 320))
-    assert abs(np.median(d[table] / gt[table]) - 1.0) < 0.08
-    assert abs(np.median(d0[table] / gt[table]) - 1.0) > 0.1      # without the sweep, farther
+    err, err0 = np.abs(np.log(d[table] / gt[table])), np.abs(np.log(d0[table] / gt[table]))
+    assert np.median(err) < 0.02 and np.median(err) < 0.5 * np.median(err0), (np.median(err), np.median(err0))
     assert np.median(c[table]) > np.median(c0[table])             # the sweep's confidence where it outweighed
     assert rep.fallback == 'blended' and rep.fallback_pixels > 0.9 * 76 * 320
     st = aligner.status
@@ -152,7 +179,8 @@ def doubled_run():
     mp = pytest.MonkeyPatch()
     mp.setattr(EST.Estimator, '_hold_to_anchors', doubled)
     try:
-        config, _ = RN.build_config({'processing_width': 160, 'processing_height': 128})
+        config, _ = RN.build_config({'processing_width': 160, 'processing_height': 128,
+                                     'anchor_fallback': 'classical'})
         pipe = Pipeline(config)
         frames = [Frame(stamp=float(room.stamp(i)), image=room.image(i), K_33=np.asarray(room.K, np.float64),
                         T_world_cam_44=np.asarray(room.pose(i)), frame_id='camera') for i in range(len(room))]
@@ -191,9 +219,13 @@ def test_pipeline_overrules_a_doubled_region_and_blends_the_sweep_in(doubled_run
 def test_no_fallback_when_the_measurement_is_the_sweep_or_when_switched_off():
     from dpv_sensor.evaluation import runner as RN
     from dpv_sensor.stream.pipeline import Pipeline
-    for params in ({'measurement': 'classical'}, {'anchor_fallback': 'off'}, {'depth_anchors': 'off'}):
+    for params in ({'measurement': 'classical'}, {}, {'depth_anchors': 'off'},
+                   {'weights': '/nonexistent/weights.safetensors'}):       # auto falls back to the sweep
+        params = dict({'anchor_fallback': 'classical'}, **params) if params else params
         config, _ = RN.build_config(dict({'processing_width': 96, 'processing_height': 72}, **params))
-        assert Pipeline(config).estimator.fallback is None, params
+        est = Pipeline(config).estimator
+        assert est.fallback is None, params
+    assert est.measurement == 'classical'
 
 
 def test_the_judge_does_not_reach_where_no_anchor_is():
@@ -212,3 +244,20 @@ def test_the_judge_does_not_reach_where_no_anchor_is():
     assert rep.overruled_pixels > 0
     top = (slice(0, 100), slice(0, 320))
     assert np.array_equal(d[top], net[top]) and np.array_equal(c[top], conf[top])
+
+
+def test_scattered_anchors_correct_nothing_and_scale_mode_blends_nothing():
+    """A third of the anchors say the depth is right, a third 1.5x too far, a third 1.5x too near, in the same
+    places: no map can agree with most of them, nothing changes; with depth_anchors 'scale' a whole image 1.3x too
+    far is overruled, but the sweep is not blended into the whole image."""
+    gt, anchors = _table_scene(n_table=60)
+    z = anchors.depth_n.copy()
+    z[0::3] *= 1.5
+    z[1::3] /= 1.5
+    conf = np.full(SIZE_HW, 0.9, np.float32)
+    d, c, rep = MA.AnchorAligner('dense', depth_range=(0.3, 8.0)).apply(gt, conf, K, _anchors(anchors.uv_n2, z, 0.05))
+    assert d is gt and c is conf and rep.reason.startswith('the anchors do not agree with a scale map'), rep
+    asked = []
+    d, c, rep = MA.AnchorAligner('scale', depth_range=(0.3, 8.0)).apply(
+        gt * 1.3, conf, K, anchors, fallback=lambda: asked.append(1))
+    assert rep.overruled_pixels == gt.size and not asked and rep.fallback is None

@@ -65,6 +65,7 @@ STAGES = (
     ('refine.readout', 'readout'),
     ('refine.edge_filter', 'edge filter'),
     ('anchors', 'metric anchors'),
+    ('anchors.classical', 'classical fallback'),
     ('output', 'output'),
 )
 

@@ -50,7 +50,7 @@ from scipy.special import erf, erfinv
 __all__ = ['AnchorConfig', 'Anchors', 'ScaleFit', 'ScaleMap', 'triangulate_pair', 'triangulate_track',
            'concat_anchors', 'fit_log_scale', 'fit_scale_map', 'widened_confidence', 'sample_depth',
            'depth_edge_mask', 'weighted_median', 'refine_tracks', 'confidence_sigma', 'band_confidence',
-           'blend_log_depth', 'GRID_READBACK']
+           'blend_log_depth', 'axis_readback']
 
 
 @dataclass(frozen=True)
@@ -471,15 +471,28 @@ def _slice_image(grids: np.ndarray, gz_hw: np.ndarray, size_hw: Tuple[int, int])
     return out.astype(np.float64)
 
 
-#: the share of an anchor's weight that the grid gives back at the anchor's own position, on average over positions:
-#: per axis, trilinear splat, [1 2 1] / 4 blur and trilinear read give back 0.5 ((1 - f)^2 + f^2) + 0.5 f (1 - f) at
-#: a fraction f between nodes, whose mean over f is 5 / 12; cubed over the three axes
-GRID_READBACK = (5.0 / 12.0) ** 3
+def axis_readback(g: np.ndarray, n: int) -> np.ndarray:
+    """What the grid gives back, along one axis of ``n`` nodes, of a unit weight splatted at grid coordinate ``g``
+    and read at the same coordinate: ``s^T B s`` with ``s`` the two linear splat weights and ``B`` the [1 2 1] / 4
+    blur whose ends repeat the end node (``mode='nearest'``). 1/2 at an interior node, 3/8 half way between two,
+    3/4 at an end node; the product over the three axes is the share of an anchor's weight read back at its own
+    position (about 1/14 on average inside the grid, up to 0.42 in its corners)."""
+    g = np.asarray(g, np.float64)
+    if n == 1:
+        return np.ones_like(g)
+    B = np.zeros((n, n))
+    for i in range(n):
+        B[i, i] += 0.5
+        B[i, max(i - 1, 0)] += 0.25
+        B[i, min(i + 1, n - 1)] += 0.25
+    lo = np.minimum(np.floor(g).astype(np.int64), n - 2)
+    f = g - lo
+    return (1 - f) ** 2 * B[lo, lo] + 2 * f * (1 - f) * B[lo, lo + 1] + f ** 2 * B[lo + 1, lo + 1]
 
 
 def fit_scale_map(log_ratio_n: np.ndarray, anchors: Anchors, uv_n2: np.ndarray, depth_hw: np.ndarray,
                   fit: ScaleFit, log_range: Tuple[float, float], config: AnchorConfig = AnchorConfig(),
-                  readback: Optional[float] = None) -> ScaleMap:
+                  in_anchor_weights: bool = False) -> ScaleMap:
     """The depth-aware scale map (module doc) of a depth map from its anchors at pixels ``uv_n2`` of it and their
     log ratios: a bilateral grid over (row, column, log depth of the map) in which each anchor's log ratio is
     splatted with its weight ``1 / (sigma_i^2 + sigma_depth^2)``, blurred, and read at every pixel at its own
@@ -488,11 +501,13 @@ def fit_scale_map(log_ratio_n: np.ndarray, anchors: Anchors, uv_n2: np.ndarray, 
     ``log_range``: the log depths the grid spans (the depth planes'); ``fit``: the global fit (its std, mostly the
     pairs' shared pose error, is added to every pixel's).
 
-    ``readback`` None: the support as the grid reads it back, a fraction of the anchors' own weights (a lone
-    anchor's read at its own pixel is about an eighth of it), so the prior outweighs each anchor several times over:
-    a cautious correction. ``readback`` (e.g. :data:`GRID_READBACK`): the support counted in the anchors' own
-    weights (divided by it), so the map's σ is about that of a weighted mean of the anchors near and the prior is
-    worth ``grid_prior_anchors`` of them: the map that judges whether a region disagrees with its anchors."""
+    By default the support is what the grid reads back, a fraction of the anchors' own weights (a lone anchor's
+    read at its own pixel is 1/8 of it at a node, about 1/14 on average), so the prior outweighs each anchor several
+    times over: a cautious correction. ``in_anchor_weights``: the support divided by what the grid gives back at
+    each position (:func:`axis_readback` over the three axes, at the anchors and at every pixel), so it counts the
+    anchors' own weights (an anchor at the pixel counts whole, one a cell away about half), and no pull towards no
+    correction: the map is the kernel-weighted mean of the anchors near and its σ that mean's (infinite without
+    anchors near): the map that judges whether a region disagrees with its anchors."""
     shape = (config.grid_rows, config.grid_cols, config.grid_depth_bins)
     d = np.asarray(depth_hw, np.float64)
     H, W = d.shape
@@ -503,10 +518,9 @@ def fit_scale_map(log_ratio_n: np.ndarray, anchors: Anchors, uv_n2: np.ndarray, 
         log_d_anchor = np.log(sample_depth(d, uv_n2[use]))
     ok = np.isfinite(log_d_anchor)
     ru, s, log_d_anchor, uv = r[use][ok], s[ok], log_d_anchor[ok], uv_n2[use][ok]
-    a_idx, a_wts = _corners(_grid_coords(uv, log_d_anchor, (H, W), shape, log_range), shape)
-    w_prior = config.grid_prior_anchors / config.depth_sigma_log ** 2
-    if readback is not None:
-        w_prior = w_prior * readback         # in the grid's units: dividing the prior is dividing the support
+    coords = _grid_coords(uv, log_d_anchor, (H, W), shape, log_range)
+    a_idx, a_wts = _corners(coords, shape)
+    w_prior = 0.0 if in_anchor_weights else config.grid_prior_anchors / config.depth_sigma_log ** 2
     w = 1.0 / s ** 2
     for _ in range(2):                      # a first pass, then Huber weights about what it says at each anchor
         Wg = _splat_blur(a_idx, a_wts, w, shape)
@@ -519,10 +533,16 @@ def fit_scale_map(log_ratio_n: np.ndarray, anchors: Anchors, uv_n2: np.ndarray, 
     lo, hi = log_range
     gz = np.clip((np.log(np.where(good, d, 1.0)) - lo) / max(hi - lo, 1e-9) * (shape[2] - 1), 0, shape[2] - 1)
     support, wr = _slice_image(np.stack([Wg, WRg], -1), gz, (H, W))
-    g = wr / (support + w_prior)
-    to_weights = 1.0 if readback is None else 1.0 / readback
-    sigma = np.sqrt(1.0 / ((support + w_prior) * to_weights) + fit.sigma ** 2)
-    return ScaleMap(np.where(good, g, 0.0), sigma, support * to_weights)
+    if in_anchor_weights:
+        gy = np.clip((np.arange(H) + 0.5) / H * shape[0] - 0.5, 0, shape[0] - 1)
+        gx = np.clip((np.arange(W) + 0.5) / W * shape[1] - 0.5, 0, shape[1] - 1)
+        back = (axis_readback(gy, shape[0])[:, None] * axis_readback(gx, shape[1])[None, :]
+                * axis_readback(gz, shape[2]))
+        support, wr = support / back, wr / back
+    with np.errstate(divide='ignore', invalid='ignore'):
+        g = np.where(support + w_prior > 0, wr / (support + w_prior), 0.0)
+        sigma = np.sqrt(1.0 / (support + w_prior) + fit.sigma ** 2)
+    return ScaleMap(np.where(good, g, 0.0), sigma, support)
 
 
 def confidence_sigma(conf: np.ndarray, ratio: float = 1.25) -> np.ndarray:
@@ -553,8 +573,10 @@ def blend_log_depth(depth_a: np.ndarray, conf_a: np.ndarray, depth_b: np.ndarray
                     ratio: float = 1.25) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Two depth estimates of the same pixels, each with its confidence: (depth, confidence, weight of b). The
     depth is the inverse-variance mean in log depth, each confidence read as a Gaussian log error's std
-    (:func:`confidence_sigma`); the confidence is the larger of the two (no credit for combining them: their
-    errors need not be independent). A confidence of 0 gives its estimate no weight."""
+    (:func:`confidence_sigma`). Its std is the smaller of the two (no credit for combining them: their errors need
+    not be independent) widened by the spread of the two-point mixture, ``w_a w_b (log d_a - log d_b)^2`` in
+    variance: two confident estimates that disagree give a blend nobody is sure of. A confidence of 0 gives its
+    estimate no weight."""
     sa = confidence_sigma(conf_a, ratio)
     sb = confidence_sigma(conf_b, ratio)
     with np.errstate(divide='ignore', over='ignore'):
@@ -563,5 +585,9 @@ def blend_log_depth(depth_a: np.ndarray, conf_a: np.ndarray, depth_b: np.ndarray
     total = wa + wb
     w_b = np.where(total > 0, wb / np.where(total > 0, total, 1.0), 0.0)
     with np.errstate(divide='ignore', invalid='ignore'):
-        log_d = (1.0 - w_b) * np.log(depth_a) + w_b * np.log(depth_b)
-    return np.exp(log_d), np.maximum(conf_a, conf_b), w_b
+        gap = np.log(depth_b) - np.log(depth_a)
+        log_d = np.log(depth_a) + w_b * gap
+        spread = np.where(w_b * (1.0 - w_b) > 0, w_b * (1.0 - w_b) * gap ** 2, 0.0)
+    conf = np.where(spread > 0, band_confidence(np.sqrt(np.minimum(sa, sb) ** 2 + spread), ratio),
+                    np.maximum(conf_a, conf_b))
+    return np.exp(log_d), conf, w_b

@@ -3,12 +3,14 @@
 The networks learnt their depth prior on rendered rooms; on a real image whose matching evidence is weak (a desk
 close to the camera, a texture the renders never had) the prior speaks and the depth can be far off, while the
 training-free NCC plane sweep (:class:`~dpv_sensor.core.classical.ClassicalMeasurement`) only says what the images
-match. When a keyframe's metric anchors overrule the networks' depth in some region
-(:class:`~dpv_sensor.stream.metric_anchors.AnchorAligner`), the aligner asks for a second opinion: this sweep over
-the same reference and sources, with the same poses, read out as the classical model is (``mean`` over the planes,
-the ratio confidence), at the processing size. The aligner holds it to the same anchors and blends it in, only in
-the overruled pixels. Nothing is computed on a keyframe the anchors do not overrule; a keyframe whose measurement
-is already the sweep gets none (``anchor_fallback`` 'off' in effect). torch and numpy; no ROS.
+match. With ``anchor_fallback: classical``, when a keyframe's metric anchors overrule the networks' depth in some
+region (:class:`~dpv_sensor.stream.metric_anchors.AnchorAligner`), the aligner asks for a second opinion: this
+sweep over the same reference and sources, with the same poses, read out as ``depth_readout: auto`` reads the
+classical model (``mean`` over the planes) with the configured confidence, at the processing size. The aligner holds
+it to the same anchors and blends it in, only in the overruled pixels. Its confidence carries neither the
+pose-uncertainty factor nor the filter's temporal support that the networks' has: where the pose is uncertain the
+blend leans towards the sweep more than it would with both. Nothing is computed on a keyframe the anchors do not
+overrule, nor when the measurement is already the sweep. torch and numpy; no ROS.
 """
 from __future__ import annotations
 

@@ -287,7 +287,8 @@ class AnchorAligner:
         if rep.overruled_pixels:
             st.keyframes_overruled += 1
             st.pixels_overruled += rep.overruled_pixels
-            if fallback is not None:
+            if fallback is not None and self.mode == 'dense':
+                # a region's second opinion (with 'scale' the whole image would be one region: not blended)
                 depth, conf = self._second_opinion(depth, conf, overruled, anchors, uv, fallback, rep)
         return depth, conf, rep
 
@@ -347,23 +348,28 @@ class AnchorAligner:
             # anchors: onto a wall that happens to stand where the doubled desk seems to be)
             judge = anchor_math.fit_scale_map(log_ratio, anchors, uv_n2, depth_hw, fit, log_range,
                                               dataclasses.replace(cfg, grid_depth_bins=JUDGE_DEPTH_BINS),
-                                              readback=anchor_math.GRID_READBACK)
+                                              in_anchor_weights=True)
             judge_map, judge_sigma, judge_support = judge.log_scale_hw, judge.sigma_hw, judge.support_hw
         # the anchor set's own systematic error (flow that underestimates a large displacement, a scene the poses
         # do not quite explain) is shared by every anchor of a keyframe and no count of anchors averages it away
         sigma_map = np.hypot(sigma_map, cfg.bias_sigma_log)
         judge_sigma = np.hypot(judge_sigma, cfg.bias_sigma_log)
         # a disagreement beyond what the anchors' σ explains says the depth was wrong there by about its size: it
-        # is overruled, corrected by the judge's map less its σ, and as uncertain as the disagreement was large
-        # only where the anchors are: a region the judge reaches by its blur's tails alone is not judged
-        overruled = (np.abs(judge_map) > OVERRULE_SIGMAS * judge_sigma) & (judge_support >= self._min_support)
+        # is overruled, corrected by the judge's map less its σ, and as uncertain as the disagreement was large;
+        # only where the anchors are (at least JUDGE_MIN_ANCHORS of support: the blur's tails judge nothing)
+        judged = (np.abs(judge_map) > OVERRULE_SIGMAS * judge_sigma) & (judge_support >= self._min_support)
         # elsewhere a check first: the depth is corrected only by as much as the cautious map disagrees with it
         # beyond correction_sigmas of its σ (soft threshold), so a network that agrees with its anchors is left
-        # alone, and where the depth moved at all, it is as uncertain as the correction
-        excess = np.where(overruled, np.abs(judge_map) - cfg.correction_sigmas * judge_sigma,
+        # alone; where the depth moved at all, it is as uncertain as the correction, and where even the cautious
+        # map disagrees beyond OVERRULE_SIGMAS (few anchors far off), as uncertain as the disagreement
+        cautious = np.abs(log_map) > OVERRULE_SIGMAS * sigma_map
+        excess = np.where(judged, np.abs(judge_map) - cfg.correction_sigmas * judge_sigma,
                           np.maximum(np.abs(log_map) - cfg.correction_sigmas * sigma_map, 0.0))
-        applied = np.where(overruled, np.sign(judge_map), np.sign(log_map)) * excess
-        widen = np.where(overruled, np.hypot(judge_sigma, np.abs(judge_map)), np.where(excess > 0, sigma_map, 0.0))
+        applied = np.where(judged, np.sign(judge_map), np.sign(log_map)) * excess
+        widen = np.where(judged, np.hypot(judge_sigma, np.abs(judge_map)),
+                         np.where(cautious, np.hypot(sigma_map, np.abs(log_map)),
+                                  np.where(excess > 0, sigma_map, 0.0)))
+        overruled = judged | cautious
         valid = np.isfinite(depth_hw) & (depth_hw > 0)
         depth = np.where(valid, depth_hw * np.exp(applied), depth_hw).astype(depth_hw.dtype)
         conf = conf_hw.copy()
@@ -383,13 +389,23 @@ class AnchorAligner:
             rep.fallback = 'no classical depth for this keyframe'
             return depth_hw, conf_hw
         dc, cc = got
+        if dc.shape != depth_hw.shape or cc.shape != depth_hw.shape:
+            rep.fallback = f'the classical depth is {dc.shape}, not {depth_hw.shape}'
+            return depth_hw, conf_hw
         log_ratio = self._log_ratios(dc, anchors, uv_n2)
         fit = anchor_math.fit_log_scale(log_ratio, anchors, self.config)
         if fit is None:
             rep.fallback = 'too few anchors on the classical depth'
             return depth_hw, conf_hw
         held = self._hold(dc, np.asarray(cc, np.float32), log_ratio, anchors, uv_n2, fit)
+        agree = self._agreeing(held.judge_hw, log_ratio, anchors, uv_n2)
+        if agree < self.config.min_inlier_fraction * fit.used:
+            rep.fallback = f'the anchors do not agree with the classical depth either ({agree} of {fit.used})'
+            return depth_hw, conf_hw
         region = overruled_hw & np.isfinite(held.depth_hw) & (held.depth_hw > 0) & (held.conf_hw > 0)
+        if not region.any():
+            rep.fallback = 'the classical depth has nothing where the networks are overruled'
+            return depth_hw, conf_hw
         d, c, w = anchor_math.blend_log_depth(depth_hw[region].astype(np.float64), conf_hw[region],
                                               held.depth_hw[region].astype(np.float64), held.conf_hw[region],
                                               self.ratio)

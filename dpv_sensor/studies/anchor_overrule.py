@@ -54,7 +54,7 @@ def planted_run(seq_dir: pathlib.Path, pose_source: str) -> List[Dict]:
         near = valid & (gt <= np.percentile(gt[valid], NEAR_QUANTILE))
         pd = net_d.copy()
         pd[near] *= PLANT_FACTOR
-        pd_t = torch.as_tensor(pd, dtype=depth.dtype)[None]
+        pd_t = torch.as_tensor(pd, dtype=depth.dtype, device=depth.device)[None]
         row = {'gt': gt, 'valid': valid, 'near': near, 'net': (net_d, net_c), 'planted': (pd, net_c),
                'near_anchors': _anchors_in(self, ref, near)}
         d, c, _ = hold(self, ref, depth, conf, fallback)
