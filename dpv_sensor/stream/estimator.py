@@ -97,7 +97,7 @@ class Estimator:
         self._build_measurement(model)
         self._build_filter()
         self.anchors = metric_anchors.AnchorAligner(cfg.depth_anchors, ratio=cfg.confidence_ratio,
-                                                    depth_range=(self.d_min, self.d_max))
+                                                    depth_range=(self.d_min, self.d_max), judge=cfg.anchor_judge)
         if cfg.depth_anchors != 'off' and cfg.pose_refinement != 'window':
             self._note(metric_anchors.NEEDS_WINDOW.format(mode=cfg.depth_anchors))
         # the sweep's second opinion where the anchors overrule the networks (none when it is the measurement)

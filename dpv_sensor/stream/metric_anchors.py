@@ -40,8 +40,8 @@ import torch
 from dpv_sensor.core import anchors as anchor_math
 from dpv_sensor.core.anchors import AnchorConfig, Anchors
 
-__all__ = ['ANCHOR_MODES', 'NEEDS_WINDOW', 'AnchorStatus', 'AnchorReport', 'AnchorAligner', 'reference_anchors',
-           'hold_to_anchors']
+__all__ = ['ANCHOR_MODES', 'JUDGES', 'NEEDS_WINDOW', 'AnchorStatus', 'AnchorReport', 'AnchorAligner',
+           'reference_anchors', 'hold_to_anchors']
 
 #: the ``depth_anchors`` choices
 ANCHOR_MODES = ('off', 'scale', 'dense')
@@ -52,6 +52,9 @@ NEEDS_WINDOW = ('depth_anchors={mode} needs pose_refinement=window (its matches 
 
 #: a correction counts as a disagreement of the network with its anchors beyond their σ above this many σ
 OVERRULE_SIGMAS = 3.0
+
+#: the ``anchor_judge`` choices: which map decides where the networks are overruled
+JUDGES = ('cautious', 'counted')
 
 #: the judge's bins of log depth over the depth planes: about 1.25x a bin over 0.3-8 m, so that a surface and
 #: another at twice its depth do not share a bin after the grid's blur (the cautious map's 8 bins are 1.6x)
@@ -203,15 +206,23 @@ class AnchorAligner:
     anchors are not compared (None: all are)."""
 
     def __init__(self, mode: str = 'off', config: AnchorConfig = AnchorConfig(), ratio: float = 1.25,
-                 depth_range: Optional[Tuple[float, float]] = None):
+                 depth_range: Optional[Tuple[float, float]] = None, judge: str = 'cautious'):
         if mode not in ANCHOR_MODES:
             raise ValueError(f'depth_anchors must be one of {ANCHOR_MODES}, not {mode!r}')
+        if judge not in JUDGES:
+            raise ValueError(f'anchor_judge must be one of {JUDGES}, not {judge!r}')
         self.mode = mode
+        self.judge = judge
         self.config = config
         self.ratio = float(ratio)
         self.depth_range = depth_range
         self.status = AnchorStatus(mode=mode)
         self._min_support = JUDGE_MIN_ANCHORS / config.depth_sigma_log ** 2
+
+    @property
+    def _counted(self) -> bool:
+        """The counted judge decides (dense maps only)."""
+        return self.judge == 'counted' and self.mode == 'dense'
 
     def _log_range(self, depth_hw: np.ndarray) -> Tuple[float, float]:
         """The log depths the scale map spans: the depth planes' range, else the map's own 1st to 99th
@@ -261,13 +272,13 @@ class AnchorAligner:
         if self.mode == 'off':
             rep.reason = "depth_anchors is 'off'"
             return depth_hw, conf_hw, rep
-        if self.mode == 'scale' and fit.inliers < cfg.min_inlier_fraction * fit.used:
+        if not self._counted and fit.inliers < cfg.min_inlier_fraction * fit.used:
             rep.reason = (f'the anchors do not agree on a scale ({fit.inliers} of {fit.used} within '
                           f'{cfg.huber_k:g} sigma)')
             st.keyframes_disagreeing += 1
             return depth_hw, conf_hw, rep
         held = self._hold(depth_hw, conf_hw, log_ratio, anchors, uv, fit)
-        if self.mode == 'dense':
+        if self._counted:
             # the map may say different things in different regions (a near desk put too far, the room right), but
             # each anchor must agree with what it says where the anchor is: scattered anchors (poses that do not
             # explain the images, bad matches) correct nothing
@@ -335,13 +346,15 @@ class AnchorAligner:
         correction's size beyond the anchors' σ, and where the disagreement exceeded OVERRULE_SIGMAS."""
         cfg = self.config
         if self.mode == 'scale':
-            log_map = judge_map = np.full(depth_hw.shape, fit.log_scale)
-            sigma_map = judge_sigma = np.full(depth_hw.shape, fit.sigma)
-            judge_support = np.full(depth_hw.shape, np.inf)
+            log_map = np.full(depth_hw.shape, fit.log_scale)
+            sigma_map = np.full(depth_hw.shape, fit.sigma)
         else:
             log_range = self._log_range(depth_hw)
             smap = anchor_math.fit_scale_map(log_ratio, anchors, uv_n2, depth_hw, fit, log_range, cfg)
             log_map, sigma_map = smap.log_scale_hw, smap.sigma_hw
+        # without the counted judge the cautious map decides alone (never judged)
+        judge_map, judge_sigma, judge_support = log_map, sigma_map, np.zeros(depth_hw.shape)
+        if self._counted:
             # the judge: the same map with the support counted in the anchors' own weights, so a region whose
             # anchors all say the depth is off is heard (the cautious map's prior outweighs a few dozen anchors),
             # with finer bins of depth (a coarser image grid would carry a region's verdict a whole cell beyond its
@@ -398,7 +411,7 @@ class AnchorAligner:
             rep.fallback = 'too few anchors on the classical depth'
             return depth_hw, conf_hw
         held = self._hold(dc, np.asarray(cc, np.float32), log_ratio, anchors, uv_n2, fit)
-        agree = self._agreeing(held.judge_hw, log_ratio, anchors, uv_n2)
+        agree = self._agreeing(held.judge_hw, log_ratio, anchors, uv_n2) if self._counted else fit.inliers
         if agree < self.config.min_inlier_fraction * fit.used:
             rep.fallback = f'the anchors do not agree with the classical depth either ({agree} of {fit.used})'
             return depth_hw, conf_hw

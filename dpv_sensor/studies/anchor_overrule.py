@@ -7,8 +7,8 @@ failure, so it is planted: each (sequence, pose source) runs once through the no
 (``evaluation.runner.run_sequence``), and at every keyframe, just before the anchors, the networks' depth of the
 nearest quarter of the pixels (by the true depth) is doubled. The same keyframe is then held to its anchors three
 ways, each from the same inputs (the anchors do not feed back into the filter): the networks' own depth (no plant:
-what the defaults do to a right depth), the planted depth with ``anchor_fallback: off`` (the judge alone) and with
-``classical`` (the default). Printed per run, over the keyframes: abs_rel of the planted pixels (the networks
+what the defaults do to a right depth), the planted depth with ``anchor_fallback: off`` (the default: the judge
+alone) and with ``classical``. Printed per run, over the keyframes: abs_rel of the planted pixels (the networks
 before the plant; planted; judged; judged with the sweep), how many of them are published with confidence >= 0.9
 and how many of those are within x1.25; abs_rel of the whole image (the networks; the defaults on them; planted;
 judged; with the sweep); keyframes overruled of those checked; the anchors that fall on the planted pixels.
@@ -57,7 +57,7 @@ def planted_run(seq_dir: pathlib.Path, pose_source: str) -> List[Dict]:
         pd_t = torch.as_tensor(pd, dtype=depth.dtype, device=depth.device)[None]
         row = {'gt': gt, 'valid': valid, 'near': near, 'net': (net_d, net_c), 'planted': (pd, net_c),
                'near_anchors': _anchors_in(self, ref, near)}
-        d, c, _ = hold(self, ref, depth, conf, fallback)
+        d, c, _ = hold(self, ref, depth, conf, None)
         row['defaults'] = (d[0].float().cpu().numpy(), c[0].float().cpu().numpy())
         d, c, rep = hold(self, ref, pd_t, conf, None)
         row['judged'] = (d[0].float().cpu().numpy(), c[0].float().cpu().numpy())
@@ -70,7 +70,9 @@ def planted_run(seq_dir: pathlib.Path, pose_source: str) -> List[Dict]:
 
     EST.Estimator._hold_to_anchors = planted
     try:
-        config, _ = RN.build_config({})
+        # the sweep is built (anchor_fallback: classical) and handed only to the '+ sweep' variant; the others are
+        # the defaults (anchor_fallback: off)
+        config, _ = RN.build_config({'anchor_fallback': 'classical'})
         RN.run_sequence(seq, config, E.EvalOptions(progress=True), keep_images=False,
                         poses=odometry_poses(seq, pose_source), pose_variance=odometry_variance(seq, pose_source))
     finally:
