@@ -41,11 +41,23 @@ class ClassicalFallback:
                                           downscale=config.classical_downscale)
         self.depths_d = self.sweep.depths(torch.float32, device)
 
-    def opinion(self, ref_b3hw: torch.Tensor, K_b33: torch.Tensor, src_images: Sequence[torch.Tensor],
-                T_src_ref_b_n44: torch.Tensor, timings: Optional[Dict[str, float]] = None
-                ) -> Callable[[], Optional[Tuple[np.ndarray, np.ndarray]]]:
-        """A callable giving the keyframe's classical (depth, confidence), float32 arrays at the size of
-        ``ref_b3hw`` (NaN depth where no source sees the pixel); its time goes to ``timings['anchors.classical']``."""
+    @classmethod
+    def for_config(cls, config, measurement: str, depth_range, num_planes: int, device=None
+                   ) -> Optional['ClassicalFallback']:
+        """The fallback an estimator needs: None unless ``anchor_fallback`` is 'classical', the anchors are on and
+        the measurement is the networks (the sweep gives no second opinion on itself)."""
+        if config.anchor_fallback != 'classical' or config.depth_anchors == 'off' or measurement != 'network':
+            return None
+        return cls(config, depth_range, num_planes, device)
+
+    def opinion(self, ref, sources: Sequence, T_src_ref_b_n44: torch.Tensor,
+                timings: Optional[Dict[str, float]] = None) -> Callable[[], Optional[Tuple[np.ndarray, np.ndarray]]]:
+        """A callable giving the reference keyframe's classical (depth, confidence) from its ``sources``
+        (:class:`~dpv_sensor.stream.keyframes.Keyframe`), float32 arrays at the reference image's size (NaN depth
+        where no source sees the pixel); its time goes to ``timings['anchors.classical']``."""
+        ref_b3hw, K_b33 = ref.image_b3hw, ref.K_b33
+        src_images = [s.image_b3hw for s in sources]
+
         def compute() -> Optional[Tuple[np.ndarray, np.ndarray]]:
             if not src_images:
                 return None

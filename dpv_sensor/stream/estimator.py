@@ -100,11 +100,8 @@ class Estimator:
                                                     depth_range=(self.d_min, self.d_max), judge=cfg.anchor_judge)
         if cfg.depth_anchors != 'off' and cfg.pose_refinement != 'window':
             self._note(metric_anchors.NEEDS_WINDOW.format(mode=cfg.depth_anchors))
-        # the sweep's second opinion where the anchors overrule the networks (none when it is the measurement)
-        self.fallback = None
-        if cfg.anchor_fallback == 'classical' and cfg.depth_anchors != 'off' and self.measurement == 'network':
-            self.fallback = classical_fallback.ClassicalFallback(cfg, (self.d_min, self.d_max), self.num_planes,
-                                                                 self.device)
+        self.fallback = classical_fallback.ClassicalFallback.for_config(cfg, self.measurement, (self.d_min, self.d_max),
+                                                                        self.num_planes, self.device)
         if cfg.pose_refinement == 'window' and pose_refiner is None:
             self._note('pose_refinement=window requested but no pose refiner was given: poses are used as received')
         if cfg.cpu_precision == 'bfloat16' and self.device.type == 'cpu' and self.model is not None \
@@ -588,8 +585,7 @@ class Estimator:
             timings['upsample'] = self._ms(t)
 
         t = time.perf_counter()
-        fallback = None if self.fallback is None else self.fallback.opinion(
-            ref.image_b3hw, ref.K_b33, [s.image_b3hw for s in sources], T_src_ref_t, timings)
+        fallback = None if self.fallback is None else self.fallback.opinion(ref, sources, T_src_ref_t, timings)
         depth, conf, anchor_report = self._hold_to_anchors(ref, depth, conf, fallback)
         timings['anchors'] = self._ms(t)
 
@@ -614,8 +610,7 @@ class Estimator:
         return out
 
     def _hold_to_anchors(self, ref: Keyframe, depth_bhw: torch.Tensor, conf_bhw: torch.Tensor, fallback=None):
-        """The keyframe's depth and confidence held to its metric anchors (``depth_anchors``), and the report;
-        ``fallback``: the classical sweep's opinion where they overrule the networks (``anchor_fallback``)."""
+        """(depth, confidence, report) of the keyframe held to its metric anchors; ``fallback``: the sweep's."""
         return metric_anchors.hold_to_anchors(self.anchors, self.pose_refiner, self._refinement_result(),
                                               float(ref.stamp), ref.K_b33[0], depth_bhw, conf_bhw, fallback)
 

@@ -22,6 +22,12 @@ depth was off by more than their σ explains, by the size of that disagreement �
 its depth is no longer published as confident even where the map cannot fully mend it. Keyframes with fewer than
 ``min_anchors`` usable anchors are published unchanged, bit for bit.
 
+Which map says where the networks are overruled (``anchor_judge``): ``cautious``, the correcting map itself, whose
+pull towards no correction outweighs a few dozen anchors; or ``counted``, a second map that counts each anchor at
+its own weight (:func:`~dpv_sensor.core.anchors.fit_scale_map` with ``in_anchor_weights``) and corrects what it
+overrules by its own map. Where the networks are overruled, ``anchor_fallback: classical`` blends in the classical
+sweep's depth of the keyframe (:mod:`dpv_sensor.stream.classical_fallback`), held to the same anchors.
+
 :class:`AnchorStatus` counts what happened (keyframes checked / aligned, anchors, rejected candidates by reason,
 the last scale and its σ, pixels whose correction was beyond the anchors' σ) for ``/diagnostics``;
 :func:`hold_to_anchors` is the estimator's hook (its tensors in and out). numpy and torch; no ROS.
@@ -352,8 +358,11 @@ class AnchorAligner:
             log_range = self._log_range(depth_hw)
             smap = anchor_math.fit_scale_map(log_ratio, anchors, uv_n2, depth_hw, fit, log_range, cfg)
             log_map, sigma_map = smap.log_scale_hw, smap.sigma_hw
-        # without the counted judge the cautious map decides alone (never judged)
-        judge_map, judge_sigma, judge_support = log_map, sigma_map, np.zeros(depth_hw.shape)
+        # the anchor set's own systematic error (flow that underestimates a large displacement, a scene the poses
+        # do not quite explain) is shared by every anchor of a keyframe and no count of anchors averages it away
+        sigma_map = np.hypot(sigma_map, cfg.bias_sigma_log)
+        # without the counted judge the cautious map decides alone (nothing judged)
+        judge_map, judge_sigma, judged = log_map, sigma_map, np.zeros(depth_hw.shape, bool)
         if self._counted:
             # the judge: the same map with the support counted in the anchors' own weights, so a region whose
             # anchors all say the depth is off is heard (the cautious map's prior outweighs a few dozen anchors),
@@ -362,15 +371,12 @@ class AnchorAligner:
             judge = anchor_math.fit_scale_map(log_ratio, anchors, uv_n2, depth_hw, fit, log_range,
                                               dataclasses.replace(cfg, grid_depth_bins=JUDGE_DEPTH_BINS),
                                               in_anchor_weights=True)
-            judge_map, judge_sigma, judge_support = judge.log_scale_hw, judge.sigma_hw, judge.support_hw
-        # the anchor set's own systematic error (flow that underestimates a large displacement, a scene the poses
-        # do not quite explain) is shared by every anchor of a keyframe and no count of anchors averages it away
-        sigma_map = np.hypot(sigma_map, cfg.bias_sigma_log)
-        judge_sigma = np.hypot(judge_sigma, cfg.bias_sigma_log)
-        # a disagreement beyond what the anchors' σ explains says the depth was wrong there by about its size: it
-        # is overruled, corrected by the judge's map less its σ, and as uncertain as the disagreement was large;
-        # only where the anchors are (at least JUDGE_MIN_ANCHORS of support: the blur's tails judge nothing)
-        judged = (np.abs(judge_map) > OVERRULE_SIGMAS * judge_sigma) & (judge_support >= self._min_support)
+            judge_map, judge_sigma = judge.log_scale_hw, np.hypot(judge.sigma_hw, cfg.bias_sigma_log)
+            # a disagreement beyond what the anchors' σ explains says the depth was wrong there by about its size:
+            # it is overruled, corrected by the judge's map less its σ, and as uncertain as the disagreement was
+            # large; only where the anchors are (at least JUDGE_MIN_ANCHORS of support: the blur's tails judge
+            # nothing)
+            judged = (np.abs(judge_map) > OVERRULE_SIGMAS * judge_sigma) & (judge.support_hw >= self._min_support)
         # elsewhere a check first: the depth is corrected only by as much as the cautious map disagrees with it
         # beyond correction_sigmas of its σ (soft threshold), so a network that agrees with its anchors is left
         # alone; where the depth moved at all, it is as uncertain as the correction, and where even the cautious
