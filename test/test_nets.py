@@ -508,3 +508,13 @@ def test_mac_counter_matches_a_hand_count():
     assert macs['rnet'] == rnet_expected
     assert macs['cost_volume'] == 5 * 64 * 4 * D * h * w
     assert macs['total_window'] == 5 * expected + macs['cost_volume'] + knet_expected + rnet_expected
+
+
+def test_bfloat16_is_fast_only_where_the_cpu_has_native_bfloat16_arithmetic():
+    from dpv_sensor.core.nets.model import cpu_bf16_fast
+    # oneDNN calls bfloat16 supported on any AVX-512 CPU, where it is emulated and slower than float32
+    assert not cpu_bf16_fast('flags\t\t: fpu sse2 avx2 avx512f avx512bw avx512_vnni')
+    assert cpu_bf16_fast('flags\t\t: fpu avx512f avx512_bf16 avx512_vnni')
+    assert cpu_bf16_fast('flags\t\t: fpu avx512f amx_bf16 amx_tile')
+    assert not cpu_bf16_fast('flags\t\t: avx512_bf16x')
+    assert not cpu_bf16_fast('flags\t\t: ')
