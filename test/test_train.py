@@ -120,6 +120,27 @@ def test_pose_noise_corrupts_relative_motion_but_not_images_or_depth():
         _small_stream(pose_noise_prob=1.5)
 
 
+def test_world_scale_scales_depths_and_translations_together_and_nothing_else():
+    clean = SceneStream(_small_stream(steps=2)).make_sample(3)
+    stream = SceneStream(_small_stream(steps=2, world_scale_prob=1.0, world_scale=(0.5, 2.0)))
+    scaled = stream.make_sample(3)
+    assert torch.equal(clean['images'], scaled['images'])                 # a larger world looks the same
+    valid = clean['depths'] > 0
+    s = float((scaled['depths'][valid] / clean['depths'][valid]).median())
+    assert 0.5 <= s <= 2.0 and abs(s - 1.0) > 1e-3
+    assert torch.allclose(scaled['depths'], clean['depths'] * s, rtol=1e-6)
+    assert torch.allclose(scaled['poses'][:, :3, :3], clean['poses'][:, :3, :3])      # rotations untouched
+    assert torch.allclose(scaled['poses'][:, :3, 3], clean['poses'][:, :3, 3] * s, rtol=1e-5, atol=1e-7)
+    assert torch.equal(stream.make_sample(3)['depths'], scaled['depths'])              # the same factor again
+    factors = {round(float((stream.make_sample(i)['depths'].max() / SceneStream(_small_stream(steps=2))
+                            .make_sample(i)['depths'].max())), 4) for i in range(3)}
+    assert len(factors) == 3                                                           # one factor per sample
+    never = SceneStream(_small_stream(steps=2, world_scale_prob=0.0, world_scale=(0.5, 2.0))).make_sample(3)
+    assert torch.equal(never['depths'], clean['depths']) and torch.equal(never['poses'], clean['poses'])
+    with pytest.raises(ValueError, match='world scale'):
+        _small_stream(world_scale=(2.0, 0.5))
+
+
 def test_unrolled_loss_falls_and_reaches_every_net():
     from dpv_sensor.core.nets.model import DPVNet
     torch.manual_seed(0)

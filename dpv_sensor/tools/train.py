@@ -93,6 +93,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help='largest rotation error per keyframe step of those samples (deg)')
     p.add_argument('--pose-noise-trans-rel', type=float, default=d.pose_noise_trans_rel,
                    help='largest translation error per step of those samples (fraction of the step)')
+    p.add_argument('--world-scale-prob', type=float, default=d.world_scale_prob,
+                   help='share of samples whose whole world is scaled: depths and translations times one factor, '
+                        'images unchanged, so the networks read depth from the cost volume, not from room sizes')
+    p.add_argument('--world-scale', type=float, nargs=2, default=list(d.world_scale), metavar=('MIN', 'MAX'),
+                   help='range of that factor (drawn log-uniformly)')
     p.add_argument('--no-augment', action='store_true', help='disable photometric augmentation')
     p.add_argument('--select-metric', default=d.select_metric,
                    help='validation score deciding exports, lower is better: <metric>_<mode> (GT poses), '
@@ -132,7 +137,8 @@ def config_from_args(a: argparse.Namespace) -> TrainConfig:
         val_stream_frames=a.val_stream_frames, val_stream_pose_noise=tuple(a.val_stream_pose_noise),
         init_weights=a.init_weights, max_minutes=a.max_minutes, startup_prob=a.startup_prob,
         pose_noise_prob=a.pose_noise_prob, pose_noise_rot_deg=a.pose_noise_rot_deg,
-        pose_noise_trans_rel=a.pose_noise_trans_rel, train_modules=tuple(a.train_modules)).check()
+        pose_noise_trans_rel=a.pose_noise_trans_rel, world_scale_prob=a.world_scale_prob,
+        world_scale=tuple(a.world_scale), train_modules=tuple(a.train_modules)).check()
 
 
 def _sigterm(signum, frame):

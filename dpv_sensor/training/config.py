@@ -69,6 +69,8 @@ class TrainConfig:
     pose_noise_prob: float = 0.0          # share of samples with odometry-like pose errors (depths exact)
     pose_noise_rot_deg: float = 0.7       # their largest rotation error per keyframe step (deg)
     pose_noise_trans_rel: float = 0.05    # their largest translation error per step (fraction of the step)
+    world_scale_prob: float = 0.0         # share of samples whose world (depths, translations) is scaled
+    world_scale: Tuple[float, float] = (0.5, 1.6)   # ... by a log-uniform factor in this range
     max_minutes: float = 0.0              # stop (with a checkpoint) after this wall time; 0 = no limit
     train_modules: Tuple[str, ...] = ()   # sub-networks the optimiser updates (see MODULES); () = all of them
     val_stream_seeds: Tuple[int, ...] = ()          # also stream these held-out seeds through the Estimator
@@ -82,7 +84,8 @@ class TrainConfig:
 
     # tuple-valued fields (lists in JSON) and how their items are read back
     _TUPLE_FIELDS = {'val_seeds': int, 'folders': str, 'extra_sizes': tuple, 'val_pose_noise': float,
-                     'train_modules': str, 'val_stream_seeds': int, 'val_stream_pose_noise': float}
+                     'train_modules': str, 'val_stream_seeds': int, 'val_stream_pose_noise': float,
+                     'world_scale': float}
 
     def to_json(self) -> Dict:
         d = dataclasses.asdict(self)
@@ -110,7 +113,8 @@ class TrainConfig:
                             size_group=self.batch_size,
                             ref_positions=('center', 'last') if self.ref_mix else (),
                             startup_prob=self.startup_prob, pose_noise_prob=self.pose_noise_prob,
-                            pose_noise_rot_deg=self.pose_noise_rot_deg, pose_noise_trans_rel=self.pose_noise_trans_rel)
+                            pose_noise_rot_deg=self.pose_noise_rot_deg, pose_noise_trans_rel=self.pose_noise_trans_rel,
+                            world_scale_prob=self.world_scale_prob, world_scale=tuple(self.world_scale))
 
     def check(self) -> 'TrainConfig':
         for s in self.val_seeds:

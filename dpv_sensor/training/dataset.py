@@ -165,6 +165,8 @@ class StreamConfig:
     pose_noise_prob: float = 0.0          # probability that a sample's poses are corrupted like odometry
     pose_noise_rot_deg: float = 0.7       # ... by up to this rotation per keyframe step (drawn per sample)
     pose_noise_trans_rel: float = 0.05    # ... and up to this translation error relative to the step
+    world_scale_prob: float = 0.0         # probability that a sample's whole world is scaled (depths and poses)
+    world_scale: Tuple[float, float] = (0.5, 1.6)   # ... by a factor drawn log-uniformly in this range
 
     def __post_init__(self):
         if self.width % 4 or self.height % 4:
@@ -184,6 +186,10 @@ class StreamConfig:
                 raise ValueError(f'training sizes must be multiples of 4, got {w}x{h}')
         if not 0.0 <= self.pose_noise_prob <= 1.0 or self.pose_noise_rot_deg < 0 or self.pose_noise_trans_rel < 0:
             raise ValueError('pose noise: need 0 <= pose_noise_prob <= 1 and non-negative magnitudes')
+        lo, hi = self.world_scale
+        if not 0.0 <= self.world_scale_prob <= 1.0 or not 0.0 < lo <= hi:
+            raise ValueError(f'world scale: need 0 <= world_scale_prob <= 1 and 0 < min <= max, got '
+                             f'{self.world_scale_prob}, {self.world_scale}')
 
 
 # Sequence folders that are validation data only: a folder whose name contains one of these (lower case) is
@@ -386,6 +392,28 @@ class SceneStream(IterableDataset):
         smp['poses'] = torch.from_numpy(np.stack(noisy).astype(np.float32))
         return smp
 
+    def _world_scale(self, smp: Dict[str, torch.Tensor], seed: int) -> Dict[str, torch.Tensor]:
+        """With probability ``world_scale_prob``, scale the sample's whole world by a factor ``s`` drawn
+        log-uniformly in ``world_scale``: every depth and every translation times ``s``, the images unchanged (a
+        world ``s`` times larger, textures included, looks exactly the same). The networks then cannot read the
+        depth off the rooms' usual sizes and must take it from the cost volume; ``s`` < 1 also brings surfaces
+        close to the camera, which the renders rarely do. Drawn from its own generator, so the rest of a sample
+        is the same with and without it."""
+        cfg = self.config
+        if cfg.world_scale_prob <= 0:
+            return smp
+        rng = np.random.default_rng([int(seed) % 2 ** 32, 5])
+        if rng.random() >= cfg.world_scale_prob:
+            return smp
+        lo, hi = cfg.world_scale
+        s = float(np.exp(rng.uniform(np.log(lo), np.log(hi))))
+        if 'depths' in smp:
+            smp['depths'] = smp['depths'] * s
+        poses = smp['poses'].clone()
+        poses[:, :3, 3] *= s
+        smp['poses'] = poses
+        return smp
+
     def _open_folders(self):
         if self._folders is None:
             from dpv_sensor.data.sequence import Sequence
@@ -413,4 +441,4 @@ class SceneStream(IterableDataset):
             w, h = self.size_of(i)
             seq = render_sequence(seed, ids[-1] + 1, width=w, height=h, lazy=True, **cfg.render_kwargs)
             smp = sample_from_sequence(seq, ids, self.layout_of(i), rng, cfg.augment, seed=seed)
-        return self._finish(self._pose_noise(smp, rng), i)
+        return self._finish(self._world_scale(self._pose_noise(smp, rng), seed), i)
