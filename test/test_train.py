@@ -216,6 +216,14 @@ def test_trainer_checkpoint_resume_and_export(tmp_path):
     assert meta['validation_metrics']['net_knet']['abs_rel'] == pytest.approx(best['metrics']['net_knet']['abs_rel'])
     assert meta['training_data']['train_seed_range'][0] >= TRAIN_SEED_BASE
     saved = load_file(str(ck / 'model.safetensors'))
+    # any checkpoint exports as loadable weights, whatever its validation said (train --export-step)
+    from dpv_sensor.tools import train as train_tool
+    step3 = str(tmp_path / 'step3.safetensors')
+    assert train_tool.main(['--run-dir', str(run), '--export-step', '3', '--export', step3]) == 0
+    model3, meta3 = load_checkpoint(step3)
+    assert meta3['exported_from'] == 'run/step_0000003' and meta3['steps_this_run'] == 3
+    assert all(torch.equal(v, saved[k]) for k, v in model3.state_dict().items())
+    assert train_tool.main(['--run-dir', str(run), '--export-step', '4', '--export', step3]) == 2
 
     # resume: continues at step 3 with the saved weights and optimiser, runs to 5
     t = loop.Trainer(_tiny_config(tmp_path, steps=5), resume=True, quiet=True)

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import pathlib
 import signal
 import sys
 from typing import List, Optional
@@ -118,6 +119,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="odometry-like pose errors per frame of the streaming validation's noisy pass (0 0 = off)")
     p.add_argument('--max-minutes', type=float, default=0.0, help='stop with a checkpoint after this wall time')
     p.add_argument('--quiet', action='store_true', help='no progress bar or log lines')
+    p.add_argument('--export-step', type=int, default=None, metavar='STEP',
+                   help='train nothing: export checkpoint STEP of --run-dir to --export (required) and exit')
     return p
 
 
@@ -141,6 +144,18 @@ def config_from_args(a: argparse.Namespace) -> TrainConfig:
         world_scale=tuple(a.world_scale), train_modules=tuple(a.train_modules)).check()
 
 
+def _export_step(a: argparse.Namespace) -> int:
+    from dpv_sensor.training.checkpoints import export_checkpoint
+    ckpt = pathlib.Path(a.run_dir) / 'checkpoints' / f'step_{a.export_step:07d}'
+    if not a.export or not (ckpt / 'state.json').is_file():
+        print(f'train: --export-step needs --export and the checkpoint {ckpt}'
+              + ('' if (ckpt / 'state.json').is_file() else ' (not found)'), file=sys.stderr)
+        return 2
+    export_checkpoint(ckpt, a.export)
+    print(json.dumps({'exported': a.export, 'from': str(ckpt)}))
+    return 0
+
+
 def _sigterm(signum, frame):
     raise KeyboardInterrupt(f'signal {signum}')
 
@@ -153,6 +168,8 @@ def main(argv: Optional[List[str]] = None) -> int:
     except ValueError as e:
         print(f'train: {e}', file=sys.stderr)
         return 2
+    if a.export_step is not None:
+        return _export_step(a)
     if a.resume and latest_checkpoint(cfg.run_dir) is not None:
         # the stored run's configuration wins for everything that shapes the data stream, except
         # what the user is expected to change on resume (length, cadence, threads, device)

@@ -20,7 +20,7 @@ import torch.nn as nn
 
 from dpv_sensor.common import to_jsonable
 
-__all__ = ['save_training_state', 'latest_checkpoint', 'load_training_state', 'export_weights']
+__all__ = ['save_training_state', 'latest_checkpoint', 'load_training_state', 'export_weights', 'export_checkpoint']
 
 
 def _atomic_write_text(path: pathlib.Path, text: str) -> None:
@@ -135,3 +135,22 @@ def export_weights(model: nn.Module, path: str, metadata: Dict) -> None:
     finally:
         if tmp.exists():
             tmp.unlink()
+
+
+def export_checkpoint(ckpt_dir, path: str) -> Dict:
+    """Export one training checkpoint's weights (``<run>/checkpoints/step_XXXXXXX``) as weights the node loads,
+    whatever its validation said: to score a chosen step of a run on other data than the trainer's validation
+    (the trainer itself exports only a better validation score). The metadata say which run and step, and carry
+    the run's configuration; returns them."""
+    from dpv_sensor.core.nets.model import DPVNet
+    from safetensors.torch import load_file
+    ckpt_dir = pathlib.Path(ckpt_dir)
+    state = json.loads((ckpt_dir / 'state.json').read_text())
+    cfg = state.get('config', {})
+    model = DPVNet(cfg.get('preset', 'lite'))
+    model.load_state_dict(load_file(str(ckpt_dir / 'model.safetensors')))
+    meta = {'steps_this_run': int(state['step']), 'exported_from': f'{ckpt_dir.parent.parent.name}/{ckpt_dir.name}',
+            'train_input_size': [cfg.get('width'), cfg.get('height')], 'training_config': cfg,
+            'validation_metrics': None}
+    export_weights(model, path, meta)
+    return meta
