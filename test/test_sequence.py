@@ -191,3 +191,24 @@ def test_sun3d_fragment(sun3d_frag1):
     e_inv, _ = _photometric_error(small, 10, 20, Ti @ np.linalg.inv(Tj))
     assert frac > 0.3
     assert e_ok < 0.8 * e_none and e_ok < 0.8 * e_inv, (e_ok, e_none, e_inv)
+
+
+def test_world_scaled_view_scales_depths_and_translations_and_keeps_the_images():
+    rng = np.random.default_rng(0)
+    images = rng.integers(0, 256, (3, 8, 10, 3), dtype=np.uint8)
+    depths = rng.uniform(0.5, 4.0, (3, 8, 10)).astype(np.float32)
+    depths[0, 0, 0] = 0.0                                           # invalid stays invalid
+    poses = np.stack([np.eye(4)] * 3)
+    poses[:, :3, 3] = [[0, 0, 0], [0.1, 0.0, 0.0], [0.2, 0.05, -0.1]]
+    poses[2, :3, :3] = [[0, -1, 0], [1, 0, 0], [0, 0, 1]]
+    seq = Sequence.from_arrays(images, depths, poses, np.diag([8.0, 8.0, 1.0]))
+    half = seq.world_scaled(0.5)
+    assert len(half) == 3 and half.size == seq.size and np.array_equal(half.K, seq.K)
+    assert np.array_equal(half.image(2), seq.image(2)) and np.array_equal(half.stamps, seq.stamps)
+    assert np.allclose(half.depth(1), depths[1] * 0.5) and half.depth(0)[0, 0] == 0.0
+    assert np.allclose(half.pose(2)[:3, 3], [0.1, 0.025, -0.05])
+    assert np.array_equal(half.pose(2)[:3, :3], poses[2, :3, :3])
+    assert np.array_equal(seq.pose(2)[:3, 3], [0.2, 0.05, -0.1])   # the original is untouched
+    assert seq.world_scaled(1.0) is seq
+    with pytest.raises(ValueError, match='positive'):
+        seq.world_scaled(0.0)

@@ -331,6 +331,7 @@ class Sequence:
     - ``seq.pose(i)`` -> 4x4 float64 T_world_cam (OpenCV camera axes); ``seq.stamp(i)`` -> seconds
     - ``seq.extra(name, i)`` -> per-frame extra array (e.g. the renderer's ``specular_mask``)
     - ``seq.resized(width, height)`` -> a view at another resolution with K scaled accordingly
+    - ``seq.world_scaled(s)`` -> a view of the same images in a world ``s`` times larger (depths, translations)
     - ``seq.keyframe_indices(every)``, ``seq.windows(every, size=5, mode='centered'|'causal')``
     """
 
@@ -511,6 +512,29 @@ class Sequence:
         return Sequence._from_loaders(K=K, size=(width, height), poses=self._poses, stamps=self._stamps,
                                       load_image=load_image, load_depth=load_depth, meta=self.meta,
                                       extras=extras, name=f'{self.name}@{width}x{height}', folder=self.folder)
+
+    def world_scaled(self, scale: float) -> 'Sequence':
+        """A view of this sequence in a world ``scale`` times larger: every depth and every pose translation times
+        ``scale``, the images, intrinsics and stamps unchanged (a world scaled as a whole, textures included,
+        looks the same). ``scale`` < 1 brings every surface nearer: a check of whether depth is read from the
+        views' geometry or from the usual sizes of rooms."""
+        scale = float(scale)
+        if not scale > 0:
+            raise ValueError(f'world scale must be positive, got {scale}')
+        if scale == 1.0:
+            return self
+        poses = self._poses.copy()
+        poses[:, :3, 3] *= scale
+        base = self
+        load_depth = None
+        if self.has_depth:
+            def load_depth(i):
+                return base.depth(i) * np.float32(scale)
+
+        return Sequence._from_loaders(K=self._K, size=self._size, poses=poses, stamps=self._stamps,
+                                      load_image=self.image, load_depth=load_depth, meta=self.meta,
+                                      extras={n: (lambda i, n=n: base.extra(n, i)) for n in self._extras},
+                                      name=f'{self.name}x{scale:g}', folder=self.folder)
 
     def keyframe_indices(self, every: int = 1, start: int = 0, stop: Optional[int] = None) -> np.ndarray:
         """Frame indices of keyframes taken every ``every`` frames from ``start``."""

@@ -7,7 +7,8 @@ Use seeds that are never trained on and never reported (the README uses 20-25 fo
 for reporting), and pick by the mean of the two columns.
 
     .venv/bin/python -m dpv_sensor.studies.selection --weights A.safetensors B.safetensors --seeds 20-25 \
-        [--frames 60] [--pose-noise 0.03 0.5] [--modes knet] [--threads 2] [--device cpu] [--out selection.json]
+        [--frames 60] [--pose-noise 0.03 0.5] [--modes knet] [--world-scale 1] [--threads 2] [--device cpu] \
+        [--out selection.json]
 
 Prints a table (weights, abs_rel with GT poses, with noisy poses, their mean, delta1, confident-half ratios) and,
 with several weights, each one's paired difference from the first: the mean over seeds of its per-seed score minus
@@ -118,6 +119,10 @@ def main(argv: Optional[List[str]] = None) -> int:
                     help='odometry-like pose errors per frame of the noisy pass (0 0: GT poses only)')
     ap.add_argument('--modes', nargs='+', default=[P.default('filter_mode')], choices=P.choices('filter_mode'),
                     help='filter modes')
+    ap.add_argument('--world-scale', type=float, default=1.0,
+                    help='see each sequence in a world this many times larger (depths and translations; the same '
+                         'images): 0.5 puts every surface at half its distance, a check that depth is read from '
+                         "the views' geometry rather than from the usual sizes of rooms")
     ap.add_argument('--threads', type=int, default=2)
     add_setting(ap, 'device', help='torch device of the estimator: cpu, cuda, cuda:N (the paper preset wants a GPU: '
                                    '2.5 s a keyframe in float32 on a 2-core CPU)')
@@ -126,7 +131,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     torch.set_num_threads(a.threads)
     try:
         spec = StreamValidationSpec(seeds=parse_seeds(a.seeds), frames=a.frames, pose_noise=tuple(a.pose_noise),
-                                    modes=tuple(a.modes)).check()
+                                    modes=tuple(a.modes), world_scale=a.world_scale).check()
         res = score_weights(a.weights, spec, progress=lambda m: print(m, flush=True), device=a.device)
     except ValueError as e:        # bad seeds / modes, weights that do not load, a device that is missing
         print(f'selection: {e}', file=sys.stderr)
@@ -135,6 +140,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     if a.out:
         with open(a.out, 'w') as f:
             json.dump({'seeds': list(spec.seeds), 'frames': spec.frames, 'pose_noise': list(spec.pose_noise),
+                       'world_scale': spec.world_scale,
                        'results': res, 'paired_differences': diffs}, f, indent=1)
     print(markdown_table(res, spec.modes))
     for mode, rows in diffs.items():

@@ -49,13 +49,15 @@ class StreamValidationSpec:
     seeds: rendered held-out seeds (must lie in ``VAL_SEEDS``); frames: frames per sequence (30 Hz);
     size: (width, height) rendered (the estimator resizes to its processing size as the node does);
     pose_noise: (relative translation, degrees) per step for the noisy-pose pass, (0, 0) = GT poses only;
-    modes: filter modes scored.
+    modes: filter modes scored; world_scale: each sequence seen in a world that many times larger
+    (:meth:`~dpv_sensor.data.sequence.Sequence.world_scaled`: depths and translations, the same images).
     """
     seeds: Tuple[int, ...] = ()
     frames: int = 60
     size: Tuple[int, int] = (320, 240)
     pose_noise: Tuple[float, float] = (0.03, 0.5)
     modes: Tuple[str, ...] = ('knet',)
+    world_scale: float = 1.0
 
     @property
     def enabled(self) -> bool:
@@ -75,6 +77,8 @@ class StreamValidationSpec:
         if len(self.pose_noise) != 2 or min(self.pose_noise) < 0:
             raise ValueError(f'streaming validation pose noise must be (relative translation, degrees) >= 0, '
                              f'got {self.pose_noise}')
+        if not self.world_scale > 0:
+            raise ValueError(f'streaming validation world scale must be positive, got {self.world_scale}')
         unknown = [m for m in self.modes if m not in FILTER_MODES]
         if unknown or not self.modes:
             raise ValueError(f'streaming validation modes {list(self.modes)}: choose from {FILTER_MODES}')
@@ -97,7 +101,7 @@ class StreamValidator:
             from dpv_sensor.data.synthetic import render_sequence
             w, h = self.spec.size
             self._sequences = [render_sequence(s, self.spec.frames, width=w, height=h, lazy=True)
-                               for s in self.spec.seeds]
+                               .world_scaled(self.spec.world_scale) for s in self.spec.seeds]
         return self._sequences
 
     def pose_sources(self) -> Tuple[str, ...]:
