@@ -221,7 +221,7 @@ def test_trainer_checkpoint_resume_and_export(tmp_path):
     step3 = str(tmp_path / 'step3.safetensors')
     assert train_tool.main(['--run-dir', str(run), '--export-step', '3', '--export', step3]) == 0
     model3, meta3 = load_checkpoint(step3)
-    assert meta3['exported_from'] == 'run/step_0000003' and meta3['steps_this_run'] == 3
+    assert meta3['exported_from'] == 'run/step_0000003' and meta3['steps_this_run'] == meta3['steps'] == 3
     assert all(torch.equal(v, saved[k]) for k, v in model3.state_dict().items())
     assert train_tool.main(['--run-dir', str(run), '--export-step', '4', '--export', step3]) == 2
 

@@ -149,7 +149,15 @@ def export_checkpoint(ckpt_dir, path: str) -> Dict:
     cfg = state.get('config', {})
     model = DPVNet(cfg.get('preset', 'lite'))
     model.load_state_dict(load_file(str(ckpt_dir / 'model.safetensors')))
-    meta = {'steps_this_run': int(state['step']), 'exported_from': f'{ckpt_dir.parent.parent.name}/{ckpt_dir.name}',
+    prior_steps = 0
+    if cfg.get('init_weights'):
+        from dpv_sensor.core.nets.checkpoint import read_metadata
+        try:
+            prior_steps = int(read_metadata(cfg['init_weights']).get('steps') or 0)
+        except (OSError, ValueError, RuntimeError):
+            prior_steps = 0
+    meta = {'steps_this_run': int(state['step']), 'steps': prior_steps + int(state['step']),
+            'exported_from': f'{ckpt_dir.parent.parent.name}/{ckpt_dir.name}',
             'train_input_size': [cfg.get('width'), cfg.get('height')], 'training_config': cfg,
             'validation_metrics': None}
     export_weights(model, path, meta)
