@@ -41,19 +41,17 @@ os.environ['PYTHONPATH'] = os.pathsep.join(
 
 def cpu_native_bf16():
     """Whether this CPU has native bfloat16 kernels, from its own flags (Linux /proc/cpuinfo): True with
-    AVX512-BF16 or AMX-BF16, False without AVX-512 at all, None when the flags cannot tell (other systems, or
-    AVX-512 without BF16, where oneDNN's own check decides)."""
+    AVX512-BF16 or AMX-BF16, False without them (oneDNN's emulation on AVX-512 is slower than float32), None when
+    the flags cannot be read."""
     try:
         text = pathlib.Path('/proc/cpuinfo').read_text()
     except OSError:
         return None
     flags = next((set(line.split(':', 1)[1].split()) for line in text.splitlines() if line.startswith('flags')),
-                 set())
-    if flags & {'avx512_bf16', 'amx_bf16'}:
-        return True
-    if flags and 'avx512bw' not in flags:
-        return False
-    return None
+                 None)
+    if flags is None:
+        return None
+    return bool(flags & {'avx512_bf16', 'amx_bf16'})
 
 
 def shared_sequence(name: str) -> pathlib.Path:
