@@ -392,27 +392,22 @@ class SceneStream(IterableDataset):
         smp['poses'] = torch.from_numpy(np.stack(noisy).astype(np.float32))
         return smp
 
-    def _world_scale(self, smp: Dict[str, torch.Tensor], seed: int) -> Dict[str, torch.Tensor]:
-        """With probability ``world_scale_prob``, scale the sample's whole world by a factor ``s`` drawn
-        log-uniformly in ``world_scale``: every depth and every translation times ``s``, the images unchanged (a
-        world ``s`` times larger, textures included, looks exactly the same). The networks then cannot read the
-        depth off the rooms' usual sizes and must take it from the cost volume; ``s`` < 1 also brings surfaces
-        close to the camera, which the renders rarely do. Drawn from its own generator, so the rest of a sample
-        is the same with and without it."""
+    def world_factor_of(self, i: int) -> float:
+        """The factor by which sample i's whole world is scaled: with probability ``world_scale_prob`` one drawn
+        log-uniformly in ``world_scale``, else 1. The sample is then built from
+        :meth:`~dpv_sensor.data.sequence.Sequence.world_scaled`: every depth and translation times the factor,
+        the images unchanged (a world scaled as a whole, textures included, looks the same), so the networks
+        cannot read the depth off the rooms' usual sizes and must take it from the cost volume; a factor < 1
+        also brings surfaces close to the camera, which the renders rarely do. Drawn from its own generator,
+        so the rest of a sample is the same with and without it."""
         cfg = self.config
         if cfg.world_scale_prob <= 0:
-            return smp
-        rng = np.random.default_rng([int(seed) % 2 ** 32, 5])
+            return 1.0
+        rng = np.random.default_rng([int(self.seed_of(i)) % 2 ** 32, 5])
         if rng.random() >= cfg.world_scale_prob:
-            return smp
+            return 1.0
         lo, hi = cfg.world_scale
-        s = float(np.exp(rng.uniform(np.log(lo), np.log(hi))))
-        if 'depths' in smp:
-            smp['depths'] = smp['depths'] * s
-        poses = smp['poses'].clone()
-        poses[:, :3, 3] *= s
-        smp['poses'] = poses
-        return smp
+        return float(np.exp(rng.uniform(np.log(lo), np.log(hi))))
 
     def _open_folders(self):
         if self._folders is None:
@@ -433,12 +428,14 @@ class SceneStream(IterableDataset):
             ids = draw_keyframes(rng, M, cfg.folder_gap[0], cfg.folder_gap[1], start_max=len(seq) - 1 - span)
             if rng.random() < 0.5:      # play the run backwards: another plausible trajectory
                 ids = ids[::-1]
-            smp = sample_from_sequence(seq, ids, self.layout_of(i), rng, cfg.augment, self.size_of(i),
+            smp = sample_from_sequence(seq.world_scaled(self.world_factor_of(i)), ids, self.layout_of(i), rng,
+                                       cfg.augment, self.size_of(i),
                                        scale=float(rng.uniform(*cfg.folder_scale)), seed=-1 - ids[0])
         else:
             from dpv_sensor.data.synthetic import render_sequence
             ids = draw_keyframes(rng, M, cfg.gap_min, cfg.gap_max, start_max=cfg.gap_max)
             w, h = self.size_of(i)
             seq = render_sequence(seed, ids[-1] + 1, width=w, height=h, lazy=True, **cfg.render_kwargs)
-            smp = sample_from_sequence(seq, ids, self.layout_of(i), rng, cfg.augment, seed=seed)
-        return self._finish(self._world_scale(self._pose_noise(smp, rng), seed), i)
+            smp = sample_from_sequence(seq.world_scaled(self.world_factor_of(i)), ids, self.layout_of(i), rng,
+                                       cfg.augment, seed=seed)
+        return self._finish(self._pose_noise(smp, rng), i)
