@@ -331,6 +331,46 @@ def test_expanded_input_conv3d_equals_conv3d(D):
         assert torch.autograd.gradcheck(lambda a, b: small(a, b), (v, i))
 
 
+def test_volume_conv3d_runs_onednn_where_pytorch_would_fall_back_with_the_same_values_and_gradients():
+    """K-Net's 3-D convs on a 160x128 image's volume (12 channels, 32 planes, 32x40): PyTorch's size rule picks its
+    unfold-and-multiply fallback there (1 x 12 x 32 x 32 = 12288 <= 20480; measured 11x slower per conv than
+    oneDNN on one thread). VolumeConv3d calls oneDNN instead: the same values and gradients as nn.Conv3d, and
+    nn.Conv3d itself under autocast, where autocast casts the inputs."""
+    from dpv_sensor.core.nets.knet import VolumeConv3d
+    x = torch.randn(1, 12, 32, 32, 40).contiguous(memory_format=torch.channels_last_3d)
+    ref = nn.Conv3d(12, 12, 3, padding=1)
+    backend = torch._C._select_conv_backend(x, ref.weight, ref.bias, [1, 1, 1], [1, 1, 1], [1, 1, 1], False,
+                                            [0, 0, 0], 1, None)
+    assert 'Slow3d' in str(backend), backend            # the case this class exists for
+    conv = VolumeConv3d(12, 12, 3, padding=1)
+    conv.load_state_dict(ref.state_dict())
+    seen = []
+    original = torch.mkldnn_convolution
+    try:
+        torch.mkldnn_convolution = lambda *a: seen.append(1) or original(*a)
+        with torch.no_grad():
+            torch.testing.assert_close(conv(x), ref(x), rtol=1e-5, atol=1e-4)
+        assert seen == [1]
+        with torch.autocast('cpu', dtype=torch.bfloat16), torch.no_grad():
+            y = conv(x)
+        assert seen == [1] and y.dtype == torch.bfloat16        # autocast: the ordinary op, cast by autocast
+    finally:
+        torch.mkldnn_convolution = original
+    small = VolumeConv3d(2, 3, 3, padding=1).double()
+    xs = torch.randn(1, 2, 3, 4, 5, dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(small, (xs,))               # float64: the ordinary op, its gradient checked
+    xf = torch.randn(1, 12, 6, 5, 4, requires_grad=True)
+    ref.zero_grad()
+    conv.zero_grad()
+    ga = torch.autograd.grad(conv(xf).square().sum(), (xf, conv.weight, conv.bias))
+    gb = torch.autograd.grad(ref(xf).square().sum(), (xf, ref.weight, ref.bias))
+    for a, b in zip(ga, gb):
+        torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-3)
+    knet = KNet(get_preset('lite'))
+    assert all(isinstance(m, VolumeConv3d) for m in (knet.conv0_b, knet.conv2_a, knet.conv2_b,
+                                                     *[c for b in knet.conv1 for c in (b.conv_a, b.conv_b)]))
+
+
 def test_knet_starts_as_damped_blend_and_uses_the_image():
     """Step 0: g(dE, I) = dE / (1 + lambda) exactly (the blend with global damping's relative weights)."""
     torch.manual_seed(0)

@@ -32,6 +32,13 @@ over the depth taps (minus the missing tap at the first and last plane); the res
 is a 2-D conv over the three depth-shifted copies of the residual. PyTorch's CPU conv3d with fewer than
 about 12 input channels is ~30x slower per MAC than with 32, which made this layer alone cost more
 than the rest of K-Net. Parameters and results are those of a plain ``nn.Conv3d(4, C, 3, padding=1)``.
+
+The other 3-D convs (:class:`VolumeConv3d`) call oneDNN directly on the CPU in float32. PyTorch chooses
+between oneDNN and its unfold-and-multiply fallback by a size rule written for images: with one sample it
+takes oneDNN only when batch x channels x the first two spatial sizes exceed 20480, which for a volume is
+channels x D x h and leaves the width out. A ``lite`` volume of 32 planes at 40x32 (a 160x128 image) is
+under it, and there the fallback was 11x slower per conv (68 against 6 ms, one thread); at 320x256 the
+rule already picks oneDNN and the results are the same bit for bit.
 """
 from __future__ import annotations
 
@@ -44,7 +51,7 @@ import torch.nn.functional as F
 from dpv_sensor.core.nets.dnet import FEATURE_STRIDE, normalize_image
 from dpv_sensor.core.nets.presets import Preset
 
-__all__ = ['KNet', 'ExpandedInputConv3d', 'ResBlock3d', 'image_to_volume_grid']
+__all__ = ['KNet', 'ExpandedInputConv3d', 'VolumeConv3d', 'ResBlock3d', 'image_to_volume_grid']
 
 # Residual energies beyond this magnitude (nats) are clipped at the conv branch's input only
 # (the identity path sees the true residual). Keeps -log(0)-style outliers from saturating the net.
@@ -65,6 +72,27 @@ def image_to_volume_grid(image_b3hw: torch.Tensor, hw) -> torch.Tensor:
     if -(-H // FEATURE_STRIDE) == h and -(-W // FEATURE_STRIDE) == w:
         return F.avg_pool2d(image_b3hw, 5, stride=FEATURE_STRIDE, padding=2, count_include_pad=False)
     return F.adaptive_avg_pool2d(image_b3hw, (h, w))
+
+
+def _onednn_fits(input: torch.Tensor, weight: torch.Tensor) -> bool:
+    """Whether a float32 CPU conv may go to oneDNN directly: not under autocast (which casts the conv's inputs
+    itself), not while exporting or compiling (which need the ordinary op)."""
+    return (input.device.type == 'cpu' and input.dtype == torch.float32 and weight.dtype == torch.float32
+            and torch.backends.mkldnn.is_available() and torch.backends.mkldnn.enabled
+            and not torch.is_autocast_enabled('cpu') and not torch.jit.is_tracing()
+            and not torch.jit.is_scripting() and not torch.onnx.is_in_onnx_export()
+            and not torch.compiler.is_compiling())
+
+
+class VolumeConv3d(nn.Conv3d):
+    """``nn.Conv3d`` whose float32 CPU forward always runs oneDNN (see the module docstring); its gradient is
+    the ordinary conv's. Elsewhere (a GPU, autocast, export) it is ``nn.Conv3d`` unchanged."""
+
+    def _conv_forward(self, input: torch.Tensor, weight: torch.Tensor, bias):  # type: ignore[override]
+        if self.padding_mode == 'zeros' and not isinstance(self.padding, str) and _onednn_fits(input, weight):
+            return torch.mkldnn_convolution(input, weight, bias, list(self.padding), list(self.stride),
+                                            list(self.dilation), self.groups)
+        return super()._conv_forward(input, weight, bias)
 
 
 class ExpandedInputConv3d(nn.Conv3d):
@@ -108,8 +136,8 @@ class ResBlock3d(nn.Module):
 
     def __init__(self, channels: int, blocks_in_stage: int = 1):
         super().__init__()
-        self.conv_a = nn.Conv3d(channels, channels, 3, padding=1)
-        self.conv_b = nn.Conv3d(channels, channels, 3, padding=1)
+        self.conv_a = VolumeConv3d(channels, channels, 3, padding=1)
+        self.conv_b = VolumeConv3d(channels, channels, 3, padding=1)
         nn.init.kaiming_normal_(self.conv_a.weight, nonlinearity='relu')
         nn.init.zeros_(self.conv_a.bias)
         nn.init.kaiming_normal_(self.conv_b.weight, nonlinearity='linear')
@@ -132,10 +160,10 @@ class KNet(nn.Module):
         super().__init__()
         C = preset.knet_channels
         self.conv0_a = ExpandedInputConv3d(C)
-        self.conv0_b = nn.Conv3d(C, C, 3, padding=1)
+        self.conv0_b = VolumeConv3d(C, C, 3, padding=1)
         self.conv1 = nn.Sequential(*[ResBlock3d(C, preset.knet_blocks) for _ in range(preset.knet_blocks)])
-        self.conv2_a = nn.Conv3d(C, C, 3, padding=1)
-        self.conv2_b = nn.Conv3d(C, 1, 3, padding=1)
+        self.conv2_a = VolumeConv3d(C, C, 3, padding=1)
+        self.conv2_b = VolumeConv3d(C, 1, 3, padding=1)
         for conv in (self.conv0_a, self.conv0_b, self.conv2_a):
             nn.init.kaiming_normal_(conv.weight, nonlinearity='relu')
             nn.init.zeros_(conv.bias)
