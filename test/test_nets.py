@@ -371,6 +371,32 @@ def test_volume_conv3d_runs_onednn_where_pytorch_would_fall_back_with_the_same_v
                                                      *[c for b in knet.conv1 for c in (b.conv_a, b.conv_b)]))
 
 
+@pytest.mark.parametrize('D', [1, 2, 5])
+def test_planewise_conv3d_equals_conv3d_with_its_gradients(D):
+    """K-Net's last layer (C -> 1, 3x3x3) as 2-D convs over the depth planes, the taps summed shifted along depth:
+    the values and gradients of nn.Conv3d, the first and last planes missing one tap each as zero padding does."""
+    from dpv_sensor.core.nets.knet import PlanewiseConv3d
+    torch.manual_seed(0)
+    layer = PlanewiseConv3d(4).double()
+    with torch.no_grad():
+        layer.bias.normal_()
+    ref = nn.Conv3d(4, 1, 3, padding=1).double()
+    ref.load_state_dict(layer.state_dict())
+    x = torch.randn(2, 4, D, 5, 7, dtype=torch.float64)
+    torch.testing.assert_close(layer(x), ref(x))
+    xs = torch.randn(1, 2, D, 3, 4, dtype=torch.float64, requires_grad=True)
+    small = PlanewiseConv3d(2).double()
+    assert torch.autograd.gradcheck(small, (xs,))
+    xf = torch.randn(1, 12, D, 6, 8)
+    layer32, ref32 = PlanewiseConv3d(12), nn.Conv3d(12, 1, 3, padding=1)
+    ref32.load_state_dict(layer32.state_dict())
+    y = layer32(xf)
+    assert y.dtype == torch.float32 and y.shape == (1, 1, D, 6, 8)
+    torch.testing.assert_close(y, ref32(xf), rtol=1e-5, atol=1e-5)
+    with pytest.raises(ValueError, match='C -> 1 conv'):
+        PlanewiseConv3d(4, 2)
+
+
 def test_knet_starts_as_damped_blend_and_uses_the_image():
     """Step 0: g(dE, I) = dE / (1 + lambda) exactly (the blend with global damping's relative weights)."""
     torch.manual_seed(0)
