@@ -310,15 +310,22 @@ def test_cached_source_features_give_the_same_measurement():
 
 
 # ---------------------------------------------------------------------------------------------- K-Net
+def _in_float64_beside_conv3d(layer):
+    """(the layer in float64 with a random bias, an nn.Conv3d with 3x3x3 kernel and padding 1 holding the same
+    parameters): the reference of K-Net's convs computed another way."""
+    layer = layer.double()
+    with torch.no_grad():
+        layer.bias.normal_()
+    ref = nn.Conv3d(layer.in_channels, layer.out_channels, 3, padding=1).double()
+    ref.load_state_dict(layer.state_dict())
+    return layer, ref
+
+
 @pytest.mark.parametrize('D', [1, 2, 5])
 def test_expanded_input_conv3d_equals_conv3d(D):
     """The 2-D implementation of conv_0's first layer == nn.Conv3d on concat(residual, expand(image))."""
     torch.manual_seed(0)
-    layer = ExpandedInputConv3d(6).double()
-    with torch.no_grad():
-        layer.bias.normal_()
-    ref_conv = nn.Conv3d(4, 6, 3, padding=1).double()
-    ref_conv.load_state_dict(layer.state_dict())
+    layer, ref_conv = _in_float64_beside_conv3d(ExpandedInputConv3d(6))
     vol = torch.randn(2, D, 5, 7, dtype=torch.float64)
     img = torch.randn(2, 3, 5, 7, dtype=torch.float64)
     x = torch.cat([vol[:, None], img[:, :, None].expand(2, 3, D, 5, 7)], 1)
@@ -377,11 +384,7 @@ def test_planewise_conv3d_equals_conv3d_with_its_gradients(D):
     the values and gradients of nn.Conv3d, the first and last planes missing one tap each as zero padding does."""
     from dpv_sensor.core.nets.knet import PlanewiseConv3d
     torch.manual_seed(0)
-    layer = PlanewiseConv3d(4).double()
-    with torch.no_grad():
-        layer.bias.normal_()
-    ref = nn.Conv3d(4, 1, 3, padding=1).double()
-    ref.load_state_dict(layer.state_dict())
+    layer, ref = _in_float64_beside_conv3d(PlanewiseConv3d(4))
     x = torch.randn(2, 4, D, 5, 7, dtype=torch.float64)
     torch.testing.assert_close(layer(x), ref(x))
     xs = torch.randn(1, 2, D, 3, 4, dtype=torch.float64, requires_grad=True)
