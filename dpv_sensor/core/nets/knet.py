@@ -38,7 +38,8 @@ between oneDNN and its unfold-and-multiply fallback by a size rule written for i
 takes oneDNN only when batch x channels x the first two spatial sizes exceed 20480, which for a volume is
 channels x D x h and leaves the width out. A ``lite`` volume of 32 planes at 40x32 (a 160x128 image) is
 under it, and there the fallback was 11x slower per conv (68 against 6 ms, one thread); at 320x256 the
-rule already picks oneDNN and the results are the same bit for bit.
+rule already picks oneDNN and the results are the same bit for bit. The last layer (C -> 1) is
+:class:`PlanewiseConv3d`: oneDNN's 3-D conv with one output channel costs as much as one with C.
 """
 from __future__ import annotations
 
