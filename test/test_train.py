@@ -9,6 +9,7 @@ import dataclasses
 import json
 import math
 import pathlib
+import shutil
 import time
 
 import numpy as np
@@ -224,6 +225,17 @@ def test_trainer_checkpoint_resume_and_export(tmp_path):
     assert meta3['exported_from'] == 'run/step_0000003' and meta3['steps_this_run'] == meta3['steps'] == 3
     assert all(torch.equal(v, saved[k]) for k, v in model3.state_dict().items())
     assert train_tool.main(['--run-dir', str(run), '--export-step', '4', '--export', step3]) == 2
+    # a run started from weights that can no longer be read: the export says so and counts this run's steps only
+    from dpv_sensor.training.checkpoints import export_checkpoint
+    ck3 = run / 'checkpoints' / 'step_0000003'
+    state3 = json.loads((ck3 / 'state.json').read_text())
+    moved = tmp_path / 'moved'
+    shutil.copytree(ck3, moved / 'checkpoints' / 'step_0000003')
+    state3.setdefault('config', {})['init_weights'] = str(tmp_path / 'gone.safetensors')
+    (moved / 'checkpoints' / 'step_0000003' / 'state.json').write_text(json.dumps(state3))
+    with pytest.warns(UserWarning, match='gone.safetensors cannot be read'):
+        meta_gone = export_checkpoint(moved / 'checkpoints' / 'step_0000003', str(tmp_path / 'gone_export.safetensors'))
+    assert meta_gone['steps'] == meta_gone['steps_this_run'] == 3
 
     # resume: continues at step 3 with the saved weights and optimiser, runs to 5
     t = loop.Trainer(_tiny_config(tmp_path, steps=5), resume=True, quiet=True)

@@ -154,7 +154,10 @@ def export_checkpoint(ckpt_dir, path: str) -> Dict:
         from dpv_sensor.core.nets.checkpoint import read_metadata
         try:
             prior_steps = int(read_metadata(cfg['init_weights']).get('steps') or 0)
-        except (OSError, ValueError, RuntimeError):
+        except (OSError, ValueError, RuntimeError) as exc:
+            import warnings
+            warnings.warn(f'export: the steps of the initial weights {cfg["init_weights"]} cannot be read ({exc}); '
+                          f'the exported "steps" counts this run\'s {int(state["step"])} only', stacklevel=2)
             prior_steps = 0
     meta = {'steps_this_run': int(state['step']), 'steps': prior_steps + int(state['step']),
             'exported_from': f'{ckpt_dir.parent.parent.name}/{ckpt_dir.name}',

@@ -75,14 +75,18 @@ def image_to_volume_grid(image_b3hw: torch.Tensor, hw) -> torch.Tensor:
     return F.adaptive_avg_pool2d(image_b3hw, (h, w))
 
 
+def _exporting() -> bool:
+    """Whether the module is being traced, scripted, exported or compiled: then only ordinary ops may run."""
+    return (torch.jit.is_tracing() or torch.jit.is_scripting() or torch.onnx.is_in_onnx_export()
+            or torch.compiler.is_compiling())
+
+
 def _onednn_fits(input: torch.Tensor, weight: torch.Tensor) -> bool:
     """Whether a float32 CPU conv may go to oneDNN directly: not under autocast (which casts the conv's inputs
-    itself), not while exporting or compiling (which need the ordinary op)."""
+    itself), not while exporting or compiling."""
     return (input.device.type == 'cpu' and input.dtype == torch.float32 and weight.dtype == torch.float32
             and torch.backends.mkldnn.is_available() and torch.backends.mkldnn.enabled
-            and not torch.is_autocast_enabled('cpu') and not torch.jit.is_tracing()
-            and not torch.jit.is_scripting() and not torch.onnx.is_in_onnx_export()
-            and not torch.compiler.is_compiling())
+            and not torch.is_autocast_enabled('cpu') and not _exporting())
 
 
 class VolumeConv3d(nn.Conv3d):
@@ -110,7 +114,7 @@ class PlanewiseConv3d(VolumeConv3d):
                              f'{self.out_channels} outputs, kernel {self.kernel_size}, padding {self.padding}')
 
     def _conv_forward(self, input: torch.Tensor, weight: torch.Tensor, bias):  # type: ignore[override]
-        if input.device.type != 'cpu' or torch.jit.is_tracing() or torch.onnx.is_in_onnx_export():
+        if input.device.type != 'cpu' or _exporting():
             return super()._conv_forward(input, weight, bias)
         B, C, D, h, w = input.shape
         planes = input.transpose(1, 2).reshape(B * D, C, h, w)
