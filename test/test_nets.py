@@ -378,6 +378,48 @@ def test_volume_conv3d_runs_onednn_where_pytorch_would_fall_back_with_the_same_v
                                                      *[c for b in knet.conv1 for c in (b.conv_a, b.conv_b)]))
 
 
+def test_depth_halves_by_hand():
+    """Three output planes, one halo plane each side: halves of 2 planes (the second ends with a zero plane), each
+    reading its 2 planes and its halo; planes past the volume are zeros."""
+    from dpv_sensor.core.nets.knet import depth_halves
+    x = torch.arange(1.0, 4.0).reshape(1, 1, 3, 1, 1)          # input planes 1, 2, 3
+    g = torch.arange(10.0, 13.0).reshape(1, 1, 3, 1, 1)        # output-gradient planes 10, 11, 12
+    xs, gs = depth_halves(x, g, 1)
+    assert xs.flatten(1).tolist() == [[0, 1, 2, 3], [2, 3, 0, 0]]
+    assert gs.flatten(1).tolist() == [[10, 11], [12, 0]]
+
+
+@pytest.mark.parametrize('D,bias', [(1, True), (4, False), (5, True), (32, True)])
+def test_volume_conv3d_backward_of_one_sample_runs_onednn_with_the_gradients_of_conv3d(D, bias):
+    """One sample's backward (adaptation trains on single keyframes): PyTorch's own would run its fallback on K-Net's
+    shapes; VolumeConv3d's goes to oneDNN - the input gradient a forward conv, the weight gradient on the two depth
+    halves, a batch the size rule sends to oneDNN - with nn.Conv3d's gradients, with or without the input's.
+    Strided convs keep the ordinary backward."""
+    from dpv_sensor.core.nets.knet import VolumeConv3d, depth_halves
+    torch.manual_seed(D)
+    conv, ref = VolumeConv3d(12, 12, 3, padding=1, bias=bias), nn.Conv3d(12, 12, 3, padding=1, bias=bias)
+    ref.load_state_dict(conv.state_dict())
+    x = torch.randn(1, 12, D, 32, 40, requires_grad=True)
+    y = conv(x)
+    assert type(y.grad_fn).__name__ == '_OneDnnSameConv3dBackward'
+    ga = torch.autograd.grad(y.square().sum(), (x, *conv.parameters()))
+    gb = torch.autograd.grad(ref(x).square().sum(), (x, *ref.parameters()))
+    for a, b in zip(ga, gb, strict=True):
+        torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-5 * float(b.abs().max()))
+    xs, gs = depth_halves(x.detach(), y.detach(), 1)
+    rule = [1, 1, 1], [0, 1, 1], [1, 1, 1], False, [0, 0, 0], 1, None
+    assert 'Mkldnn' in str(torch._C._select_conv_backend(xs, ref.weight, ref.bias, *rule))
+    if D == 32:
+        assert 'Slow3d' in str(torch._C._select_conv_backend(x, ref.weight, ref.bias, [1, 1, 1], *rule[1:]))
+    gw = torch.autograd.grad(conv(x.detach()).sum(), tuple(conv.parameters()))     # no input gradient asked
+    for a, b in zip(gw, torch.autograd.grad(ref(x.detach()).sum(), tuple(ref.parameters())), strict=True):
+        torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-5 * float(b.abs().max()))
+    with torch.no_grad():
+        assert conv(x).grad_fn is None
+    strided = VolumeConv3d(12, 4, 3, padding=1, stride=2)
+    assert type(strided(x).grad_fn).__name__ != '_OneDnnSameConv3dBackward'
+
+
 @pytest.mark.parametrize('D', [1, 2, 5])
 def test_planewise_conv3d_equals_conv3d_with_its_gradients(D):
     """K-Net's last layer (C -> 1, 3x3x3) as 2-D convs over the depth planes, the taps summed shifted along depth:
