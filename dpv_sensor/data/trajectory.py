@@ -90,15 +90,18 @@ class HandheldTrajectory:
     def loop_points(self, phi: np.ndarray) -> np.ndarray:
         """(..., 3) points of the loop (without hand shake) at loop angles phi."""
         phi = np.asarray(phi, dtype=np.float64)
-        r = np.ones_like(phi)
-        for k, a, p in self.radial_terms:
-            r = r + a * np.cos(k * phi + p)
         z = np.full_like(phi, self.height0)
         for k, b, q in self.height_terms:
             z = z + b * np.sin(k * phi + q)
-        x = self.center[0] + self.ax * r * np.cos(phi)
-        y = self.center[1] + self.ay * r * np.sin(phi)
-        return np.stack([x, y, z], axis=-1)
+        return np.concatenate([self._loop_xy(phi), z[..., None]], axis=-1)
+
+    def _loop_xy(self, phi: np.ndarray) -> np.ndarray:
+        """(..., 2) horizontal projection of the loop at loop angles phi."""
+        r = np.ones_like(phi)
+        for k, a, p in self.radial_terms:
+            r = r + a * np.cos(k * phi + p)
+        return np.stack([self.center[0] + self.ax * r * np.cos(phi), self.center[1] + self.ay * r * np.sin(phi)],
+                        axis=-1)
 
     def _arc_table(self) -> Tuple[np.ndarray, np.ndarray]:
         if self._table is None:
@@ -127,9 +130,9 @@ class HandheldTrajectory:
         """Largest curvature (1/m) of the loop's horizontal projection."""
         phi = np.linspace(0.0, 2 * math.pi, 4096, endpoint=False)
         h = phi[1] - phi[0]
-        p0 = self.loop_points(phi)[:, :2]
-        pp = self.loop_points(phi + h)[:, :2]
-        pm = self.loop_points(phi - h)[:, :2]
+        p0 = self._loop_xy(phi)                   # the loop is periodic: the neighbours at +-h are the grid's
+        pp = np.roll(p0, -1, axis=0)
+        pm = np.roll(p0, 1, axis=0)
         d1 = (pp - pm) / (2 * h)
         d2 = (pp - 2 * p0 + pm) / (h * h)
         cross = np.abs(d1[:, 0] * d2[:, 1] - d1[:, 1] * d2[:, 0])
