@@ -39,6 +39,15 @@ os.environ['PYTHONPATH'] = os.pathsep.join(
     [str(REPO)] + [p for p in os.environ.get('PYTHONPATH', '').split(os.pathsep) if p])
 
 
+def pytest_collection_finish(session):
+    """What collection imported (torch, the stream layer, ...) moves to the collector's permanent generation: the
+    tests' own garbage collections then walk only what the tests allocate (fork_starts.py does the same for the
+    nodes it forks)."""
+    import gc
+    gc.collect()
+    gc.freeze()
+
+
 def cpu_native_bf16():
     """Whether this CPU has native bfloat16 kernels, from its own flags (Linux /proc/cpuinfo): True with
     AVX512-BF16 or AMX-BF16, False without them (oneDNN's emulation on AVX-512 is slower than float32), None when
