@@ -5,7 +5,6 @@ on the rest of a recording of a world the shipped weights never saw."""
 import dataclasses
 import json
 import os
-import shutil
 
 import pytest
 import torch
@@ -15,24 +14,15 @@ from dpv_sensor.core.nets.checkpoint import (CheckpointError, default_weights_pa
 from dpv_sensor.data.sequence import Sequence, write_sequence
 from dpv_sensor.data.synthetic import render_sequence
 from dpv_sensor.tools import adapt as tool
-
-W, H = 160, 128
-# a room 2-2.8 m across: the shipped weights were trained in rooms of 3-7.5 m
-SMALL_ROOM = {'room_size_x': (2.0, 2.8), 'room_size_y': (2.0, 2.8), 'room_height': (2.2, 2.4)}
-FAST = ['--width', str(W), '--height', str(H), '--threads', '1', '--quiet', '--holdout', '0.35', '--unroll', '1',
-        '--steps', '4', '--lr', '1e-3']
+from shared_builds import ADAPT_FAST as FAST
+from shared_builds import SMALL_ROOM, H, W, adapt_recording
 
 
 @pytest.fixture(scope='module')
 def folders(tmp_path_factory):
     """A 90-frame rendered recording at 160x128 written with depth/, and the same folder without depth/."""
-    root = tmp_path_factory.mktemp('adapt')
-    seq = render_sequence(65, 90, width=W, height=H, **SMALL_ROOM)
-    with_depth = write_sequence(root / 'with_depth', seq, lossless=True)
-    without = root / 'without_depth'
-    shutil.copytree(with_depth, without)
-    shutil.rmtree(without / 'depth')
-    return with_depth, without
+    rec = adapt_recording(tmp_path_factory)
+    return rec.with_depth, rec.without_depth
 
 
 def _run(source, out, *extra, capsys=None):
@@ -46,10 +36,10 @@ def _files(folder):
 
 
 @pytest.fixture(scope='module')
-def adapted(folders, tmp_path_factory):
-    """The tool run on the folder without depth/: (out folder, exit code)."""
-    out = tmp_path_factory.mktemp('adapted')
-    return out, tool.main([str(folders[1]), '--out', str(out), *FAST])
+def adapted(tmp_path_factory):
+    """The tool run on the folder without depth/ (ADAPT_FAST): (out folder, exit code)."""
+    rec = adapt_recording(tmp_path_factory)
+    return rec.adapted, rec.code
 
 
 def test_writes_weights_report_and_metadata(adapted, folders):

@@ -5,11 +5,11 @@ import re
 
 import pytest
 
+import shared_builds
 from ros_helpers import forked_node_starts, wait_for
+from shared_builds import adapt_recording
 from stream_driver import FAST_PARAMS, H, W, StreamDriver, params_args
 
-from dpv_sensor.data.sequence import write_sequence
-from dpv_sensor.data.synthetic import render_sequence
 from dpv_sensor.tools import adapt as tool
 
 FRAMES = 10
@@ -17,16 +17,11 @@ FRAMES = 10
 
 @pytest.fixture(scope='module')
 def adapted_weights(tmp_path_factory):
-    """Weights adapted (4 steps) to a rendered 90-frame recording at the stream driver's size."""
-    root = tmp_path_factory.mktemp('adapt_node')
-    small_room = {'room_size_x': (2.0, 2.8), 'room_size_y': (2.0, 2.8), 'room_height': (2.2, 2.4)}
-    folder = write_sequence(root / 'recording', render_sequence(65, 90, width=W, height=H, **small_room),
-                            lossless=True, write_depth=False)
-    out = root / 'out'
-    code = tool.main([str(folder), '--out', str(out), '--width', str(W), '--height', str(H), '--threads', '1',
-                      '--quiet', '--holdout', '0.35', '--unroll', '1', '--steps', '4', '--lr', '1e-3'])
-    assert code == tool.EXIT_WRITTEN
-    return out / 'weights.safetensors'
+    """Weights adapted (4 steps) to a rendered 90-frame recording at the stream driver's size (the adapt tool's
+    tests check them)."""
+    rec = adapt_recording(tmp_path_factory)
+    assert rec.code == tool.EXIT_WRITTEN and (shared_builds.W, shared_builds.H) == (W, H)
+    return rec.adapted / 'weights.safetensors'
 
 
 def test_the_node_runs_the_adapted_weights(adapted_weights):
