@@ -18,6 +18,8 @@ BENCH_OUT ?= out/bench
 BENCH_ARGS ?=
 # make test runs the suite in this many pytest-xdist workers (a test file stays on one worker; 1 = no workers)
 TEST_WORKERS ?= 2
+# more pytest options for make test, e.g. PYTEST_ARGS=--durations=25
+PYTEST_ARGS ?=
 
 .PHONY: venv demo test bench clean
 
@@ -30,7 +32,7 @@ demo: venv
 	  $(if $(ODOM_TOPIC),--odom-topic $(ODOM_TOPIC)) $(if $(GT),--gt $(GT)) $(if $(PARAMS),--params $(PARAMS)) $(DEMO_ARGS)
 
 test: venv
-	$(PY) -m pytest -q -ra $(if $(filter-out 1,$(TEST_WORKERS)),-n $(TEST_WORKERS) --dist loadfile) test
+	$(PY) -m pytest -q -ra $(if $(filter-out 1,$(TEST_WORKERS)),-n $(TEST_WORKERS) --dist loadfile) $(PYTEST_ARGS) test
 
 bench: venv
 	$(PY) -m dpv_sensor.tools.bench --out $(BENCH_OUT) $(BENCH_ARGS)
