@@ -71,7 +71,7 @@ from dpv_sensor import params as P
 from dpv_sensor.ros import startup
 from dpv_sensor.ros.diagnostics import NodeDiagnostics
 from dpv_sensor.ros.extrinsic import pose_text
-from dpv_sensor.ros.inputs import NodeInputs
+from dpv_sensor.ros.inputs import QOS_CHECK_PERIOD_S, NodeInputs
 from dpv_sensor.ros.node_params import NodeSettings, RuntimeParameters, declare_parameters
 from dpv_sensor.ros.node_support import FaultLog, LogBridge
 from dpv_sensor.ros.outputs import NodeOutputs
@@ -125,7 +125,7 @@ class DepthCameraNode(Node):
         if self.settings.node.input_reliability == 'auto':
             # on the steady clock: under use_sim_time a ROS-time timer would wait for /clock, and the inputs would
             # never follow their publishers' QoS until it comes
-            self.create_timer(1.0, self.inputs.adapt_qos, clock=Clock(clock_type=ClockType.STEADY_TIME))
+            self.create_timer(QOS_CHECK_PERIOD_S, self.inputs.adapt_qos, clock=Clock(clock_type=ClockType.STEADY_TIME))
         self.outputs = NodeOutputs(self, self.faults, self.qos_events,
                                    T_base_camera if extrinsic_source == 'parameter' else None)
         self.inputs.tf = self.outputs.tf
