@@ -13,6 +13,7 @@ from dpv_sensor.data.sequence import Sequence
 from dpv_sensor.training.adapt_loop import select_keyframes
 from dpv_sensor.training.anchor_judge import AnchorScore, JudgeConfig, anchor_loss, frame_anchors
 from dpv_sensor.training.heldout_decision import runs_needed, veto
+from shared_builds import SMALL_ROOM
 
 W, H = 160, 128
 
@@ -145,8 +146,7 @@ def test_held_out_anchors_never_enter_training_and_the_sparse_loss_trains(monkey
     the anchor term, finite, with a gradient on the networks."""
     import dpv_sensor.training.adapt_loop as AL
     from dpv_sensor.core.nets.checkpoint import default_weights_path, load_checkpoint
-    seq = render_sequence(65, 90, width=W, height=H, room_size_x=(2.0, 2.8), room_size_y=(2.0, 2.8),
-                          room_height=(2.2, 2.4))
+    seq = render_sequence(65, 90, width=W, height=H, **SMALL_ROOM)
     reads = []
     real = AL.frame_anchors
 

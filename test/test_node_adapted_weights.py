@@ -7,7 +7,6 @@ import pytest
 
 import shared_builds
 from ros_helpers import forked_node_starts, wait_for
-from shared_builds import adapt_recording
 from stream_driver import FAST_PARAMS, H, W, StreamDriver, params_args
 
 from dpv_sensor.tools import adapt as tool
@@ -19,7 +18,7 @@ FRAMES = 10
 def adapted_weights(tmp_path_factory):
     """Weights adapted (4 steps) to a rendered 90-frame recording at the stream driver's size (the adapt tool's
     tests check them)."""
-    rec = adapt_recording(tmp_path_factory)
+    rec = shared_builds.adapt_recording(tmp_path_factory)
     assert rec.code == tool.EXIT_WRITTEN and (shared_builds.W, shared_builds.H) == (W, H)
     return rec.adapted / 'weights.safetensors'
 
