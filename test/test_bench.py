@@ -23,7 +23,7 @@ def bench(tmp_path_factory):
     cmd = [sys.executable, '-m', 'dpv_sensor.tools.bench', '--presets', 'lite', '--sizes', '64x48',
            '--devices', 'cpu,cuda', '--repeats', '1', '--warmup', '1', '--keyframes', '1', '--e2e-hz', '10',
            '--e2e-seconds', '3', '--e2e-min-outputs', '1', '--e2e-max-seconds', '90', '--e2e-frames', '12',
-           '--keyframe-keyframes', '1', '--out', str(out)]
+           '--keyframe-keyframes', '1', '--keyframe-warmup', '1', '--out', str(out)]
     proc = subprocess.run(cmd, cwd=REPO, env=dict(os.environ), capture_output=True, text=True, timeout=400)
     assert proc.returncode == 0, proc.stdout + proc.stderr
     return out, proc, json.loads((out / 'bench.json').read_text())
@@ -102,6 +102,7 @@ def test_default_keyframe_stages(bench):
     _out, _proc, report = bench
     (r,) = report['keyframe']
     assert r['defaults']['window_mode'] == 'centered' and r['defaults']['pose_refinement'] == 'window'
+    assert r['warmup_keyframes'] == 1                  # --keyframe-warmup
     assert set(r['variants']) == {'torch/float32', 'torch/bfloat16'}
     for v in r['variants'].values():
         assert v['keyframes_timed'] == 1

@@ -20,7 +20,7 @@ from dpv_sensor.ros.fault_kinds import BUSY, NO_EXTRINSIC, ODOM_LATE
 from dpv_sensor.ros.inputs import NO_MOUNT, replaced_drop_kind
 from dpv_sensor.stream.pose_buffer import FUTURE, GAP, NAN, NS, TOO_OLD
 
-WAIT_S = 3.0             # odom_wait_timeout: long enough to send two images while the worker waits, under load
+WAIT_S = 2.0             # odom_wait_timeout: long enough to send two images while the worker waits, under load
 TOLERANCE_S = 1.0        # future_stamp_tolerance
 P30 = NS // 30
 

@@ -100,7 +100,9 @@ def _publish_mount(drv: StreamDriver):
 
 
 def test_no_transform_warns_counts_and_publishes_nothing_until_tf_static_arrives():
-    drv = StreamDriver(params_args({**FAST_PARAMS, 'extrinsic_source': 'auto'}), frames=16, name='no_mount')
+    # each image without a mount waits odom_wait_timeout for it before it is dropped: 1 s, not the driver's 3 s
+    drv = StreamDriver(params_args({**FAST_PARAMS, 'extrinsic_source': 'auto', 'odom_wait_timeout': 1.0}), frames=16,
+                       name='no_mount')
     n_without = 4
     try:
         drv.wait_ready()

@@ -20,7 +20,7 @@ node, and writes OUT/bench.md (printed too) and OUT/bench.json:
 3. **The default keyframe** (``benchmarks.keyframe.run``): ``Pipeline.push`` of a keyframe at the node's defaults
    (640x480 camera, centred window, refinement window, K-Net, readout, edge filter, output), every stage's median
    and p95, in float32 and bfloat16 on the CPU, for each ``--backends`` entry (``inference_backend``), the variants
-   pushed the same frames in turn; ``--keyframe-keyframes`` keyframes each.
+   pushed the same frames in turn; ``--keyframe-keyframes`` keyframes each after ``--keyframe-warmup`` untimed ones.
 4. **End to end through the node**: the node is started as its own process (``python -m dpv_sensor.ros.node``) with
    the preset, the device and the size as its processing size; a rendered sequence at that size is played into it
    in a loop at ``--e2e-hz`` images/s (``BagPlayer``, stamps rebased to the wall clock) for ``--e2e-seconds`` (longer
@@ -153,11 +153,11 @@ def bench_estimator(models, sizes, device, keyframes) -> List[Dict]:
     return out
 
 
-def bench_keyframe(device: str, backends: List[str], keyframes: int) -> Dict:
+def bench_keyframe(device: str, backends: List[str], keyframes: int, warmup: int) -> Dict:
     from dpv_sensor.benchmarks import keyframe as KB
     precisions = ['float32', 'bfloat16'] if device == 'cpu' else ['auto']
     _say(f'keyframe: node defaults on {device}, backends {",".join(backends)}, {",".join(precisions)}')
-    r = KB.run(KB.variants(backends, precisions), keyframes=keyframes, settings={'device': device})
+    r = KB.run(KB.variants(backends, precisions), keyframes=keyframes, warmup=warmup, settings={'device': device})
     r['device'] = device
     return r
 
@@ -462,6 +462,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--keyframes', type=int, default=3, help='timed estimator keyframes per model (default 3)')
     p.add_argument('--keyframe-keyframes', type=int, default=12,
                    help='timed keyframes per variant of the default-keyframe part (default 12)')
+    p.add_argument('--keyframe-warmup', type=int, default=4,
+                   help='untimed keyframes per variant before them (default 4)')
     p.add_argument('--backends', type=_csv, default=['torch'],
                    help='inference_backend values of the default-keyframe part, comma list (default torch)')
     p.add_argument('--threads', type=int, default=None, help='torch threads (bench process and node; default torch)')
@@ -533,7 +535,7 @@ def _run_parts(a, devices: List[str], out: pathlib.Path, report: Dict[str, Any])
         if 'estimator' in a.parts:
             report['estimator'] += bench_estimator(['classical'] + list(a.presets), a.sizes, device, a.keyframes)
         if 'keyframe' in a.parts:
-            report['keyframe'].append(bench_keyframe(device, a.backends, a.keyframe_keyframes))
+            report['keyframe'].append(bench_keyframe(device, a.backends, a.keyframe_keyframes, a.keyframe_warmup))
         if 'node' in a.parts:
             report['node'] += bench_node(a.presets, a.sizes, device, out, hz=a.e2e_hz, seconds=a.e2e_seconds,
                                          min_outputs=a.e2e_min_outputs, max_seconds=a.e2e_max_seconds,

@@ -170,6 +170,7 @@ class Trainer:
         self.scaler = torch.amp.GradScaler('cuda', enabled=self.amp_dtype == torch.float16)
         self.step = 0
         self.history: Dict = {'train': [], 'val': []}
+        self._curves_drawn: Optional[tuple] = None        # the history's lengths when loss_curves.png was drawn
         self.best: Optional[float] = None
         self.best_metrics: Optional[Dict] = None
         self.classical_ref: Optional[Dict] = None
@@ -205,6 +206,16 @@ class Trainer:
         self.stream_validator = StreamValidator(cfg.stream_spec())
 
     # -- helpers --------------------------------------------------------------------------------
+    def _validates_now(self) -> bool:
+        return self.step % self.cfg.val_every == 0 or self.step == self.cfg.steps
+
+    def _plot_curves(self) -> None:
+        """loss_curves.png, unless nothing was added to the history since it was last drawn."""
+        drawn = (len(self.history['train']), len(self.history['val']))
+        if drawn != self._curves_drawn:
+            plot_curves(self.history, str(self.run_dir / 'loss_curves.png'), self.classical_ref)
+            self._curves_drawn = drawn
+
     def _log(self, msg: str) -> None:
         if self.is_main and not self.quiet:
             print(f'[train {datetime.datetime.now().strftime("%H:%M:%S")}] {msg}', flush=True)
@@ -349,7 +360,7 @@ class Trainer:
         save_montage(examples, str(self.run_dir / f'val_montage_{self.step:07d}.png'), d_min, d_max,
                      title=f'step {self.step}, held-out seed {cfg.val_seeds[0]}, last keyframe')
         shutil.copyfile(self.run_dir / f'val_montage_{self.step:07d}.png', self.run_dir / 'val_montage_latest.png')
-        plot_curves(self.history, str(self.run_dir / 'loss_curves.png'), self.classical_ref)
+        self._plot_curves()
         if score is not None and math.isfinite(score) and (self.best is None or score < self.best):
             self.best = float(score)
             self.best_metrics = {**metrics, 'classical_same_windows': self.classical_ref}
@@ -435,9 +446,9 @@ class Trainer:
                               f"nll_q {row['nll_meas_q']:.4f} |g| {row['grad_norm']:.2f} lr {lr:.2e} "
                               f"{row['t_step']:.2f}+{row['t_data']:.2f} s/step")
                     last_log = []
-                    if self.is_main:
-                        plot_curves(self.history, str(self.run_dir / 'loss_curves.png'), self.classical_ref)
-                if self.step % cfg.val_every == 0 or self.step == cfg.steps:
+                    if self.is_main and not self._validates_now():     # else the validation draws them
+                        self._plot_curves()
+                if self._validates_now():
                     if self.is_main:
                         self.validate()
                     if self.world > 1:
@@ -450,7 +461,7 @@ class Trainer:
             bar.close()
             self.save()
             if self.is_main:
-                plot_curves(self.history, str(self.run_dir / 'loss_curves.png'), self.classical_ref)
+                self._plot_curves()
         return {'step': self.step, 'best': self.best, 'history': self.history}
 
 
