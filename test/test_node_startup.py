@@ -63,3 +63,25 @@ def test_signal_during_start_up_exits_0_without_traceback(sig, delay):
     assert sent, f'the node exited on its own before the signal:\n{out}'
     assert proc.returncode == 0, f'{sig.name} at {delay} s: exit {proc.returncode}\n{out}'
     assert 'Traceback' not in out and 'KeyboardInterrupt' not in out, out
+
+
+def test_a_signal_during_the_imports_ends_the_process_at_once_and_after_them_only_sets_stop():
+    """startup._on_signal: before imports_done() it exits 0 at once (the child below never reaches its own exit 3),
+    after it it only sets STOP and the node stops itself."""
+    from dpv_sensor.ros import startup
+    assert startup._importing
+    pid = os.fork()
+    if pid == 0:                                   # the child: a signal arrives while the node module is imported
+        try:
+            startup._on_signal(signal.SIGINT, None)
+        finally:
+            os._exit(3)
+    _, status = os.waitpid(pid, 0)
+    assert os.WIFEXITED(status) and os.WEXITSTATUS(status) == 0, status
+    try:
+        startup.imports_done()
+        startup._on_signal(signal.SIGTERM, None)
+        assert startup.STOP.is_set()
+    finally:
+        startup._importing = True
+        startup.STOP.clear()

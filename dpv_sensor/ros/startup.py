@@ -2,15 +2,16 @@
 
 Start-up order, so that a signal at any moment gives a clean exit 0 and a failed start exits 2 with one message:
 
-1. ``install_signal_handlers()``: SIGINT / SIGTERM only set :data:`STOP` (no exception is ever raised into an
-   import or into the node's construction). Nothing heavy is imported before this: this module imports only the
-   standard library.
+1. ``install_signal_handlers()``: SIGINT / SIGTERM set :data:`STOP` (no exception is ever raised into an import or
+   into the node's construction). Nothing heavy is imported before this: this module imports only the standard
+   library.
 2. ``apply_transport_settings()``: the node's own DDS transport (``dpv_sensor.ros.transport``: the Fast DDS profile in
    config/, unless the user chose a transport) goes into the process environment before rclpy is imported, since
    the middleware reads it when rclpy initialises; and glibc's malloc arenas are capped and its mmap threshold
    pinned before any thread exists (``process_memory``).
-3. the node module is imported (rclpy, torch, OpenCV: seconds on a loaded machine); a signal meanwhile only sets
-   the flag, which is checked right after.
+3. the node module is imported (rclpy, torch, OpenCV: seconds on a loaded machine). A signal meanwhile ends the
+   process at once with exit 0: nothing runs yet that needs stopping (no ROS context, no node, no file written),
+   so it does not wait for the imports to finish (:func:`imports_done` ends this step).
 4. ``dpv_sensor.ros.node.run(argv, STOP)`` builds and spins the node until STOP is set or the node reports a fatal
    start-up error (exit 2).
 
@@ -28,6 +29,8 @@ from typing import Callable, Tuple
 # set by SIGINT / SIGTERM (once installed); the node's spin loop polls it
 STOP = threading.Event()
 _installed = False
+# until the node module's imports are done (step 3), a signal ends the process at once
+_importing = True
 # what configure_malloc() put in force (logged by the node), None before prepare()
 MALLOC_NOTE: str | None = None
 # what apply_transport_settings() did (logged by the node), None before it ran
@@ -39,6 +42,19 @@ NodeFunctions = Tuple[Callable[[list, threading.Event], int], Callable[[], int]]
 
 def _on_signal(_signum, _frame) -> None:
     STOP.set()
+    if _importing:
+        for stream in (sys.stdout, sys.stderr):
+            try:
+                stream.flush()
+            except (OSError, RuntimeError, ValueError):   # a write the signal interrupted, a closed stream
+                pass
+        os._exit(0)
+
+
+def imports_done() -> None:
+    """The end of step 3: from now on a signal only sets :data:`STOP`, and the node stops itself."""
+    global _importing
+    _importing = False
 
 
 def install_signal_handlers() -> None:
@@ -108,6 +124,7 @@ def main(argv: list[str] | None, load: Callable[[], NodeFunctions]) -> int:
     if STOP.is_set():
         return 0
     run, self_check = load()          # the heavy imports (rclpy, torch, OpenCV)
+    imports_done()
     if args.check:
         return self_check()
     if STOP.is_set():
