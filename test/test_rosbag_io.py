@@ -303,3 +303,21 @@ def test_the_mount_on_tf_static_as_a_two_link_chain(tmp_path):
     R.write_sequence_bag(tmp_path / 'one', seq, T_base_camera=T_BASE_CAM, tf_static=True, progress=False)
     one = next(R.read_messages(tmp_path / 'one', ['/tf_static']))[3].transforms
     assert [(tf.header.frame_id, tf.child_frame_id) for tf in one] == [('base_link', 'camera_optical_frame')]
+
+
+def test_the_topics_of_a_bag_rewritten_at_the_same_path_are_read_again(tmp_path):
+    """bag_topics reads a bag's metadata once per version of it: a bag written again at the same path (another
+    recording, other topics and counts) gives its own topics, a missing bag the usual error."""
+    import shutil
+    seq = make_seq(4)
+    R.write_sequence_bag(tmp_path / 'bag', seq, progress=False)
+    first = R.bag_topics(tmp_path / 'bag')
+    assert first[R.ODOM_TOPIC] == (R.ODOMETRY, 4) and first[R.IMAGE_TOPIC] == (R.IMAGE, 4)
+    assert R.bag_topics(str(tmp_path / 'bag')) == first                 # the same bag, by another spelling
+    shutil.rmtree(tmp_path / 'bag')
+    R.write_sequence_bag(tmp_path / 'bag', make_seq(3), progress=False, with_odometry=False)
+    second = R.bag_topics(tmp_path / 'bag')
+    assert R.ODOM_TOPIC not in second and second[R.IMAGE_TOPIC] == (R.IMAGE, 3), second
+    shutil.rmtree(tmp_path / 'bag')
+    with pytest.raises(R.BagError, match='no such bag'):
+        R.bag_topics(tmp_path / 'bag')

@@ -17,6 +17,7 @@ Messages are built with the same code as the node's (dpv_sensor.ros.msgs) in the
 """
 from __future__ import annotations
 
+import functools
 import os
 import pathlib
 from dataclasses import dataclass, field
@@ -453,9 +454,32 @@ def _open(path):
 
 
 def bag_topics(path) -> dict[str, tuple[str, int]]:
-    """{topic: (message type, message count)} of a bag."""
+    """{topic: (message type, message count)} of a bag. Read once per version of the bag's metadata.yaml (its
+    modification time and size): opening a bag parses that YAML, about 0.1 s, and a tool asks for the topics of one
+    bag many times (before each topic it reads)."""
+    key, version = _metadata_version(path)
+    return dict(_read_topics(key) if version is None else _cached_topics(key, version))
+
+
+def _metadata_version(path) -> tuple[str, tuple[int, int] | None]:
+    """(the bag's path, (mtime ns, size) of its metadata.yaml), or None for the version where there is no such file
+    (not cached: opening it raises the error)."""
+    p = pathlib.Path(path)
+    try:
+        st = (p / 'metadata.yaml').stat()
+    except OSError:
+        return str(p), None
+    return str(p.resolve()), (st.st_mtime_ns, st.st_size)
+
+
+@functools.lru_cache(maxsize=64)
+def _cached_topics(path: str, _version: tuple[int, int]) -> tuple:
+    return _read_topics(path)
+
+
+def _read_topics(path: str) -> tuple:
     with _open(path) as reader:
-        return {c.topic: (c.msgtype, c.msgcount) for c in reader.connections}
+        return tuple((c.topic, (c.msgtype, c.msgcount)) for c in reader.connections)
 
 
 def bag_qos(path) -> dict[str, list]:
