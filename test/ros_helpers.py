@@ -44,6 +44,16 @@ def start_node(args: list[str] | None = None, executable: list[str] | None = Non
                             text=True)
 
 
+def launch_replay_node(command: list[str], env: dict, log_path: pathlib.Path) -> subprocess.Popen | ForkedNode:
+    """The tools' replay launcher (`client.replay.run_node_replay(launch=...)`) for tests: the node's
+    `python -m MODULE ARGS` forked from the session's fork server, as `start_node` does (a fresh interpreter with
+    DPV_TEST_FORK_NODES=0)."""
+    if command[:2] == [sys.executable, '-m'] and os.environ.get('DPV_TEST_FORK_NODES', '1') != '0':
+        return _fork_server().start(command[2], command[3:], env, log=log_path)
+    from dpv_sensor.client.node_process import launch_process
+    return launch_process(command, env, log_path)
+
+
 class ForkedNode:
     """A node process forked by the fork server, with the part of subprocess.Popen the tests use."""
 
@@ -113,11 +123,13 @@ class _ForkServer:
     def stderr_text(self) -> str:
         return (self.dir / 'server.log').read_text(errors='replace')
 
-    def start(self, module: str, args: list[str], env: dict, kind: str = 'module') -> ForkedNode:
-        """Fork `python -m module args` (kind 'console': the node's console script with args) in `env`."""
+    def start(self, module: str, args: list[str], env: dict, kind: str = 'module',
+              log: pathlib.Path | None = None) -> ForkedNode:
+        """Fork `python -m module args` (kind 'console': the node's console script with args) in `env`, its
+        output to `log` (default: a file of the server's folder)."""
         import json
         self.count += 1
-        n, log = self.count, self.dir / f'node_{self.count:03d}.log'
+        n, log = self.count, log or self.dir / f'node_{self.count:03d}.log'
         self.proc.stdin.write(json.dumps({'id': n, 'kind': kind, 'module': module, 'args': args, 'env': env,
                                           'log': str(log)}) + '\n')
         self.proc.stdin.flush()

@@ -10,6 +10,7 @@ import pytest
 from dpv_sensor.client import replay as D
 from dpv_sensor.data import rosbag_io as R
 from dpv_sensor.data.synthetic import render_sequence
+from ros_helpers import launch_replay_node
 
 NODE = {'measurement': 'classical', 'processing_width': 96, 'processing_height': 72, 'num_planes': 32,
         'depth_anchors': 'dense'}
@@ -26,7 +27,7 @@ def replay(tmp_path_factory):
     topics = {'image': R.IMAGE_TOPIC, 'camera_info': R.CAMERA_INFO_TOPIC, 'odom': R.ODOM_TOPIC}
     return D.run_node_replay(D.Steps(3), bag, tmp / 'output', topics=topics, params=node, log_dir=tmp / 'logs',
                              lockstep=True, rate=1.0, start_timeout=120.0, frame_timeout=120.0, max_images=0,
-                             progress=False)
+                             progress=False, launch=launch_replay_node)
 
 
 def test_the_node_publishes_what_the_anchors_did(replay):

@@ -16,6 +16,7 @@ import pytest
 from dpv_sensor.client import replay as D
 from dpv_sensor.data import rosbag_io as R
 from dpv_sensor.data.synthetic import render_sequence
+from ros_helpers import launch_replay_node
 
 NODE = {'measurement': 'classical', 'processing_width': 96, 'processing_height': 72, 'num_planes': 32,
         'window_mode': 'causal'}
@@ -29,7 +30,8 @@ def _replay(tmp_path, bag, **params):
     (tmp_path / 'logs').mkdir()
     return D.run_node_replay(D.Steps(3), bag, tmp_path / 'output', topics=topics, params=node,
                              log_dir=tmp_path / 'logs', lockstep=True, rate=1.0, start_timeout=120.0,
-                             frame_timeout=120.0, max_images=0, progress=False)
+                             frame_timeout=120.0, max_images=0, progress=False,
+                             launch=launch_replay_node)
 
 
 @pytest.fixture(scope='module')

@@ -2,9 +2,14 @@
 own, and reading its memory from /proc."""
 from __future__ import annotations
 
+import pathlib
 import sys
-from typing import Any, Dict, List
+from typing import Any, Callable, Dict, List
 
+#: how a tool starts the node's command line as its own process: ``(command, env, log_path) -> handle`` with the
+#: part of :class:`subprocess.Popen` the tools use (``pid``, ``poll``, ``returncode``, ``send_signal``, ``wait``,
+#: ``kill``), the process's stdout and stderr going to ``log_path``
+Launcher = Callable[[List[str], Dict[str, str], pathlib.Path], Any]
 
 def node_command(params: Dict[str, Any], remaps: Dict[str, str]) -> List[str]:
     """`python -m dpv_sensor.ros.node --ros-args -p k:=v ... -r a:=b ...` for these parameters and remaps."""
@@ -20,6 +25,15 @@ def node_command(params: Dict[str, Any], remaps: Dict[str, str]) -> List[str]:
     for a, b in remaps.items():
         cmd += ['-r', f'{a}:={b}']
     return cmd
+
+
+def launch_process(command: List[str], env: Dict[str, str], log_path: pathlib.Path):
+    """The default :data:`Launcher`: a fresh interpreter (:class:`subprocess.Popen`) in the repository's folder,
+    stdout and stderr to ``log_path``."""
+    import subprocess
+    with open(log_path, 'w') as log:
+        return subprocess.Popen(command, cwd=pathlib.Path(__file__).resolve().parents[2], env=env, stdout=log,
+                                stderr=subprocess.STDOUT, text=True)
 
 
 class ClientNode:

@@ -24,7 +24,7 @@ from typing import Any, Dict, List, Optional
 
 from dpv_sensor import params as P
 from dpv_sensor.ros.process_memory import proc_status_kib
-from dpv_sensor.client.node_process import ClientNode, node_command
+from dpv_sensor.client.node_process import ClientNode, Launcher, launch_process, node_command
 
 REPO = pathlib.Path(__file__).resolve().parents[2]
 NS = 1_000_000_000
@@ -317,10 +317,17 @@ def end_to_end_latency(output_bag, sent_wall_ns: Dict[int, int]) -> Dict[str, An
 
 def run_node_replay(steps: Steps, input_bag: pathlib.Path, output_bag: pathlib.Path, *, topics: Dict[str, str],
                     params: Dict[str, Any], log_dir: pathlib.Path, lockstep: bool, rate: float,
-                    start_timeout: float, frame_timeout: float, max_images: int, progress: bool) -> ReplayResult:
-    """Steps 3-5: start the node, replay `input_bag` through it while recording its outputs, stop it."""
+                    start_timeout: float, frame_timeout: float, max_images: int, progress: bool,
+                    launch: Optional[Launcher] = None) -> ReplayResult:
+    """Steps 3-5: start the node, replay `input_bag` through it while recording its outputs, stop it.
+
+    ``launch(command, env, log_path)`` starts the node's command line as its own process, output to ``log_path``,
+    and returns a handle with :class:`subprocess.Popen`'s ``pid``, ``poll``, ``returncode``, ``send_signal``,
+    ``wait`` and ``kill``; by default :func:`launch_process` (a test suite forks it from a process that has already
+    made the imports)."""
     opts = ReplayOptions(topics=topics, lockstep=lockstep, rate=rate, start_timeout=start_timeout,
-                         frame_timeout=frame_timeout, max_images=max_images, progress=progress)
+                         frame_timeout=frame_timeout, max_images=max_images, progress=progress,
+                         launch=launch or launch_process)
     replay = _NodeReplay(steps, input_bag, output_bag, params, log_dir, opts)
     try:
         with steps.step('node', 'start the node process and wait for its subscriptions') as rec:
@@ -347,6 +354,7 @@ class ReplayOptions:
     frame_timeout: float
     max_images: int
     progress: bool
+    launch: 'Launcher'
 
     @property
     def play_topics(self) -> List[str]:
@@ -373,7 +381,6 @@ class _NodeReplay:
         self.cmd = node_command(mount_params(params, self.tf_topics), remaps)
         self.res.node_command = self.cmd
         self.log_path = log_dir / 'node.log'
-        self.log_file = open(self.log_path, 'w')
         self.proc = None
         self.client = self.node = self.executor = self.recorder = self.monitor = self.player = None
         self.t_start = time.perf_counter()
@@ -393,7 +400,6 @@ class _NodeReplay:
 
     def node_died(self) -> str:
         """The error message of a node that exited: its exit code and the tail of its log."""
-        self.log_file.flush()
         tail = self.log_path.read_text(errors='replace').strip().splitlines()[-15:]
         return (f'the node exited with code {self.proc.returncode} (log: {_rel(self.log_path)}):\n    ' +
                 '\n    '.join(tail))
@@ -401,14 +407,12 @@ class _NodeReplay:
     # -- 3. start the node --------------------------------------------------------------------------------------
     def start_node(self) -> str:
         """Start the node process and the client, wait until the node is ready, subscribed and publishing."""
-        import subprocess
         from dpv_sensor.client.ros_io import BagPlayer, BagRecorder
         env = dict(os.environ)
         env['PYTHONPATH'] = os.pathsep.join([str(REPO)] + [p for p in env.get('PYTHONPATH', '').split(os.pathsep)
                                                           if p])
         env.setdefault('PYTHONUNBUFFERED', '1')
-        self.proc = subprocess.Popen(self.cmd, cwd=REPO, env=env, stdout=self.log_file, stderr=subprocess.STDOUT,
-                                     text=True)
+        self.proc = self.opts.launch(self.cmd, env, self.log_path)
         # Ctrl-C stays a KeyboardInterrupt here and reaches the node process as a SIGINT: it stops by itself
         self.client = ClientNode('dpv_demo')
         self.node, self.executor = self.client.node, self.client.executor
@@ -591,7 +595,6 @@ class _NodeReplay:
             proc.wait()
             res.node_exit_code = None
         res.node_stop_s = round(time.perf_counter() - t0, 2)
-        self.log_file.flush()
         res.node_log = self.log_path.read_text(errors='replace')
         rec['note'] = f'exit code {res.node_exit_code}'
         if res.node_exit_code != 0:
@@ -619,4 +622,3 @@ class _NodeReplay:
                 self.proc.wait()
         if self.client is not None:
             self.client.close()
-        self.log_file.close()
