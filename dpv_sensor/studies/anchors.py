@@ -3,6 +3,8 @@
     python -m dpv_sensor.studies.anchors --data DATA --poses gt,noisy0cov
     python -m dpv_sensor.studies.anchors --data DATA --sequences icl_nuim_lr_kt3 --set bias_sigma_log=0.05 \
         --set "bias_sigma_log=0.02 max_tracks=1000"
+    python -m dpv_sensor.studies.anchors --data DATA --sequences sun3d_3dmatch_frag2 --poses gt --no-veto \
+        --mount 0 0 0 -0.0482 -0.0036 -0.0057 0.9988
 
 Each (sequence, pose source) runs once through the node's pipeline (``evaluation.runner.run_sequence``, the
 defaults with ``depth_anchors: off``) while every keyframe's refinement window is kept: its matches, refined poses,
@@ -16,6 +18,10 @@ filter). Printed per run: anchors per checked keyframe (median), the anchors' ac
 anchor depth / true depth at their pixels; the median and interquartile range of that over the keyframes), and per
 mode abs_rel, the per-image scale's quartiles and the per-image-scaled abs_rel
 (:func:`~dpv_sensor.evaluation.metrics.image_scale_summary`), ECE and δ<1.25 of the pixels with depth.
+
+``--mount`` gives the odometry a camera mount (``T_base_camera``'s form: the poses are right-multiplied by it, as the
+node does), e.g. the one ``calibrate_mount`` reads from the images; ``--no-veto`` triangulates the keyframes whose
+window the veto would leave without anchors too, to see what those anchors would have said.
 """
 from __future__ import annotations
 
@@ -38,8 +44,9 @@ class _Window:
         self.matches, self.T_world_cam, self.match_images = matches, T_world_cam, match_images
 
 
-def collect_windows(seq_dir: pathlib.Path, pose_source: str) -> List[Dict]:
-    """Run the sequence once and keep each published keyframe's depth, confidence, GT and refinement window."""
+def collect_windows(seq_dir: pathlib.Path, pose_source: str, mount_44=None) -> List[Dict]:
+    """Run the sequence once and keep each published keyframe's depth, confidence, GT and refinement window;
+    ``mount_44``: the camera mount the odometry's poses are right-multiplied by (None: the identity)."""
     from dpv_sensor.benchmarks.stream_table_inputs import odometry_poses, odometry_variance
     from dpv_sensor.data.sequence import Sequence
     from dpv_sensor.evaluation import offline as E, runner as RN
@@ -58,8 +65,11 @@ def collect_windows(seq_dir: pathlib.Path, pose_source: str) -> List[Dict]:
     try:
         seq = Sequence(seq_dir)
         config, _ = RN.build_config({'depth_anchors': 'off'})
+        poses = odometry_poses(seq, pose_source)
+        if mount_44 is not None:
+            poses = [P @ mount_44 for P in poses]
         records, status = RN.run_sequence(seq, config, E.EvalOptions(progress=True), keep_images=False,
-                                          poses=odometry_poses(seq, pose_source),
+                                          poses=poses,
                                           pose_variance=odometry_variance(seq, pose_source))
     finally:
         EST.Estimator._hold_to_anchors = hold
@@ -72,8 +82,9 @@ def collect_windows(seq_dir: pathlib.Path, pose_source: str) -> List[Dict]:
     return rows
 
 
-def score_windows(rows: List[Dict], config) -> Dict:
-    """The anchors' accuracy and each mode's depth figures over the kept keyframes (module doc)."""
+def score_windows(rows: List[Dict], config, veto: bool = True) -> Dict:
+    """The anchors' accuracy and each mode's depth figures over the kept keyframes (module doc); ``veto`` False:
+    the keyframes the veto leaves without anchors get theirs too."""
     from dpv_sensor.core import anchors as AM
     from dpv_sensor.evaluation.metrics import calibration_summary, image_scale_summary, within_ratio
     from dpv_sensor.stream import metric_anchors as MA
@@ -81,7 +92,7 @@ def score_windows(rows: List[Dict], config) -> Dict:
     counts, accuracy = [], []
     for r in rows:
         anchors, ratio = None, r['direction_ratio']
-        if r['window'] is not None and not (ratio is not None and ratio[0] > ratio[1]):
+        if r['window'] is not None and not (veto and ratio is not None and ratio[0] > ratio[1]):
             anchors = MA.reference_anchors(_Window(*r['window']), r['stamp'], config)
             counts.append(len(anchors))
             gt = r['gt']
@@ -128,12 +139,17 @@ def _print(name: str, s: Dict) -> None:
 
 def main(argv=None) -> int:
     from dpv_sensor.core.anchors import AnchorConfig
+    from dpv_sensor.stream.pose_buffer import pose7_to_matrix
     p = argparse.ArgumentParser(prog='python -m dpv_sensor.studies.anchors', description=__doc__.split('\n\n')[0])
     p.add_argument('--data', required=True, type=pathlib.Path, help='folder of sequence folders')
     p.add_argument('--sequences', nargs='*', help='sequence folder names (default: every one in DATA)')
     p.add_argument('--poses', default='gt,noisy0cov', help="comma list of pose sources (the stream table's)")
     p.add_argument('--set', action='append', default=[], metavar='"KEY=VALUE ..."',
                    help='AnchorConfig fields; repeat to score several settings on the same runs')
+    p.add_argument('--mount', nargs=7, type=float, metavar=('X', 'Y', 'Z', 'QX', 'QY', 'QZ', 'QW'),
+                   help="the odometry's camera mount (T_base_camera's form; default: the identity)")
+    p.add_argument('--no-veto', action='store_true',
+                   help='triangulate the keyframes the veto leaves without anchors too')
     args = p.parse_args(argv)
     try:
         configs = [AnchorConfig(**{k: type(getattr(AnchorConfig, k))(v) for k, v in
@@ -145,10 +161,10 @@ def main(argv=None) -> int:
     names = args.sequences or sorted(d.name for d in args.data.iterdir() if (d / 'poses.txt').exists())
     for name in names:
         for src in args.poses.split(','):
-            rows = collect_windows(args.data / name, src)
+            rows = collect_windows(args.data / name, src, None if args.mount is None else pose7_to_matrix(args.mount))
             for i, config in enumerate(configs):
                 _print(f'{name} {src}' + (f' (--set {args.set[i]})' if len(configs) > 1 else ''),
-                       score_windows(rows, config))
+                       score_windows(rows, config, veto=not args.no_veto))
     return 0
 
 
