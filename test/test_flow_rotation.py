@@ -12,7 +12,7 @@ import pytest
 
 from dpv_sensor.core.flow_rotation import (FlowConfig, FlowMatches, flow_matches, match_image,
                                            rotation_given_direction)
-from dpv_sensor.core.geometry import rotation_angle_np
+from dpv_sensor.core.pose_math import rotation_angle_np
 
 K = np.array([[500.0, 0.0, 320.0], [0.0, 500.0, 240.0], [0.0, 0.0, 1.0]])
 

@@ -11,6 +11,7 @@ sys.path.insert(0, os.path.dirname(__file__))
 from synthetic_planes import DT, intrinsics, render_plane_pair, rot_x, rot_y, rot_z, se3  # noqa: E402
 
 from dpv_sensor.core import geometry as G  # noqa: E402
+from dpv_sensor.core import pose_math as PM  # noqa: E402
 from dpv_sensor.core.dpv import depth_planes, depth_to_index  # noqa: E402
 
 
@@ -48,20 +49,20 @@ def _np(T):
 
 def test_interpolate_translation_endpoints_and_midpoint():
     T0, T1 = _np(se3(t=(0.0, 0.0, 0.0))), _np(se3(t=(2.0, -4.0, 1.0)))
-    np.testing.assert_allclose(G.interpolate_pose(T0, T1, 0.0), T0)
-    np.testing.assert_allclose(G.interpolate_pose(T0, T1, 1.0), T1)
-    np.testing.assert_allclose(G.interpolate_pose(T0, T1, 0.5), _np(se3(t=(1.0, -2.0, 0.5))), atol=1e-12)
+    np.testing.assert_allclose(PM.interpolate_pose(T0, T1, 0.0), T0)
+    np.testing.assert_allclose(PM.interpolate_pose(T0, T1, 1.0), T1)
+    np.testing.assert_allclose(PM.interpolate_pose(T0, T1, 0.5), _np(se3(t=(1.0, -2.0, 0.5))), atol=1e-12)
 
 
 def test_interpolate_rotation_about_z():
     T0 = _np(se3(rot_z(0.0), (0.0, 0.0, 0.0)))
     T1 = _np(se3(rot_z(math.radians(60)), (1.0, 0.0, 0.0)))
     for a, deg in [(0.0, 0.0), (0.25, 15.0), (0.5, 30.0), (0.75, 45.0), (1.0, 60.0)]:
-        T = G.interpolate_pose(T0, T1, a)
+        T = PM.interpolate_pose(T0, T1, a)
         np.testing.assert_allclose(T[:3, :3], rot_z(math.radians(deg)).numpy(), atol=1e-9)
         np.testing.assert_allclose(T[:3, 3], [a, 0.0, 0.0], atol=1e-12)
     # shortest arc across +-180 deg: 170 deg -> -170 deg passes through 180, not 0
-    mid = G.interpolate_pose(_np(se3(rot_z(math.radians(170)))), _np(se3(rot_z(math.radians(-170)))), 0.5)
+    mid = PM.interpolate_pose(_np(se3(rot_z(math.radians(170)))), _np(se3(rot_z(math.radians(-170)))), 0.5)
     np.testing.assert_allclose(mid[:3, :3], rot_z(math.pi).numpy(), atol=1e-9)
 
 
@@ -71,12 +72,12 @@ def test_quaternion_roundtrip_and_so3():
     R = G.so3_exp(w)
     assert torch.allclose(R @ R.transpose(-1, -2), torch.eye(3, dtype=DT).expand(16, 3, 3), atol=1e-12)
     for R_33 in R.numpy():
-        q = G.matrix_to_quat(R_33)
+        q = PM.matrix_to_quat(R_33)
         assert q[3] >= 0 and np.linalg.norm(q) == pytest.approx(1.0)
-        np.testing.assert_allclose(G.quat_to_matrix(q), R_33, atol=1e-10)
+        np.testing.assert_allclose(PM.quat_to_matrix(q), R_33, atol=1e-10)
     angles = torch.remainder(w.norm(dim=-1) + math.pi, 2 * math.pi).sub(math.pi).abs()
     assert torch.allclose(G.rotation_angle(R), angles, atol=1e-9)
-    np.testing.assert_allclose([G.rotation_angle_np(R_33) for R_33 in R.numpy()], angles.numpy(), atol=1e-9)
+    np.testing.assert_allclose([PM.rotation_angle_np(R_33) for R_33 in R.numpy()], angles.numpy(), atol=1e-9)
     assert G.rotation_angle(rot_z(math.radians(30))[None]).item() == pytest.approx(math.radians(30))
     T = G.se3_exp(torch.tensor([[1.0, 2.0, 3.0, 0.0, 0.0, 0.0]], dtype=DT))
     assert torch.allclose(T, se3(t=(1.0, 2.0, 3.0)))
@@ -341,7 +342,7 @@ def test_cuda_matches_cpu():
 
 
 def test_numpy_rotation_angles_by_hand():
-    from dpv_sensor.core.geometry import quat_angle_deg, relative_pose_error_np, rotation_angle_np
+    from dpv_sensor.core.pose_math import quat_angle_deg, relative_pose_error_np, rotation_angle_np
     Rz90 = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
     assert rotation_angle_np(Rz90) == pytest.approx(np.pi / 2)
     assert rotation_angle_np(np.eye(3)) == 0.0

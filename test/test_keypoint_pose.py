@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 import pytest
 
-from dpv_sensor.core.geometry import rotation_angle_np
+from dpv_sensor.core.pose_math import rotation_angle_np
 from dpv_sensor.core.keypoint_pose import KeypointConfig, KeypointPose, keypoint_covariance, keypoint_relative_pose
 
 

@@ -7,7 +7,7 @@ import cv2
 import numpy as np
 import pytest
 
-from dpv_sensor.core.geometry import rotation_angle_np
+from dpv_sensor.core.pose_math import rotation_angle_np
 from dpv_sensor.core.keypoint_pose import KeypointConfig
 from dpv_sensor.stream.window_refiner import PoseRefinerConfig, WindowKeyframe, WindowPoseRefiner
 

@@ -125,7 +125,7 @@ def odometry_twist_variance(seq, pose_source: str) -> Optional[np.ndarray]:
 def time_shifted_poses(seq, poses: List[np.ndarray], offset_s: float) -> List[np.ndarray]:
     """The trajectory ``poses`` (one per frame, at ``seq.stamp(i)``) evaluated ``offset_s`` seconds after each frame's
     stamp (SLERP + linear between the two frames around it, held at the ends)."""
-    from dpv_sensor.core.geometry import interpolate_pose
+    from dpv_sensor.core.pose_math import interpolate_pose
     stamps = np.array([float(seq.stamp(i)) for i in range(len(seq))], np.float64)
     out = []
     for t in stamps + float(offset_s):

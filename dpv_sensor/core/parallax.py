@@ -25,7 +25,8 @@ from typing import List, Sequence
 import numpy as np
 import torch
 
-from dpv_sensor.core.geometry import Z_EPS, backproject, project, rotation_angle, scale_intrinsics_np, transform_points
+from dpv_sensor.core.geometry import Z_EPS, backproject, project, rotation_angle, transform_points
+from dpv_sensor.core.pose_math import scale_intrinsics_np
 
 __all__ = ['disparity_span', 'parallax_support', 'pose_parallax_score', 'select_sources', 'BAND_RATIO',
            'rotation_noise_px']

@@ -62,7 +62,7 @@ import numpy as np
 import torch
 
 from dpv_sensor.core import dpv as dpv_ops
-from dpv_sensor.core.geometry import rotation_angle_np
+from dpv_sensor.core.pose_math import rotation_angle_np
 from dpv_sensor.core.odometry_covariance import OdometryCovariance, twist_step_covariance
 from dpv_sensor.core.parallax import BAND_RATIO
 

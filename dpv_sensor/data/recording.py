@@ -29,7 +29,7 @@ import cv2
 import numpy as np
 
 from dpv_sensor import params as P
-from dpv_sensor.core.geometry import scale_intrinsics_np
+from dpv_sensor.core.pose_math import scale_intrinsics_np
 from dpv_sensor.data.sequence import Sequence, SequenceFormatError, resize_nearest
 
 __all__ = ['Recording', 'load_recording', 'is_bag', 'DEPTH_PAIRING_S']

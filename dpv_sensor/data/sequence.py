@@ -31,7 +31,7 @@ from typing import Any, Callable, Dict, List, NamedTuple, Optional, Sequence as 
 import cv2
 import numpy as np
 
-from dpv_sensor.core.geometry import scale_intrinsics_np  # noqa: F401  (re-exported: the resize convention)
+from dpv_sensor.core.pose_math import scale_intrinsics_np  # noqa: F401  (re-exported: the resize convention)
 from dpv_sensor.common import to_jsonable
 
 PathLike = Union[str, os.PathLike]

@@ -9,7 +9,7 @@ from typing import Any, Dict, Iterable, Sequence as SequenceT
 
 import numpy as np
 
-from dpv_sensor.core.geometry import relative_pose_error_np
+from dpv_sensor.core.pose_math import relative_pose_error_np
 
 LOG = logging.getLogger('dpv_sensor.evaluation.offline')
 

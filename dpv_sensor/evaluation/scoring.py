@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING, Any, Dict, Iterable, Optional, Sequence as Seq
 
 import numpy as np
 
-from dpv_sensor.core.geometry import relative_pose_error_np
+from dpv_sensor.core.pose_math import relative_pose_error_np
 from dpv_sensor.evaluation import metrics as M
 from dpv_sensor.evaluation.runner import KeyframeRecord, status_json
 

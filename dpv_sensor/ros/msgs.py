@@ -19,7 +19,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from dpv_sensor.core.geometry import scale_intrinsics_np
+from dpv_sensor.core.pose_math import scale_intrinsics_np
 
 NS = 1_000_000_000
 

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from dpv_sensor.core.geometry import make_pose, matrix_to_quat
+from dpv_sensor.core.pose_math import make_pose, matrix_to_quat
 from dpv_sensor.core.odometry_covariance import CovarianceCheck, check_covariance
 from dpv_sensor.ros.msgs import ROS, BadOdometry, BadTransform, MessageTypes, f64_values, header_for
 

@@ -34,7 +34,7 @@ from typing import Optional, Tuple
 
 import numpy as np
 
-from dpv_sensor.core.geometry import pose_delta_np
+from dpv_sensor.core.pose_math import pose_delta_np
 
 __all__ = ['teleport', 'time_order', 'size_change', 'stream_break', 'ReceivedImages', 'ImageVerdict', 'BACKWARDS',
            'DUPLICATE', 'TELEPORT_FLOOR_M', 'TELEPORT_FLOOR_DEG', 'StreamSize', 'SizeVerdict', 'future_stamp']

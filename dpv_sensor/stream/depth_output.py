@@ -8,7 +8,8 @@ import torch
 
 from dpv_sensor.stream.estimator_config import output_size
 from dpv_sensor.stream.frame import DepthOutput
-from dpv_sensor.core.geometry import resample_to_camera, scale_intrinsics_np
+from dpv_sensor.core.geometry import resample_to_camera
+from dpv_sensor.core.pose_math import scale_intrinsics_np
 
 __all__ = ['volume_maps_to_processing', 'compose_output']
 

@@ -21,7 +21,8 @@ from dpv_sensor import params as P
 from dpv_sensor.core import confidence_calibration, dpv as dpv_ops, geometry, image_quality, parallax, pose_uncertainty
 from dpv_sensor.core.confidence_calibration import ConfidenceCalibration
 from dpv_sensor.core.edge_filter import joint_weighted_median
-from dpv_sensor.core.geometry import resample_to_camera, scale_intrinsics_np, subsampled_intrinsics
+from dpv_sensor.core.geometry import resample_to_camera, subsampled_intrinsics
+from dpv_sensor.core.pose_math import scale_intrinsics_np
 from dpv_sensor.core.keypoint_pose import to_gray_u8
 from dpv_sensor.core.nets.model import cpu_bf16_fast
 from dpv_sensor.stream.continuity import DUPLICATE, stream_break, time_order

@@ -59,7 +59,7 @@ from dpv_sensor.core import pose_uncertainty
 from dpv_sensor.core.flow_rotation import RotationEstimate, flow_matches, match_image, rotation_given_direction
 from dpv_sensor.core.keypoint_pose import (Features, KeypointPose, detect_features, keypoint_relative_pose,
                                            rotation_factor_covariance_gtsam)
-from dpv_sensor.core.geometry import rotation_angle_np
+from dpv_sensor.core.pose_math import rotation_angle_np
 from dpv_sensor.core.odometry_covariance import OdometryCovariance
 from dpv_sensor.core.photometric import (AlignmentResult, Aligner, ImagePyramid, inverse_depth_std_from_confidence,
                                          pose_error)

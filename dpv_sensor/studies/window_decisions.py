@@ -135,7 +135,7 @@ class Recorder:
                 'features': self._features(ref, sources, depth_m, res, shadow_res)}
 
     def _features(self, ref, sources, depth_m, res, shadow_res) -> Dict[str, Any]:
-        from dpv_sensor.core.geometry import rotation_angle_np
+        from dpv_sensor.core.pose_math import rotation_angle_np
         from dpv_sensor.stream.window_graph import odometry_step_covariance, relative_pose
         from dpv_sensor.stream.window_refiner import _key_distance
         cfg = self.main.config

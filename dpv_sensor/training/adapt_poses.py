@@ -36,7 +36,7 @@ class NodePoses:
 
 def _step_rotation_change_deg(a: List[np.ndarray], b: List[np.ndarray], keys: List[int]) -> np.ndarray:
     """Per consecutive keyframe pair: the angle (deg) between its relative pose's rotation in ``a`` and in ``b``."""
-    from dpv_sensor.core.geometry import relative_pose_error_np
+    from dpv_sensor.core.pose_math import relative_pose_error_np
     return np.asarray([relative_pose_error_np(np.linalg.inv(a[i]) @ a[j], np.linalg.inv(b[i]) @ b[j])[1]
                        for i, j in zip(keys[:-1], keys[1:])], np.float64)
 

@@ -39,7 +39,7 @@ import numpy as np
 import torch
 from torch.utils.data import IterableDataset, get_worker_info
 
-from dpv_sensor.core.geometry import scale_intrinsics_np
+from dpv_sensor.core.pose_math import scale_intrinsics_np
 from dpv_sensor import params as P
 
 TRAIN_SEED_BASE = 1_000_000
