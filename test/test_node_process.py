@@ -27,9 +27,8 @@ def test_node_joins_graph_and_stops_cleanly(observer, sig):
     assert 'starting (building the estimator)' in out
     assert 'Traceback' not in out, out
     # A clean exit announces the participant's end; where that message is lost (seen twice under a loaded suite),
-    # the peer drops it when its lease runs out. Fast DDS's default lease is 20 s, but the peer checks it only
-    # every lease period, so the drop can come up to twice that after the last announcement: 30 s was once too
-    # short.
+    # the peer drops it when its lease runs out. Fast DDS's default lease is 20 s, counted from the last
+    # announcement it heard and noticed some time after it runs out: 30 s was once too short.
     gone = wait_for(lambda: not _visible(node), timeout=45.0, spin=lambda t: executor.spin_once(timeout_sec=t))
     assert gone, 'node still listed in the graph after it stopped'
 
