@@ -118,6 +118,10 @@ SPECS: tuple[ParamSpec, ...] = (
               'Costs a sweep only on keyframes with overruled pixels; nothing when the measurement is already '
               'classical. off by default: on renders with a planted error the blend made the corrected depth worse.',
               choices=('classical', 'off')),
+    ParamSpec('anchor_target', 'output', "Where the metric anchors' correction of a keyframe goes (dense or scale "
+              "anchors). output: the published depth and confidence only; belief: the filter's belief as well, so "
+              'the next keyframes start from the corrected depth (and from a wrong correction too).',
+              choices=('belief', 'output')),
     ParamSpec('damping', 0.8, 'Global damping lambda of the prediction energy (paper eq. 8).',
               min_value=0.0, max_value=1.0),
     ParamSpec('reset_time_gap', 1.0, 'Reset the filter when the camera stream itself has a gap longer than this '

@@ -243,6 +243,60 @@ def test_pipeline_brings_a_depth_scaled_by_1_15_back_to_the_truth(room, monkeypa
     assert st['keyframes_aligned'] == len(aligned) and st['anchors'] > 0
 
 
+@pytest.mark.parametrize('target', ['output', 'belief'])
+def test_with_anchor_target_belief_the_filter_takes_the_correction(room, monkeypatch, target):
+    """The same depth x 1.15: with ``anchor_target: belief`` the filter's belief is moved by the correction of
+    each aligned keyframe (its depth at the belief's pixels comes out 1/1.15 of what it was, but for the soft
+    threshold), with ``output`` it is never touched."""
+    import torch
+    from dpv_sensor.core.filter import DPVFilter
+    from dpv_sensor.stream import estimator as EST
+    from dpv_sensor.evaluation.runner import resize_nearest
+    index = {float(room.stamp(i)): i for i in range(len(room))}
+    hold = EST.Estimator._hold_to_anchors
+    rescale = DPVFilter.rescale_belief
+    moved = []
+
+    def scaled_truth(self, ref, depth, conf, fallback=None):
+        gt = resize_nearest(np.asarray(room.depth(index[float(ref.stamp)]), np.float32), tuple(depth.shape[-2:]))
+        return hold(self, ref, torch.as_tensor(gt * 1.15)[None], conf, fallback)
+
+    def spy(self, log_scale_bhw):
+        log_z = self._depths.log().view(1, -1, 1, 1)
+        before = (self.logp_bdhw.exp() * log_z).sum(1)               # the belief's mean log depth
+        # where the belief is surest (its largest plane mass in the top quarter) and not at the end planes, which
+        # stand for everything beyond them and keep their mass
+        prob = self.logp_bdhw.exp()
+        peak = prob.amax(1)
+        sure = (peak >= peak.quantile(0.75)) & (prob[:, 0] + prob[:, -1] < 0.05) & (log_scale_bhw != 0)
+        rescale(self, log_scale_bhw)
+        shift = ((self.logp_bdhw.exp() * log_z).sum(1) - before)[sure]
+        moved.append((float(log_scale_bhw[log_scale_bhw != 0].median()), float(shift.median()),
+                      float(log_scale_bhw[sure].median())))
+
+    monkeypatch.setattr(EST.Estimator, '_hold_to_anchors', scaled_truth)
+    monkeypatch.setattr(DPVFilter, 'rescale_belief', spy)
+    outs, _pipe = _push_all(_frames(room), depth_anchors='scale', anchor_target=target)
+    aligned = [o for o in outs if o.anchors is not None and o.anchors.applied == 'scale']
+    assert len(aligned) >= 3, [o.anchors for o in outs]
+    if target == 'output':
+        assert moved == []
+        return
+    assert len(moved) == len(aligned)
+    for (asked, _got, _sure), o in zip(moved, aligned):
+        # the correction asked of the belief is the published depth's: towards the truth, less the soft threshold
+        gt = resize_nearest(np.asarray(room.depth(index[o.stamp]), np.float32), o.depth_hw.shape)
+        ok = np.isfinite(o.depth_hw) & (gt > 0)
+        assert asked == pytest.approx(math.log(np.median(o.depth_hw[ok] / (1.15 * gt[ok]))), abs=0.01), moved
+        assert -math.log(1.15) <= asked < -0.03, moved
+    # the belief's mean log depth moved by it where the belief is surest (none such on the first keyframe, whose
+    # belief is a single measurement)
+    sure = [(got, asked_sure) for _a, got, asked_sure in moved if math.isfinite(got)]
+    assert len(sure) >= 2, moved
+    for got, asked_sure in sure:
+        assert got == pytest.approx(asked_sure, abs=0.01), moved
+
+
 class _TurnInPlace:
     """The room's first pose, turning about its vertical axis at 20 degrees a second: no translation at all."""
 

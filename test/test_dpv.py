@@ -340,3 +340,41 @@ def test_ratio_confidence_with_an_index_error_integrates_the_gaussian():
     vals = [float(dpv_ops.ratio_confidence(logp, depths, d, 1.25, torch.full((1, 1, 1), s)))
             for s in (0.5, 1.0, 4.0, 16.0, float('inf'))]
     assert all(b <= a + 1e-7 for a, b in zip([float(plain)] + vals, vals)) and math.isfinite(vals[-1])
+
+
+def test_rescale_depth_by_hand():
+    """Planes 0.5-8 m, D = 5: 1/z = 2, 1.53125, 1.0625, 0.59375, 0.125 per metre. All mass on plane 2 (1/z =
+    1.0625), scaled by s = 1.0625 / 0.828125 (to 1/z = 0.828125, half way to plane 3 in 1/z): target plane j reads
+    the source at 1/z = s / z_j, plane 2 at index 1.3585 and plane 3 at 2.6415, 0.6415 from the mass on either
+    side: the mass splits equally between planes 2 and 3. A pixel with s = 1 keeps its values bit for bit."""
+    D, d_min, d_max = 5, 0.5, 8.0
+    inv = 1.0 / dpv.index_to_depth(torch.arange(D, dtype=torch.float64), d_min, d_max, D)
+    assert inv.tolist() == pytest.approx([2.0, 1.53125, 1.0625, 0.59375, 0.125])
+    logp = dpv.one_hot_log(torch.tensor([[[2, 2]]]), D, peak=0.0).double()
+    z_half = 1.0 / ((inv[2] + inv[3]) / 2)           # the depth half way between planes 2 and 3 in 1/z
+    s = torch.tensor([[[math.log(z_half / (1.0 / inv[2])), 0.0]]], dtype=torch.float64)
+    out = dpv.rescale_depth(logp, s, d_min, d_max)
+    assert torch.equal(out[..., 1], logp[..., 1])
+    p = out[0, :, 0, 0].exp()
+    scale = float(s[0, 0, 0].exp())
+    src_idx = [(2.0 - float(inv[j]) * scale) / (2.0 - 0.125) * (D - 1) for j in range(D)]
+    expect = torch.tensor([max(0.0, 1.0 - abs(i - 2.0)) for i in src_idx], dtype=torch.float64)
+    expect = (expect + math.exp(dpv.LOG_FLOOR)) / (expect + math.exp(dpv.LOG_FLOOR)).sum()
+    np.testing.assert_allclose(p.numpy(), expect.numpy(), atol=1e-9)
+    assert float(p.sum()) == pytest.approx(1.0)
+    assert float(p[2]) == pytest.approx(0.5, abs=1e-9) and float(p[3]) == pytest.approx(0.5, abs=1e-9)
+    assert src_idx[2] == pytest.approx(1.358491, abs=1e-6) and src_idx[3] == pytest.approx(2.641509, abs=1e-6)
+
+
+def test_rescale_depth_there_and_back_keeps_a_smooth_dpv():
+    """A Gaussian in index (sigma 2 planes) scaled by 1.1 and back by 1/1.1 returns within interpolation error; its
+    median moves by the scale on the way."""
+    D, d_min, d_max = 32, 0.5, 8.0
+    depths = dpv.depth_planes(d_min, d_max, D, dtype=torch.float64)
+    i = torch.arange(D, dtype=torch.float64)
+    logp = torch.log_softmax(-0.5 * ((i - 14.0) / 2.0) ** 2, 0).view(1, D, 1, 1)
+    s = torch.full((1, 1, 1), math.log(1.1), dtype=torch.float64)
+    there = dpv.rescale_depth(logp, s, d_min, d_max)
+    assert float(dpv.median_depth(there, depths) / dpv.median_depth(logp, depths)) == pytest.approx(1.1, rel=0.01)
+    back = dpv.rescale_depth(there, -s, d_min, d_max)
+    assert float((back.exp() - logp.exp()).abs().max()) < 0.01

@@ -21,7 +21,7 @@ __all__ = [
     'nll', 'valid_depth_mask', 'one_hot_log', 'READOUTS', 'quantile_index', 'median_depth',
     'relative_depth', 'depth_estimate', 'estimate_index', 'DEFAULT_READOUT', 'READOUT_CHOICES', 'resolve_readout',
     'ratio_confidence', 'published_confidence', 'CONFIDENCES', 'DEFAULT_CONFIDENCE', 'subplane_index',
-    'subplane_depth',
+    'subplane_depth', 'rescale_depth',
 ]
 
 # Lowest log-probability we keep anywhere in the filter (e^-30 ~ 1e-13): a zero-probability
@@ -59,6 +59,25 @@ def index_to_depth(index, d_min: float, d_max: float, D: int) -> torch.Tensor:
         index = index.to(torch.get_default_dtype())
     inv = 1.0 / d_min + (1.0 / d_max - 1.0 / d_min) * index / (D - 1)
     return 1.0 / inv
+
+
+def rescale_depth(logp_bdhw: torch.Tensor, log_scale_bhw: torch.Tensor, d_min: float, d_max: float) -> torch.Tensor:
+    """The DPV of each pixel's depth multiplied by ``exp(log_scale)``: plane j, at depth ``z_j``, takes the
+    probability the DPV gave ``z_j / s``, read between the two planes around it (linearly in probability), then
+    renormalised. The end planes stand for everything beyond them: a depth read beyond the range reads the end
+    plane, so a belief that everything is far stays far. Pixels whose log scale is exactly 0 keep their values bit
+    for bit."""
+    B, D = logp_bdhw.shape[:2]
+    z_d = index_to_depth(torch.arange(D, dtype=torch.float64, device=logp_bdhw.device), d_min, d_max, D)
+    src = z_d.view(1, D, 1, 1) * torch.exp(-log_scale_bhw.to(torch.float64))[:, None]
+    idx = depth_to_index(src, d_min, d_max, D).clamp(0, D - 1)
+    i0 = idx.floor()
+    w = (idx - i0).to(logp_bdhw.dtype)
+    i0 = i0.long()
+    i1 = (i0 + 1).clamp(max=D - 1)
+    p0, p1 = logp_bdhw.gather(1, i0), logp_bdhw.gather(1, i1)
+    out = clamp_log(torch.logaddexp(p0 + torch.log1p(-w), p1 + torch.log(w)))
+    return torch.where((log_scale_bhw == 0)[:, None], logp_bdhw, out)
 
 
 def normalize_log(logits_bdhw: torch.Tensor) -> torch.Tensor:

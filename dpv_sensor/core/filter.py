@@ -37,7 +37,7 @@ from typing import Callable, List, Optional
 import torch
 
 from dpv_sensor import params as _params
-from dpv_sensor.core.dpv import LOG_FLOOR, clamp_log
+from dpv_sensor.core.dpv import LOG_FLOOR, clamp_log, rescale_depth
 from dpv_sensor.core.geometry import invert_se3, rotation_angle, warp_volume
 
 __all__ = ['DPVFilter', 'FilterStep', 'MODES', 'MOTION_REFERENCE_S', 'jump_limit']
@@ -138,6 +138,11 @@ class DPVFilter:
         return self._T_world_cam
 
     @property
+    def K_b33(self) -> Optional[torch.Tensor]:
+        """Intrinsics of the current belief's grid, or None."""
+        return self._K
+
+    @property
     def stamp(self) -> Optional[float]:
         """Time stamp (s) of the current belief, or None."""
         return self._stamp
@@ -154,6 +159,15 @@ class DPVFilter:
         T_b_a = invert_se3(T_world_cam_b44.to(self._logp)) @ self._T_world_cam
         pred = warp_volume(self._logp, self._K, T_b_a, self._depths, stride=stride)
         return clamp_log(pred, self.log_floor)
+
+    def rescale_belief(self, log_scale_bhw: torch.Tensor) -> None:
+        """Multiply the belief's depth by ``exp(log_scale)`` per pixel (:func:`~dpv_sensor.core.dpv.rescale_depth`,
+        at the belief's own size): a correction of the newest keyframe that the next ones inherit. Nothing
+        without a belief."""
+        if self._logp is None:
+            return
+        d = self._depths
+        self._logp = rescale_depth(self._logp, log_scale_bhw.to(self._logp), float(d[0]), float(d[-1]))
 
     # ------------------------------------------------------------------ step
 

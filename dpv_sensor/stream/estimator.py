@@ -613,7 +613,8 @@ class Estimator:
     def _hold_to_anchors(self, ref: Keyframe, depth_bhw: torch.Tensor, conf_bhw: torch.Tensor, fallback=None):
         """(depth, confidence, report) of the keyframe held to its metric anchors; ``fallback``: the sweep's."""
         return metric_anchors.hold_to_anchors(self.anchors, self.pose_refiner, self._refinement_result(),
-                                              float(ref.stamp), ref.K_b33[0], depth_bhw, conf_bhw, fallback)
+                                              float(ref.stamp), ref.K_b33[0], depth_bhw, conf_bhw, fallback,
+                                              self.filter if self.config.anchor_target == 'belief' else None)
 
     def _chain_pose(self, T_odom_44: np.ndarray) -> np.ndarray:
         """Pose estimate of a new frame: its odometry motion since the newest keyframe chained onto that

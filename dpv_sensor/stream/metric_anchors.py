@@ -47,7 +47,7 @@ from dpv_sensor.core import anchors as anchor_math
 from dpv_sensor.core.anchors import AnchorConfig, Anchors
 
 __all__ = ['ANCHOR_MODES', 'JUDGES', 'NEEDS_WINDOW', 'AnchorStatus', 'AnchorReport', 'AnchorAligner',
-           'reference_anchors', 'hold_to_anchors']
+           'reference_anchors', 'hold_to_anchors', 'belief_log_scale']
 
 #: the ``depth_anchors`` choices
 ANCHOR_MODES = ('off', 'scale', 'dense')
@@ -450,12 +450,13 @@ class _Held:
 
 
 def hold_to_anchors(aligner: AnchorAligner, refiner, result, ref_key: float, K_b33_t, depth_bhw, conf_bhw,
-                    fallback=None):
+                    fallback=None, belief=None):
     """The estimator's hook: (depth, confidence, report) of a keyframe, tensors (1, H, W) at the size of
     ``K_b33_t``, held to the anchors that the window refiner's last ``result`` triangulates for ``ref_key``.
     Unchanged tensors without a refined window or under the veto (the refiner's ``direction_ratio`` above its
     threshold: the images contradict the odometry's directions); nothing computed (report None) with mode 'off'.
-    ``fallback``: :meth:`AnchorAligner.apply`'s."""
+    ``fallback``: :meth:`AnchorAligner.apply`'s. ``belief``: a :class:`~dpv_sensor.core.filter.DPVFilter` whose
+    belief takes the same correction (``anchor_target: belief``; None: the published depth alone)."""
     if aligner.mode == 'off':
         return depth_bhw, conf_bhw, None
     anchors, veto = None, None
@@ -472,5 +473,19 @@ def hold_to_anchors(aligner: AnchorAligner, refiner, result, ref_key: float, K_b
     d2, c2, report = aligner.apply(d, c, K_b33_t.detach().double().cpu().numpy(), anchors, veto, fallback)
     if d2 is d:
         return depth_bhw, conf_bhw, report
-    return (torch.as_tensor(d2, device=depth_bhw.device, dtype=depth_bhw.dtype)[None],
-            torch.as_tensor(c2, device=conf_bhw.device, dtype=conf_bhw.dtype)[None], report)
+    held_bhw = torch.as_tensor(d2, device=depth_bhw.device, dtype=depth_bhw.dtype)[None]
+    if belief is not None and belief.K_b33 is not None:
+        belief.rescale_belief(belief_log_scale(depth_bhw, held_bhw, K_b33_t, belief.K_b33[0],
+                                               tuple(belief.logp_bdhw.shape[-2:])))
+    return held_bhw, torch.as_tensor(c2, device=conf_bhw.device, dtype=conf_bhw.dtype)[None], report
+
+
+def belief_log_scale(depth_bhw: torch.Tensor, held_bhw: torch.Tensor, K_depth_33, K_belief_33,
+                     belief_hw: Tuple[int, int]) -> torch.Tensor:
+    """The anchors' correction of a keyframe's depth, ``log(held / depth)`` (0 where either is missing), read on
+    the filter's belief grid ``K_belief_33`` of size ``belief_hw`` (the depth is on ``K_depth_33``'s): what
+    :meth:`~dpv_sensor.core.filter.DPVFilter.rescale_belief` takes (``anchor_target: belief``)."""
+    from dpv_sensor.core.geometry import resample_to_camera
+    r = torch.log(held_bhw.double() / depth_bhw.double())
+    r = torch.where(torch.isfinite(r), r, torch.zeros_like(r))
+    return resample_to_camera(r[:, None], K_depth_33, K_belief_33, belief_hw)[:, 0]
