@@ -49,7 +49,7 @@ def launch_replay_node(command: list[str], env: dict, log_path: pathlib.Path) ->
     `python -m MODULE ARGS` forked from the session's fork server, as `start_node` does (a fresh interpreter with
     DPV_TEST_FORK_NODES=0)."""
     if command[:2] == [sys.executable, '-m'] and os.environ.get('DPV_TEST_FORK_NODES', '1') != '0':
-        return _fork_server().start(command[2], command[3:], env, log=log_path)
+        return _fork_server().start(command[2], command[3:], env, log=pathlib.Path(log_path).resolve())
     from dpv_sensor.client.node_process import launch_process
     return launch_process(command, env, log_path)
 

@@ -378,3 +378,14 @@ def test_rescale_depth_there_and_back_keeps_a_smooth_dpv():
     assert float(dpv.median_depth(there, depths) / dpv.median_depth(logp, depths)) == pytest.approx(1.1, rel=0.01)
     back = dpv.rescale_depth(there, -s, d_min, d_max)
     assert float((back.exp() - logp.exp()).abs().max()) < 0.01
+
+
+def test_rescale_depth_keeps_pixels_without_a_finite_scale_and_broadcasts_a_batch_of_one():
+    D, d_min, d_max = 8, 0.5, 8.0
+    logp = torch.log_softmax(torch.randn(2, D, 1, 3, generator=torch.Generator().manual_seed(0)), 1)
+    s = torch.tensor([[[float('nan'), float('inf'), 0.2]]])
+    out = dpv.rescale_depth(logp, s, d_min, d_max)
+    assert torch.equal(out[..., :2], logp[..., :2])
+    for b in range(2):     # the batch-one scale applies to each DPV as it would alone
+        alone = dpv.rescale_depth(logp[b:b + 1], s, d_min, d_max)
+        assert torch.equal(out[b:b + 1], alone) and not torch.equal(alone[..., 2], logp[b:b + 1, :, :, 2])

@@ -11,6 +11,7 @@ from typing import Any, Callable, Dict, List
 #: ``kill``), the process's stdout and stderr going to ``log_path``
 Launcher = Callable[[List[str], Dict[str, str], pathlib.Path], Any]
 
+
 def node_command(params: Dict[str, Any], remaps: Dict[str, str]) -> List[str]:
     """`python -m dpv_sensor.ros.node --ros-args -p k:=v ... -r a:=b ...` for these parameters and remaps."""
     cmd = [sys.executable, '-m', 'dpv_sensor.ros.node', '--ros-args']
@@ -33,7 +34,7 @@ def launch_process(command: List[str], env: Dict[str, str], log_path: pathlib.Pa
     import subprocess
     with open(log_path, 'w') as log:
         return subprocess.Popen(command, cwd=pathlib.Path(__file__).resolve().parents[2], env=env, stdout=log,
-                                stderr=subprocess.STDOUT, text=True)
+                                stderr=subprocess.STDOUT)
 
 
 class ClientNode:

@@ -400,9 +400,13 @@ class _NodeReplay:
 
     def node_died(self) -> str:
         """The error message of a node that exited: its exit code and the tail of its log."""
-        tail = self.log_path.read_text(errors='replace').strip().splitlines()[-15:]
+        tail = self._node_log().strip().splitlines()[-15:]
         return (f'the node exited with code {self.proc.returncode} (log: {_rel(self.log_path)}):\n    ' +
                 '\n    '.join(tail))
+
+    def _node_log(self) -> str:
+        """What the node process wrote (a launcher whose process failed before opening its log wrote nothing)."""
+        return self.log_path.read_text(errors='replace') if self.log_path.exists() else '(the node wrote no log)'
 
     # -- 3. start the node --------------------------------------------------------------------------------------
     def start_node(self) -> str:
@@ -595,7 +599,7 @@ class _NodeReplay:
             proc.wait()
             res.node_exit_code = None
         res.node_stop_s = round(time.perf_counter() - t0, 2)
-        res.node_log = self.log_path.read_text(errors='replace')
+        res.node_log = self._node_log()
         rec['note'] = f'exit code {res.node_exit_code}'
         if res.node_exit_code != 0:
             raise ReplayError(f'the node did not stop cleanly on SIGINT (exit code {res.node_exit_code}; log: '

@@ -61,13 +61,17 @@ def index_to_depth(index, d_min: float, d_max: float, D: int) -> torch.Tensor:
     return 1.0 / inv
 
 
-def rescale_depth(logp_bdhw: torch.Tensor, log_scale_bhw: torch.Tensor, d_min: float, d_max: float) -> torch.Tensor:
+def rescale_depth(logp_bdhw: torch.Tensor, log_scale_bhw: torch.Tensor, d_min: float, d_max: float,
+                  floor: float = LOG_FLOOR) -> torch.Tensor:
     """The DPV of each pixel's depth multiplied by ``exp(log_scale)``: plane j, at depth ``z_j``, takes the
     probability the DPV gave ``z_j / s``, read between the two planes around it (linearly in probability), then
     renormalised. The end planes stand for everything beyond them: a depth read beyond the range reads the end
-    plane, so a belief that everything is far stays far. Pixels whose log scale is exactly 0 keep their values bit
-    for bit."""
-    B, D = logp_bdhw.shape[:2]
+    plane, so a belief that everything is far stays far. Pixels whose log scale is exactly 0 or not finite keep
+    their values bit for bit; a log scale of batch 1 applies to every DPV of the batch; ``floor``: as
+    :func:`clamp_log`'s."""
+    B, D, H, W = logp_bdhw.shape
+    log_scale_bhw = log_scale_bhw.expand(B, H, W)
+    log_scale_bhw = torch.where(torch.isfinite(log_scale_bhw), log_scale_bhw, torch.zeros_like(log_scale_bhw))
     z_d = index_to_depth(torch.arange(D, dtype=torch.float64, device=logp_bdhw.device), d_min, d_max, D)
     src = z_d.view(1, D, 1, 1) * torch.exp(-log_scale_bhw.to(torch.float64))[:, None]
     idx = depth_to_index(src, d_min, d_max, D).clamp(0, D - 1)
@@ -76,7 +80,7 @@ def rescale_depth(logp_bdhw: torch.Tensor, log_scale_bhw: torch.Tensor, d_min: f
     i0 = i0.long()
     i1 = (i0 + 1).clamp(max=D - 1)
     p0, p1 = logp_bdhw.gather(1, i0), logp_bdhw.gather(1, i1)
-    out = clamp_log(torch.logaddexp(p0 + torch.log1p(-w), p1 + torch.log(w)))
+    out = clamp_log(torch.logaddexp(p0 + torch.log1p(-w), p1 + torch.log(w)), floor)
     return torch.where((log_scale_bhw == 0)[:, None], logp_bdhw, out)
 
 

@@ -167,7 +167,7 @@ class DPVFilter:
         if self._logp is None:
             return
         d = self._depths
-        self._logp = rescale_depth(self._logp, log_scale_bhw.to(self._logp), float(d[0]), float(d[-1]))
+        self._logp = rescale_depth(self._logp, log_scale_bhw.to(self._logp), float(d[0]), float(d[-1]), self.log_floor)
 
     # ------------------------------------------------------------------ step
 

@@ -430,5 +430,3 @@ def resample_to_camera(x_bchw: torch.Tensor, K_src_33, K_dst_33, dst_hw: Tuple[i
     grid = grid.expand(B, int(dst_hw[0]), int(dst_hw[1]), 2).to(dev)
     src = x_bchw if x_bchw.is_floating_point() else x_bchw.to(dt)
     return F.grid_sample(src, grid, mode=mode, padding_mode='border', align_corners=True)
-
-

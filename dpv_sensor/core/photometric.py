@@ -41,7 +41,7 @@ import torch
 import torch.nn.functional as F
 
 from dpv_sensor.core.geometry import (BOUNDS_TOL, Z_EPS, backproject, camera_grid_affine, camera_resample_grid, project,
-                                     scale_intrinsics, transform_points)
+                                      scale_intrinsics, transform_points)
 from dpv_sensor.core.pose_math import relative_pose_error_np
 
 __all__ = ['AlignmentConfig', 'AlignmentResult', 'Aligner', 'ImagePyramid', 'align_photometric', 'to_gray',

@@ -38,8 +38,8 @@ def pose_delta_np(T_world_a_44: np.ndarray, T_world_b_44: np.ndarray) -> Tuple[f
 
 
 def rotation_angle_np(R_33: np.ndarray) -> float:
-    """Rotation angle of a 3x3 rotation matrix in radians, in [0, pi]; the numpy twin of :func:`rotation_angle`
-    (atan2 form: accurate for small and large angles alike)."""
+    """Rotation angle of a 3x3 rotation matrix in radians, in [0, pi]; the numpy twin of
+    :func:`dpv_sensor.core.geometry.rotation_angle` (atan2 form: accurate for small and large angles alike)."""
     R = np.asarray(R_33, dtype=np.float64)
     v = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
     return math.atan2(0.5 * float(np.linalg.norm(v)), 0.5 * (float(np.trace(R)) - 1.0))

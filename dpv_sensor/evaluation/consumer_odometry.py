@@ -30,7 +30,7 @@ def consumer_odometry(records: SequenceT, *, depth_max: float = CONSUMER_ODOMETR
     """How well a real RGB-D consumer tracks on our depth: Open3D's RGB-D odometry between consecutive records,
     once with the predicted depth (no estimate = 0, i.e. no depth) and once with the GT depth of the same frames
     and the same colour images; each estimated motion is compared with the GT relative pose
-    (``geometry.relative_pose_error_np``).
+    (``pose_math.relative_pose_error_np``).
 
     Returns ``{'pairs', '<jacobian>': {'predicted': {...}, 'gt_depth': {...}, 'ratio_trans', 'ratio_rot'},
     'ratio_trans', 'ratio_rot', 'options'}``: per Jacobian and depth source the median and mean translation /

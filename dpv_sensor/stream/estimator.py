@@ -587,7 +587,10 @@ class Estimator:
 
         t = time.perf_counter()
         fallback = None if self.fallback is None else self.fallback.opinion(ref, sources, T_src_ref_t, timings)
+        belief = self.filter.logp_bdhw
         depth, conf, anchor_report = self._hold_to_anchors(ref, depth, conf, fallback)
+        if self.filter.logp_bdhw is not belief:         # anchor_target: belief moved it: the frames between follow
+            self._posterior.logp_bdhw, self._posterior.median_depth = self.filter.logp_bdhw, None
         timings['anchors'] = self._ms(t)
 
         t = time.perf_counter()

@@ -37,7 +37,7 @@ from typing import Any, Callable, Dict, List, Optional, Tuple
 import numpy as np
 
 from dpv_sensor import params as _params
-from dpv_sensor.core.pose_math import pose_delta_np as pose_delta  # noqa: F401  (the one home: geometry)
+from dpv_sensor.core.pose_math import pose_delta_np as pose_delta  # noqa: F401  (the one home: pose_math)
 
 __all__ = ['pose_delta', 'KeyframeDecision', 'KeyframeSelector', 'Keyframe', 'KeyframeWindow', 'WINDOW_MODES']
 

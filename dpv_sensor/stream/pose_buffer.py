@@ -38,7 +38,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-# the pose maths has one home, geometry.py; these names are this module's vocabulary (bag I/O, the node)
+# the pose maths has one home, pose_math.py; these names are this module's vocabulary (bag I/O, the node)
 from dpv_sensor.stream.continuity import TELEPORT_FLOOR_DEG, TELEPORT_FLOOR_M, teleport
 from dpv_sensor.core.pose_math import interpolate_pose, make_pose, matrix_to_quat, quat_angle_deg, quat_to_matrix, slerp  # noqa: F401
 

@@ -207,7 +207,7 @@ def check_not_heldout(folder: str) -> None:
             raise ValueError(f'{folder} is held-out evaluation data ({what}) and must never be trained on')
 
 
-scale_K_np = scale_intrinsics_np      # intrinsics after scaling the image by (sx, sy): geometry's one copy
+scale_K_np = scale_intrinsics_np      # intrinsics after scaling the image by (sx, sy): pose_math's one copy
 
 
 def resize_crop(image: np.ndarray, depth: np.ndarray, K_33: np.ndarray, scaled_wh: Tuple[int, int],
