@@ -14,8 +14,7 @@ from dpv_sensor.ros import compressed_image as CI
 from dpv_sensor.ros.node_support import FaultLog
 from dpv_sensor.ros.receipt import ImageReceipt
 from dpv_sensor.stream.continuity import StreamSize, future_stamp
-from dpv_sensor.stream.estimator import Estimator
-from dpv_sensor.stream.frame import MIN_IMAGE_SIDE, Frame, image_too_small
+from dpv_sensor.stream.frame import MIN_IMAGE_SIDE, Frame, checked_image, image_too_small
 from log_lines import Lines
 
 NS = 1_000_000_000
@@ -42,9 +41,9 @@ def test_the_estimator_and_the_receipt_refuse_exactly_the_same_sizes(w, h, small
     if small:
         with pytest.raises(ValueError, match=f'{w}x{h} is smaller than the smallest image the estimator takes '
                                              r'\(2x2 pixels\)'):
-            Estimator._check_image(frame)
+            checked_image(frame)
     else:
-        Estimator._check_image(frame)
+        checked_image(frame)
     rec, log, dropped = receipt()
     handed = rec.image(raw(w, h), 5 * NS, 0.0, 0)
     assert (handed is None) == small and dropped['image_too_small'] == int(small)

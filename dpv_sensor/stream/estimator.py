@@ -26,7 +26,7 @@ from dpv_sensor.core.pose_math import scale_intrinsics_np
 from dpv_sensor.core.keypoint_pose import to_gray_u8
 from dpv_sensor.core.nets.model import cpu_bf16_fast
 from dpv_sensor.stream.continuity import DUPLICATE, stream_break, time_order
-from dpv_sensor.stream.frame import DepthOutput, Frame, image_too_small
+from dpv_sensor.stream.frame import DepthOutput, Frame, checked_image, drop_reason, is_rigid
 from dpv_sensor.stream.depth_output import compose_output, volume_maps_to_processing
 from dpv_sensor.stream.estimator_config import (EstimatorConfig, EstimatorStatus, PoseRefinementRequest,  # noqa: F401
                                                 PoseRefiner, _Measurement, _Posterior, calibration_signature,
@@ -54,12 +54,6 @@ def _odometry_steps(result) -> Optional[Tuple[float, float, str]]:
     """A refiner result's odometry factors (``RefinementResult.odometry``) as the status holds them."""
     steps = getattr(result, 'odometry', None)
     return None if steps is None else (float(steps[0]), float(steps[1]), str(steps[2]))
-
-
-def _is_rigid(T_44: np.ndarray, tol: float = 1e-3) -> bool:
-    R = T_44[:3, :3]
-    return (np.allclose(R.T @ R, np.eye(3), atol=tol) and abs(np.linalg.det(R) - 1.0) < tol
-            and np.allclose(T_44[3], [0.0, 0.0, 0.0, 1.0], atol=tol))
 
 
 # ------------------------------------------------------------------------------------------------------
@@ -375,8 +369,8 @@ class Estimator:
         """Process one frame; returns the depth output that became ready (or None). See docs/estimator.md."""
         t0 = time.perf_counter()
         self._frames_received += 1
-        image = self._check_image(frame)
-        drop = self._drop_reason(frame)
+        image = checked_image(frame)
+        drop = drop_reason(frame)
         if drop is not None:
             self._frames_dropped += 1
             self._last_drop_reason = drop
@@ -418,19 +412,6 @@ class Estimator:
         return out
 
     # ------------------------------------------------------------------ checks
-    @staticmethod
-    def _check_image(frame: Frame) -> np.ndarray:
-        image = np.asarray(frame.image)
-        if image.ndim != 3 or image.shape[2] != 3 or image.dtype != np.uint8:
-            raise ValueError(f'Frame.image must be uint8 HxWx3 RGB, got {image.dtype} {image.shape}')
-        small = image_too_small(image.shape[1], image.shape[0])
-        if small is not None:
-            raise ValueError(f'Frame.image is too small: {small}')
-        gap = frame.sensor_gap_s
-        if gap is not None and not (math.isfinite(float(gap)) and float(gap) >= 0.0):
-            raise ValueError(f'Frame.sensor_gap_s must be None or a finite number >= 0, got {gap!r}')
-        return image
-
     def _degenerate_frame(self, quality: 'image_quality.ImageQuality') -> None:
         """A frame that carries no depth information (``image_quality.assess``): counted as dropped and as
         degenerate (``status.frames_degenerate``, ``status.last_degenerate_reason``); the window, the
@@ -439,24 +420,6 @@ class Estimator:
         self._frames_degenerate += 1
         self._last_degenerate_reason = quality.reason
         self._last_drop_reason = f'degenerate image ({quality.reason})'
-        return None
-
-    @staticmethod
-    def _drop_reason(frame: Frame) -> Optional[str]:
-        if frame.T_world_cam_44 is None:
-            return 'no pose for the frame'
-        T = np.asarray(frame.T_world_cam_44, dtype=np.float64)
-        if T.shape != (4, 4):
-            return f'pose has shape {T.shape}, expected 4x4'
-        if not np.all(np.isfinite(T)):
-            return 'pose is not finite (NaN/inf)'
-        if not _is_rigid(T):
-            return 'pose is not a rigid transform'
-        K = np.asarray(frame.K_33, dtype=np.float64)
-        if K.shape != (3, 3) or not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0:
-            return 'invalid intrinsics K'
-        if not math.isfinite(float(frame.stamp)):
-            return 'stamp is not finite'
         return None
 
     def _stream_reset_reason(self, stamp: float, T: np.ndarray, size, K_in,
@@ -700,7 +663,7 @@ class Estimator:
             refined = None
         if refined is not None:
             refined = [np.asarray(T, dtype=np.float64) for T in refined]
-            if len(refined) != len(kfs) or not all(T.shape == (4, 4) and np.all(np.isfinite(T)) and _is_rigid(T)
+            if len(refined) != len(kfs) or not all(T.shape == (4, 4) and np.all(np.isfinite(T)) and is_rigid(T)
                                                    for T in refined):
                 self._note('pose refiner returned an invalid result (count, shape or non-rigid pose); ignored')
             else:

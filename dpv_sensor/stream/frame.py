@@ -1,6 +1,8 @@
-"""What goes into and comes out of the streaming estimator (plain numpy; no ROS, no torch)."""
+"""What goes into and comes out of the streaming estimator, and what a frame must be to go in (plain numpy; no ROS,
+no torch)."""
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -70,3 +72,44 @@ class DepthOutput:
     timings_ms: dict = field(default_factory=dict)
     features: dict | None = None               # keyframe confidence cues by name (Estimator.collect_features)
     anchors: object | None = None              # the keyframe's metric anchors report (stream.metric_anchors)
+
+
+def checked_image(frame: Frame) -> np.ndarray:
+    """The frame's image, or ValueError saying what is wrong with the frame's image or ``sensor_gap_s`` (a
+    caller's error: the estimator refuses the frame)."""
+    image = np.asarray(frame.image)
+    if image.ndim != 3 or image.shape[2] != 3 or image.dtype != np.uint8:
+        raise ValueError(f'Frame.image must be uint8 HxWx3 RGB, got {image.dtype} {image.shape}')
+    small = image_too_small(image.shape[1], image.shape[0])
+    if small is not None:
+        raise ValueError(f'Frame.image is too small: {small}')
+    gap = frame.sensor_gap_s
+    if gap is not None and not (math.isfinite(float(gap)) and float(gap) >= 0.0):
+        raise ValueError(f'Frame.sensor_gap_s must be None or a finite number >= 0, got {gap!r}')
+    return image
+
+
+def drop_reason(frame: Frame) -> str | None:
+    """Why the estimator drops the frame (its pose, intrinsics or stamp unusable), or None."""
+    if frame.T_world_cam_44 is None:
+        return 'no pose for the frame'
+    T = np.asarray(frame.T_world_cam_44, dtype=np.float64)
+    if T.shape != (4, 4):
+        return f'pose has shape {T.shape}, expected 4x4'
+    if not np.all(np.isfinite(T)):
+        return 'pose is not finite (NaN/inf)'
+    if not is_rigid(T):
+        return 'pose is not a rigid transform'
+    K = np.asarray(frame.K_33, dtype=np.float64)
+    if K.shape != (3, 3) or not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0:
+        return 'invalid intrinsics K'
+    if not math.isfinite(float(frame.stamp)):
+        return 'stamp is not finite'
+    return None
+
+
+def is_rigid(T_44: np.ndarray, tol: float = 1e-3) -> bool:
+    """A 4x4 pose whose rotation is orthonormal with determinant 1 and whose last row is [0, 0, 0, 1]."""
+    R = T_44[:3, :3]
+    return (np.allclose(R.T @ R, np.eye(3), atol=tol) and abs(np.linalg.det(R) - 1.0) < tol
+            and np.allclose(T_44[3], [0.0, 0.0, 0.0, 1.0], atol=tol))
