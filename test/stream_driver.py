@@ -20,6 +20,8 @@ FAST_PARAMS = {'measurement': 'classical', 'processing_width': W, 'processing_he
                'odom_wait_timeout': 3.0,
                # the odometry of 'base_link' tracks the camera 'cam' itself: the identity mount, not looked up on TF
                'extrinsic_source': 'parameter'}
+# for a test that sends its images one at a time and waits for each on /diagnostics: the period paces the test
+ONE_AT_A_TIME = {'diagnostics_period': 0.05}
 
 
 class StreamDriver:

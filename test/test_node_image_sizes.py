@@ -11,10 +11,10 @@ import re
 import cv2
 import numpy as np
 
-from stream_driver import FAST_PARAMS, StreamDriver, params_args
+from stream_driver import FAST_PARAMS, ONE_AT_A_TIME, StreamDriver, params_args
 from dpv_sensor.ros import compressed_image as CI
 
-PARAMS = {**FAST_PARAMS, 'pose_refinement': 'off'}      # sizes are under test, not the window
+PARAMS = {**FAST_PARAMS, **ONE_AT_A_TIME, 'pose_refinement': 'off'}      # sizes are under test, not the window
 REMAPS = {'image': '/cam/image', 'camera_info': '/cam/camera_info', 'odom': '/odom'}
 CLEAN, PHASE, TAIL = 20, 25, 4      # a clean phase, phases with every 5th image stray, clean images at the end
 

@@ -33,7 +33,7 @@ START_NS = 1_700_000_000_123_456_789
 T_BASE_CAMERA = [0.05, -0.02, 0.3, -0.5, 0.5, -0.5, 0.5]   # base_link (x forward, z up) -> optical frame
 # the causal window: every keyframe after the first has its output at once (these tests pair outputs with frames)
 COMMON = {'measurement': 'classical', 'processing_width': W, 'processing_height': H, 'num_planes': 32,
-          'input_reliability': 'reliable', 'input_depth': 50, 'odom_wait_timeout': 2.0, 'diagnostics_period': 0.5,
+          'input_reliability': 'reliable', 'input_depth': 50, 'odom_wait_timeout': 2.0, 'diagnostics_period': 0.1,
           'window_mode': 'causal', 'extrinsic_source': 'parameter'}
 REMAP = ['-r', 'image:=/image', '-r', 'camera_info:=/camera_info', '-r', 'odom:=/odom']
 

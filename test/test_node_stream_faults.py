@@ -6,7 +6,7 @@ a discontinuity with a warning, and a bad image is counted and logged on receipt
 import re
 
 from ros_helpers import wait_for
-from stream_driver import FAST_PARAMS, StreamDriver, params_args
+from stream_driver import FAST_PARAMS, ONE_AT_A_TIME, StreamDriver, params_args
 from dpv_sensor.stream.pose_buffer import NS
 
 P30 = NS // 30
@@ -19,7 +19,7 @@ def _driver(name: str, **params) -> StreamDriver:
 
 
 def test_rate_drops_and_a_stamp_jump_lose_nothing_and_a_frame_id_change_is_reported():
-    drv = _driver('rate_faults')
+    drv = _driver('rate_faults', **ONE_AT_A_TIME)
     phases = [('30 Hz', P30, 30, 'odom'), ('15 Hz', 2 * P30, 30, 'odom'), ('4 Hz', NS // 4, 20, 'odom'),
               ('1 h ahead', P30, 30, 'odom'), ('map frame', P30, 15, 'map')]
     sent = 0
