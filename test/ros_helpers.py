@@ -161,6 +161,12 @@ def _fork_server() -> _ForkServer:
     return _SERVER[0]
 
 
+def spare_domain() -> int:
+    """A second DDS domain of this worker's own, for a test that runs two ROS graphs at once: 201..231, apart from
+    the workers' 100..200 (conftest), and different for two workers whose domains are neighbours."""
+    return 201 + (int(os.environ['ROS_DOMAIN_ID']) - 100) % 31
+
+
 def wait_exit(proc: subprocess.Popen, timeout: float) -> tuple[int, str]:
     """Wait up to `timeout` s for `proc` to exit and return (exit code, all output); if it has not exited by
     then, kill it and return (-9, its output)."""
