@@ -17,6 +17,7 @@ from dpv_sensor.ros.stream_loss import StreamLoss
 from dpv_sensor.tools.soak import OutputCollector
 
 SECONDS = 4
+DIAGNOSTICS_PERIOD_S = 0.2
 
 
 def start_camera(reliability: str) -> subprocess.Popen:
@@ -40,7 +41,7 @@ def test_every_image_is_received_or_counted_as_lost(observer, reliability, trans
     env = {k: '' for k in TRANSPORT_VARS if k in os.environ}
     if transport == 'fastdds_defaults':
         env['FASTDDS_BUILTIN_TRANSPORTS'] = 'DEFAULT'
-    proc = start_node(['--ros-args', '-p', 'diagnostics_period:=0.5'], env=env)
+    proc = start_node(['--ros-args', '-p', f'diagnostics_period:={DIAGNOSTICS_PERIOD_S}'], env=env)
     camera = None
     try:
         camera = start_camera(reliability)
@@ -72,7 +73,7 @@ def test_every_image_is_received_or_counted_as_lost(observer, reliability, trans
         # the worker finishes the image it holds and the one waiting in the mailbox
         wait_for(lambda: outputs.diag_int('frames_processed') + outputs.diag_int('dropped_total')
                  >= outputs.diag_int('frames_received'), timeout=90.0, spin=spin)
-        wait_for(lambda: False, timeout=1.5, spin=spin)      # one more diagnostics message: nothing more arrives
+        wait_for(lambda: False, timeout=3 * DIAGNOSTICS_PERIOD_S, spin=spin)   # more diagnostics: nothing more arrives
         diag = dict(outputs.diagnostics)
     finally:
         if camera is not None and camera.poll() is None:
