@@ -11,6 +11,11 @@ from dpv_sensor.training.stream_validation import stream_metric_key
 
 __all__ = ['save_montage', 'plot_curves', 'save_adapt_report']
 
+#: every axes title at the axes' top edge, given explicitly: left unset, matplotlib measures each axes' tick labels at
+#: every draw to lift its title above them (a third of these figures' drawing time), and none of these axes has any
+#: at its top, so the figures come out the same, byte for byte
+_TITLE_Y = 1.0
+
 
 def save_montage(examples: List[Dict], path: str, d_min: float, d_max: float, title: str = '') -> None:
     """PNG: per (source, mode) row: image | GT | depth | confidence | |error|/GT."""
@@ -39,7 +44,7 @@ def save_montage(examples: List[Dict], path: str, d_min: float, d_max: float, ti
                 ax.imshow(img, cmap=cmap, vmin=0, vmax=0.3)
             else:
                 ax.imshow(img, cmap=cmap, vmin=0, vmax=1)
-            ax.set_title(name, fontsize=8)
+            ax.set_title(name, fontsize=8, y=_TITLE_Y)
             ax.axis('off')
     if title:
         fig.suptitle(title, fontsize=9)
@@ -74,7 +79,7 @@ def plot_curves(history: Dict, path: str, reference: Optional[Dict] = None) -> N
                 axes[0].plot(steps[k - 1:], sm, color=colour, lw=1.6, label=key)
         axes[0].set_xlabel('step')
         axes[0].set_ylabel('NLL (nats)')
-        axes[0].set_title('training loss')
+        axes[0].set_title('training loss', y=_TITLE_Y)
         axes[0].legend(fontsize=8)
         axes[0].grid(alpha=0.3)
     va = history.get('val', [])
@@ -101,8 +106,8 @@ def plot_curves(history: Dict, path: str, reference: Optional[Dict] = None) -> N
                 if ref:
                     axes[1].axhline(ref['abs_rel'], color='tab:purple', ls=ls, label=f'classical {mode}')
                     axes[2].axhline(ref['nll_filtered_q'], color='tab:purple', ls=ls, label=f'classical {mode} (1/4)')
-        axes[1].set_title('validation abs_rel (held-out seeds)')
-        axes[2].set_title('validation NLL of GT')
+        axes[1].set_title('validation abs_rel (held-out seeds)', y=_TITLE_Y)
+        axes[2].set_title('validation NLL of GT', y=_TITLE_Y)
         for ax in axes[1:]:
             ax.set_xlabel('step')
             ax.legend(fontsize=7)
@@ -139,7 +144,7 @@ def save_adapt_report(path: str, result, gt: Optional[Dict], d_min: float, d_max
                 ax.plot(steps[k - 1:], np.convolve(y, np.ones(k) / k, mode='valid'), color=colour, lw=1.6, label=key)
         ax.legend(fontsize=8)
     ax.set_xlabel('step')
-    ax.set_title('training loss', fontsize=9)
+    ax.set_title('training loss', fontsize=9, y=_TITLE_Y)
     ax.grid(alpha=0.3)
     ax2 = fig.add_subplot(grid[0, 3:])
     ax2.bar(['base', 'adapted'], [result.base_score, result.adapted_score], color=['tab:gray', 'tab:green'])
@@ -147,7 +152,7 @@ def save_adapt_report(path: str, result, gt: Optional[Dict], d_min: float, d_max
     beside = ''.join(f"\n{k} beside it: {b['base']:.5f} -> {b['adapted']:.5f}"
                      for k, b in (getattr(result, 'beside', None) or {}).items())
     ax2.set_title(f'held-out {result.score_kind} score (lower is better)\n{v.runs_better} of {v.runs} runs better, '
-                  f'sign-flip p {v.p_value:.3f}{beside}', fontsize=9)
+                  f'sign-flip p {v.p_value:.3f}{beside}', fontsize=9, y=_TITLE_Y)
     lo = min(result.base_score, result.adapted_score)
     hi = max(result.base_score, result.adapted_score)
     if np.isfinite(lo) and hi > 0:
@@ -166,7 +171,7 @@ def save_adapt_report(path: str, result, gt: Optional[Dict], d_min: float, d_max
                 a.imshow(img, cmap=cmap, vmin=d_min, vmax=max(vmax, d_min + 0.1))
             else:
                 a.imshow(img, cmap=cmap, vmin=0, vmax=1)
-            a.set_title(name, fontsize=8)
+            a.set_title(name, fontsize=8, y=_TITLE_Y)
             a.axis('off')
     if gt:
         nan = float('nan')
