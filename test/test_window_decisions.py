@@ -13,7 +13,7 @@ def test_rows_on_a_rendered_sequence_with_drift(tmp_path):
     from dpv_sensor.core.photometric import pose_error
     from dpv_sensor.data.sequence import Sequence, write_sequence
     from dpv_sensor.data.synthetic import render_sequence
-    folder = write_sequence(tmp_path / 'seq', render_sequence(51, 40, width=320, height=240), lossless=True)
+    folder = write_sequence(tmp_path / 'seq', render_sequence(51, 30, width=320, height=240), lossless=True)
     rows = WD.run(folder, 'noisy0cov', 0, progress=False)
     assert len(rows) >= 3
     seq = Sequence(folder)
