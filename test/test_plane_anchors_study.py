@@ -73,3 +73,72 @@ def test_a_plane_speaks_only_inside_its_anchors_hull_on_its_region():
     # no anchor near the region: no plane
     far = Anchors(uv[:0], np.zeros(0), np.zeros(0), np.zeros(0), np.zeros(0, np.int64), K)
     assert not np.isfinite(PA.region_planes(img, far, config)).any()
+
+
+def test_the_tolerance_grows_with_sigma_up_to_its_cap_and_ransac_finds_the_plane_among_many_outliers():
+    uv = np.array([[5, 5], [70, 8], [10, 50], [75, 55], [40, 30], [20, 40], [60, 20], [33, 12]], np.float64)
+    z = np.full(8, 2.0)
+    z[4] = 2.0 * np.exp(0.08)            # the centre anchor 0.08 off in log depth: inside the others' outline, so no
+    cfg = PA.PlaneConfig(min_inliers=6)  # tilt of a plane within 0.03 of them comes within 0.03 of it
+    # sigma 0.01: the tolerance is the floor 0.03, the anchor is out; sigma 0.06: 1.5 sigma = 0.09, it is in
+    assert sorted(PA.fit_plane(uv, z, np.full(8, 0.01), K, cfg).inliers) == [0, 1, 2, 3, 5, 6, 7]
+    assert len(PA.fit_plane(uv, z, np.full(8, 0.06), K, cfg).inliers) == 8
+    # 10 anchors on a wall 2 m away, 6 scattered off it (10 of 16: above the 60 % a plane needs): whatever the seed,
+    # the search keeps the largest agreeing set, not the first triple it drew
+    rng = np.random.default_rng(5)
+    uv16 = np.c_[rng.uniform(0, 80, 16), rng.uniform(0, 60, 16)]
+    z16 = np.r_[np.full(10, 2.0), [1.0, 3.1, 0.7, 4.4, 1.4, 2.9]]
+    for seed in range(10):
+        plane = PA.fit_plane(uv16, z16, np.full(16, 0.01), K, cfg, seed=seed)
+        assert plane is not None and sorted(plane.inliers) == list(range(10)), seed
+
+
+def test_a_plane_behind_the_camera_gives_no_depth():
+    """The plane x = 0.1 m (a wall to the right, parallel to the optical axis): the rays right of the principal
+    point meet it in front at z = 0.1 / x_ray, those left of it behind the camera: no depth there."""
+    wall = PA.Plane(np.array([1.0, 0.0, 0.0]), 0.1, np.arange(3))
+    depth = PA.plane_depth(wall, K, np.ones((60, 80), bool))
+    assert depth[30, 50] == pytest.approx(0.1 / ((50 - 40) / 100.0))
+    assert np.isnan(depth[:, :40]).all() and np.isfinite(depth[:, 41:]).all()
+
+
+def test_regions_smaller_than_the_minimum_are_dropped():
+    """A checkered image with two blank squares, 30 and 12 px: their weakest pixels (13 % of the image) make a
+    region of 589 px in the big one and 38 px in the small one; with 100 px as the minimum only the big one is a
+    region, with 20 px both are."""
+    yy, xx = np.mgrid[0:60, 0:80]
+    img = np.where((((yy // 3) + (xx // 3)) % 2 == 0)[..., None], 255, 0).astype(np.uint8).repeat(3, axis=2)
+    img[5:35, 5:35] = 128
+    img[40:52, 50:62] = 128
+    labels, count = PA.texture_free_regions(img, PA.PlaneConfig(min_region_px=100, weak_share=0.13))
+    assert count == 1 and labels[20, 20] == 1 and labels[46, 56] == 0
+    labels, count = PA.texture_free_regions(img, PA.PlaneConfig(min_region_px=20, weak_share=0.13))
+    assert count == 2 and labels[46, 56] == 2
+
+
+def test_the_score_counts_covered_texture_free_pixels_and_both_errors_against_the_truth():
+    """The bordered blank wall of the hull test, its true depth 2 m: planes through anchors 5 % too far are 5 %
+    too far on every pixel they cover, and the anchors themselves too."""
+    H, W = 60, 80
+    img = np.full((H, W, 3), 128, np.uint8)
+    yy, xx = np.mgrid[0:H, 0:W]
+    border = (yy < 12) | (yy >= H - 12) | (xx < 12) | (xx >= W - 12)
+    img[border & (((yy // 3) + (xx // 3)) % 2 == 0)] = 255
+    img[border & (((yy // 3) + (xx // 3)) % 2 == 1)] = 0
+
+    class Seq:
+        def image(self, k):
+            return img
+
+        def depth(self, k):
+            return np.full((H, W), 2.0, np.float32)
+    uv = np.array([[14, 14], [40, 12], [66, 14], [67, 30], [66, 46], [40, 47], [14, 46], [13, 30]], np.float64)
+    anchors = {0: Anchors(uv, np.full(8, 2.1), np.full(8, 0.01), np.zeros(8), np.zeros(8, np.int64), K)}
+    config = PA.PlaneConfig(min_region_px=100, min_inliers=6, weak_share=0.3)
+    s = PA._score(Seq(), [0], anchors, config)
+    labels, _ = PA.texture_free_regions(img, config)
+    assert s['references'] == 1 and s['texture_free_px'] == int((labels > 0).sum())
+    assert 0.5 < s['covered_share'] <= 1.0
+    for part in ('planes', 'anchors'):
+        assert s[part]['median_log'] == pytest.approx(np.log(1.05)) and s[part]['share_over_10pct'] == 0.0
+    assert s['anchors']['n'] == 8 and s['planes']['n'] == round(s['covered_share'] * s['texture_free_px'])
