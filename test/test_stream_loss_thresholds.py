@@ -178,3 +178,41 @@ def test_a_sequenced_stream_slowing_down_is_a_rate_change_from_one_and_a_half_pe
     loss = StreamLoss()
     run(loss, [interval_ns] * 3, seq=True, after=0)
     assert loss.rate_changes == rate_changes and loss.lost_total == 0, loss.counts()
+
+
+@pytest.mark.parametrize('first_ns, lost', [
+    (40 * P, 0),                     # 1.32 s: over max(1 s, 8 periods), a jump: nothing lost
+    (NS, 29),                        # 1 s exactly: on the line, not a jump: round(1000 / 33) - 1 = 29 lost
+])
+def test_a_stamp_jump_before_the_period_is_known_loses_nothing(first_ns, lost):
+    """The stream's first interval, judged when the period becomes known (12 one-period intervals later): the jump
+    rule holds there too."""
+    loss = StreamLoss(min_intervals=8)
+    t = 0
+    loss.on_image(t)
+    t += first_ns
+    loss.on_image(t)
+    for _ in range(12):
+        t += P
+        loss.on_image(t)
+    assert loss.period_ns == P
+    assert loss.lost_total == lost and loss.lost_stamp_gap_only == lost, loss.counts()
+
+
+@pytest.mark.parametrize('intervals_ns, rate_changes', [
+    ([66 * MS, 74 * MS, 66 * MS], 1),            # 74 ms is 12 % off the run's median, 66 ms: a slower camera
+    ([66 * MS, 79_200_000, 66 * MS], 0),         # 79.2 ms is 20 % off: not one rate
+])
+def test_a_sequenced_stream_slowing_down_needs_its_intervals_within_fifteen_percent(intervals_ns, rate_changes):
+    loss = StreamLoss()
+    run(loss, intervals_ns, seq=True)
+    assert loss.rate_changes == rate_changes and loss.lost_total == 0, loss.counts()
+
+
+def test_sequence_gaps_keep_the_period_of_the_images_that_came():
+    """Every other image lost for 70 intervals (66 ms, a sequence step of 2): the camera still runs at 33 ms; each
+    interval stands for two periods, so the period stays 33 ms and each step is one lost image."""
+    loss = StreamLoss()
+    run(loss, [(2 * P, 2)] * 70, seq=True, after=0)
+    assert loss.period_ns == P and loss.rate_changes == 0, loss.counts()
+    assert loss.lost_total == 70 and loss.lost_sequence_gap_only == 70, loss.counts()
