@@ -179,6 +179,33 @@ def test_new_evidence_within_10_s_extends_the_conflict_and_after_10_s_starts_a_n
     assert c is not None and c.events == 1 and c.since == 9.0       # a new conflict, not the old one's 3rd event
 
 
+@pytest.mark.parametrize('returns_at, events, since', [
+    (10.49, 2, 0.0),        # 9.99 s after the last evidence (0.5 s): the running conflict's second event
+    (10.5, 1, 0.5),         # 10 s exactly: that one is over, a new conflict starts (A left at 0.5 s)
+])
+def test_evidence_10_s_after_the_last_starts_a_new_conflict(returns_at, events, since):
+    tree = static_sequence([(0.0, A), (0.5, B), (returns_at, A)])
+    c = tree.conflict('camera_link', now=returns_at)
+    assert c is not None and (c.events, c.since) == (events, since)
+
+
+def test_only_the_links_of_the_path_below_the_common_ancestor_report_their_conflicts():
+    """camera_link and imu both under base_link; base_link under odom, whose /tf_static link has a burst (a
+    conflict on base_link's link). The lookup between the camera and the IMU meets at base_link and never uses
+    that link: no conflict; a lookup to or from odom uses it: the conflict is reported."""
+    tree = TransformTree()
+    J = np.eye(4)
+    J[0, 3] = 1.0
+    tree.set('base_link', 'camera_link', A, static=True, now=0.0)
+    tree.set('base_link', 'imu', B, static=True, now=0.0)
+    tree.set('odom', 'base_link', np.eye(4), static=True, now=0.0)
+    tree.set('odom', 'base_link', J, static=True, now=0.2)
+    assert tree.conflict('base_link', now=0.5) is not None
+    assert tree.lookup('camera_link', 'imu', now=0.5).conflicts == ()
+    assert [c.child for c in tree.lookup('odom', 'camera_link', now=0.5).conflicts] == ['base_link']
+    assert [c.child for c in tree.lookup('camera_link', 'odom', now=0.5).conflicts] == ['base_link']   # either way
+
+
 @pytest.mark.parametrize('values, conflict', [
     ((A, B, C, D, E), True),        # A is 4 values back: remembered
     ((A, B, C, D, E, F), False),    # 5 values back: forgotten, an update
