@@ -12,7 +12,7 @@ import math
 
 import pytest
 
-from dpv_sensor.training.heldout_decision import judge, sign_flip_p_value
+from dpv_sensor.training.heldout_decision import judge, runs_needed, sign_flip_p_value, veto
 
 BASE5 = [1.0, 2.0, 1.0, 2.0, 1.0]
 
@@ -68,3 +68,31 @@ def test_above_16_runs_the_patterns_are_sampled():
     p = sign_flip_p_value([-1.0] * 17)
     assert p >= 1 / 65537 > 2.0 ** -17
     assert p < 1e-4 and p == sign_flip_p_value([-1.0] * 17)
+
+
+def test_the_runs_differences_are_relative_to_their_base():
+    """Five runs of score 1 each 10 % better and one of score 10 that is 3 % worse: relative differences -0.1 x 5 and
+    +0.03, sum -0.47; only two of 64 sign patterns reach it (the five -0.1 negative, the +0.03 either way): p = 1/32,
+    written at 0.05. As absolute differences the worse run's +0.3 would outweigh the others' -0.5 (p 0.42)."""
+    v = judge([1.0] * 5 + [10.0], [0.9] * 5 + [10.3], 0.05)
+    assert v.better and v.p_value == pytest.approx(2 / 64) and v.runs_better == 5
+
+
+@pytest.mark.parametrize('significance, runs', [
+    (0.05, 5),               # 2^-4 = 0.0625 > 0.05 >= 2^-5
+    (1 / 32, 5),             # exactly 2^-5: five runs reach it
+    (0.01, 7),               # 2^-6 = 0.0156 > 0.01 >= 2^-7
+    (0.5, 1),
+    (1.0, 1),
+])
+def test_runs_needed_by_hand(significance, runs):
+    assert runs_needed(significance) == runs
+
+
+def test_the_veto_is_the_test_the_other_way_round():
+    """A second score on which the adapted weights are 10 % worse on five runs of five (p = 1/32 the other way)
+    vetoes them; one on which they are 10 % better does not."""
+    why = veto([1.0] * 5, [1.1] * 5, 0.05, 'photometric')
+    assert why is not None and 'photometric score is worse by 10.00 %' in why and '5 of 5 runs worse' in why, why
+    assert veto([1.0] * 5, [0.9] * 5, 0.05, 'photometric') is None
+    assert veto([1.0] * 4, [1.1] * 4, 0.05, 'photometric') is None      # four runs cannot show it at 0.05
