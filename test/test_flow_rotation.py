@@ -366,3 +366,17 @@ def test_the_window_measures_each_pair_once(rendered_pair, monkeypatch):
     assert refiner.factor_counts == {'flow_used': 2}
     T_src_ref_true = np.linalg.inv(T_wb) @ T_wa
     assert _err_deg(second.T_src_ref[0][:3, :3], np.linalg.inv(T_src_ref_true)[:3, :3]) < 0.1
+
+
+@pytest.mark.parametrize('pairs, ratio, settled', [
+    (9, 2.0, None),          # the default 50 pairs: a fifth is 10; 9 measured ratios decide nothing yet
+    (10, 2.0, False),        # 10 ratios of 2.0, over the 1.1 the directions may be off: the images disagree
+    (10, 1.0, True),         # 10 ratios of 1.0: they agree
+    (10, 1.1, True),         # a median of 1.1 exactly: on the line, they agree
+])
+def test_auto_evidence_settles_after_a_fifth_of_flow_direction_pairs(pairs, ratio, settled):
+    from dpv_sensor.stream.window_refiner import PoseRefinerConfig, WindowPoseRefiner
+    refiner = WindowPoseRefiner(PoseRefinerConfig(rotation_evidence='auto', flow_direction_pairs=50,
+                                                  flow_direction_ratio=1.1))
+    refiner._direction_ratios.extend([ratio] * pairs)
+    assert refiner._settled() is settled

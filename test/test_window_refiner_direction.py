@@ -133,3 +133,31 @@ def test_a_direction_more_than_30_degrees_from_the_keypoints_gives_the_marginal(
     else:
         np.testing.assert_array_equal(cov, kp.rotation_covariance())
         np.testing.assert_array_equal(R, kp.R_b_a)
+
+
+def test_the_keypoint_factors_go_to_the_nearest_keypoint_sources_only(views, monkeypatch):
+    """keypoint_sources 2 (the default) with three sources: the two nearest the reference by key get a factor, the
+    third none."""
+    fa, fb, T_b_a = views
+    refiner = WindowPoseRefiner(_config('odometry'))
+    assert refiner.config.keypoint_sources == 2
+    monkeypatch.setattr(refiner, '_keypoints', lambda f: fa if f.key == 0 else fb)
+    T_world_src = np.linalg.inv(T_b_a)
+    ref = WindowKeyframe(0, None, K, np.eye(4))
+    sources = [WindowKeyframe(k, None, K, T_world_src) for k in (3, 1, 2)]
+    factors, kps = refiner._keypoint_factors(ref, sources, {0: np.eye(4), 1: T_world_src, 2: T_world_src,
+                                                            3: T_world_src})
+    assert [(s, r) for s, r, _T, _cov in factors] == [(1, 0), (2, 0)] and len(kps) == 2
+
+
+def test_the_keypoints_direction_factor_takes_the_odometrys_length(views, monkeypatch):
+    """keypoint_direction 'keypoints': the factor's translation is the keypoints' direction scaled to the
+    odometry's baseline, |(0.1, 0, 0.05)| = 0.1118 m, along (0.894, 0, 0.447) within the keypoints' few degrees."""
+    fa, fb, T_b_a = views
+    refiner = WindowPoseRefiner(_config('keypoints'))
+    monkeypatch.setattr(refiner, '_keypoints', lambda f: {0: fa, 1: fb}[f.key])
+    T_world_src = np.linalg.inv(T_b_a)
+    ref, src = WindowKeyframe(0, None, K, np.eye(4)), WindowKeyframe(1, None, K, T_world_src)
+    ((s, r, T, _cov),), _ = refiner._keypoint_factors(ref, [src], {0: np.eye(4), 1: T_world_src})
+    assert np.linalg.norm(T[:3, 3]) == pytest.approx(math.hypot(0.1, 0.05), rel=1e-9)
+    assert float(T[:3, 3] @ T_DIR) / np.linalg.norm(T_DIR) ** 2 > math.cos(math.radians(5.0))
