@@ -46,6 +46,45 @@ def test_photometric_error_by_hand():
     assert torch.allclose(l1, 2 * (x[:, 0] - x[:, 1]).abs() / 3, atol=1e-6)
 
 
+@pytest.mark.parametrize('a, b, expected', [
+    # flat images have no variance or covariance: SSIM is its luminance term (2 ab + C1) / (a^2 + b^2 + C1) with
+    # C1 = 0.01^2; the error 0.85 (1 - SSIM) / 2 + 0.15 |a - b| (Monodepth2's alpha)
+    (0.5, 0.6, 0.85 * (1 - 0.6001 / 0.6101) / 2 + 0.15 * 0.1),         # 0.021966
+    (0.01, 0.02, 0.85 * (1 - 0.0005 / 0.0006) / 2 + 0.15 * 0.01),      # 0.072333: dark, where C1 matters
+])
+def test_photometric_error_of_flat_images_by_hand(a, b, expected):
+    e = S.photometric_error(torch.full((1, 3, 4, 4), a, dtype=torch.float64),
+                            torch.full((1, 3, 4, 4), b, dtype=torch.float64))
+    assert torch.allclose(e, torch.full_like(e, expected), rtol=1e-9)
+
+
+def test_ssim_structure_term_by_hand():
+    """The centre of a 3x3 checker (its window is the whole image: mean 4/9, variance 20/81) against flat grey
+    0.5: covariance 0, so SSIM = (2 (4/9) 0.5 + C1) / ((4/9)^2 + 0.25 + C1) * C2 / (20/81 + C2), C2 = 0.03^2."""
+    a = torch.tensor([[0.0, 1.0, 0.0], [1.0, 0.0, 1.0], [0.0, 1.0, 0.0]], dtype=torch.float64).expand(1, 3, 3, 3)
+    b = torch.full((1, 3, 3, 3), 0.5, dtype=torch.float64)
+    c1, c2 = 0.01 ** 2, 0.03 ** 2
+    ssim = (2 * 4 / 9 * 0.5 + c1) / ((4 / 9) ** 2 + 0.25 + c1) * c2 / (20 / 81 + c2)
+    assert S.ssim_dissimilarity(a, b)[0, :, 1, 1].tolist() == pytest.approx([(1 - ssim) / 2] * 3, rel=1e-9)
+
+
+def test_the_plane_sweeps_patch_error_is_the_image_error_at_a_3x3_images_centre():
+    """plane_errors' 3x3 patch error (SSIM over the patch, L1 of its centre) is photometric_error at the centre of
+    a 3x3 image (whose window is the whole image); a patch that differs only at its centre has L1 = that
+    difference."""
+    g = torch.Generator().manual_seed(1)
+    a, b = torch.rand(1, 3, 3, 3, generator=g, dtype=torch.float64), torch.rand(1, 3, 3, 3, generator=g,
+                                                                              dtype=torch.float64)
+    patch = lambda img: img.reshape(1, 3, 1, 1, 9)                      # noqa: E731  row-major: the centre is 4
+    for alpha in (0.0, 0.85):
+        assert S._patch_error(patch(a), patch(b), alpha)[0, 0, 0].item() == pytest.approx(
+            S.photometric_error(a, b, alpha)[0, 1, 1].item(), rel=1e-9)
+    zeros = torch.zeros(1, 3, 1, 1, 9, dtype=torch.float64)
+    centre = zeros.clone()
+    centre[..., 4] = 1.0
+    assert S._patch_error(zeros, centre, 0.0).item() == pytest.approx(1.0)
+
+
 def test_the_true_depth_explains_the_source_and_a_wrong_one_does_not():
     ref, src, K = _pair(T_MOVE)
     T = T_MOVE.float()[:, None]
