@@ -142,3 +142,65 @@ def test_the_score_counts_covered_texture_free_pixels_and_both_errors_against_th
     for part in ('planes', 'anchors'):
         assert s[part]['median_log'] == pytest.approx(np.log(1.05)) and s[part]['share_over_10pct'] == 0.0
     assert s['anchors']['n'] == 8 and s['planes']['n'] == round(s['covered_share'] * s['texture_free_px'])
+
+
+@pytest.mark.parametrize('on_wall, plane', [
+    (7, False),              # 7 of 16 agree: above min_inliers (6), but 44 % of the candidates, under 60 %
+    (9, False),              # 56 %: still under 60 %
+    (10, True),              # 62.5 %: a plane
+])
+def test_a_plane_needs_60_percent_of_its_candidates(on_wall, plane):
+    rng = np.random.default_rng(5)
+    uv16 = np.c_[rng.uniform(0, 80, 16), rng.uniform(0, 60, 16)]
+    z16 = np.r_[np.full(on_wall, 2.0), [1.0, 3.1, 0.7, 4.4, 1.4, 2.9, 0.5, 5.0, 1.2][:16 - on_wall]]
+    found = PA.fit_plane(uv16, z16, np.full(16, 0.01), K, PA.PlaneConfig(min_inliers=6))
+    assert (found is not None) is plane
+    if plane:
+        assert sorted(found.inliers) == list(range(on_wall))
+
+
+def _framed_wall(frame_px):
+    """A 160x120 blank grey wall framed by a checker border `frame_px` wide, and its camera."""
+    H, W = 120, 160
+    img = np.full((H, W, 3), 128, np.uint8)
+    yy, xx = np.mgrid[0:H, 0:W]
+    border = (yy < frame_px) | (yy >= H - frame_px) | (xx < frame_px) | (xx >= W - frame_px)
+    img[border & (((yy // 3) + (xx // 3)) % 2 == 0)] = 255
+    img[border & (((yy // 3) + (xx // 3)) % 2 == 1)] = 0
+    return img, np.array([[100.0, 0.0, 80.0], [0.0, 100.0, 60.0], [0.0, 0.0, 1.0]])
+
+
+@pytest.mark.parametrize('outside_px, covered', [(15, True), (23, True), (27, False)])
+def test_anchors_within_25_px_of_a_region_are_its_candidates(outside_px, covered):
+    """Eight anchors on the wall's frame, each `outside_px` from the region (along eight directions from its
+    centre): the band is 25 px, so at 15 and 23 px all eight are candidates, at 27 px none is."""
+    from scipy import ndimage
+    img, Kb = _framed_wall(40)
+    config = PA.PlaneConfig(min_region_px=100, min_inliers=6, weak_share=0.15)
+    labels, count = PA.texture_free_regions(img, config)
+    assert count == 1
+    dist = ndimage.distance_transform_edt(labels != 1)
+    ys, xs = np.nonzero(labels == 1)
+    cy, cx = ys.mean(), xs.mean()
+    uv = []
+    for angle in np.radians(np.arange(0, 360, 45)):
+        step = np.array([np.cos(angle), np.sin(angle)])
+        r = 0.0
+        while dist[int(round(cy + r * step[1])), int(round(cx + r * step[0]))] < outside_px:
+            r += 0.25
+        uv.append([cx + r * step[0], cy + r * step[1]])
+    anchors = Anchors(np.array(uv), np.full(8, 2.0), np.full(8, 0.01), np.zeros(8), np.zeros(8, np.int64), Kb)
+    depth = PA.region_planes(img, anchors, config)
+    assert bool(np.isfinite(depth).any()) is covered
+    if covered:
+        assert np.allclose(depth[np.isfinite(depth)], 2.0) and np.isfinite(depth[labels == 1]).mean() > 0.5
+
+
+@pytest.mark.parametrize('min_region_px, count', [(589, 1), (590, 0)])
+def test_a_region_of_exactly_the_minimum_size_is_kept(min_region_px, count):
+    """The big blank square of the size test: its region has 589 px."""
+    yy, xx = np.mgrid[0:60, 0:80]
+    img = np.where((((yy // 3) + (xx // 3)) % 2 == 0)[..., None], 255, 0).astype(np.uint8).repeat(3, axis=2)
+    img[5:35, 5:35] = 128
+    img[40:52, 50:62] = 128
+    assert PA.texture_free_regions(img, PA.PlaneConfig(min_region_px=min_region_px, weak_share=0.13))[1] == count
