@@ -216,3 +216,46 @@ def test_sequence_gaps_keep_the_period_of_the_images_that_came():
     run(loss, [(2 * P, 2)] * 70, seq=True, after=0)
     assert loss.period_ns == P and loss.rate_changes == 0, loss.counts()
     assert loss.lost_total == 70 and loss.lost_sequence_gap_only == 70, loss.counts()
+
+
+def test_a_gap_still_pending_when_the_camera_jumps_is_counted():
+    """A 2-period gap (one image lost, pending: it might start a slower rate), then a 2 s stamp jump: the jump
+    restarts the stream, and the pending gap counts as the loss it was."""
+    loss = StreamLoss()
+    run(loss, [2 * P, 2 * NS], after=0)
+    assert loss.stamp_jumps == 1 and loss.lost_total == 1 and loss.lost_stamp_gap_only == 1, loss.counts()
+
+
+def test_a_sequence_gaps_camera_gap_is_its_interval_less_the_missing_images():
+    """5 periods with a sequence step of 3: 2 images lost, and the camera itself paused 5 - 2 = 3 periods (99 ms)."""
+    loss = StreamLoss()
+    (gap,) = run(loss, [(5 * P, 3)], seq=True, after=0)
+    assert gap.missing == 2 and gap.by_sequence and gap.camera_gap_ns == 3 * P
+
+
+def test_a_partly_reported_gap_is_not_withdrawn_by_a_rate_change():
+    """The camera slows to every third frame (3-period intervals) just as the middleware reports one loss: the first
+    3-period gap (2 images) has one matched, so it is not the new rate's: confirmed, 2 lost; the unreported ones
+    that follow are the slower camera (withdrawn)."""
+    loss = StreamLoss()
+    run(loss, [3 * P] * 24, after=0)
+    assert loss.lost_total == 0 and loss.rate_changes == 1, loss.counts()      # the case without the report
+    loss = StreamLoss()
+    t = 0
+    for _ in range(41):
+        loss.on_image(t)
+        t += P
+    t -= P
+    loss.on_rmw_lost(1)
+    for _ in range(24):
+        t += 3 * P
+        loss.on_image(t)
+    assert loss.rate_changes == 1 and loss.lost_total == 2 and loss.lost_rmw == 1, loss.counts()
+
+
+def test_a_sequenced_rate_change_keeps_a_period_and_a_later_jump_is_seen():
+    """A sequenced 33 ms stream slows to 66 ms (three intervals without a sequence gap: a rate change); its period
+    is then 66 ms at once, and a 5 s interval after it is a stamp jump."""
+    loss = StreamLoss()
+    run(loss, [66 * MS] * 3 + [5 * NS], seq=True, after=0)
+    assert loss.rate_changes == 1 and loss.stamp_jumps == 1, loss.counts()
