@@ -248,3 +248,61 @@ def test_a_loop_two_links_above_the_start_frames_is_found():
     assert tree.lookup('camera_link', 'camera_optical', now=0.0).ok     # its path misses the loop
     found = tree.lookup('camera_optical', 'imu', now=0.0)
     assert not found.ok and found.loop == ('base_link', 'map', 'odom', 'base_link'), found
+
+
+def test_the_frames_evicted_first_are_the_least_recently_updated():
+    """At most 2 links: a, b, then a changes (its link is now the newest), then c: b goes, not a."""
+    tree = TransformTree(max_frames=2)
+    tree.set('w', 'a', A, now=0.0)
+    tree.set('w', 'b', A, now=1.0)
+    tree.set('w', 'a', B, now=2.0)
+    tree.set('w', 'c', A, now=3.0)
+    assert tree.lookup('w', 'a', now=3.0).ok and tree.lookup('w', 'c', now=3.0).ok
+    assert not tree.lookup('w', 'b', now=3.0).ok
+
+
+@pytest.mark.parametrize('links, ok', [(999, True), (1000, False)])
+def test_a_chain_is_walked_up_to_1000_frames(links, ok):
+    """tf2's limit: a chain of 999 links (1000 frames) is walked, its 1 cm steps adding up to 9.99 m; with one
+    more link the walk stops short of the root and the two ends are not connected."""
+    tree = TransformTree(max_frames=5000)
+    step = np.eye(4)
+    step[0, 3] = 0.01
+    for i in range(links):
+        tree.set(f'f{i}', f'f{i + 1}', step, now=0.0)
+    found = tree.lookup('f0', f'f{links}', now=0.0)
+    assert found.ok is ok, found.reason
+    if ok:
+        assert found.T_target_source_44[0, 3] == pytest.approx(0.01 * links)
+
+
+def test_a_dynamic_update_of_a_static_link_is_ignored_and_only_another_parent_is_a_conflict():
+    tree = static_sequence([(0.0, A)])
+    assert not tree.set('base_link', 'camera_link', B, static=False, now=1.0)    # same parent: ignored, no conflict
+    T, c = seen(tree, 1.0)
+    assert c is None and same_transform(T, A)
+    assert not tree.set('mast', 'camera_link', B, static=False, now=2.0)         # another parent: a conflict
+    T, c = seen(tree, 2.0)
+    assert c is not None and c.kind == 'parents' and same_transform(T, A)
+
+
+def test_a_static_value_that_was_earlier_on_tf_is_not_a_return():
+    """A on /tf at 0 s, then B on /tf_static at 10 s, then A on /tf_static at 15 s: A was never a /tf_static value of
+    the link, so its return is a plain change (no conflict; A counts)."""
+    tree = TransformTree()
+    tree.set('base_link', 'camera_link', A, static=False, now=0.0)
+    tree.set('base_link', 'camera_link', B, static=True, now=10.0)
+    tree.set('base_link', 'camera_link', A, static=True, now=15.0)
+    T, c = seen(tree, 15.0)
+    assert c is None and same_transform(T, A)
+
+
+def test_a_returning_parent_counts_from_when_it_was_last_left():
+    """camera_link's /tf parent: base_link (0 s), mast (1 s), base_link (2 s), mast (3 s): a conflict that clears
+    10 s after its last evidence (3 s); at 14 s base_link returns, last left at 3 s (and first at 1 s): a new
+    conflict since 3 s."""
+    tree = TransformTree()
+    for now, parent in ((0.0, 'base_link'), (1.0, 'mast'), (2.0, 'base_link'), (3.0, 'mast'), (14.0, 'base_link')):
+        tree.set(parent, 'camera_link', A, now=now)
+    c = tree.conflict('camera_link', now=14.0)
+    assert c is not None and c.kind == 'parents' and c.since == 3.0 and c.events == 1
