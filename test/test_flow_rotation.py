@@ -380,3 +380,60 @@ def test_auto_evidence_settles_after_a_fifth_of_flow_direction_pairs(pairs, rati
                                                   flow_direction_ratio=1.1))
     refiner._direction_ratios.extend([ratio] * pairs)
     assert refiner._settled() is settled
+
+
+def test_auto_evidence_settled_on_disagreement_probes_the_flow_every_fourth_window():
+    """Settled on 'the images disagree' (one ratio of 2.0 with flow_direction_pairs 5), flow_probe_every 4: of
+    windows 1-8 only the 4th and the 8th measure the flow."""
+    from dpv_sensor.stream.window_refiner import PoseRefinerConfig, WindowPoseRefiner
+    refiner = WindowPoseRefiner(PoseRefinerConfig(rotation_evidence='auto', flow_direction_pairs=5,
+                                                  flow_probe_every=4))
+    refiner._direction_ratios.append(2.0)
+    probed = []
+    for calls in range(1, 9):
+        refiner.calls = calls
+        if refiner._probe_flow():
+            probed.append(calls)
+    assert probed == [4, 8]
+
+
+def test_the_direction_ratio_is_the_median_of_the_recent_pairs():
+    """Six pairs at 1.0 and four at 5.0: the median 1.0 (a mean would say 2.6): the images agree."""
+    from dpv_sensor.stream.window_refiner import PoseRefinerConfig, WindowPoseRefiner
+    refiner = WindowPoseRefiner(PoseRefinerConfig(rotation_evidence='auto', flow_direction_pairs=50,
+                                                  flow_direction_ratio=1.05))
+    refiner._direction_ratios.extend([1.0] * 6 + [5.0] * 4)
+    assert refiner.direction_ratio == (1.0, 1.05) and refiner._settled() is True
+
+
+def _flow_factors_on(refiner, source_keys):
+    """_flow_factors of reference 0 with sources of these keys (identity poses); each pair's rotation fit is
+    replaced by a record of the source it was asked for (failing: no factor). Returns (result, sources asked)."""
+    import types
+    from dpv_sensor.stream.window_refiner import WindowKeyframe
+    asked = []
+    refiner._pair_rotation = lambda ref, s, T0: asked.append(s.key) or types.SimpleNamespace(ok=False,
+                                                                                             kind='no_texture')
+    K = np.eye(3)
+    out = refiner._flow_factors(WindowKeyframe(0, None, K, np.eye(4)),
+                                [WindowKeyframe(k, None, K, np.eye(4)) for k in source_keys],
+                                {k: np.eye(4) for k in [0, *source_keys]})
+    return out, asked
+
+
+def test_the_flow_is_measured_with_the_nearest_keypoint_sources():
+    from dpv_sensor.stream.window_refiner import PoseRefinerConfig, WindowPoseRefiner
+    _out, asked = _flow_factors_on(WindowPoseRefiner(PoseRefinerConfig(rotation_evidence='flow',
+                                                                        keypoint_sources=2)), (3, 1, 2))
+    assert asked == [1, 2]
+
+
+def test_auto_evidence_takes_the_flow_when_the_median_ratio_is_on_its_line():
+    """A median of exactly flow_direction_ratio (1.1) is 'at most' it: the flow's factors, not SIFT's."""
+    from dpv_sensor.stream.window_refiner import PoseRefinerConfig, WindowPoseRefiner
+    refiner = WindowPoseRefiner(PoseRefinerConfig(rotation_evidence='auto', flow_direction_pairs=50,
+                                                  flow_direction_ratio=1.1))
+    refiner._direction_ratios.extend([1.1] * 10)
+    out, asked = _flow_factors_on(refiner, (1,))
+    assert out is not None and asked == [1] and refiner.factor_counts.get('evidence_flow') == 1, \
+        refiner.factor_counts

@@ -96,3 +96,28 @@ def test_the_veto_is_the_test_the_other_way_round():
     assert why is not None and 'photometric score is worse by 10.00 %' in why and '5 of 5 runs worse' in why, why
     assert veto([1.0] * 5, [0.9] * 5, 0.05, 'photometric') is None
     assert veto([1.0] * 4, [1.1] * 4, 0.05, 'photometric') is None      # four runs cannot show it at 0.05
+
+
+def test_above_16_runs_the_p_value_counts_2_to_the_16_seeded_patterns_and_the_observed_one():
+    """17 runs each better: the sampled p is a count over 2^16 + 1 sign patterns (the observed one among them),
+    so p * 65537 is a whole number; the fixed seed makes it the same on every call."""
+    p = sign_flip_p_value([-1.0] * 17)
+    hits = p * 65537
+    assert abs(hits - round(hits)) < 1e-6 and round(hits) >= 1, p
+    assert sign_flip_p_value([-1.0] * 17) == p
+
+
+def test_a_run_whose_base_scores_zero_counts_as_no_difference():
+    """A run the base weights score 0 on (and the adapted too): its difference is taken over 1, not 0, so it is 0
+    and ties in every sign pattern; the five 10 % gains alone decide: p = 2 / 64 (the zero either way)."""
+    v = judge([0.0] + [1.0] * 5, [0.0] + [0.9] * 5, 0.05)
+    assert v.better and v.p_value == pytest.approx(2 / 64) and v.runs == 6
+
+
+def test_a_single_held_out_run_is_judged():
+    """One run, 50 % better: p = 1/2 (one of two sign patterns); written at significance 1, refused at 0.05 with
+    the reason that one run cannot show it."""
+    v = judge([1.0], [0.5], 1.0)
+    assert v.better and v.p_value == pytest.approx(0.5) and v.runs == 1
+    v = judge([1.0], [0.5], 0.05)
+    assert not v.better and 'the smallest p 1 runs can give is 0.500' in v.reason, v.reason

@@ -152,12 +152,17 @@ def test_the_keypoint_factors_go_to_the_nearest_keypoint_sources_only(views, mon
 
 def test_the_keypoints_direction_factor_takes_the_odometrys_length(views, monkeypatch):
     """keypoint_direction 'keypoints': the factor's translation is the keypoints' direction scaled to the
-    odometry's baseline, |(0.1, 0, 0.05)| = 0.1118 m, along (0.894, 0, 0.447) within the keypoints' few degrees."""
+    odometry's baseline, |(0.1, 0, 0.05)| = 0.1118 m, along (0.894, 0, 0.447) within the keypoints' few degrees,
+    and its covariance is scaled to that baseline too."""
     fa, fb, T_b_a = views
     refiner = WindowPoseRefiner(_config('keypoints'))
     monkeypatch.setattr(refiner, '_keypoints', lambda f: {0: fa, 1: fb}[f.key])
     T_world_src = np.linalg.inv(T_b_a)
     ref, src = WindowKeyframe(0, None, K, np.eye(4)), WindowKeyframe(1, None, K, T_world_src)
-    ((s, r, T, _cov),), _ = refiner._keypoint_factors(ref, [src], {0: np.eye(4), 1: T_world_src})
+    ((s, r, T, cov),), _ = refiner._keypoint_factors(ref, [src], {0: np.eye(4), 1: T_world_src})
     assert np.linalg.norm(T[:3, 3]) == pytest.approx(math.hypot(0.1, 0.05), rel=1e-9)
     assert float(T[:3, 3] @ T_DIR) / np.linalg.norm(T_DIR) ** 2 > math.cos(math.radians(5.0))
+    # its length is the odometry's, known to keypoint_scale_sigma_rel (0.5) of it: the widest translation std is
+    # 0.5 * 0.1118 = 55.9 mm (across the baseline the keypoints' direction leaves millimetres)
+    stds = np.sqrt(np.linalg.eigvalsh(cov[3:, 3:]))
+    assert stds[-1] == pytest.approx(0.5 * math.hypot(0.1, 0.05), rel=0.02) and stds[-2] < 0.02, stds
