@@ -85,6 +85,64 @@ def test_the_plane_sweeps_patch_error_is_the_image_error_at_a_3x3_images_centre(
     assert S._patch_error(zeros, centre, 0.0).item() == pytest.approx(1.0)
 
 
+def _grid_camera(H, W, f=30.0):
+    return torch.tensor([[[f, 0.0, (W - 1) / 2], [0.0, f, (H - 1) / 2], [0.0, 0.0, 1.0]]], dtype=torch.float64)
+
+
+def _noise(*shape, seed=0):
+    return torch.rand(*shape, generator=torch.Generator().manual_seed(seed), dtype=torch.float64)
+
+
+def test_plane_errors_grid_covers_every_image_pixel_on_the_stride():
+    """The DPV grid of a 50x64 image at stride 4: ceil(50/4) x 64/4 = 13 x 16 (the last row sits on image row 48)."""
+    ref = _noise(1, 3, 50, 64)
+    still = torch.eye(4, dtype=torch.float64)[None, None]
+    err, identity = S.plane_errors(ref, ref[:, None], _grid_camera(50, 64), still, torch.tensor([1.0, 2.0]))
+    assert tuple(err.shape) == (1, 2, 13, 16) and tuple(identity.shape) == (1, 13, 16)
+
+
+def test_the_unwarped_error_is_the_best_of_the_sources():
+    """Two sources left where they are, one identical to the reference and one noise: the unwarped error is the
+    minimum over them, 0 (the noise source alone would give about 0.47); score_error's fallback for a pixel the
+    depth sends out of every source is that same minimum."""
+    ref, noise = _noise(1, 3, 32, 32), _noise(1, 3, 32, 32, seed=1)
+    K = _grid_camera(32, 32)
+    still = torch.eye(4, dtype=torch.float64)[None, None].expand(1, 2, 4, 4)
+    _err, identity = S.plane_errors(ref, torch.stack([ref, noise], 1), K, still, torch.tensor([1.0, 2.0]))
+    assert identity.abs().max() < 1e-6
+    far = torch.eye(4, dtype=torch.float64)
+    far[0, 3] = 5.0                                       # 5 m sideways: at 2.5 m every pixel leaves both sources
+    score = S.score_error(ref, torch.stack([ref, noise], 1), torch.full((1, 32, 32), 2.5, dtype=torch.float64), K,
+                          far[None, None].expand(1, 2, 4, 4))
+    assert score.abs().max() < 1e-6
+
+
+def test_plane_errors_patches_at_the_image_edge_repeat_the_edge_pixel():
+    """A 33-wide image at stride 4: the last grid column sits on the last image column (32); its patches take
+    columns 31, 32, 32 (clamped to the image), as do the unwarped errors computed by hand from those pixels."""
+    ref, src = _noise(1, 3, 33, 33), _noise(1, 3, 33, 33, seed=1)
+    _err, identity = S.plane_errors(ref, src[:, None], _grid_camera(33, 33),
+                                    torch.eye(4, dtype=torch.float64)[None, None], torch.tensor([2.0]))
+
+    def patch(img, y, x):
+        idx = [(min(max(y + dy, 0), 32), min(max(x + dx, 0), 32)) for dy in (-1, 0, 1) for dx in (-1, 0, 1)]
+        return torch.stack([img[0, :, yy, xx] for yy, xx in idx], -1).reshape(1, 3, 1, 1, 9)
+    for j, y in ((0, 0), (4, 16), (8, 32)):
+        by_hand = S._patch_error(patch(ref, y, 32), patch(src, y, 32), S.SSIM_ALPHA)[0, 0, 0]
+        assert identity[0, j, 8].item() == pytest.approx(by_hand.item(), rel=1e-9)
+
+
+def test_a_patch_counts_where_its_centre_lands_in_the_source():
+    """A 29-wide image, the source 0.5 px to the right at the 2 m plane: the last grid column's centres (x = 28)
+    land at 28.5, past the last column, so they count as not reached (_FAR), though the rest of their patches
+    (27.5 and left of it) lands inside; every other column's centre lands inside."""
+    ref = _noise(1, 3, 32, 29)
+    T = torch.eye(4, dtype=torch.float64)
+    T[0, 3] = 0.5 / 30.0 * 2.0                             # 0.5 px at 2 m with f = 30 px
+    err, _ = S.plane_errors(ref, ref[:, None], _grid_camera(32, 29), T[None, None], torch.tensor([2.0]))
+    assert (err[0, 0, :, -1] >= 1e3).all() and (err[0, 0, :, :-1] < 1e3).all()
+
+
 def test_the_true_depth_explains_the_source_and_a_wrong_one_does_not():
     ref, src, K = _pair(T_MOVE)
     T = T_MOVE.float()[:, None]
