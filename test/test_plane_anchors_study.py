@@ -204,3 +204,64 @@ def test_a_region_of_exactly_the_minimum_size_is_kept(min_region_px, count):
     img[5:35, 5:35] = 128
     img[40:52, 50:62] = 128
     assert PA.texture_free_regions(img, PA.PlaneConfig(min_region_px=min_region_px, weak_share=0.13))[1] == count
+
+
+def test_regions_are_8_connected_pieces_of_the_weakest_share(monkeypatch):
+    """A texture map given by hand (0 on two 5x5 blocks that touch only at a corner, 1 elsewhere, 400 px): the
+    weakest 1/8 are the 50 zeros, and the two blocks are one 8-connected region of 50 px."""
+    import dpv_sensor.studies.error_breakdown as EB
+    tex = np.ones((20, 20))
+    tex[0:5, 0:5] = 0.0
+    tex[5:10, 5:10] = 0.0
+    monkeypatch.setattr(EB, 'local_texture', lambda image: tex)
+    labels, count = PA.texture_free_regions(np.zeros((20, 20, 3), np.uint8),
+                                            PA.PlaneConfig(min_region_px=30, weak_share=0.125))
+    assert count == 1 and (labels == 1).sum() == 50
+
+
+def test_exactly_min_inliers_anchors_on_a_plane_make_one():
+    """The default needs 8 agreeing anchors: 8 on a wall 2 m away are enough."""
+    uv = np.array([[5, 5], [70, 8], [10, 50], [75, 55], [40, 30], [20, 40], [60, 20], [33, 12]], np.float64)
+    plane = PA.fit_plane(uv, np.full(8, 2.0), np.full(8, 0.01), K)
+    assert PA.PlaneConfig().min_inliers == 8 and plane is not None and len(plane.inliers) == 8
+
+
+def test_anchors_far_right_of_a_region_stay_there():
+    """The framed wall (160x120): 8 anchors on it at 2 m, and 6 at columns 150-158 (over 30 px right of the
+    region, off the wall at other depths): those are not candidates, and the wall's plane holds."""
+    img, Kb = _framed_wall(40)
+    config = PA.PlaneConfig(min_region_px=100, min_inliers=6, weak_share=0.15)
+    good = np.array([[45, 45], [80, 42], [110, 45], [112, 60], [110, 75], [80, 78], [45, 75], [42, 60]], float)
+    bad = np.array([[150, 20], [152, 50], [155, 80], [158, 95], [151, 65], [154, 35]], float)
+    z = np.r_[np.full(8, 2.0), [1.0, 3.1, 0.7, 4.4, 1.4, 2.9]]
+    anchors = Anchors(np.r_[good, bad], z, np.full(14, 0.01), np.zeros(14), np.zeros(14, np.int64), Kb)
+    depth = PA.region_planes(img, anchors, config)
+    assert np.isfinite(depth).sum() > 1000 and np.allclose(depth[np.isfinite(depth)], 2.0)
+
+
+@pytest.mark.parametrize('too_far, over', [(1.102, 1.0), (1.098, 0.0)])
+def test_the_score_counts_only_pixels_with_ground_truth_and_errors_over_10_percent(too_far, over):
+    """The bordered wall with no ground truth on its right half: only the left half's texture-free pixels count;
+    anchors (and so planes) 10.2 % too far are all over 10 %, 9.8 % too far none."""
+    H, W = 60, 80
+    img = np.full((H, W, 3), 128, np.uint8)
+    yy, xx = np.mgrid[0:H, 0:W]
+    border = (yy < 12) | (yy >= H - 12) | (xx < 12) | (xx >= W - 12)
+    img[border & (((yy // 3) + (xx // 3)) % 2 == 0)] = 255
+    img[border & (((yy // 3) + (xx // 3)) % 2 == 1)] = 0
+    gt = np.full((H, W), 2.0, np.float32)
+    gt[:, 40:] = 0.0
+
+    class Seq:
+        def image(self, k):
+            return img
+
+        def depth(self, k):
+            return gt
+    uv = np.array([[14, 14], [40, 12], [66, 14], [67, 30], [66, 46], [40, 47], [14, 46], [13, 30]], np.float64)
+    anchors = {0: Anchors(uv, np.full(8, 2.0 * too_far), np.full(8, 0.01), np.zeros(8), np.zeros(8, np.int64), K)}
+    config = PA.PlaneConfig(min_region_px=100, min_inliers=6, weak_share=0.3)
+    s = PA._score(Seq(), [0], anchors, config)
+    labels, _ = PA.texture_free_regions(img, config)
+    assert s['texture_free_px'] == int((labels[:, :40] > 0).sum())
+    assert s['planes']['share_over_10pct'] == over and s['anchors']['n'] == 3     # the three left of x = 40
