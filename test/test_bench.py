@@ -23,7 +23,7 @@ def bench(tmp_path_factory):
     cmd = [sys.executable, '-m', 'dpv_sensor.tools.bench', '--presets', 'lite', '--sizes', '64x48',
            '--devices', 'cpu,cuda', '--repeats', '1', '--warmup', '1', '--keyframes', '1', '--e2e-hz', '10',
            '--e2e-seconds', '3', '--e2e-min-outputs', '1', '--e2e-max-seconds', '90', '--e2e-frames', '12',
-           '--keyframe-keyframes', '1', '--keyframe-warmup', '1', '--out', str(out)]
+           '--keyframe-keyframes', '1', '--keyframe-warmup', '1', '--keyframe-input', '160x120', '--out', str(out)]
     proc = subprocess.run(cmd, cwd=REPO, env=dict(os.environ), capture_output=True, text=True, timeout=400)
     assert proc.returncode == 0, proc.stdout + proc.stderr
     return out, proc, json.loads((out / 'bench.json').read_text())
@@ -36,6 +36,7 @@ def test_report_files_and_tables(bench):
                   '## The default keyframe, stage by stage (cpu)'):
         assert title in md and title in proc.stdout
     assert '| cpu | lite | 64x48 | 32 |' in md            # the per-stage row of the preset
+    assert 'Keyframe of `Pipeline.push`, input 160x120 -> 320x256' in md      # --keyframe-input's camera
     assert '| cpu | classical | 64x48 | 64 |' in md       # the classical cost volume row
     assert report['config']['sizes'] == ['64x48'] and report['config']['presets'] == ['lite']
     import torch

@@ -153,11 +153,14 @@ def bench_estimator(models, sizes, device, keyframes) -> List[Dict]:
     return out
 
 
-def bench_keyframe(device: str, backends: List[str], keyframes: int, warmup: int) -> Dict:
+def bench_keyframe(device: str, backends: List[str], keyframes: int, warmup: int,
+                   input_size: Tuple[int, int] = (640, 480)) -> Dict:
     from dpv_sensor.benchmarks import keyframe as KB
     precisions = ['float32', 'bfloat16'] if device == 'cpu' else ['auto']
-    _say(f'keyframe: node defaults on {device}, backends {",".join(backends)}, {",".join(precisions)}')
-    r = KB.run(KB.variants(backends, precisions), keyframes=keyframes, warmup=warmup, settings={'device': device})
+    _say(f'keyframe: node defaults on {device}, {input_size[0]}x{input_size[1]} camera, backends '
+         f'{",".join(backends)}, {",".join(precisions)}')
+    r = KB.run(KB.variants(backends, precisions), input_size=input_size, keyframes=keyframes, warmup=warmup,
+               settings={'device': device})
     r['device'] = device
     return r
 
@@ -429,17 +432,13 @@ def _dev(device: str) -> str:
     return str(device)
 
 
+def _parse_size(text: str) -> Tuple[int, int]:
+    from dpv_sensor.benchmarks.nets import parse_size
+    return parse_size(text)
+
+
 def _parse_sizes(text: str) -> List[Tuple[int, int]]:
-    out = []
-    for part in text.replace(' ', ',').split(','):
-        if not part:
-            continue
-        try:
-            w, h = part.lower().split('x')
-            out.append((int(w), int(h)))
-        except ValueError:
-            raise argparse.ArgumentTypeError(f'size must look like 320x256, got {part!r}') from None
-    return out
+    return [_parse_size(part) for part in text.replace(' ', ',').split(',') if part]
 
 
 def _csv(text: str) -> List[str]:
@@ -464,6 +463,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help='timed keyframes per variant of the default-keyframe part (default 12)')
     p.add_argument('--keyframe-warmup', type=int, default=4,
                    help='untimed keyframes per variant before them (default 4)')
+    p.add_argument('--keyframe-input', type=_parse_size, default=(640, 480),
+                   help="the rendered camera's image size WxH of the default-keyframe part (default 640x480)")
     p.add_argument('--backends', type=_csv, default=['torch'],
                    help='inference_backend values of the default-keyframe part, comma list (default torch)')
     p.add_argument('--threads', type=int, default=None, help='torch threads (bench process and node; default torch)')
@@ -535,7 +536,8 @@ def _run_parts(a, devices: List[str], out: pathlib.Path, report: Dict[str, Any])
         if 'estimator' in a.parts:
             report['estimator'] += bench_estimator(['classical'] + list(a.presets), a.sizes, device, a.keyframes)
         if 'keyframe' in a.parts:
-            report['keyframe'].append(bench_keyframe(device, a.backends, a.keyframe_keyframes, a.keyframe_warmup))
+            report['keyframe'].append(bench_keyframe(device, a.backends, a.keyframe_keyframes, a.keyframe_warmup,
+                                                        a.keyframe_input))
         if 'node' in a.parts:
             report['node'] += bench_node(a.presets, a.sizes, device, out, hz=a.e2e_hz, seconds=a.e2e_seconds,
                                          min_outputs=a.e2e_min_outputs, max_seconds=a.e2e_max_seconds,
