@@ -1,5 +1,5 @@
 """Transport: a camera driver with no transport settings of its own (Fast DDS defaults) sends 640x480 rgb8 at 30 Hz
-with camera_info and 100 Hz odometry for 4 s, once best effort and once reliable, into the node process at its
+with camera_info and 100 Hz odometry for 3 s, once best effort and once reliable, into the node process at its
 default parameters. Every image sent is received by the node or counted as lost in /diagnostics (lost.transport);
 the node applies its own transport (dpv_sensor.ros.transport) and follows the publisher's reliability
 (input_reliability auto). The node may be slower than 30 Hz: what it skips while busy is counted in dropped.*."""
@@ -16,7 +16,7 @@ from dpv_sensor.benchmarks.transport import TRANSPORT_VARS
 from dpv_sensor.ros.stream_loss import StreamLoss
 from dpv_sensor.tools.soak import OutputCollector
 
-SECONDS = 4
+SECONDS = 3
 DIAGNOSTICS_PERIOD_S = 0.2
 
 
