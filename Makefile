@@ -16,8 +16,9 @@ PARAMS ?=
 DEMO_ARGS ?=
 BENCH_OUT ?= out/bench
 BENCH_ARGS ?=
-# make test runs the suite in this many pytest-xdist workers (a test file stays on one worker; 1 = no workers)
-TEST_WORKERS ?= 2
+# make test runs the suite in this many pytest-xdist workers (a test file stays on one worker; 1 = no workers). Three
+# on a 2-core machine: the node tests wait on DDS and on ticks for much of their time, and a third worker fills it
+TEST_WORKERS ?= 3
 # more pytest options for make test, e.g. PYTEST_ARGS=--durations=25
 PYTEST_ARGS ?=
 

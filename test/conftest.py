@@ -14,7 +14,7 @@ SHARED_DATA = REPO.parent / 'shared' / 'data'
 # rclpy writes logs under ROS_LOG_DIR; keep them out of $HOME and out of the repo.
 os.environ.setdefault('ROS_LOG_DIR', str(REPO / 'log' / 'ros-test'))
 # A DDS domain of our own so tests never talk to another ROS graph on the machine (or a parallel run). Under
-# pytest-xdist (make test runs two workers) every worker gets a domain of its own: one base per run (the run's id,
+# pytest-xdist (make test runs three workers) every worker gets a domain of its own: one base per run (the run's id,
 # which all its workers share), plus the worker's number (gw0, gw1, ...).
 _WORKER = os.environ.get('PYTEST_XDIST_WORKER', '')
 if _WORKER.startswith('gw'):
@@ -24,7 +24,7 @@ else:
     os.environ.setdefault('ROS_DOMAIN_ID', str(random.Random(os.getpid()).randint(100, 200)))
 os.environ.setdefault('ROS_LOCALHOST_ONLY', '1')
 # One OpenMP/MKL thread per worker, and for the processes it starts (nodes, tools), when the workers fill the cores
-# (make test: two workers on two cores). Two workers that each run torch with a thread per core wait on each other's
+# (make test: three workers on two cores). Two workers that each run torch with a thread per core wait on each other's
 # threads at every parallel region: test_train took 233 s beside a busy core at torch's default, 121 s at one thread.
 # A value set by hand is kept; one process (TEST_WORKERS=1) keeps torch's default.
 if _WORKER.startswith('gw'):
