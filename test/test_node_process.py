@@ -1,4 +1,5 @@
 """The node runs as its own process, shows up in the ROS graph and stops cleanly on SIGINT and SIGTERM."""
+import os
 import signal
 
 import pytest
@@ -9,16 +10,20 @@ from dpv_sensor.ros.node import NODE_NAME
 
 
 
-def _visible(node) -> bool:
-    return any(name == NODE_NAME for name, _ns in node.get_node_names_and_namespaces())
+def _visible(node, name: str = NODE_NAME) -> bool:
+    return any(n == name for n, _ns in node.get_node_names_and_namespaces())
 
 
 @pytest.mark.parametrize('sig', [signal.SIGINT, signal.SIGTERM], ids=['SIGINT', 'SIGTERM'])
 def test_node_joins_graph_and_stops_cleanly(observer, sig):
+    """The node under a name of its own (remapped), so that only its own leaving is waited for: another test's
+    node of the default name in this worker's domain cannot stand in for it."""
     node, executor = observer
-    proc = start_node()
+    name = f'{NODE_NAME}_{sig.name.lower()}_{os.getpid()}'
+    proc = start_node(['--ros-args', '-r', f'__node:={name}'])
     try:
-        seen = wait_for(lambda: _visible(node), timeout=20.0, spin=lambda t: executor.spin_once(timeout_sec=t))
+        seen = wait_for(lambda: _visible(node, name), timeout=20.0,
+                        spin=lambda t: executor.spin_once(timeout_sec=t))
         assert proc.poll() is None, 'node exited early:\n' + stop_process(proc)[1]
         assert seen, 'node never appeared in the ROS graph'
     finally:
@@ -29,8 +34,9 @@ def test_node_joins_graph_and_stops_cleanly(observer, sig):
     # A clean exit announces the participant's end; where that message is lost (seen twice under a loaded suite),
     # the peer drops it when its lease runs out. Fast DDS's default lease is 20 s, counted from the last
     # announcement it heard and noticed some time after it runs out: 30 s was once too short.
-    gone = wait_for(lambda: not _visible(node), timeout=45.0, spin=lambda t: executor.spin_once(timeout_sec=t))
-    assert gone, 'node still listed in the graph after it stopped'
+    gone = wait_for(lambda: not _visible(node, name), timeout=45.0,
+                    spin=lambda t: executor.spin_once(timeout_sec=t))
+    assert gone, f'node still listed in the graph after it stopped: {node.get_node_names_and_namespaces()}'
 
 
 def test_off_on_the_command_line_turns_a_setting_off(observer):
