@@ -17,6 +17,8 @@ one); the benchmarks a user runs to learn how fast or how accurate the camera is
   (docs/pose_uncertainty.md, "How far the keypoint poses err" and "Rotation factors from dense optical flow").
 - ``mount_check``: what the mount check finds on every folder with a mount and time offsets put in
   (docs/robot.md, "Check the mount and the clock"; docs/results.md, "The mount check").
+- ``plane_anchors``: whether planes through the adapt judge's anchors can judge texture-free depth
+  (docs/adaptation.md, "Planes through the anchors, as a judge of texture-free depth").
 - ``pose_error_depth``: how the depth answers a chosen share of the odometry's error
   (docs/pose_uncertainty.md, "Where the drift's cost lies").
 - ``poses``: the pose-refinement experiments: refinement window, odometry-free mode, the GT poses' consistency
