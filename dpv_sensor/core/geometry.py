@@ -16,6 +16,7 @@ Conventions:
 """
 from __future__ import annotations
 
+import functools
 from typing import Optional, Sequence, Tuple
 
 import numpy as np
@@ -154,7 +155,20 @@ def se3_exp(xi_b6: torch.Tensor) -> torch.Tensor:
 # ----------------------------------------------------------------------------------------------
 
 def pixel_grid(h: int, w: int, dtype=torch.float32, device=None) -> torch.Tensor:
-    """Homogeneous pixel coordinates ``[u, v, 1]`` of an h x w image, shape (3, h*w), row-major."""
+    """Homogeneous pixel coordinates ``[u, v, 1]`` of an h x w image, shape (3, h*w), row-major.
+
+    The grids of the last few sizes are kept (a keyframe asks for the same few grids a dozen times): the tensor
+    returned is shared, so callers must not write into it."""
+    return _pixel_grid(int(h), int(w), dtype, torch.device('cpu') if device is None else torch.device(device))
+
+
+@functools.lru_cache(maxsize=8)
+def _pixel_grid(h: int, w: int, dtype, device: torch.device) -> torch.Tensor:
+    with torch.inference_mode(False):       # a normal tensor, whatever mode the first caller ran in
+        return _fresh_pixel_grid(h, w, dtype, device)
+
+
+def _fresh_pixel_grid(h: int, w: int, dtype, device: torch.device) -> torch.Tensor:
     v, u = torch.meshgrid(torch.arange(h, dtype=dtype, device=device),
                           torch.arange(w, dtype=dtype, device=device), indexing='ij')
     return torch.stack([u.reshape(-1), v.reshape(-1), torch.ones(h * w, dtype=dtype, device=device)], 0)

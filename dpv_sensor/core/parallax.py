@@ -53,29 +53,26 @@ def disparity_span(depth_bhw: torch.Tensor, K_b33: torch.Tensor, T_src_ref_bn44:
     if T.dim() == 3:
         T = T[None]
     N = T.shape[1]
+    if N == 0:
+        return torch.zeros((0, B, H, W) if per_source else (B, H, W), dtype=dt, device=depth_bhw.device)
     K = K_b33.to(dt).expand(B, 3, 3)
     ok = torch.isfinite(depth_bhw) & (depth_bhw > 0)
     d = torch.where(ok, depth_bhw.to(dt), torch.ones_like(depth_bhw, dtype=dt))
     r = float(ratio)
-    spans = []
-    for n in range(N):
-        Tn = T[:, n].expand(B, 4, 4)
-        uv = []
-        front = ok.reshape(B, H * W)
-        for scale in (1.0 / r, r, 1.0):
-            pts = backproject(d * scale, K).reshape(B, 3, H * W)
-            p, z = project(transform_points(Tn, pts), K)
-            uv.append(p)
-            front = front & (z > Z_EPS)
-        span = (uv[1] - uv[0]).norm(dim=1)
-        if src_hw is not None:
-            h, w = int(src_hw[0]), int(src_hw[1])
-            u, v = uv[2][:, 0], uv[2][:, 1]
-            front = front & (u >= -0.5) & (u <= w - 0.5) & (v >= -0.5) & (v <= h - 0.5)
-        spans.append(torch.where(front, span, torch.zeros_like(span)))
-    if not spans:
-        return torch.zeros((0, B, H, W) if per_source else (B, H, W), dtype=dt, device=depth_bhw.device)
-    spans = torch.stack(spans, 0).reshape(N, B, H, W)
+    # every source and both band ends and the depth itself in one batch: (N, 3, B) rays of H*W points
+    d_sb = torch.stack([d * (1.0 / r), d * r, d])                                       # 3, B, H, W
+    pts = backproject(d_sb.reshape(3 * B, H, W), K.repeat(3, 1, 1)).reshape(1, 3 * B, 3, H * W)
+    T_n = T.transpose(0, 1)[:, None].expand(N, 3, B, 4, 4).reshape(N, 3 * B, 4, 4)
+    p, z = project(transform_points(T_n, pts.expand(N, 3 * B, 3, H * W)).reshape(N * 3 * B, 3, H * W),
+                   K.repeat(3 * N, 1, 1))
+    uv = p.reshape(N, 3, B, 2, H * W)
+    front = ok.reshape(1, B, H * W) & (z.reshape(N, 3, B, H * W) > Z_EPS).all(1)          # N, B, HW
+    span = (uv[:, 1] - uv[:, 0]).norm(dim=2)                                           # N, B, HW
+    if src_hw is not None:
+        h, w = int(src_hw[0]), int(src_hw[1])
+        u, v = uv[:, 2, :, 0], uv[:, 2, :, 1]
+        front = front & (u >= -0.5) & (u <= w - 0.5) & (v >= -0.5) & (v <= h - 0.5)
+    spans = torch.where(front, span, torch.zeros_like(span)).reshape(N, B, H, W)
     return spans if per_source else spans.amax(0)
 
 
