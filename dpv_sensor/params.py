@@ -234,6 +234,12 @@ SPECS: tuple[ParamSpec, ...] = (
               "(refine_flow_direction_ratio), keypoints where they do not (a camera whose calibration, mount or "
               "timing does not match the odometry).",
               choices=('keypoints', 'flow', 'auto')),
+    ParamSpec('refine_flow_max_width', 640, 'Pose refinement with the flow rotation factors: camera images wider '
+              'than this are shrunk to it before the flow is measured (the metric anchors track on the same images). '
+              'Narrower is faster and less precise: 320 took the pose refinement from 28 to 16 ms a keyframe, '
+              'tripled the rotation error given the true direction (TartanAir 0.05 -> 0.15 deg) and made TUM '
+              "fr1_rpy's depth 0.03 abs_rel worse with drifting odometry (docs/estimator.md).",
+              min_value=64, max_value=4096),
     ParamSpec('refine_flow_direction_ratio', 1.05, "Pose refinement with refine_rotation_evidence auto: the flow "
               "factors are used while the median, over the last 50 flow pairs, of the matches' rms epipolar "
               "distance with the odometry's translation direction held over that with the direction fitted to the "

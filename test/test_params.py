@@ -61,6 +61,24 @@ def test_pose_refiner_sigmas_come_from_the_parameters():
     np.testing.assert_allclose(sig[3:], 0.01 + 0.1 * 0.5)
 
 
+def test_flow_width_comes_from_the_parameters():
+    """refine_flow_max_width reaches the flow's config and no other flow field moves; a 640x480 camera is then matched
+    at 320x240 with its intrinsics halved (fx 500 -> 250, cx 320 -> 160, cy 240 -> 120)."""
+    import dataclasses
+    import numpy as np
+    from dpv_sensor.core.flow_rotation import FlowConfig, match_image
+    from dpv_sensor.stream.window_refiner import PoseRefinerConfig
+    assert PoseRefinerConfig.from_params(P.defaults()).flow == FlowConfig()          # 640 wide by default
+    cfg = PoseRefinerConfig.from_params(P.validate(dict(P.defaults(), refine_flow_max_width=320)))
+    assert cfg.flow == dataclasses.replace(FlowConfig(), max_width=320)
+    K = np.array([[500.0, 0.0, 320.0], [0.0, 500.0, 240.0], [0.0, 0.0, 1.0]])
+    grey, K_small = match_image(np.zeros((480, 640, 3), np.uint8), K, cfg.flow)
+    assert grey.shape == (240, 320)
+    np.testing.assert_allclose(K_small, [[250.0, 0.0, 160.0], [0.0, 250.0, 120.0], [0.0, 0.0, 1.0]])
+    with pytest.raises(ValueError, match='refine_flow_max_width'):
+        P.validate(dict(P.defaults(), refine_flow_max_width=32))
+
+
 def test_pose_error_model_comes_from_the_parameters():
     from dpv_sensor.stream.window_refiner import PoseRefinerConfig
     values = dict(P.defaults(), refine_odom_covariance='odometry', refine_keypoints=True, refine_marginals=True,
