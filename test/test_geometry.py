@@ -366,3 +366,19 @@ def test_inverse_depth_step_is_the_slope_of_the_plane_index():
     i1 = float(inverse_depth_index(torch.tensor(1.0), 0.5, 8.0, 16))
     i2 = float(inverse_depth_index(torch.tensor(1.0 / (1.0 - step)), 0.5, 8.0, 16))
     assert i2 - i1 == pytest.approx(1.0, rel=1e-5)
+
+
+def test_pixel_grid_by_hand_and_kept_usable_in_autograd():
+    """A 2x3 grid is [u, v, 1] row-major; the kept grid of a size first asked for under inference_mode is an ordinary
+    tensor, so a later backprojection with gradients through K and the depth still works."""
+    with torch.inference_mode():
+        first = G.pixel_grid(2, 3, torch.float64)
+    assert not first.is_inference()
+    assert first.tolist() == [[0, 1, 2, 0, 1, 2], [0, 0, 0, 1, 1, 1], [1, 1, 1, 1, 1, 1]]
+    assert G.pixel_grid(2, 3, torch.float64) is first                      # kept, not rebuilt
+    K = torch.tensor([[2.0, 0.0, 1.0], [0.0, 2.0, 0.5], [0.0, 0.0, 1.0]], dtype=torch.float64)[None].requires_grad_()
+    depth = torch.full((1, 2, 3), 4.0, dtype=torch.float64, requires_grad=True)
+    X = G.backproject(depth, K)                                             # x = 4 (u - 1) / 2 at v = 0
+    assert X[0, 0, 0].tolist() == [-2.0, 0.0, 2.0]
+    X.sum().backward()
+    assert K.grad is not None and depth.grad is not None
