@@ -3,7 +3,6 @@ settings table), ``WindowKeyframe`` (one keyframe as the estimator hands it over
 window's refinement gives back). numpy only; no ROS. The refiner itself is :mod:`dpv_sensor.stream.window_refiner`."""
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass, field
 from typing import Dict, Hashable, List, Optional, Tuple
 
@@ -178,7 +177,7 @@ class PoseRefinerConfig:
                                                       rot_per_deg=float(values['odom_drift_rot']), sync_s=0.0,
                                                       cov_trans_per_m=float(values['odom_drift_trans']))
         if 'refine_flow_max_width' in values:
-            kw['flow'] = dataclasses.replace(FlowConfig(), max_width=int(values['refine_flow_max_width']))
+            kw['flow'] = FlowConfig(max_width=int(values['refine_flow_max_width']))
         return cls(**kw)
 
 
